@@ -1,0 +1,56 @@
+# Generates C++ (target ftcal_lcmtypes), Python and, when a JDK is present, a jar for
+# lcm-spy from lcmtypes/*.lcm at build time. Generated code lives only in the build tree.
+file(GLOB FTCAL_LCM_FILES CONFIGURE_DEPENDS "${PROJECT_SOURCE_DIR}/lcmtypes/*.lcm")
+set(FTCAL_LCM_CPP_DIR "${PROJECT_BINARY_DIR}/lcmtypes")
+set(FTCAL_LCM_PY_DIR "${PROJECT_BINARY_DIR}/python")
+set(FTCAL_LCM_JAVA_DIR "${PROJECT_BINARY_DIR}/java")
+
+set(_hpp "")
+set(_py "")
+set(_java "")
+foreach(_lcm ${FTCAL_LCM_FILES})
+  get_filename_component(_name "${_lcm}" NAME_WE)
+  list(APPEND _hpp "${FTCAL_LCM_CPP_DIR}/ftcal/${_name}.hpp")
+  list(APPEND _py "${FTCAL_LCM_PY_DIR}/ftcal/${_name}.py")
+  list(APPEND _java "${FTCAL_LCM_JAVA_DIR}/ftcal/${_name}.java")
+endforeach()
+
+add_custom_command(
+  OUTPUT ${_hpp}
+  COMMAND ${LCM_GEN} --cpp --cpp-hpath "${FTCAL_LCM_CPP_DIR}" ${FTCAL_LCM_FILES}
+  DEPENDS ${FTCAL_LCM_FILES}
+  COMMENT "lcm-gen: C++ message types"
+  VERBATIM)
+add_custom_command(
+  OUTPUT ${_py}
+  COMMAND ${LCM_GEN} --python --ppath "${FTCAL_LCM_PY_DIR}" ${FTCAL_LCM_FILES}
+  DEPENDS ${FTCAL_LCM_FILES}
+  COMMENT "lcm-gen: Python message types"
+  VERBATIM)
+add_custom_target(ftcal_lcmtypes_gen ALL DEPENDS ${_hpp} ${_py})
+
+add_library(ftcal_lcmtypes INTERFACE)
+add_dependencies(ftcal_lcmtypes ftcal_lcmtypes_gen)
+target_include_directories(ftcal_lcmtypes INTERFACE "${FTCAL_LCM_CPP_DIR}")
+target_link_libraries(ftcal_lcmtypes INTERFACE lcm::lcm)
+
+# lcm-spy decodes our channels when our types are on its classpath.
+find_package(Java COMPONENTS Development QUIET)
+find_file(LCM_JAR lcm.jar PATHS /usr/share/java /usr/local/share/java NO_DEFAULT_PATH)
+if(Java_FOUND AND LCM_JAR)
+  set(FTCAL_LCM_JAR "${PROJECT_BINARY_DIR}/ftcal_lcmtypes.jar")
+  add_custom_command(
+    OUTPUT "${FTCAL_LCM_JAR}"
+    COMMAND ${CMAKE_COMMAND} -E rm -rf "${FTCAL_LCM_JAVA_DIR}"
+    COMMAND ${CMAKE_COMMAND} -E make_directory "${FTCAL_LCM_JAVA_DIR}"
+    COMMAND ${LCM_GEN} --java --jpath "${FTCAL_LCM_JAVA_DIR}" ${FTCAL_LCM_FILES}
+    COMMAND ${Java_JAVAC_EXECUTABLE} -nowarn -cp "${LCM_JAR}" -d "${FTCAL_LCM_JAVA_DIR}/classes"
+            ${_java}
+    COMMAND ${Java_JAR_EXECUTABLE} cf "${FTCAL_LCM_JAR}" -C "${FTCAL_LCM_JAVA_DIR}/classes" .
+    DEPENDS ${FTCAL_LCM_FILES}
+    COMMENT "lcm-gen: Java message types for lcm-spy"
+    VERBATIM)
+  add_custom_target(ftcal_lcmtypes_jar ALL DEPENDS "${FTCAL_LCM_JAR}")
+else()
+  message(STATUS "No JDK or lcm.jar: the lcm-spy jar is not built (scripts/spy will say so)")
+endif()
