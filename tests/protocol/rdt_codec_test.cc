@@ -1,0 +1,289 @@
+// ATI RDT codec against the byte examples of docs/device-protocols.md §1 and hand-built
+// records whose fields are known.
+#include "rdt_codec.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <sstream>
+#include <vector>
+
+namespace ftcal::rdt {
+namespace {
+
+using Bytes = std::vector<std::uint8_t>;
+
+template <std::size_t N>
+Bytes ToVec(const std::array<std::uint8_t, N>& a) {
+  return Bytes(a.begin(), a.end());
+}
+
+TEST(RdtRequest, DocumentedExampleDatagramsByteExact) {
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kRealtime)), (Bytes{0x12, 0x34, 0x00, 0x02, 0, 0, 0, 0}));
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kStop)), (Bytes{0x12, 0x34, 0x00, 0x00, 0, 0, 0, 0}));
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kBias)), (Bytes{0x12, 0x34, 0x00, 0x42, 0, 0, 0, 0}));
+}
+
+TEST(RdtRequest, OtherCommandsAndCountAreBigEndian) {
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kBuffered, 0x01020304)),
+            (Bytes{0x12, 0x34, 0x00, 0x03, 0x01, 0x02, 0x03, 0x04}));
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kMultiUnit, 10)),
+            (Bytes{0x12, 0x34, 0x00, 0x04, 0, 0, 0, 10}));
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kResetThreshold)),
+            (Bytes{0x12, 0x34, 0x00, 0x41, 0, 0, 0, 0}));
+}
+
+TEST(RdtRequest, DecodeRoundTripAndRejects) {
+  const auto bytes = EncodeRequest(Command::kBuffered, 5000);
+  const Request r = DecodeRequest(bytes.data(), bytes.size());
+  EXPECT_EQ(r.command, Command::kBuffered);
+  EXPECT_EQ(r.sample_count, 5000u);
+  const Bytes bad_header{0x12, 0x35, 0, 2, 0, 0, 0, 0};
+  EXPECT_THROW(DecodeRequest(bad_header.data(), bad_header.size()), RdtError);
+  const Bytes loop_driven{0x12, 0x34, 0, 1, 0, 0, 0, 0};  // 0x0001: not in the manual's table
+  EXPECT_THROW(DecodeRequest(loop_driven.data(), loop_driven.size()), RdtError);
+  EXPECT_THROW(DecodeRequest(bytes.data(), 7), RdtError);
+}
+
+// A record laid out by hand (offsets from §1.3):
+//   0 rdt_sequence 0xFFFFFFFF | 4 ft_sequence 0x00010203 | 8 status 0x80020000 (saturation)
+//  12 Fx = 1 | 16 Fy = -1 | 20 Fz = -2,000,000 (0xFFE17B80) | 24 Tx = 0x7FFFFFFF
+//  28 Ty = INT32_MIN | 32 Tz = 250,000 (0x0003D090)
+const Bytes kRecordA = {
+    0xFF, 0xFF, 0xFF, 0xFF, 0x00, 0x01, 0x02, 0x03, 0x80, 0x02, 0x00, 0x00,
+    0x00, 0x00, 0x00, 0x01, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xE1, 0x7B, 0x80,
+    0x7F, 0xFF, 0xFF, 0xFF, 0x80, 0x00, 0x00, 0x00, 0x00, 0x03, 0xD0, 0x90};
+// The next record of the stream: sequence wrapped to 0, status healthy, counts all zero.
+const Bytes kRecordB = {0x00, 0x00, 0x00, 0x00, 0x00, 0x01, 0x02, 0x49, 0, 0, 0, 0,
+                        0,    0,    0,    0,    0,    0,    0,    0,    0, 0, 0, 0,
+                        0,    0,    0,    0,    0,    0,    0,    0,    0, 0, 0, 0};
+
+TEST(RdtRecord, HandBuiltRecordDecodes) {
+  const auto records = DecodeDatagram(kRecordA.data(), kRecordA.size());
+  ASSERT_EQ(records.size(), 1u);
+  const Record& r = records[0];
+  EXPECT_EQ(r.rdt_sequence, 0xFFFFFFFFu);
+  EXPECT_EQ(r.ft_sequence, 0x00010203u);
+  EXPECT_EQ(r.status, 0x80020000u);
+  EXPECT_EQ(r.counts[0], 1);
+  EXPECT_EQ(r.counts[1], -1);
+  EXPECT_EQ(r.counts[2], -2000000);
+  EXPECT_EQ(r.counts[3], 2147483647);
+  EXPECT_EQ(r.counts[4], -2147483647 - 1);
+  EXPECT_EQ(r.counts[5], 250000);
+  EXPECT_TRUE(StatusSaturated(r.status));
+}
+
+TEST(RdtRecord, BufferedDatagramWithWrappedSequence) {
+  Bytes datagram = kRecordA;
+  datagram.insert(datagram.end(), kRecordB.begin(), kRecordB.end());
+  const auto records = DecodeDatagram(datagram.data(), datagram.size());
+  ASSERT_EQ(records.size(), 2u);
+  EXPECT_EQ(records[1].rdt_sequence, 0u);
+  EXPECT_EQ(records[1].ft_sequence, 0x00010249u);
+  EXPECT_EQ(records[1].status, 0u);
+}
+
+TEST(RdtRecord, EncodeMatchesHandBuiltBytes) {
+  Record r;
+  r.rdt_sequence = 0xFFFFFFFF;
+  r.ft_sequence = 0x00010203;
+  r.status = 0x80020000;
+  r.counts = {1, -1, -2000000, 2147483647, -2147483647 - 1, 250000};
+  EXPECT_EQ(EncodeDatagram({r}), kRecordA);
+}
+
+TEST(RdtRecord, WrongLengthsRejectedWithReason) {
+  Bytes datagram = kRecordA;
+  for (std::size_t n : {0u, 1u, 35u, 37u, 71u}) {
+    datagram.resize(n, 0);
+    try {
+      DecodeDatagram(datagram.data(), datagram.size());
+      ADD_FAILURE() << "length " << n << " accepted";
+    } catch (const RdtError& e) {
+      EXPECT_NE(std::string(e.what()).find(std::to_string(n)), std::string::npos) << e.what();
+    }
+  }
+}
+
+using V = SequenceTracker::Verdict;
+
+TEST(RdtSequence, InOrderStream) {
+  SequenceTracker t;
+  EXPECT_EQ(t.Update(1).verdict, V::kStart);
+  for (std::uint32_t s = 2; s <= 10; ++s) EXPECT_EQ(t.Update(s).verdict, V::kNext);
+  EXPECT_EQ(t.accepted(), 10u);
+  EXPECT_EQ(t.lost(), 0u);
+}
+
+TEST(RdtSequence, LossOfThree) {
+  SequenceTracker t;
+  t.Update(1);
+  t.Update(2);
+  const auto r = t.Update(6);  // 3, 4, 5 lost
+  EXPECT_EQ(r.verdict, V::kGap);
+  EXPECT_EQ(r.lost, 3u);
+  EXPECT_TRUE(r.accept());
+  EXPECT_EQ(t.lost(), 3u);
+  EXPECT_EQ(t.Update(7).verdict, V::kNext);
+}
+
+TEST(RdtSequence, DuplicateDropped) {
+  SequenceTracker t;
+  t.Update(1);
+  t.Update(2);
+  const auto r = t.Update(2);
+  EXPECT_EQ(r.verdict, V::kDuplicate);
+  EXPECT_FALSE(r.accept());
+  EXPECT_EQ(t.duplicates(), 1u);
+  EXPECT_EQ(t.Update(3).verdict, V::kNext);
+}
+
+TEST(RdtSequence, ReorderedDroppedAndLossNotUndone) {
+  SequenceTracker t;
+  t.Update(1);
+  EXPECT_EQ(t.Update(3).lost, 1u);  // 2 looks lost
+  const auto r = t.Update(2);       // ... then arrives late
+  EXPECT_EQ(r.verdict, V::kLate);
+  EXPECT_FALSE(r.accept());
+  EXPECT_EQ(t.late(), 1u);
+  EXPECT_EQ(t.Update(4).verdict, V::kNext);
+  EXPECT_EQ(t.last_sequence(), 4u);
+}
+
+TEST(RdtSequence, WrapAround) {
+  SequenceTracker t;
+  // Reach the top of the range legitimately: a start then one large forward jump is
+  // impossible (> 2^31), so walk in three jumps of < 2^31.
+  t.Update(1);
+  t.Update(0x70000000u);
+  t.Update(0xE0000000u);
+  ASSERT_EQ(t.Update(0xFFFFFFFEu).verdict, V::kGap);
+  EXPECT_EQ(t.Update(0xFFFFFFFFu).verdict, V::kNext);
+  EXPECT_EQ(t.Update(0u).verdict, V::kNext);
+  const auto r = t.Update(3u);  // 1 and 2 lost across the wrap
+  EXPECT_EQ(r.verdict, V::kGap);
+  EXPECT_EQ(r.lost, 2u);
+  EXPECT_EQ(t.Update(0xFFFFFFFFu).verdict, V::kLate);
+}
+
+TEST(RdtSequence, ResetOnStartIgnoresPreviousStreamLeftovers) {
+  SequenceTracker t;
+  t.Update(1);
+  t.Update(5000);
+  t.Reset();                                   // a start command was sent
+  EXPECT_EQ(t.Update(5001).verdict, V::kStale);  // in flight from the old stream
+  const auto r = t.Update(3);                  // the new stream, records 1 and 2 lost
+  EXPECT_EQ(r.verdict, V::kStart);
+  EXPECT_EQ(r.lost, 2u);
+  EXPECT_EQ(t.Update(4).verdict, V::kNext);
+  EXPECT_EQ(t.stale(), 1u);
+}
+
+TEST(RdtConversion, CountsToNewtonsAndSign) {
+  const std::array<std::int32_t, 6> counts = {1500000, -250000, 0, 1000, -3, 7};
+  const Vector6d w = CountsToWrench(counts, 1e6, 1e3);
+  EXPECT_DOUBLE_EQ(w(0), 1.5);
+  EXPECT_DOUBLE_EQ(w(1), -0.25);
+  EXPECT_DOUBLE_EQ(w(2), 0.0);
+  EXPECT_DOUBLE_EQ(w(3), 1.0);
+  EXPECT_DOUBLE_EQ(w(4), -0.003);
+  EXPECT_DOUBLE_EQ(w(5), 0.007);
+  const Vector6d flipped = CountsToWrench(counts, 1e6, 1e3, -1);
+  EXPECT_TRUE(flipped.isApprox(-w));
+  EXPECT_THROW(CountsToWrench(counts, 0, 1e3), RdtError);
+  EXPECT_THROW(CountsToWrench(counts, 1e6, -1), RdtError);
+  EXPECT_THROW(CountsToWrench(counts, 1e6, 1e3, 2), RdtError);
+}
+
+TEST(RdtStatus, DecodeBits) {
+  EXPECT_EQ(ClassifyStatus(0), StatusSeverity::kOk);
+  EXPECT_EQ(ClassifyStatus(0x80010000u), StatusSeverity::kWarning);
+  EXPECT_EQ(ClassifyStatus(0x80020000u), StatusSeverity::kError);
+  EXPECT_FALSE(StatusSaturated(0x80010000u));
+  EXPECT_TRUE(StatusSaturated(0x00020000u));
+  EXPECT_TRUE(DescribeStatus(0).empty());
+  const auto d = DescribeStatus(0x80020000u);
+  ASSERT_EQ(d.size(), 2u);
+  EXPECT_EQ(d[0], "summary: error or condition present");
+  EXPECT_EQ(d[1], "transducer saturation or A/D error");
+  const auto u = DescribeStatus(0x00008001u);  // bits 15 and 0 are not in the table
+  ASSERT_EQ(u.size(), 2u);
+  EXPECT_NE(u[0].find("bit 15"), std::string::npos);
+  EXPECT_NE(u[1].find("bit 0"), std::string::npos);
+}
+
+TEST(RdtStatus, RatedRange) {
+  const std::array<double, 6> range = {130, 130, 400, 10, 10, 10};
+  Vector6d w;
+  w << 129.9, -129.9, 399, 9.99, -9.99, 0;
+  EXPECT_FALSE(ExceedsRatedRange(w, range));
+  w(2) = -400;
+  EXPECT_TRUE(ExceedsRatedRange(w, range));
+  w(2) = 0;
+  w(4) = std::nan("");
+  EXPECT_TRUE(ExceedsRatedRange(w, range));
+}
+
+std::string ReadFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::ostringstream os;
+  os << in.rdbuf();
+  return os.str();
+}
+
+const std::string kDataDir = FTCAL_PROTOCOL_TEST_DATA;
+
+TEST(RdtCalibrationPage, SampleParses) {
+  const std::string xml = ReadFile(kDataDir + "/netftapi2.xml");
+  ASSERT_FALSE(xml.empty());
+  const NetFtConfig c = ParseNetFtXml(xml, "netftapi2.xml");
+  EXPECT_EQ(c.counts_per_force, 1e6);
+  EXPECT_EQ(c.counts_per_torque, 1e6);
+  EXPECT_EQ(c.force_unit, "N");
+  EXPECT_EQ(c.torque_unit, "Nm");
+  EXPECT_EQ(c.rated_range, (std::array<double, 6>{130, 130, 400, 10, 10, 10}));
+  EXPECT_EQ(c.rdt_rate_hz, 100);
+  EXPECT_EQ(c.active_config, 0);
+  EXPECT_EQ(c.calibration_index, 0);
+  EXPECT_EQ(c.rdt_buffer_size, 1);
+  EXPECT_EQ(c.run_status, 0u);
+  EXPECT_EQ(c.config_name, "BigAnt HL N-Nm");
+}
+
+std::string Replace(std::string s, const std::string& from, const std::string& to) {
+  const auto pos = s.find(from);
+  EXPECT_NE(pos, std::string::npos) << from;
+  if (pos != std::string::npos) s.replace(pos, from.size(), to);
+  return s;
+}
+
+void ExpectRefused(const std::string& xml, const std::string& needle) {
+  try {
+    ParseNetFtXml(xml, "sensor-hl");
+    ADD_FAILURE() << "accepted, expected an error mentioning '" << needle << "'";
+  } catch (const RdtError& e) {
+    EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("sensor-hl"), std::string::npos) << e.what();
+  }
+}
+
+TEST(RdtCalibrationPage, BadPagesRefused) {
+  const std::string xml = ReadFile(kDataDir + "/netftapi2.xml");
+  ExpectRefused(Replace(xml, "<scfgfu>N</scfgfu>", "<scfgfu>lbf</scfgfu>"), "lbf");
+  ExpectRefused(Replace(xml, "<scfgtu>Nm</scfgtu>", "<scfgtu>lbf-in</scfgtu>"), "scfgtu");
+  ExpectRefused(Replace(xml, "<cfgcpf>1000000</cfgcpf>", ""), "cfgcpf");
+  ExpectRefused(Replace(xml, "<cfgcpt>1000000</cfgcpt>", "<cfgcpt>1e6x</cfgcpt>"), "cfgcpt");
+  ExpectRefused(Replace(xml, "<cfgcpt>1000000</cfgcpt>", "<cfgcpt>0</cfgcpt>"), "cfgcpt");
+  ExpectRefused(Replace(xml, "130;130;400;10;10;10", "130;130;400;10;10"), "cfgmr");
+  ExpectRefused(Replace(xml, "130;130;400;10;10;10", "130;130;400;10;10;10;1"), "cfgmr");
+  ExpectRefused(Replace(xml, "130;130;400;10;10;10", "130;;400;10;10;10"), "cfgmr");
+  ExpectRefused(Replace(xml, "<comrdtrate>100</comrdtrate>", ""), "comrdtrate");
+  ExpectRefused(Replace(xml, "<setcfgsel>0</setcfgsel>", "<setcfgsel>-1</setcfgsel>"), "setcfgsel");
+  ExpectRefused(Replace(xml, "</netft>", ""), "malformed XML");
+  ExpectRefused("<html><body>404</body></html>", "<netft>");
+  ExpectRefused("", "malformed XML");
+}
+
+}  // namespace
+}  // namespace ftcal::rdt
