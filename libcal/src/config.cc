@@ -1,0 +1,652 @@
+#include "ftcal/config.h"
+
+#include <arpa/inet.h>
+#include <openssl/evp.h>
+
+#include <cerrno>
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <memory>
+#include <sstream>
+#include <string_view>
+#include <vector>
+
+#include <google/protobuf/io/tokenizer.h>
+#include <google/protobuf/io/zero_copy_stream_impl_lite.h>
+#include <google/protobuf/text_format.h>
+
+namespace ftcal {
+namespace {
+
+namespace pb = google::protobuf;
+using ParseInfoTree = pb::TextFormat::ParseInfoTree;
+
+constexpr double kRotationTolerance = 1e-6;
+
+std::string FormatNumber(double v) {
+  std::ostringstream s;
+  s.precision(10);
+  s << v;
+  return s.str();
+}
+
+// TextFormat reports 0-based positions; every message we print is 1-based. Its messages name
+// the token, not the field ("Expected double, got: ..."), so the offending source line is
+// quoted under the message with a caret, as compilers do.
+class CollectingErrorCollector : public pb::io::ErrorCollector {
+ public:
+  CollectingErrorCollector(std::string source, const std::string& text)
+      : source_(std::move(source)), text_(text) {}
+
+  void AddError(int line, pb::io::ColumnNumber column, const std::string& message) override {
+    std::string e = source_ + ":" + std::to_string(line + 1) + ":" + std::to_string(column + 1) +
+                    ": " + message;
+    const std::string quoted = Line(line);
+    if (!quoted.empty()) {
+      e += "\n    " + quoted + "\n    " + std::string(std::max(column, 0), ' ') + "^";
+    }
+    errors_.push_back(std::move(e));
+  }
+
+  const std::vector<std::string>& errors() const { return errors_; }
+
+ private:
+  std::string Line(int line) const {
+    size_t begin = 0;
+    for (int i = 0; i < line; ++i) {
+      begin = text_.find('\n', begin);
+      if (begin == std::string::npos) return {};
+      ++begin;
+    }
+    const size_t end = text_.find('\n', begin);
+    return text_.substr(begin, end == std::string::npos ? std::string::npos : end - begin);
+  }
+
+  std::string source_;
+  const std::string& text_;
+  std::vector<std::string> errors_;
+};
+
+struct Location {
+  int line = 1;    // 1-based
+  int column = 1;  // 1-based
+};
+
+// A message being validated: where it sits in the file (its field path and location) and the
+// parser's location tree for its own fields, so an error can name the exact line of a field.
+// A missing field has no location of its own and points at this enclosing message.
+class Node {
+ public:
+  Node(const pb::Message& message, const ParseInfoTree* tree, std::string path, Location location,
+       const std::string* source, std::vector<std::string>* errors)
+      : message_(message),
+        tree_(tree),
+        path_(std::move(path)),
+        location_(location),
+        source_(source),
+        errors_(errors) {}
+
+  const std::string& path() const { return path_; }
+
+  // Path and location of field `name` (element `index` of a repeated field).
+  std::string FieldPath(std::string_view name, int index = -1) const {
+    std::string p = path_.empty() ? std::string(name) : path_ + "." + std::string(name);
+    if (index >= 0) p += "[" + std::to_string(index) + "]";
+    return p;
+  }
+
+  Location FieldLocation(std::string_view name, int index = -1) const {
+    const pb::FieldDescriptor* field = Field(name);
+    if (tree_ == nullptr) return location_;
+    // Repeated scalars written in list syntax ("f: [1, 2, 3]") record one location for the
+    // whole list, so an element without its own location falls back to the first.
+    int i = field->is_repeated() ? std::max(index, 0) : -1;
+    pb::TextFormat::ParseLocation loc = tree_->GetLocation(field, i);
+    if (loc.line < 0 && field->is_repeated()) loc = tree_->GetLocation(field, 0);
+    if (loc.line < 0) return location_;
+    return Location{loc.line + 1, loc.column + 1};
+  }
+
+  // The node of a singular message field (which must be present).
+  Node Child(std::string_view name, const pb::Message& child) const {
+    const pb::FieldDescriptor* field = Field(name);
+    const ParseInfoTree* nested = tree_ ? tree_->GetTreeForNested(field, -1) : nullptr;
+    return Node(child, nested, FieldPath(name), FieldLocation(name), source_, errors_);
+  }
+
+  // The node of element `index` of a repeated message field.
+  Node Child(std::string_view name, int index, const pb::Message& child) const {
+    const pb::FieldDescriptor* field = Field(name);
+    const ParseInfoTree* nested = tree_ ? tree_->GetTreeForNested(field, index) : nullptr;
+    return Node(child, nested, FieldPath(name, index), FieldLocation(name, index), source_,
+                errors_);
+  }
+
+  void Error(std::string_view name, const std::string& what, int index = -1) const {
+    ErrorAt(FieldLocation(name, index), FieldPath(name, index), what);
+  }
+
+  // An error about the message itself (e.g. a field missing from it).
+  void SelfError(const std::string& what) const {
+    ErrorAt(location_, path_.empty() ? std::string("<config>") : path_, what);
+  }
+
+  void Missing(std::string_view name) const {
+    ErrorAt(location_, FieldPath(name), "required field is missing");
+  }
+
+  // Checks for finite numbers, with the value and the bound in the message.
+  bool Finite(std::string_view name, double v, int index = -1) const {
+    if (std::isfinite(v)) return true;
+    Error(name, "must be a finite number, got " + FormatNumber(v), index);
+    return false;
+  }
+  void Positive(std::string_view name, double v) const {
+    if (Finite(name, v) && !(v > 0.0)) Error(name, "must be > 0, got " + FormatNumber(v));
+  }
+
+ private:
+  const pb::FieldDescriptor* Field(std::string_view name) const {
+    const pb::FieldDescriptor* field = message_.GetDescriptor()->FindFieldByName(std::string(name));
+    if (field == nullptr) {
+      // A misspelt name in this file, not bad input: stop loudly.
+      throw std::logic_error("config.cc: no field '" + std::string(name) + "' in " +
+                             message_.GetDescriptor()->full_name());
+    }
+    return field;
+  }
+
+  void ErrorAt(Location loc, const std::string& path, const std::string& what) const {
+    errors_->push_back(*source_ + ":" + std::to_string(loc.line) + ":" +
+                       std::to_string(loc.column) + ": " + path + ": " + what);
+  }
+
+  const pb::Message& message_;
+  const ParseInfoTree* tree_;
+  std::string path_;
+  Location location_;
+  const std::string* source_;
+  std::vector<std::string>* errors_;
+};
+
+std::string JoinErrors(const std::vector<std::string>& errors) {
+  std::string out;
+  for (const std::string& e : errors) {
+    if (!out.empty()) out += "\n";
+    out += e;
+  }
+  return out;
+}
+
+void ValidatePort(const Node& node, std::string_view name, uint32_t port) {
+  if (port < 1 || port > 65535) {
+    node.Error(name, "port must be in 1..65535, got " + std::to_string(port));
+  }
+}
+
+void ValidateVec3(const Node& node, const config::Vec3& v) {
+  node.Finite("x", v.x());
+  node.Finite("y", v.y());
+  node.Finite("z", v.z());
+}
+
+// Why a row-major 3x3 is not in SO(3), or empty when it is (to kRotationTolerance).
+std::string RotationProblem(const Mat3& R) {
+  const double ortho = (R.transpose() * R - Mat3::Identity()).cwiseAbs().maxCoeff();
+  if (ortho > kRotationTolerance) {
+    return "not a rotation matrix (|R^T R - I| = " + FormatNumber(ortho) + ")";
+  }
+  const double det = R.determinant();
+  if (std::abs(det - 1.0) > kRotationTolerance) {
+    return "not a rotation matrix (det R = " + FormatNumber(det) + ", a reflection)";
+  }
+  return {};
+}
+
+Mat3 RowMajor(const config::Pose& pose) {
+  Mat3 R;
+  for (int i = 0; i < 9; ++i) R(i / 3, i % 3) = pose.rotation_row_major(i);
+  return R;
+}
+
+void ValidatePose(const Node& node, const config::Pose& pose) {
+  if (!pose.has_translation_m()) {
+    node.Missing("translation_m");
+  } else {
+    ValidateVec3(node.Child("translation_m", pose.translation_m()), pose.translation_m());
+  }
+  const bool has_matrix = pose.rotation_row_major_size() > 0;
+  if (has_matrix && pose.has_rpy_deg()) {
+    node.Error("rpy_deg", "give the rotation either as rotation_row_major or as rpy_deg, not both");
+    return;
+  }
+  if (!has_matrix && !pose.has_rpy_deg()) {
+    node.SelfError("missing rotation: give rotation_row_major (9 numbers) or rpy_deg");
+    return;
+  }
+  if (pose.has_rpy_deg()) {
+    ValidateVec3(node.Child("rpy_deg", pose.rpy_deg()), pose.rpy_deg());
+    return;
+  }
+  if (pose.rotation_row_major_size() != 9) {
+    node.Error("rotation_row_major", "needs 9 numbers (row-major 3x3), got " +
+                                         std::to_string(pose.rotation_row_major_size()));
+    return;
+  }
+  bool finite = true;
+  for (int i = 0; i < 9; ++i) {
+    finite = node.Finite("rotation_row_major", pose.rotation_row_major(i), i) && finite;
+  }
+  if (!finite) return;
+  const std::string problem = RotationProblem(RowMajor(pose));
+  if (!problem.empty()) node.Error("rotation_row_major", problem);
+}
+
+void ValidateAti(const Node& node, const config::AtiTransducer& ati) {
+  if (!ati.has_address()) {
+    node.Missing("address");
+  } else {
+    in_addr addr{};
+    if (inet_pton(AF_INET, ati.address().c_str(), &addr) != 1) {
+      node.Error("address", "not an IPv4 address: '" + ati.address() + "'");
+    }
+  }
+  ValidatePort(node, "rdt_port", ati.rdt_port());
+  ValidatePort(node, "http_port", ati.http_port());
+  if (ati.sign() != 1 && ati.sign() != -1) {
+    node.Error("sign", "must be +1 or -1, got " + std::to_string(ati.sign()));
+  }
+  if (ati.has_counts_per_force()) node.Positive("counts_per_force", ati.counts_per_force());
+  if (ati.has_counts_per_torque()) node.Positive("counts_per_torque", ati.counts_per_torque());
+  if (ati.rated_range_size() != 0 && ati.rated_range_size() != 6) {
+    node.Error("rated_range", "needs 0 or 6 entries [Fx Fy Fz Tx Ty Tz], got " +
+                                  std::to_string(ati.rated_range_size()));
+  } else {
+    for (int i = 0; i < ati.rated_range_size(); ++i) {
+      const double v = ati.rated_range(i);
+      if (node.Finite("rated_range", v, i) && !(v > 0.0)) {
+        node.Error("rated_range", "must be > 0, got " + FormatNumber(v), i);
+      }
+    }
+  }
+}
+
+void ValidateServo(const Node& node, const config::Servo& servo) {
+  if (!servo.has_id()) {
+    node.Missing("id");
+  } else if (servo.id() > 252) {
+    // Dynamixel protocol 2.0: 253 is reserved and 254 is the broadcast id.
+    node.Error("id", "Dynamixel id must be in 0..252, got " + std::to_string(servo.id()));
+  }
+  if (servo.direction() != 1 && servo.direction() != -1) {
+    node.Error("direction", "must be +1 or -1, got " + std::to_string(servo.direction()));
+  }
+  if (servo.zero_count() < 0) {
+    node.Error("zero_count", "must be >= 0, got " + std::to_string(servo.zero_count()));
+  }
+  const bool finite =
+      node.Finite("min_angle_rad", servo.min_angle_rad()) &
+      node.Finite("max_angle_rad", servo.max_angle_rad());
+  if (finite && !(servo.min_angle_rad() < servo.max_angle_rad())) {
+    node.Error("max_angle_rad", "must be greater than min_angle_rad (" +
+                                    FormatNumber(servo.min_angle_rad()) + "), got " +
+                                    FormatNumber(servo.max_angle_rad()));
+  }
+}
+
+std::string LegOrder() {
+  std::string s;
+  for (std::string_view n : kLegNames) s += (s.empty() ? "" : " ") + std::string(n);
+  return s;
+}
+
+void ValidateRobot(const Node& node, const config::Robot& robot) {
+  if (!robot.has_total_mass_kg()) {
+    node.Missing("total_mass_kg");
+  } else {
+    node.Positive("total_mass_kg", robot.total_mass_kg());
+  }
+  if (node.Finite("g0_m_s2", robot.g0_m_s2()) &&
+      !(robot.g0_m_s2() > 9.7 && robot.g0_m_s2() < 9.9)) {
+    node.Error("g0_m_s2", "must be in (9.7, 9.9) m/s^2 (Earth's surface), got " +
+                              FormatNumber(robot.g0_m_s2()));
+  }
+  if (robot.chassis_marker_count() < 3) {
+    node.Error("chassis_marker_count", "a rigid body needs at least 3 markers, got " +
+                                           std::to_string(robot.chassis_marker_count()));
+  }
+
+  std::array<int, kNumLegs> seen_at;
+  seen_at.fill(-1);
+  std::vector<std::pair<uint32_t, int>> servo_ids;  // id, leg index
+  for (int i = 0; i < robot.leg_size(); ++i) {
+    const config::Leg& leg = robot.leg(i);
+    const Node leg_node = node.Child("leg", i, leg);
+    if (!leg.has_name()) {
+      leg_node.Missing("name");
+    } else {
+      const std::optional<int> k = LegIndex(leg.name());
+      if (!k) {
+        leg_node.Error("name", "unknown leg '" + leg.name() + "' (legs are " + LegOrder() + ")");
+      } else if (seen_at[*k] >= 0) {
+        leg_node.Error("name", "duplicate leg '" + leg.name() + "' (already given as " +
+                                   node.FieldPath("leg", seen_at[*k]) + ")");
+      } else {
+        seen_at[*k] = i;
+        if (*k != i) {
+          leg_node.Error("name", "leg '" + leg.name() + "' listed at position " +
+                                     std::to_string(i) + ": legs must be listed in the order " +
+                                     LegOrder());
+        }
+      }
+    }
+    if (!leg.has_servo()) {
+      leg_node.Missing("servo");
+    } else {
+      const Node servo_node = leg_node.Child("servo", leg.servo());
+      ValidateServo(servo_node, leg.servo());
+      if (leg.servo().has_id()) {
+        for (const auto& [id, other] : servo_ids) {
+          if (id == leg.servo().id()) {
+            servo_node.Error("id", "servo id " + std::to_string(id) + " already used by " +
+                                       node.FieldPath("leg", other));
+          }
+        }
+        servo_ids.emplace_back(leg.servo().id(), i);
+      }
+    }
+    if (!leg.has_x_b_ft()) {
+      leg_node.Missing("x_b_ft");
+    } else {
+      ValidatePose(leg_node.Child("x_b_ft", leg.x_b_ft()), leg.x_b_ft());
+    }
+    if (!leg.has_ati()) {
+      leg_node.Missing("ati");
+    } else {
+      ValidateAti(leg_node.Child("ati", leg.ati()), leg.ati());
+    }
+  }
+  std::string missing;
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (seen_at[k] < 0) missing += (missing.empty() ? "" : " ") + std::string(kLegNames[k]);
+  }
+  if (!missing.empty()) {
+    node.SelfError("missing leg(s) " + missing + " (expected exactly the legs " + LegOrder() +
+                   ", in that order)");
+  } else if (robot.leg_size() != kNumLegs) {
+    node.SelfError("expected exactly " + std::to_string(kNumLegs) + " legs, got " +
+                   std::to_string(robot.leg_size()));
+  }
+}
+
+void ValidateMocap(const Node& node, const config::Mocap& mocap) {
+  if (!mocap.has_server_address() || mocap.server_address().empty()) {
+    node.Missing("server_address");
+  }
+  ValidatePort(node, "port", mocap.port());
+  if (mocap.body_name().empty()) node.Error("body_name", "must not be empty");
+  if (node.Finite("hang_axis_tolerance_deg", mocap.hang_axis_tolerance_deg()) &&
+      !(mocap.hang_axis_tolerance_deg() > 0.0 && mocap.hang_axis_tolerance_deg() < 90.0)) {
+    node.Error("hang_axis_tolerance_deg",
+               "must be in (0, 90), got " + FormatNumber(mocap.hang_axis_tolerance_deg()));
+  }
+}
+
+void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus) {
+  if (!bus.has_device() || bus.device().empty()) node.Missing("device");
+  if (bus.baud() == 0) node.Error("baud", "must be > 0");
+  node.Positive("rate_hz", bus.rate_hz());
+  node.Positive("reply_timeout_s", bus.reply_timeout_s());
+}
+
+void ValidateSegmenter(const Node& node, const config::Segmenter& s) {
+  node.Positive("sample_rate_hz", s.sample_rate_hz());
+  if (s.savgol_order() < 1) {
+    node.Error("savgol_order", "must be >= 1, got " + std::to_string(s.savgol_order()));
+  }
+  if (s.savgol_window() % 2 == 0) {
+    node.Error("savgol_window", "must be odd, got " + std::to_string(s.savgol_window()));
+  } else if (s.savgol_window() <= s.savgol_order()) {
+    node.Error("savgol_window", "must be greater than savgol_order (" +
+                                    std::to_string(s.savgol_order()) + "), got " +
+                                    std::to_string(s.savgol_window()));
+  }
+  node.Positive("max_force_rate_n_s", s.max_force_rate_n_s());
+  node.Positive("min_steady_s", s.min_steady_s());
+}
+
+void ValidateCalibrator(const Node& node, const config::Calibrator& c) {
+  if (c.phase_bins() < 8) {
+    node.Error("phase_bins", "must be >= 8, got " + std::to_string(c.phase_bins()));
+  }
+  node.Positive("smoother_transition_var", c.smoother_transition_var());
+  node.Positive("smoother_observation_var", c.smoother_observation_var());
+  if (c.k_weights_size() != 0 && c.k_weights_size() != 6) {
+    node.Error("k_weights", "needs 0 or 6 entries [fx fy fz tx ty tz], got " +
+                                std::to_string(c.k_weights_size()));
+  } else {
+    for (int i = 0; i < c.k_weights_size(); ++i) {
+      if (node.Finite("k_weights", c.k_weights(i), i) && !(c.k_weights(i) > 0.0)) {
+        node.Error("k_weights", "must be > 0, got " + FormatNumber(c.k_weights(i)), i);
+      }
+    }
+  }
+  if (c.solver() == config::STEP2_SOLVER_UNSPECIFIED) {
+    node.Error("solver", "must be JOINT or ALTERNATING");
+  }
+  node.Positive("alternating_tolerance", c.alternating_tolerance());
+  if (c.robust_loss() == config::ROBUST_LOSS_UNSPECIFIED) {
+    node.Error("robust_loss", "must be NONE, HUBER or CAUCHY");
+  }
+  node.Positive("robust_loss_scale", c.robust_loss_scale());
+  if (c.cv_folds() < 2) {
+    node.Error("cv_folds", "must be >= 2, got " + std::to_string(c.cv_folds()));
+  }
+  if (c.min_poses() < 1) {
+    node.Error("min_poses", "must be >= 1, got " + std::to_string(c.min_poses()));
+  }
+}
+
+void ValidateCorrector(const Node& node, const config::Corrector& c) {
+  node.Positive("max_servo_age_s", c.max_servo_age_s());
+  node.Positive("max_mocap_age_s", c.max_mocap_age_s());
+  node.Positive("max_ft_age_s", c.max_ft_age_s());
+}
+
+void ValidateChannels(const Node& node, const config::Channels& c) {
+  const pb::Descriptor* d = c.GetDescriptor();
+  const pb::Reflection* r = c.GetReflection();
+  // Every field is a channel name; reflection keeps this in step with the schema.
+  for (int i = 0; i < d->field_count(); ++i) {
+    const pb::FieldDescriptor* f = d->field(i);
+    if (f->type() == pb::FieldDescriptor::TYPE_STRING && r->GetString(c, f).empty()) {
+      node.Error(f->name(), "channel name must not be empty");
+    }
+  }
+}
+
+void Validate(const config::Config& config, const ParseInfoTree* tree, const std::string& source,
+              std::vector<std::string>* errors) {
+  const Node root(config, tree, "", Location{1, 1}, &source, errors);
+  if (!config.has_robot()) {
+    root.Missing("robot");
+  } else {
+    ValidateRobot(root.Child("robot", config.robot()), config.robot());
+  }
+  if (config.has_mocap()) ValidateMocap(root.Child("mocap", config.mocap()), config.mocap());
+  if (config.has_dynamixel()) {
+    ValidateDynamixel(root.Child("dynamixel", config.dynamixel()), config.dynamixel());
+  }
+  // Sections with only defaults are validated too: the defaults are values we run with.
+  ValidateSegmenter(root.Child("segmenter", config.segmenter()), config.segmenter());
+  ValidateCalibrator(root.Child("calibrator", config.calibrator()), config.calibrator());
+  ValidateCorrector(root.Child("corrector", config.corrector()), config.corrector());
+  ValidateChannels(root.Child("channels", config.channels()), config.channels());
+  if (config.lcm_url().empty()) root.Error("lcm_url", "must not be empty");
+}
+
+std::string ReadWholeFile(const std::string& path, const char* what) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    throw ConfigError(std::string("cannot open ") + what + " '" + path + "': " +
+                      std::strerror(errno));
+  }
+  std::ostringstream s;
+  s << in.rdbuf();
+  if (in.bad()) {
+    throw ConfigError(std::string("cannot read ") + what + " '" + path + "': " +
+                      std::strerror(errno));
+  }
+  return s.str();
+}
+
+std::string ToHex(const unsigned char* digest, unsigned int length) {
+  static constexpr char kHex[] = "0123456789abcdef";
+  std::string hex;
+  hex.reserve(2 * length);
+  for (unsigned int i = 0; i < length; ++i) {
+    hex += kHex[digest[i] >> 4];
+    hex += kHex[digest[i] & 0xf];
+  }
+  return hex;
+}
+
+}  // namespace
+
+config::Config LoadConfigText(const std::string& text, const std::string& source_name) {
+  config::Config config;
+  CollectingErrorCollector collector(source_name, text);
+  ParseInfoTree tree;
+  pb::TextFormat::Parser parser;
+  parser.RecordErrorsTo(&collector);
+  parser.WriteLocationsTo(&tree);
+  pb::io::ArrayInputStream input(text.data(), static_cast<int>(text.size()));
+  if (!parser.Parse(&input, &config)) {
+    if (collector.errors().empty()) {
+      throw ConfigError(source_name + ":1:1: could not parse the config");
+    }
+    throw ConfigError(JoinErrors(collector.errors()));
+  }
+  std::vector<std::string> errors;
+  Validate(config, &tree, source_name, &errors);
+  if (!errors.empty()) throw ConfigError(JoinErrors(errors));
+  return config;
+}
+
+config::Config LoadConfigFile(const std::string& path) {
+  return LoadConfigText(ReadWholeFile(path, "config file"), path);
+}
+
+Pose3 ToPose3(const config::Pose& pose) {
+  if (!pose.has_translation_m()) throw ConfigError("pose: translation_m is missing");
+  const config::Vec3& t = pose.translation_m();
+  const Vec3 p(t.x(), t.y(), t.z());
+  if (!p.allFinite()) throw ConfigError("pose: translation_m is not finite");
+  const bool has_matrix = pose.rotation_row_major_size() > 0;
+  if (has_matrix == pose.has_rpy_deg()) {
+    throw ConfigError("pose: give exactly one of rotation_row_major and rpy_deg");
+  }
+  if (pose.has_rpy_deg()) {
+    const config::Vec3& a = pose.rpy_deg();
+    const Vec3 rpy_rad = Vec3(a.x(), a.y(), a.z()) * (M_PI / 180.0);
+    if (!rpy_rad.allFinite()) throw ConfigError("pose: rpy_deg is not finite");
+    return Pose3(RotationFromRollPitchYaw(rpy_rad.x(), rpy_rad.y(), rpy_rad.z()), p);
+  }
+  if (pose.rotation_row_major_size() != 9) {
+    throw ConfigError("pose: rotation_row_major needs 9 numbers, got " +
+                      std::to_string(pose.rotation_row_major_size()));
+  }
+  const Mat3 R = RowMajor(pose);
+  if (!R.allFinite()) throw ConfigError("pose: rotation_row_major is not finite");
+  const std::string problem = RotationProblem(R);
+  if (!problem.empty()) throw ConfigError("pose: rotation_row_major: " + problem);
+  // A matrix typed with a few decimals is only orthonormal to ~1e-6; project it so that
+  // everything downstream works with an exact rotation.
+  return Pose3(ProjectToSO3(R), p);
+}
+
+std::array<Pose3, kNumLegs> NominalTransducerPoses(const config::Robot& robot) {
+  if (robot.leg_size() != kNumLegs) {
+    throw ConfigError("robot: expected " + std::to_string(kNumLegs) + " legs, got " +
+                      std::to_string(robot.leg_size()));
+  }
+  std::array<Pose3, kNumLegs> poses;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const config::Leg& leg = robot.leg(k);
+    if (leg.name() != kLegNames[k]) {
+      throw ConfigError("robot.leg[" + std::to_string(k) + "]: expected leg '" +
+                        std::string(kLegNames[k]) + "', got '" + leg.name() + "'");
+    }
+    if (!leg.has_x_b_ft()) {
+      throw ConfigError("robot.leg[" + std::to_string(k) + "].x_b_ft is missing");
+    }
+    try {
+      poses[k] = ToPose3(leg.x_b_ft());
+    } catch (const ConfigError& e) {
+      throw ConfigError("robot.leg[" + std::to_string(k) + "].x_b_ft: " + e.what());
+    }
+  }
+  return poses;
+}
+
+Vec6 KWeights(const config::Calibrator& calibrator) {
+  if (calibrator.k_weights_size() == 0) {
+    Vec6 k;
+    k << 1, 1, 1, 10, 10, 10;  // method.md eq. 8: torques weighted 10x (N vs N*m scales)
+    return k;
+  }
+  if (calibrator.k_weights_size() != 6) {
+    throw ConfigError("calibrator.k_weights: needs 0 or 6 entries, got " +
+                      std::to_string(calibrator.k_weights_size()));
+  }
+  Vec6 k;
+  for (int i = 0; i < 6; ++i) {
+    k[i] = calibrator.k_weights(i);
+    if (!std::isfinite(k[i]) || !(k[i] > 0.0)) {
+      throw ConfigError("calibrator.k_weights[" + std::to_string(i) + "]: must be > 0, got " +
+                        FormatNumber(k[i]));
+    }
+  }
+  return k;
+}
+
+std::string Sha256Hex(const std::string& bytes) {
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  if (EVP_Digest(bytes.data(), bytes.size(), digest, &length, EVP_sha256(), nullptr) != 1) {
+    throw std::runtime_error("SHA-256: OpenSSL EVP_Digest failed");
+  }
+  return ToHex(digest, length);
+}
+
+std::string Sha256File(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    throw std::runtime_error("SHA-256: cannot open '" + path + "': " + std::strerror(errno));
+  }
+  // Streamed: logs can be far larger than memory would like.
+  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> ctx(EVP_MD_CTX_new(), EVP_MD_CTX_free);
+  if (!ctx || EVP_DigestInit_ex(ctx.get(), EVP_sha256(), nullptr) != 1) {
+    throw std::runtime_error("SHA-256: OpenSSL digest init failed");
+  }
+  std::vector<char> buffer(1 << 16);
+  while (in) {
+    in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+    const std::streamsize n = in.gcount();
+    if (n > 0 && EVP_DigestUpdate(ctx.get(), buffer.data(), static_cast<size_t>(n)) != 1) {
+      throw std::runtime_error("SHA-256: OpenSSL digest update failed");
+    }
+  }
+  if (in.bad()) {
+    throw std::runtime_error("SHA-256: cannot read '" + path + "': " + std::strerror(errno));
+  }
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  if (EVP_DigestFinal_ex(ctx.get(), digest, &length) != 1) {
+    throw std::runtime_error("SHA-256: OpenSSL digest final failed");
+  }
+  return ToHex(digest, length);
+}
+
+}  // namespace ftcal
