@@ -1,0 +1,196 @@
+// One handler code, two transports.
+//
+// A process registers handlers for channels and publishes through a Bus. LcmBus runs them live
+// on LCM; LogReplayBus feeds them the events of a recorded log in log order, at full speed, and
+// writes every publication to an output log stamped with the time of the input event that
+// caused it. A replayed result therefore equals the live one, and a test can drive a stage
+// without a network.
+//
+// Handlers never let an exception escape into LCM's C callback: the Bus catches it and counts
+// it (BadInput as a drop, anything else as an error), logging once per kind. Typed
+// subscriptions decode the bytes themselves instead of using LCM 1.3.1's typed subscribe, which
+// drops a message whose fingerprint does not match with only a line on stderr: here a message
+// that does not decode is counted as a drop.
+#pragma once
+
+#include <cstdint>
+#include <cstdio>
+#include <functional>
+#include <memory>
+#include <regex>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include <lcm/lcm-cpp.hpp>
+
+#include "common/service_stats.h"
+
+namespace ftcal {
+
+// Where an input came from.
+struct MessageInfo {
+  const std::string& channel;
+  // Live: this host's receive time; replay: the logged event's timestamp. us since the epoch.
+  int64_t recv_utime;
+};
+
+// Thrown by a handler that refuses an input (a NaN, an unknown leg, a message from the
+// future): counted as a drop under `kind`, logged once per kind with `what()` as the reason.
+class BadInput : public std::runtime_error {
+ public:
+  BadInput(std::string kind, const std::string& reason)
+      : std::runtime_error(reason), kind_(std::move(kind)) {}
+  const std::string& kind() const { return kind_; }
+
+ private:
+  std::string kind_;
+};
+
+class Bus {
+ public:
+  using RawHandler = std::function<void(const MessageInfo& info, const void* data, int size)>;
+  template <class Msg>
+  using Handler = std::function<void(const MessageInfo& info, const Msg& msg)>;
+
+  explicit Bus(ServiceStats& stats) : stats_(stats) {}
+  virtual ~Bus() = default;
+  Bus(const Bus&) = delete;
+  Bus& operator=(const Bus&) = delete;
+
+  // `channel` is a regular expression matched against the whole channel name (LCM's rule).
+  void SubscribeRaw(const std::string& channel, RawHandler handler);
+  // Decodes to Msg; a message that does not decode (wrong type, truncated, trailing bytes) is
+  // counted as a drop.
+  template <class Msg>
+  void Subscribe(const std::string& channel, Handler<Msg> handler);
+
+  // `count` false leaves msgs_out alone (the heartbeat does not count itself).
+  void PublishRaw(const std::string& channel, const void* data, int size, bool count = true);
+  template <class Msg>
+  void Publish(const std::string& channel, const Msg& msg, bool count = true);
+
+  // Now on the bus's clock (us since the epoch): the wall clock live, the current input
+  // event's timestamp on replay. Stamp outputs with this, not with the wall clock.
+  virtual int64_t NowUtime() const = 0;
+  // Runs until shutdown is requested (live) or the input ends (replay). `tick` runs at least
+  // every `tick_us` of bus time (live: also when the bus is quiet).
+  virtual void Run(const std::function<void()>& tick, int64_t tick_us) = 0;
+  virtual bool IsReplay() const = 0;
+
+  ServiceStats& stats() { return stats_; }
+
+ protected:
+  // The transports call this for every message a subscription receives.
+  void Dispatch(size_t subscription, const std::string& channel, int64_t recv_utime,
+                const void* data, int size);
+  // Runs `fn`, counting any exception it throws under `what` instead of propagating it.
+  void Guarded(const std::string& what, const std::function<void()>& fn);
+  virtual void TransportSubscribe(size_t subscription, const std::string& channel) = 0;
+  virtual void TransportPublish(const std::string& channel, const void* data, int size) = 0;
+
+  struct Subscription {
+    std::string channel;
+    std::regex pattern;
+    RawHandler handler;
+  };
+  std::vector<Subscription> subscriptions_;
+  ServiceStats& stats_;
+};
+
+// Live LCM. The loop wakes at least every 100 ms (handleTimeout) to check the shutdown flag and
+// run the tick, so a quiet bus never delays shutdown.
+class LcmBus : public Bus {
+ public:
+  // Throws std::runtime_error naming the URL when LCM cannot open it.
+  LcmBus(const std::string& url, ServiceStats& stats);
+  int64_t NowUtime() const override;
+  void Run(const std::function<void()>& tick, int64_t tick_us) override;
+  bool IsReplay() const override { return false; }
+  // Handles at most one message, waiting up to `timeout_ms`; returns LCM's result (>0 handled,
+  // 0 timeout, <0 error). For tests and custom loops.
+  int HandleOnce(int timeout_ms);
+
+ protected:
+  void TransportSubscribe(size_t subscription, const std::string& channel) override;
+  void TransportPublish(const std::string& channel, const void* data, int size) override;
+
+ private:
+  // LCM 1.3.1 takes member-function pointers, not closures: one small object per subscription.
+  struct Trampoline {
+    LcmBus* bus;
+    size_t subscription;
+    void OnMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
+  };
+  lcm::LCM lcm_;
+  std::vector<std::unique_ptr<Trampoline>> trampolines_;
+};
+
+// A recorded log in, a log out. The output is written to a temporary file beside `out_path`
+// and renamed onto it by Commit() (after fsync), so a failed or interrupted replay never leaves
+// a partial log under the final name.
+class LogReplayBus : public Bus {
+ public:
+  // Throws std::runtime_error naming the file when the input cannot be opened or the output
+  // cannot be created.
+  LogReplayBus(const std::string& in_path, const std::string& out_path, ServiceStats& stats);
+  ~LogReplayBus() override;
+  int64_t NowUtime() const override { return now_utime_; }
+  // Feeds every event in log order; ticks at bus time (the log's clock) every `tick_us`.
+  // Unreadable bytes in the input (a damaged event) are skipped and counted as an error.
+  // Stops early, leaving the output uncommitted, when shutdown is requested.
+  void Run(const std::function<void()>& tick, int64_t tick_us) override;
+  bool IsReplay() const override { return true; }
+  // Makes the output visible under its final name. Throws std::runtime_error on I/O failure.
+  void Commit();
+  // True when Run() read the whole input.
+  bool finished() const { return finished_; }
+  int64_t events_read() const { return events_read_; }
+
+ protected:
+  void TransportSubscribe(size_t subscription, const std::string& channel) override;
+  void TransportPublish(const std::string& channel, const void* data, int size) override;
+
+ private:
+  std::string in_path_;
+  std::string out_path_;
+  std::string tmp_path_;
+  std::unique_ptr<lcm::LogFile> in_;
+  std::unique_ptr<lcm::LogFile> out_;
+  int64_t now_utime_ = 0;
+  int64_t events_read_ = 0;
+  bool finished_ = false;
+  bool committed_ = false;
+};
+
+// ---- templates ----
+
+template <class Msg>
+void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
+  SubscribeRaw(channel, [this, handler = std::move(handler)](const MessageInfo& info,
+                                                             const void* data, int size) {
+    Msg msg;
+    const int used = msg.decode(data, 0, size);
+    if (used < 0 || used != size) {
+      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel,
+                     used < 0 ? std::to_string(size) + " bytes do not decode (wrong type or "
+                                                       "truncated)"
+                              : std::to_string(size - used) + " trailing bytes after a " +
+                                    std::to_string(used) + "-byte message");
+    }
+    handler(info, msg);
+  });
+}
+
+template <class Msg>
+void Bus::Publish(const std::string& channel, const Msg& msg, bool count) {
+  const int size = msg.getEncodedSize();
+  std::vector<uint8_t> buffer(static_cast<size_t>(size));
+  if (msg.encode(buffer.data(), 0, size) != size) {
+    stats_.Error(std::string("encode ") + Msg::getTypeName(), "message did not encode");
+    return;
+  }
+  PublishRaw(channel, buffer.data(), size, count);
+}
+
+}  // namespace ftcal

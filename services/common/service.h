@@ -1,0 +1,113 @@
+// What every ftcal process shares: flags, config loading, logging, the bus (live LCM or a
+// replayed log), SIGINT/SIGTERM, periodic work and the 1 Hz FTCAL_STATUS heartbeat.
+//
+//   int main(int argc, char** argv) {
+//     ftcal::ServiceApp app({"ftcal-foo", "Reads FT_<LEG>; publishes FOO.", /*replayable=*/true});
+//     if (auto rc = app.Init(argc, argv)) return *rc;
+//     Foo foo(app.config(), app.bus());   // subscribes its handlers
+//     return app.Run();
+//   }
+//
+// Flags: --config FILE (default: the embedded config/sim.pbtxt), --lcm-url URL (overrides the
+// config's lcm_url), --log-level LEVEL (else SPDLOG_LEVEL), and for a replayable stage
+// --replay IN.lcmlog --out OUT.lcmlog. On replay the heartbeat is not logged; instead one final
+// service_status_t (state STOPPING, the run's counters) is written to the output log on the
+// status channel, stamped with the last input time.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/logger.h>
+
+#include "common/bus.h"
+#include "common/heartbeat.h"
+#include "common/service_stats.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+struct ServiceSpec {
+  std::string name;         // e.g. "ftcal-status"; also the logger's and heartbeat's name
+  std::string description;  // what the process reads and publishes, for --help
+  bool replayable = false;  // a stage: offers --replay/--out
+};
+
+class ServiceApp {
+ public:
+  explicit ServiceApp(ServiceSpec spec);
+  ~ServiceApp();
+  ServiceApp(const ServiceApp&) = delete;
+  ServiceApp& operator=(const ServiceApp&) = delete;
+
+  // Add process-specific flags here before Init().
+  CLI::App& cli() { return cli_; }
+
+  // Parses flags, sets up logging, loads the config, opens the bus and installs the signal
+  // handlers. Returns an exit code when the process should end now: 0 after --help, CLI11's
+  // code for a bad flag, 2 for a bad config file (its ConfigError printed), 1 when the bus
+  // cannot be opened.
+  std::optional<int> Init(int argc, char** argv);
+
+  // Valid after a successful Init().
+  const config::Config& config() const { return config_; }
+  const std::string& config_path() const { return config_path_; }
+  Bus& bus() { return *bus_; }
+  ServiceStats& stats() { return *stats_; }
+  spdlog::logger& log() { return *log_; }
+  bool replaying() const { return bus_ && bus_->IsReplay(); }
+
+  // The state the heartbeat reports (service_status_t::RUNNING, DEGRADED, ...). Run() moves
+  // STARTING to RUNNING; a process sets DEGRADED/FAILED when an input or device is missing.
+  void SetState(int8_t state) { state_ = state; }
+  int8_t state() const { return state_; }
+
+  // Runs `fn` every `period_s` of bus time (the log's clock on replay), never more often than
+  // the loop's 100 ms tick.
+  void AddPeriodic(double period_s, std::function<void()> fn);
+
+  // Runs until SIGINT/SIGTERM (or RequestShutdown()) live, or to the end of the input on
+  // replay; then publishes a final STOPPING status and logs a summary. Returns the exit code:
+  // 0, or 1 when a replay was interrupted or its output could not be written.
+  int Run();
+
+  // The heartbeat as it would be published now.
+  service_status_t Status() const;
+
+  // The embedded default config: <exe>/../share/ftcal/config/sim.pbtxt when installed, else
+  // the source tree's config/sim.pbtxt.
+  static std::string DefaultConfigPath();
+
+ private:
+  struct Periodic {
+    int64_t period_us;
+    int64_t next_utime;
+    std::function<void()> fn;
+  };
+  void Tick();
+  void PublishStatus();
+
+  ServiceSpec spec_;
+  CLI::App cli_;
+  std::string config_path_;
+  std::string lcm_url_;
+  std::string log_level_;
+  std::string replay_in_;
+  std::string replay_out_;
+
+  ProcessIdentity identity_;
+  std::chrono::steady_clock::time_point started_;
+  std::shared_ptr<spdlog::logger> log_;
+  std::unique_ptr<ServiceStats> stats_;
+  config::Config config_;
+  std::unique_ptr<Bus> bus_;
+  int8_t state_;
+  std::vector<Periodic> periodic_;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,101 @@
+#include "status/status_board.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <stdexcept>
+
+#include "common/heartbeat.h"
+
+namespace ftcal {
+namespace {
+
+std::string Printf(const char* format, double value) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), format, value);
+  return buf;
+}
+
+std::string FormatDuration(double s) {
+  if (!std::isfinite(s) || s < 0) return "?";
+  if (s < 60) return Printf("%.1fs", s);
+  const auto total = static_cast<int64_t>(s);
+  if (s < 3600) return std::to_string(total / 60) + "m" + Printf("%02.0fs", double(total % 60));
+  return std::to_string(total / 3600) + "h" + Printf("%02.0fm", double(total % 3600 / 60));
+}
+
+// A heartbeat is untrusted input: keep its text from moving the cursor or breaking the table.
+std::string Printable(const std::string& text) {
+  std::string out;
+  out.reserve(text.size());
+  for (unsigned char c : text) out.push_back(c < 0x20 || c == 0x7f ? '?' : static_cast<char>(c));
+  return out;
+}
+
+std::string Counters(const service_status_t& status) {
+  std::string out;
+  const size_t n = std::min<size_t>({static_cast<size_t>(std::max(status.num_counters, 0)),
+                                     status.counter_name.size(), status.counter_value.size()});
+  for (size_t i = 0; i < n; ++i) {
+    if (!out.empty()) out += ' ';
+    out += Printable(status.counter_name[i]) + "=" + std::to_string(status.counter_value[i]);
+  }
+  return out;
+}
+
+}  // namespace
+
+StatusBoard::StatusBoard(double lost_after_s) : lost_after_s_(lost_after_s) {
+  if (!(lost_after_s > 0)) throw std::invalid_argument("lost_after_s must be > 0");
+}
+
+void StatusBoard::Update(const service_status_t& status, int64_t received_utime) {
+  latest_[Key{status.name, status.host, status.pid}] = Entry{status, received_utime};
+}
+
+std::vector<StatusBoard::Row> StatusBoard::Rows(int64_t now_utime) const {
+  std::vector<Row> rows;
+  rows.reserve(latest_.size());
+  for (const auto& [key, entry] : latest_) {
+    const double age_s = static_cast<double>(now_utime - entry.received_utime) * 1e-6;
+    std::string shown = ServiceStateName(entry.status.state);
+    if (age_s > lost_after_s_) {
+      shown = entry.status.state == service_status_t::STOPPING ? "STOPPED" : "LOST";
+    }
+    rows.push_back({entry.status, entry.received_utime, age_s, shown});
+  }
+  return rows;  // std::map keeps them sorted by name, host, pid
+}
+
+std::string StatusBoard::Render(int64_t now_utime) const {
+  const std::vector<std::string> header = {"NAME",  "HOST",   "PID", "STATE",    "UPTIME",
+                                           "IN",    "OUT",    "DROPS", "ERRORS", "AGE",
+                                           "COUNTERS", "LAST ERROR"};
+  std::vector<std::vector<std::string>> cells = {header};
+  for (const Row& row : Rows(now_utime)) {
+    const service_status_t& s = row.status;
+    cells.push_back({Printable(s.name), Printable(s.host), std::to_string(s.pid),
+                     row.shown_state, FormatDuration(s.uptime_s), std::to_string(s.msgs_in),
+                     std::to_string(s.msgs_out), std::to_string(s.drops),
+                     std::to_string(s.errors), FormatDuration(row.age_s), Counters(s),
+                     Printable(s.last_error)});
+  }
+  std::vector<size_t> width(header.size(), 0);
+  for (const auto& line : cells) {
+    for (size_t c = 0; c < line.size(); ++c) width[c] = std::max(width[c], line[c].size());
+  }
+  std::string out;
+  for (const auto& line : cells) {
+    std::string text;
+    for (size_t c = 0; c < line.size(); ++c) {
+      text += line[c];
+      if (c + 1 < line.size()) text += std::string(width[c] - line[c].size() + 2, ' ');
+    }
+    while (!text.empty() && text.back() == ' ') text.pop_back();
+    out += text + "\n";
+  }
+  if (latest_.empty()) out += "(no heartbeats yet)\n";
+  return out;
+}
+
+}  // namespace ftcal
