@@ -189,9 +189,10 @@ Vector6d CountsToWrench(const std::array<std::int32_t, 6>& counts, double counts
   if (sign != 1 && sign != -1) {
     throw RdtError("transducer sign must be +1 or -1, got " + std::to_string(sign));
   }
+  // To double before the sign: -1 * INT32_MIN overflows in int (found by rdt_fuzz).
   Vector6d w;
-  for (int i = 0; i < 3; ++i) w(i) = sign * counts[i] / counts_per_force;
-  for (int i = 3; i < 6; ++i) w(i) = sign * counts[i] / counts_per_torque;
+  for (int i = 0; i < 3; ++i) w(i) = sign * (static_cast<double>(counts[i]) / counts_per_force);
+  for (int i = 3; i < 6; ++i) w(i) = sign * (static_cast<double>(counts[i]) / counts_per_torque);
   return w;
 }
 

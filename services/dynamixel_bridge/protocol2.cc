@@ -360,6 +360,8 @@ std::vector<std::uint8_t> EncodePresentBlock(const PresentState& s) {
 }
 
 namespace {
+constexpr double kPi = 3.14159265358979323846;
+
 void CheckDirection(int direction) {
   if (direction != 1 && direction != -1) {
     throw DxlError("servo direction must be +1 or -1, got " + std::to_string(direction));
@@ -370,13 +372,13 @@ void CheckDirection(int direction) {
 double PositionToRad(std::int32_t count, std::int32_t zero_count, int direction) {
   CheckDirection(direction);
   const double delta = static_cast<double>(count) - static_cast<double>(zero_count);
-  return direction * delta * (2.0 * M_PI / kCountsPerRev);
+  return direction * delta * (2.0 * kPi / kCountsPerRev);
 }
 
 std::int32_t RadToPosition(double angle_rad, std::int32_t zero_count, int direction) {
   CheckDirection(direction);
   const double count =
-      static_cast<double>(zero_count) + std::round(direction * angle_rad * kCountsPerRev / (2.0 * M_PI));
+      static_cast<double>(zero_count) + std::round(direction * angle_rad * kCountsPerRev / (2.0 * kPi));
   if (!std::isfinite(count) || count < std::numeric_limits<std::int32_t>::min() ||
       count > std::numeric_limits<std::int32_t>::max()) {
     throw DxlError("angle " + std::to_string(angle_rad) + " rad has no position count");
@@ -384,7 +386,7 @@ std::int32_t RadToPosition(double angle_rad, std::int32_t zero_count, int direct
   return static_cast<std::int32_t>(count);
 }
 
-double VelocityToRadPerS(std::int32_t value) { return value * kVelocityUnitRpm * 2.0 * M_PI / 60.0; }
+double VelocityToRadPerS(std::int32_t value) { return value * kVelocityUnitRpm * 2.0 * kPi / 60.0; }
 
 double CurrentToA(std::int16_t value) { return value * kCurrentUnitA; }
 

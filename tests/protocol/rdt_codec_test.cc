@@ -191,6 +191,11 @@ TEST(RdtConversion, CountsToNewtonsAndSign) {
   EXPECT_DOUBLE_EQ(w(5), 0.007);
   const Vector6d flipped = CountsToWrench(counts, 1e6, 1e3, -1);
   EXPECT_TRUE(flipped.isApprox(-w));
+  // The most negative count with a flipped sign (an int overflow before the fix).
+  const std::array<std::int32_t, 6> extreme = {-2147483647 - 1, 0, 0, 0, 0, -2147483647 - 1};
+  const Vector6d e = CountsToWrench(extreme, 1e6, 1e6, -1);
+  EXPECT_DOUBLE_EQ(e(0), 2147.483648);
+  EXPECT_DOUBLE_EQ(e(5), 2147.483648);
   EXPECT_THROW(CountsToWrench(counts, 0, 1e3), RdtError);
   EXPECT_THROW(CountsToWrench(counts, 1e6, -1), RdtError);
   EXPECT_THROW(CountsToWrench(counts, 1e6, 1e3, 2), RdtError);
