@@ -285,9 +285,9 @@ void ValidateServo(const Node& node, const config::Servo& servo) {
   if (servo.zero_count() < 0) {
     node.Error("zero_count", "must be >= 0, got " + std::to_string(servo.zero_count()));
   }
-  const bool finite =
-      node.Finite("min_angle_rad", servo.min_angle_rad()) &
-      node.Finite("max_angle_rad", servo.max_angle_rad());
+  const bool min_finite = node.Finite("min_angle_rad", servo.min_angle_rad());
+  const bool max_finite = node.Finite("max_angle_rad", servo.max_angle_rad());
+  const bool finite = min_finite && max_finite;
   if (finite && !(servo.min_angle_rad() < servo.max_angle_rad())) {
     node.Error("max_angle_rad", "must be greater than min_angle_rad (" +
                                     FormatNumber(servo.min_angle_rad()) + "), got " +
