@@ -1,0 +1,470 @@
+// Step 2 against data generated from known parameters with the sensing model's forward
+// direction (TransducerReading) and physically consistent ground wrenches.
+#include "ftcal/standing.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include <ceres/manifold.h>
+#include <gtest/gtest.h>
+
+namespace ftcal {
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+constexpr double kLegLength = 0.25;  // hip to foot, m (only shapes the chassis tilt)
+
+enum class Mounting { kNone, kFull, kRotationsOnly, kTranslationsOnly };
+
+// A BigAnt-like robot: hips 0.2 m apart along x, 0.15 m either side; right transducers mirrored
+// by a half turn about z so the same leg design serves both sides.
+RobotCalibration MakeTruth(uint64_t seed, Mounting mounting) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  RobotCalibration cal;
+  cal.total_mass_kg = 8.18;
+  const double hip_x[kNumLegs] = {-0.2, 0.0, 0.2, -0.2, 0.0, 0.2};
+  cal.p_C_B = Vec3(0.01 * u(rng), 0.01 * u(rng), 0.01 * u(rng));
+  for (int k = 0; k < kNumLegs; ++k) {
+    const bool left = k < 3;
+    cal.X_B_ft[k] = Pose3(left ? Mat3::Identity() : RotationFromRollPitchYaw(0, 0, M_PI),
+                          Vec3(hip_x[k], left ? 0.15 : -0.15, -0.03));
+    LegCalibration& l = cal.leg[k];
+    l.offset << 8 * u(rng), 8 * u(rng), 8 * u(rng), 0.36 * u(rng), 0.36 * u(rng), 0.36 * u(rng);
+    l.weight_n = 6.2 + 0.3 * u(rng);
+    l.com.x = {0.015 + 0.005 * u(rng), M_PI * u(rng), 0.01 * u(rng)};
+    l.com.y = 0.005 * u(rng);
+    l.com.z = {0.015 + 0.005 * u(rng), M_PI * u(rng), -0.06 + 0.02 * u(rng)};
+    Mat3 R_tilde = Mat3::Identity();
+    Vec3 p_tilde = Vec3::Zero();
+    if (mounting == Mounting::kFull || mounting == Mounting::kRotationsOnly) {
+      // A tilt of 1-3 degrees about the transducer's own origin ...
+      const Vec3 axis = Vec3(u(rng), u(rng), u(rng)).normalized();
+      R_tilde = ExpSO3(axis * (2.0 + u(rng)) * kDeg);
+      p_tilde = (Mat3::Identity() - R_tilde) * cal.X_B_ft[k].p;
+    }
+    if (mounting == Mounting::kFull || mounting == Mounting::kTranslationsOnly) {
+      // ... plus a shift of 2-8 mm (p~ acts about the body origin, method.md).
+      const Vec3 d = Vec3(u(rng), u(rng), u(rng)).normalized() * (0.005 + 0.003 * u(rng));
+      p_tilde += d;
+    }
+    if (mounting == Mounting::kRotationsOnly) p_tilde.setZero();  // model 2's assumption
+    l.R_tilde = R_tilde;
+    l.p_tilde_prime = R_tilde.transpose() * (p_tilde + cal.p_C_B);
+  }
+  return cal;
+}
+
+// What step 1 hands to step 2: the same offsets, weights and CoM curves, no mounting errors.
+RobotCalibration Step1Of(const RobotCalibration& truth) {
+  RobotCalibration cal = truth;
+  for (LegCalibration& l : cal.leg) {
+    l.R_tilde = Mat3::Identity();
+    l.p_tilde_prime = Vec3::Zero();
+  }
+  cal.p_C_B = Vec3::Zero();
+  return cal;
+}
+
+std::vector<std::array<double, kNumLegs>> Grid() {
+  std::vector<std::array<double, kNumLegs>> out;
+  for (int i = 0; i < 729; ++i) {
+    std::array<double, kNumLegs> a;
+    int n = i;
+    for (int k = 0; k < kNumLegs; ++k, n /= 3) a[k] = (n % 3 - 1) * 36.0 * kDeg;
+    out.push_back(a);
+  }
+  return out;
+}
+
+std::vector<std::array<double, kNumLegs>> GridSubset(size_t count, uint64_t seed) {
+  auto grid = Grid();
+  std::mt19937_64 rng(seed);
+  std::shuffle(grid.begin(), grid.end(), rng);
+  grid.resize(count);
+  return grid;
+}
+
+struct Noise {
+  double force_n = 0.0;        // per sample
+  double torque_nm = 0.0;      // per sample
+  int samples = 150;           // per pose, median taken
+  double attitude_deg = 0.0;   // per sample, per axis (rotation vector)
+};
+
+double Median(std::vector<double>& v) {
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+// Standing poses: the chassis tilts with the leg lengths (legs at +-36 deg are shorter), the
+// ground wrenches are random foot loads corrected by the minimum-norm change (equal share
+// per foot) so their sum at the CoM in W is exactly the target: (0,0,G,0,0,0), or with
+// moving_com the torque delta_W x (0,0,G) of the shifted whole-robot CoM.
+std::vector<StandingPose> MakePoses(const RobotCalibration& truth,
+                                    const std::vector<std::array<double, kNumLegs>>& angles,
+                                    const Noise& noise, bool moving_com, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> n01(0.0, 1.0);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const double G = truth.TotalWeightN();
+  std::vector<StandingPose> poses;
+  std::vector<double> buf(std::max(1, noise.samples));
+  for (const auto& a : angles) {
+    // Plane through the hip heights h_k = L cos(theta_k) gives roll and pitch.
+    Eigen::Matrix<double, kNumLegs, 3> A;
+    Eigen::Matrix<double, kNumLegs, 1> h;
+    for (int k = 0; k < kNumLegs; ++k) {
+      A.row(k) << 1.0, truth.X_B_ft[k].p.x(), truth.X_B_ft[k].p.y();
+      h[k] = kLegLength * std::cos(a[k]);
+    }
+    const Vec3 plane = A.colPivHouseholderQr().solve(h);
+    const Mat3 R_WC = RotationFromRollPitchYaw(std::atan(plane[2]) + 0.5 * kDeg * u(rng),
+                                               -std::atan(plane[1]) + 0.5 * kDeg * u(rng), 0.0);
+    std::array<Vec6, kNumLegs> w_W;
+    Vec6 sum = Vec6::Zero();
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Vec3 foot_C = truth.X_B_ft[k].p + kLegLength * Vec3(std::sin(a[k]), 0, -std::cos(a[k]));
+      const Vec3 f(2.0 * n01(rng), 2.0 * n01(rng), G / 6.0 + 4.0 * n01(rng));
+      const Vec3 tau = (R_WC * foot_C).cross(f) + 0.02 * Vec3(n01(rng), n01(rng), n01(rng));
+      w_W[k] << f, tau;
+      sum += w_W[k];
+    }
+    Vec6 target;
+    target << 0, 0, G, 0, 0, 0;
+    if (moving_com) target.tail<3>() = (R_WC * ComShiftC(truth, a)).cross(Vec3(0, 0, G));
+    StandingPose pose;
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Vec6 w = w_W[k] + (target - sum) / kNumLegs;
+      const Vec6 w_C = TransformWrench(Pose3(R_WC.transpose(), Vec3::Zero()), w);
+      const Vec6 clean = TransducerReading(truth, k, w_C, a[k], R_WC);
+      for (int i = 0; i < 6; ++i) {
+        const double sigma = i < 3 ? noise.force_n : noise.torque_nm;
+        if (sigma == 0.0) {
+          pose.wrench[k][i] = clean[i];
+          continue;
+        }
+        for (double& s : buf) s = clean[i] + sigma * n01(rng);
+        pose.wrench[k][i] = Median(buf);
+      }
+      pose.angle_rad[k] = a[k];
+    }
+    // The segmenter represents a pose by medians of its steady samples, attitude included.
+    Vec3 att_err = Vec3::Zero();
+    if (noise.attitude_deg > 0.0) {
+      for (int i = 0; i < 3; ++i) {
+        for (double& s : buf) s = noise.attitude_deg * kDeg * n01(rng);
+        att_err[i] = Median(buf);
+      }
+    }
+    pose.R_WC = ExpSO3(att_err) * R_WC;
+    poses.push_back(pose);
+  }
+  return poses;
+}
+
+const Noise kReportNoise{0.05, 0.002, 150, 0.2};
+
+double RotationErrorDeg(const Mat3& a, const Mat3& b) {
+  return LogSO3(a * b.transpose()).norm() / kDeg;
+}
+
+struct Errors {
+  double rot_deg = 0.0, p_prime_m = 0.0;
+};
+Errors MaxErrors(const StandingFit& fit, const RobotCalibration& truth) {
+  Errors e;
+  for (int k = 0; k < kNumLegs; ++k) {
+    e.rot_deg = std::max(e.rot_deg, RotationErrorDeg(fit.R_tilde[k], truth.leg[k].R_tilde));
+    e.p_prime_m =
+        std::max(e.p_prime_m, (fit.p_tilde_prime[k] - truth.leg[k].p_tilde_prime).norm());
+  }
+  return e;
+}
+
+Mounting TruthFor(StandingModel m) {
+  switch (m) {
+    case StandingModel::kFull: return Mounting::kFull;
+    case StandingModel::kRotationsOneTranslation: return Mounting::kRotationsOnly;
+    case StandingModel::kTranslationsOnly: return Mounting::kTranslationsOnly;
+    case StandingModel::kOneTranslation: return Mounting::kNone;
+  }
+  return Mounting::kFull;
+}
+
+// The covariance's rotation sigma relies on Ceres's quaternion tangent being half the
+// rotation vector: check it against the library itself.
+TEST(Standing, CeresQuaternionTangentIsHalfTheLeftRotationVector) {
+  ceres::EigenQuaternionManifold m;
+  const Quat q0(ExpSO3(Vec3(0.1, -0.2, 0.3)));
+  const double x[4] = {q0.x(), q0.y(), q0.z(), q0.w()};
+  const double delta[3] = {0.01, 0.02, -0.015};
+  double y[4];
+  ASSERT_TRUE(m.Plus(x, delta, y));
+  const Mat3 R1 = Quat(y[3], y[0], y[1], y[2]).toRotationMatrix();
+  const Vec3 v = LogSO3(R1 * q0.toRotationMatrix().transpose());
+  EXPECT_NEAR((v - 2.0 * Vec3(delta[0], delta[1], delta[2])).norm(), 0.0, 1e-12);
+}
+
+TEST(Standing, NoiseFreeJointSolveRecoversEveryModelExactly) {
+  for (StandingModel model : kStandingModels) {
+    SCOPED_TRACE(StandingModelName(model));
+    const RobotCalibration truth = MakeTruth(11, TruthFor(model));
+    const auto poses = MakePoses(truth, GridSubset(80, 3), Noise{0, 0, 0, 0}, false, 5);
+    const StandingFit fit = FitStandingJoint(Step1Of(truth), poses, model, StandingOptions());
+    const Errors e = MaxErrors(fit, truth);
+    EXPECT_LT(e.rot_deg * kDeg, 1e-9);
+    EXPECT_LT(e.p_prime_m, 1e-9);
+    if (fit.has_p_C_B) EXPECT_LT((fit.p_C_B - truth.p_C_B).norm(), 1e-9);
+    EXPECT_EQ(fit.dof, StandingModelDof(model));
+    EXPECT_TRUE(fit.converged);
+    // The solver's residual (cost functor) and the sensing model's eq. 3 agree at the truth.
+    EXPECT_LT(WeightedRss(TotalWrenchResiduals(truth, poses, false), StandingOptions().k_weights),
+              1e-18);
+  }
+}
+
+class NoisyGrid : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    truth_ = new RobotCalibration(MakeTruth(21, Mounting::kFull));
+    poses_ = new std::vector<StandingPose>(MakePoses(*truth_, Grid(), kReportNoise, false, 22));
+    result_ = new StandingResult(CalibrateStanding(Step1Of(*truth_), *poses_, NaiveOffsets(),
+                                                   StandingOptions()));
+  }
+  static void TearDownTestSuite() {
+    delete result_;
+    delete poses_;
+    delete truth_;
+  }
+  // The naive tare: readings with the feet in the air and the legs at theta = 0.
+  static std::array<Vec6, kNumLegs> NaiveOffsets() {
+    std::array<Vec6, kNumLegs> out;
+    for (int k = 0; k < kNumLegs; ++k) {
+      out[k] = TransducerReading(*truth_, k, Vec6::Zero(), 0.0, Mat3::Identity());
+    }
+    return out;
+  }
+  static RobotCalibration* truth_;
+  static std::vector<StandingPose>* poses_;
+  static StandingResult* result_;
+};
+RobotCalibration* NoisyGrid::truth_ = nullptr;
+std::vector<StandingPose>* NoisyGrid::poses_ = nullptr;
+StandingResult* NoisyGrid::result_ = nullptr;
+
+TEST_F(NoisyGrid, FullModelSelectedAndWithinTolerance) {
+  std::printf("model  dof  cv_mse  rss  bic  selected\n");
+  for (const ModelSelectionRow& r : result_->model_selection) {
+    std::printf("%-26s %2d %10.4g %10.4g %10.1f %d\n", StandingModelName(r.model), r.dof,
+                r.cv_mse, r.rss, r.bic, r.selected);
+  }
+  EXPECT_EQ(result_->selected, StandingModel::kFull);
+  const Errors e = MaxErrors(result_->fit, *truth_);
+  std::printf("max rotation error %.4f deg, max p~' error %.4f mm\n", e.rot_deg,
+              e.p_prime_m * 1e3);
+  EXPECT_LT(e.rot_deg, 0.15);
+  EXPECT_LT(e.p_prime_m, 0.5e-3);
+}
+
+TEST_F(NoisyGrid, ResidualNearTheTruthsAndWithoutMountingWorse) {
+  const Vec6 k = StandingOptions().k_weights;
+  const double at_truth = WeightedRss(TotalWrenchResiduals(*truth_, *poses_, false), k);
+  const double full = WeightedRss(result_->residual_full, k);
+  const double without = WeightedRss(result_->residual_without, k);
+  const double naive = WeightedRss(result_->residual_naive, k);
+  std::printf("RSS: truth %.4g, calibrated %.4g, without T~ %.4g, naive tare %.4g\n", at_truth,
+              full, without, naive);
+  EXPECT_LE(full, at_truth);  // the optimum of eq. 8 fits the noise at least as well
+  EXPECT_LT(at_truth, 1.2 * full);
+  EXPECT_GT(without, 10.0 * full);
+  EXPECT_GT(naive, without);
+  // The functor's RSS and the sensing model's (GroundWrenchW) agree.
+  EXPECT_NEAR(result_->fit.rss, full, 1e-9 * full);
+  EXPECT_NEAR(2.0 * result_->fit.final_cost, full, 1e-9 * full);
+}
+
+TEST_F(NoisyGrid, SigmaMatchesTheActualError) {
+  const StandingFit& fit = result_->fit;
+  ASSERT_TRUE(fit.has_covariance);
+  double sum_sq = 0.0;
+  int n = 0;
+  double worst = 0.0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const Vec3 rot_err = LogSO3(fit.R_tilde[k] * truth_->leg[k].R_tilde.transpose()) / kDeg;
+    const Vec3 p_err = fit.p_tilde_prime[k] - truth_->leg[k].p_tilde_prime;
+    for (int i = 0; i < 3; ++i) {
+      ASSERT_GT(fit.sigma_rotation_deg[k][i], 0.0);
+      ASSERT_GT(fit.sigma_p_tilde_prime_m[k][i], 0.0);
+      const double zr = rot_err[i] / fit.sigma_rotation_deg[k][i];
+      const double zp = p_err[i] / fit.sigma_p_tilde_prime_m[k][i];
+      sum_sq += zr * zr + zp * zp;
+      n += 2;
+      worst = std::max({worst, std::abs(zr), std::abs(zp)});
+    }
+  }
+  const double rms_z = std::sqrt(sum_sq / n);
+  std::printf("error / sigma over 36 parameters: rms %.2f, worst %.2f\n", rms_z, worst);
+  EXPECT_GT(rms_z, 0.3);
+  EXPECT_LT(rms_z, 3.0);
+  EXPECT_LT(worst, 6.0);
+}
+
+TEST_F(NoisyGrid, AlternatingSchemeStopsShortOfTheJointOptimum) {
+  const StandingFit alt =
+      FitStandingAlternating(Step1Of(*truth_), *poses_, StandingModel::kFull, StandingOptions());
+  const StandingFit& joint = result_->fits[0];
+  double rot_gap = 0.0, p_gap = 0.0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    rot_gap = std::max(rot_gap, RotationErrorDeg(alt.R_tilde[k], joint.R_tilde[k]));
+    p_gap = std::max(p_gap, (alt.p_tilde_prime[k] - joint.p_tilde_prime[k]).norm());
+  }
+  const Errors e = MaxErrors(alt, *truth_);
+  std::printf("alternating: %d sweeps, RSS %.4g vs joint %.4g; distance from the joint optimum: "
+              "rotation %.3f deg, p~' %.3f mm; from the truth: %.3f deg, %.3f mm\n",
+              alt.iterations, alt.rss, joint.rss, rot_gap, p_gap * 1e3, e.rot_deg,
+              e.p_prime_m * 1e3);
+  EXPECT_EQ(alt.solver, "alternating");
+  EXPECT_TRUE(alt.converged);  // its own 1e-3 rule fired
+  EXPECT_GE(alt.iterations, 1);
+  EXPECT_GE(alt.rss, joint.rss * (1.0 - 1e-9));  // the joint solution is the optimum
+}
+
+TEST_F(NoisyGrid, FillsTheCalibrationProto) {
+  calibration::Calibration proto;
+  FillStandingProto(*result_, &proto);
+  ASSERT_EQ(proto.leg_size(), kNumLegs);
+  EXPECT_EQ(proto.model(), calibration::FULL);
+  EXPECT_EQ(proto.standing_uncertainty(), calibration::SOLVER_COVARIANCE);
+  EXPECT_EQ(proto.standing_poses(), 729u);
+  ASSERT_EQ(proto.model_selection_size(), 4);
+  int selected = 0;
+  for (const auto& row : proto.model_selection()) selected += row.selected();
+  EXPECT_EQ(selected, 1);
+  EXPECT_EQ(proto.model_selection(1).dof(), 21u);
+  ASSERT_EQ(proto.standing_residual_size(), 3);
+  EXPECT_EQ(proto.standing_residual(1).label(), "without T~");
+  EXPECT_EQ(proto.standing_residual(2).rms_size(), 6);
+  for (int k = 0; k < kNumLegs; ++k) {
+    const auto& m = proto.leg(k).mounting();
+    ASSERT_EQ(m.quaternion_wxyz_size(), 4);
+    const Eigen::Vector4d q(m.quaternion_wxyz(0), m.quaternion_wxyz(1), m.quaternion_wxyz(2),
+                            m.quaternion_wxyz(3));
+    EXPECT_LT((QuaternionToRotation(q) - result_->fit.R_tilde[k]).norm(), 1e-12);
+    const Vec3 v(m.rotation_vector_deg().x(), m.rotation_vector_deg().y(),
+                 m.rotation_vector_deg().z());
+    EXPECT_LT((ExpSO3(v * kDeg) - result_->fit.R_tilde[k]).norm(), 1e-12);
+    EXPECT_NEAR(m.p_tilde_prime_m().x(), result_->fit.p_tilde_prime[k].x(), 1e-15);
+    EXPECT_GT(m.p_tilde_prime_m().sigma_z(), 0.0);
+    EXPECT_FALSE(m.has_p_tilde_m());  // p^C_B is not separable in the full model
+  }
+  EXPECT_FALSE(proto.has_p_c_b_m());
+}
+
+TEST(Standing, NoisyRotationsOneTranslationRecoversCoMOffset) {
+  const RobotCalibration truth = MakeTruth(31, Mounting::kRotationsOnly);
+  const auto poses = MakePoses(truth, Grid(), kReportNoise, false, 32);
+  const StandingFit fit = FitStandingJoint(Step1Of(truth), poses,
+                                           StandingModel::kRotationsOneTranslation,
+                                           StandingOptions());
+  const Errors e = MaxErrors(fit, truth);
+  const Vec3 err = fit.p_C_B - truth.p_C_B;
+  std::printf("model 2: p^C_B error %.3f mm (sigma %.3f %.3f %.3f mm), rotation %.4f deg\n",
+              err.norm() * 1e3, fit.sigma_p_C_B_m.x() * 1e3, fit.sigma_p_C_B_m.y() * 1e3,
+              fit.sigma_p_C_B_m.z() * 1e3, e.rot_deg);
+  EXPECT_LT(err.norm(), 1.5e-3);
+  EXPECT_LT(e.rot_deg, 0.15);
+  for (int i = 0; i < 3; ++i) EXPECT_LT(std::abs(err[i]), 6.0 * fit.sigma_p_C_B_m[i]);
+}
+
+TEST(Standing, ModelSelectionPicksASmallModelWithoutMountingErrors) {
+  const RobotCalibration truth = MakeTruth(41, Mounting::kNone);
+  const auto poses = MakePoses(truth, Grid(), kReportNoise, false, 42);
+  std::array<Vec6, kNumLegs> naive;
+  for (int k = 0; k < kNumLegs; ++k) naive[k] = truth.leg[k].offset;
+  const StandingResult r = CalibrateStanding(Step1Of(truth), poses, naive, StandingOptions());
+  for (const ModelSelectionRow& row : r.model_selection) {
+    std::printf("%-26s %2d cv %.4g rss %.4g bic %.1f\n", StandingModelName(row.model), row.dof,
+                row.cv_mse, row.rss, row.bic);
+  }
+  EXPECT_EQ(r.selected, StandingModel::kOneTranslation);
+  EXPECT_LT((r.fit.p_C_B - truth.p_C_B).norm(), 1.5e-3);
+}
+
+TEST(Standing, LegAwareComRemovesTheBiasOfAMovingCoM) {
+  const RobotCalibration truth = MakeTruth(51, Mounting::kFull);
+  // Noise-free, so what remains is the bias alone.
+  const auto poses = MakePoses(truth, GridSubset(300, 52), Noise{0, 0, 0, 0}, true, 53);
+  StandingOptions plain, aware;
+  aware.leg_aware_com = true;
+  const StandingFit biased = FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, plain);
+  const StandingFit fixed = FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, aware);
+  const Errors eb = MaxErrors(biased, truth), ef = MaxErrors(fixed, truth);
+  std::printf("moving CoM: plain model p~' error %.3f mm, rotation %.4f deg; leg-aware %.2g mm\n",
+              eb.p_prime_m * 1e3, eb.rot_deg, ef.p_prime_m * 1e3);
+  EXPECT_GT(eb.p_prime_m, 0.5e-3);
+  EXPECT_LT(ef.p_prime_m, 1e-9);
+  EXPECT_LT(ef.rot_deg * kDeg, 1e-9);
+}
+
+TEST(Standing, RefusesTooFewPoses) {
+  const RobotCalibration truth = MakeTruth(61, Mounting::kFull);
+  const auto poses = MakePoses(truth, GridSubset(20, 1), Noise{0, 0, 0, 0}, false, 2);
+  try {
+    FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, StandingOptions());
+    FAIL() << "accepted 20 poses";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("min_poses = 30"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Standing, RefusesNonFiniteReadingNamingPoseAndLeg) {
+  const RobotCalibration truth = MakeTruth(62, Mounting::kFull);
+  auto poses = MakePoses(truth, GridSubset(40, 1), Noise{0, 0, 0, 0}, false, 2);
+  poses[17].wrench[4][2] = std::nan("");
+  try {
+    FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, StandingOptions());
+    FAIL() << "accepted a NaN";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("pose 17 leg MR"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Standing, RefusesPosesThatDoNotExciteTheParameters) {
+  const RobotCalibration truth = MakeTruth(63, Mounting::kFull);
+  // Every pose at the same angles and attitude with the same loads: one pose repeated.
+  const auto one = MakePoses(truth, GridSubset(1, 1), Noise{0, 0, 0, 0}, false, 2);
+  const std::vector<StandingPose> poses(40, one[0]);
+  for (StandingModel model : kStandingModels) {
+    try {
+      FitStandingJoint(Step1Of(truth), poses, model, StandingOptions());
+      FAIL() << "accepted identical poses for " << StandingModelName(model);
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("do not determine"), std::string::npos) << e.what();
+      if (model == StandingModel::kOneTranslation) {
+        // Gravity along one direction in C: p^C_B along it is invisible.
+        EXPECT_NE(std::string(e.what()).find("p^C_B"), std::string::npos) << e.what();
+      }
+    }
+  }
+}
+
+TEST(Standing, ResidualStatsOfAHandComputedCase) {
+  std::vector<Vec6> r;
+  for (int i = 1; i <= 5; ++i) r.push_back(Vec6::Constant(static_cast<double>(i)));
+  r[4][5] = -5.0;
+  const calibration::ResidualStats s = ResidualStatsOf("x", r);
+  EXPECT_EQ(s.count(), 5u);
+  EXPECT_DOUBLE_EQ(s.mean(0), 3.0);
+  EXPECT_DOUBLE_EQ(s.std(0), std::sqrt(2.5));
+  EXPECT_DOUBLE_EQ(s.rms(0), std::sqrt(11.0));
+  EXPECT_DOUBLE_EQ(s.p05(0), 1.2);
+  EXPECT_DOUBLE_EQ(s.p95(0), 4.8);
+  EXPECT_DOUBLE_EQ(s.mean(5), 1.0);  // (1 + 2 + 3 + 4 - 5) / 5
+  EXPECT_DOUBLE_EQ(s.p05(5), -5.0 + 0.2 * 6.0);  // sorted -5, 1, ...: 0.05 * 4 = 0.2 of the way
+}
+
+}  // namespace
+}  // namespace ftcal
