@@ -429,7 +429,9 @@ void CheckIdentifiable(ceres::Problem* problem, const std::vector<double*>& bloc
     }
   }
   J = J * norms.cwiseInverse().asDiagonal();
-  Eigen::BDCSVD<Eigen::MatrixXd> svd(J, Eigen::ComputeThinV);
+  // JacobiSVD (QR-preconditioned), not BDCSVD: Eigen 3.4.0's BDCSVD proved inaccurate on tall
+  // matrices (see offset_reestimation.cc).
+  Eigen::JacobiSVD<Eigen::MatrixXd> svd(J, Eigen::ComputeThinV);
   const Eigen::VectorXd& sv = svd.singularValues();
   for (int i = 0; i < sv.size(); ++i) {
     if (sv[i] >= 1e-8 * sv[0]) continue;
