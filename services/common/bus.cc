@@ -26,6 +26,22 @@ int64_t LoggedEventBytes(const lcm::LogEvent& event) {
   return 4 + 8 + 8 + 4 + 4 + static_cast<int64_t>(event.channel.size()) + event.datalen;
 }
 
+// Reads the header of the event at `at` (its sync word already found there) and leaves `file`
+// positioned at `at` when the lengths it claims are possible for this file.
+bool PlausibleHeader(FILE* file, int64_t at, int64_t file_bytes) {
+  uint8_t header[28];
+  if (::fseeko(file, at, SEEK_SET) != 0 || std::fread(header, 1, 28, file) != 28) return false;
+  auto be32 = [&header](int offset) {
+    return static_cast<int32_t>(uint32_t{header[offset]} << 24 | uint32_t{header[offset + 1]} << 16 |
+                                uint32_t{header[offset + 2]} << 8 | uint32_t{header[offset + 3]});
+  };
+  const int64_t channel_bytes = be32(20);
+  const int64_t data_bytes = be32(24);
+  return channel_bytes > 0 && data_bytes >= 0 &&
+         at + 28 + channel_bytes + data_bytes <= file_bytes &&
+         ::fseeko(file, at, SEEK_SET) == 0;
+}
+
 // Positions `file` at the next sync word of LCM's log format at or after `from` and returns
 // its offset, or -1 when there is none before the end.
 int64_t FindSyncWord(FILE* file, int64_t from) {
@@ -195,10 +211,14 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
     throw std::runtime_error("replay input '" + in_path_ + "': " + std::strerror(errno));
   }
   const int64_t file_bytes = st.st_size;
-  // LCM's reader resynchronises on the next sync word after damage, but says nothing about
-  // what it skipped; so the reader's position is compared with the size of what it returned,
-  // and a failed read is retried one byte further on.
+  // LCM's reader skips to the next sync word without saying so, refuses an event that is not
+  // followed by a sync word or the end, and allocates whatever length a damaged header claims.
+  // So each event's sync word and header are checked here first, and every byte not returned
+  // as an event is reported (as the span it covers) instead of silently lost.
   int64_t damage_from = -1;
+  auto damaged = [&](int64_t at) {
+    if (damage_from < 0) damage_from = at;
+  };
   auto report_damage = [&](int64_t to) {
     if (damage_from < 0) return;
     stats_.Error("replay input damaged",
@@ -208,30 +228,34 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
   };
   bool ticking = false;
   int64_t next_tick = 0;
+  int64_t pos = 0;
   while (true) {
     if (ShutdownRequested()) {
       stats_.log().warn("replay interrupted after {} events; output not written", events_read_);
       return;
     }
-    const int64_t before = ::ftello(file);
-    const lcm::LogEvent* event = in_->readNextEvent();
+    const int64_t sync = FindSyncWord(file, pos);
+    if (sync < 0) {
+      if (pos < file_bytes) damaged(pos);
+      break;
+    }
+    if (sync > pos) damaged(pos);
+    const lcm::LogEvent* event =
+        PlausibleHeader(file, sync, file_bytes) ? in_->readNextEvent() : nullptr;
     if (event == nullptr) {
-      if (before >= file_bytes) break;
-      if (damage_from < 0) damage_from = before;
-      const int64_t next_sync = FindSyncWord(file, before + 1);
-      if (next_sync < 0) break;
+      damaged(sync);
+      pos = sync + 1;
       continue;
     }
-    const int64_t after = ::ftello(file);
-    const int64_t skipped = after - before - LoggedEventBytes(*event);
-    if (skipped > 0 && damage_from < 0) damage_from = before;
-    report_damage(after - LoggedEventBytes(*event));
+    report_damage(sync);
+    pos = sync + LoggedEventBytes(*event);
     ++events_read_;
 
-    // Periodic work on the log's clock, as it would have run live between these events.
+    // Periodic work on the log's clock, as it would have run live between these events; the
+    // first tick is at the first event, as a live loop's is at its start.
     if (!ticking) {
       ticking = true;
-      next_tick = event->timestamp + tick_us;
+      next_tick = event->timestamp;
     } else if (event->timestamp - next_tick > 1000 * tick_us) {
       next_tick = event->timestamp - (event->timestamp - next_tick) % tick_us;  // a long gap
     }

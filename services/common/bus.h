@@ -136,7 +136,8 @@ class LogReplayBus : public Bus {
   LogReplayBus(const std::string& in_path, const std::string& out_path, ServiceStats& stats);
   ~LogReplayBus() override;
   int64_t NowUtime() const override { return now_utime_; }
-  // Feeds every event in log order; ticks at bus time (the log's clock) every `tick_us`.
+  // Feeds every event in log order; ticks on the log's clock at the first event and then every
+  // `tick_us`, before the first event at or after each tick time (stamped with that time).
   // Unreadable bytes in the input (a damaged event) are skipped and counted as an error.
   // Stops early, leaving the output uncommitted, when shutdown is requested.
   void Run(const std::function<void()>& tick, int64_t tick_us) override;

@@ -1,0 +1,430 @@
+// services/common without a network: the bus on LCM's in-process memq:// transport, the
+// shutdown loop, the heartbeat message, ftcal-status's board, and a real stage process run over
+// a log (--replay/--out) whose output is checked event by event against hand-computed values.
+#include <signal.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <thread>
+
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+#include <spdlog/sinks/null_sink.h>
+#include <spdlog/spdlog.h>
+
+#include "child_process.h"
+#include "common/bus.h"
+#include "common/heartbeat.h"
+#include "common/shutdown.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/ft_sample_t.hpp"
+#include "status/status_board.h"
+
+namespace ftcal {
+namespace {
+
+using testing::Child;
+using testing::DescribeWaitStatus;
+using testing::ReadFile;
+
+std::shared_ptr<spdlog::logger> QuietLogger() {
+  static auto log = std::make_shared<spdlog::logger>(
+      "test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  return log;
+}
+
+ft_sample_t Sample(const std::string& leg, int64_t utime, double scale) {
+  ft_sample_t s{};
+  s.utime = utime;
+  s.leg = leg;
+  s.rdt_sequence = utime / 1000;
+  s.ft_sequence = 7 * s.rdt_sequence;
+  for (int i = 0; i < 6; ++i) {
+    s.counts[i] = static_cast<int32_t>(1000 * (i + 1) * scale);
+    s.wrench[i] = (i + 1) * scale - 3.5;
+  }
+  return s;
+}
+
+template <class Msg>
+std::vector<uint8_t> Encode(const Msg& msg) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+  msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+// ---- the bus on memq:// ----
+
+TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
+  ServiceStats stats(QuietLogger());
+  LcmBus bus("memq://", stats);
+  std::vector<ft_sample_t> got;
+  bus.Subscribe<ft_sample_t>("FT_.*", [&](const MessageInfo& info, const ft_sample_t& s) {
+    EXPECT_EQ(info.channel, "FT_" + s.leg);
+    EXPECT_GT(info.recv_utime, 0);
+    if (s.leg == "XX") throw BadInput("unknown leg", "leg XX");
+    if (s.status == 666) throw std::runtime_error("boom");
+    got.push_back(s);
+  });
+  const uint8_t garbage[7] = {1, 2, 3, 4, 5, 6, 7};
+  bus.PublishRaw("FT_HL", garbage, sizeof(garbage));                 // drop: undecodable
+  bus.Publish("FT_ML", experiment_marker_t{});                       // drop: wrong type
+  bus.Publish("FT_FL", Sample("FL", 10, 1.0));                       // ok
+  bus.Publish("FT_XX", Sample("XX", 11, 1.0));                       // drop: BadInput
+  ft_sample_t failing = Sample("HR", 12, 1.0);
+  failing.status = 666;
+  bus.Publish("FT_HR", failing);                                     // error: exception
+  bus.Publish("FT_MR", Sample("MR", 13, 2.0));                       // ok
+  bus.Publish("OTHER", Sample("FR", 14, 1.0));                       // not subscribed
+  while (bus.HandleOnce(0) > 0) {
+  }
+  ASSERT_EQ(got.size(), 2u);
+  EXPECT_EQ(got[0].leg, "FL");
+  EXPECT_EQ(got[1].leg, "MR");
+  EXPECT_EQ(got[1].wrench[5], 6 * 2.0 - 3.5);
+  EXPECT_EQ(stats.msgs_out(), 7);
+  EXPECT_EQ(stats.msgs_in(), 6);
+  EXPECT_EQ(stats.drops(), 3);
+  EXPECT_EQ(stats.errors(), 1);
+  EXPECT_EQ(stats.last_error(), "handler for FT_.*: boom");
+  EXPECT_EQ(stats.kinds().at("unknown leg"), 1);
+  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_HL"), 1);
+  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_ML"), 1);
+}
+
+TEST(LcmBusTest, BadUrlIsAClearError) {
+  ServiceStats stats(QuietLogger());
+  try {
+    LcmBus bus("nosuchprovider://x", stats);
+    FAIL() << "no exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("nosuchprovider://x"), std::string::npos) << e.what();
+  }
+}
+
+TEST(ShutdownLoopTest, SigtermEndsAQuietLoopPromptly) {
+  ServiceStats stats(QuietLogger());
+  LcmBus bus("memq://", stats);
+  ClearShutdownRequest();
+  InstallShutdownHandlers();
+  int ticks = 0;
+  std::chrono::steady_clock::time_point sent;
+  std::thread killer([&sent] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(350));
+    sent = std::chrono::steady_clock::now();
+    ::kill(::getpid(), SIGTERM);  // to the process, as `kill` would: any thread may take it
+  });
+  bus.Run([&ticks] { ++ticks; }, 50'000);
+  const auto ended = std::chrono::steady_clock::now();
+  killer.join();
+  EXPECT_TRUE(ShutdownRequested());
+  ClearShutdownRequest();
+  // The loop wakes at least every 100 ms; 200 ms allows for a loaded machine.
+  EXPECT_LT(std::chrono::duration<double>(ended - sent).count(), 0.2);
+  // Periodic work ran while the bus was quiet (every 50 ms for 350 ms).
+  EXPECT_GE(ticks, 3);
+}
+
+// ---- the heartbeat message ----
+
+TEST(HeartbeatTest, StatusCarriesIdentityStateAndEveryCounter) {
+  ServiceStats stats(QuietLogger());
+  stats.CountIn();
+  stats.CountIn();
+  stats.CountOut();
+  stats.Drop("k1", "r1");
+  stats.Drop("k1", "r2");
+  stats.Error("k2", "went wrong");
+  stats.Counter("zeta") = 5;
+  stats.Counter("alpha") = -2;
+  const ProcessIdentity id{"ftcal-x", "hostA", 4242};
+  const service_status_t s =
+      MakeServiceStatus(id, int8_t{service_status_t::DEGRADED}, 12.5, stats, 1'000'000);
+  EXPECT_EQ(s.name, "ftcal-x");
+  EXPECT_EQ(s.host, "hostA");
+  EXPECT_EQ(s.pid, 4242);
+  EXPECT_EQ(s.state, int8_t{service_status_t::DEGRADED});
+  EXPECT_EQ(s.uptime_s, 12.5);
+  EXPECT_EQ(s.utime, 1'000'000);
+  EXPECT_EQ(s.msgs_in, 2);
+  EXPECT_EQ(s.msgs_out, 1);
+  EXPECT_EQ(s.drops, 2);
+  EXPECT_EQ(s.errors, 1);
+  EXPECT_EQ(s.last_error, "k2: went wrong");
+  ASSERT_EQ(s.num_counters, 2);
+  EXPECT_EQ(s.counter_name, (std::vector<std::string>{"alpha", "zeta"}));
+  EXPECT_EQ(s.counter_value, (std::vector<int64_t>{-2, 5}));
+  // It survives LCM's encoding: the counters' lengths match num_counters.
+  const auto bytes = Encode(s);
+  service_status_t back;
+  ASSERT_EQ(back.decode(bytes.data(), 0, static_cast<int>(bytes.size())),
+            static_cast<int>(bytes.size()));
+  EXPECT_EQ(back.counter_value, s.counter_value);
+  EXPECT_EQ(ThisProcess("p").pid, static_cast<int64_t>(::getpid()));
+}
+
+// ---- ftcal-status's board ----
+
+service_status_t Beat(const std::string& name, int64_t pid, int8_t state) {
+  service_status_t s{};
+  s.name = name;
+  s.host = "h";
+  s.pid = pid;
+  s.state = state;
+  s.uptime_s = 75;
+  s.msgs_in = 11;
+  s.msgs_out = 22;
+  s.num_counters = 1;
+  s.counter_name = {"frames"};
+  s.counter_value = {9};
+  return s;
+}
+
+TEST(StatusBoardTest, SilentProcessesAreLostOrStoppedAfterTheThreshold) {
+  StatusBoard board(3.0);
+  const int64_t t0 = 1'000'000'000;
+  board.Update(Beat("b-proc", 2, service_status_t::RUNNING), t0);
+  board.Update(Beat("a-proc", 1, service_status_t::RUNNING), t0);
+  board.Update(Beat("c-proc", 3, service_status_t::STOPPING), t0);
+  board.Update(Beat("a-proc", 1, service_status_t::DEGRADED), t0 + 2'000'000);  // newer beat
+
+  auto rows = board.Rows(t0 + 3'000'000);  // exactly 3 s: not yet silent *longer* than 3 s
+  ASSERT_EQ(rows.size(), 3u);
+  EXPECT_EQ(rows[0].status.name, "a-proc");
+  EXPECT_EQ(rows[0].shown_state, "DEGRADED");
+  EXPECT_DOUBLE_EQ(rows[0].age_s, 1.0);
+  EXPECT_EQ(rows[1].shown_state, "RUNNING");
+  EXPECT_EQ(rows[2].shown_state, "STOPPING");
+
+  rows = board.Rows(t0 + 3'000'001);
+  EXPECT_EQ(rows[0].shown_state, "DEGRADED");
+  EXPECT_EQ(rows[1].shown_state, "LOST");
+  EXPECT_EQ(rows[2].shown_state, "STOPPED");
+}
+
+TEST(StatusBoardTest, RenderShowsEveryColumnAndNeutralisesControlCharacters) {
+  StatusBoard board;
+  service_status_t s = Beat("ftcal-x", 77, service_status_t::RUNNING);
+  s.last_error = "bad\x1b[2Jthing\nnext";
+  board.Update(s, 5'000'000);
+  const std::string table = board.Render(5'500'000);
+  EXPECT_EQ(table,
+            "NAME     HOST  PID  STATE    UPTIME  IN  OUT  DROPS  ERRORS  AGE   COUNTERS  "
+            "LAST ERROR\n"
+            "ftcal-x  h     77   RUNNING  1m15s   11  22   0      0       0.5s  frames=9  "
+            "bad?[2Jthing?next\n");
+  EXPECT_EQ(StatusBoard().Render(0).find("(no heartbeats yet)") != std::string::npos, true);
+}
+
+// ---- a stage over a log ----
+
+class ReplayStageTest : public ::testing::Test {
+ protected:
+  void SetUp() override { dir_ = testing::MakeTempDir(); }
+  void TearDown() override {
+    if (!HasFailure()) testing::RemoveTree(dir_);
+  }
+  std::string Path(const std::string& name) const { return dir_ + "/" + name; }
+  static void Write(lcm::LogFile& log, const std::string& channel, int64_t t,
+                    const std::vector<uint8_t>& bytes) {
+    lcm::LogEvent e{};
+    e.timestamp = t;
+    e.channel = channel;
+    e.datalen = static_cast<int32_t>(bytes.size());
+    e.data = const_cast<uint8_t*>(bytes.data());
+    ASSERT_EQ(log.writeEvent(&e), 0);
+  }
+  std::string dir_;
+};
+
+struct Event {
+  std::string channel;
+  int64_t timestamp;
+  std::vector<uint8_t> data;
+};
+
+std::vector<Event> ReadLog(const std::string& path) {
+  std::vector<Event> events;
+  lcm::LogFile log(path, "r");
+  if (!log.good()) return events;
+  for (const lcm::LogEvent* e = log.readNextEvent(); e != nullptr; e = log.readNextEvent()) {
+    const auto* p = static_cast<const uint8_t*>(e->data);
+    events.push_back({e->channel, e->timestamp, std::vector<uint8_t>(p, p + e->datalen)});
+  }
+  return events;
+}
+
+template <class Msg>
+Msg Decode(const Event& e) {
+  Msg m;
+  EXPECT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+            static_cast<int>(e.data.size()))
+      << e.channel;
+  return m;
+}
+
+TEST_F(ReplayStageTest, OutputsCarryTheInputTimesAndBadEventsAreCounted) {
+  const int64_t t0 = 1'700'000'000'000'000;
+  const int64_t ms = 1000;
+  const std::string legs[] = {"HL", "ML", "FL", "HR", "MR", "FR"};
+  const std::string in_path = Path("in.lcmlog");
+  const std::vector<uint8_t> sacrificed = Encode(Sample("FR", t0, 9.0));
+  const size_t damaged_bytes = 4 + 8 + 8 + 4 + 4 + 5 + sacrificed.size() + 13;
+  {
+    lcm::LogFile in(in_path, "w");
+    ASSERT_TRUE(in.good());
+    // Valid samples every 250 ms from t0 to t0 + 2.5 s, with bad events between them.
+    for (int k = 0; k <= 10; ++k) {
+      const int64_t t = t0 + k * 250 * ms;
+      Write(in, "ECHO_IN", t, Encode(Sample(legs[k % 6], t - 5 * ms, k + 1.0)));
+      if (k == 0) Write(in, "OTHER", t + 10 * ms, Encode(Sample("HL", t, 1.0)));  // ignored
+      if (k == 1) {
+        Write(in, "ECHO_IN", t0 + 300 * ms, {0xde, 0xad, 0xbe, 0xef, 1, 2, 3});  // corrupt
+        Write(in, "ECHO_IN", t0 + 400 * ms, Encode(experiment_marker_t{}));      // wrong type
+        // Damage in the file itself: 13 bytes that are no event at all. LCM's reader refuses
+        // the event before them too (it must be followed by a sync word), so that one is on a
+        // channel the stage ignores, and the damage spans it and the junk.
+        Write(in, "OTHER", t0 + 450 * ms, sacrificed);
+        const char junk[] = "not an event";
+        ASSERT_EQ(std::fwrite(junk, 1, 13, in.getFilePtr()), 13u);
+      }
+      if (k == 2) {
+        Write(in, "ECHO_IN", t0 + 600 * ms, Encode(Sample("XX", t0, 1.0)));  // unknown leg
+        ft_sample_t failing = Sample("HL", t0, 1.0);
+        failing.status = 666;  // the stage's handler throws
+        Write(in, "ECHO_IN", t0 + 700 * ms, Encode(failing));
+      }
+    }
+  }
+  const std::string out_path = Path("out.lcmlog");
+  Child stage({FTCAL_ECHO_STAGE, "--replay", in_path, "--out", out_path}, Path("stage.out"),
+              Path("stage.err"));
+  const auto rc = stage.Wait(30);
+  ASSERT_TRUE(rc.has_value()) << "replay did not finish";
+  ASSERT_EQ(DescribeWaitStatus(*rc), "exit 0") << ReadFile(Path("stage.err"));
+
+  // Hand-computed expectation: each valid sample echoed at its own time with the wrench
+  // doubled; a tick at t0 + 1 s and t0 + 2 s (before the sample at that time) counting the
+  // samples echoed so far; the final status at the last event's time.
+  const auto out = ReadLog(out_path);
+  ASSERT_EQ(out.size(), 11u + 2u + 1u);
+  size_t i = 0;
+  for (int k = 0; k <= 10; ++k) {
+    const int64_t t = t0 + k * 250 * ms;
+    if (k == 4 || k == 8) {
+      ASSERT_EQ(out[i].channel, "ECHO_TICK");
+      EXPECT_EQ(out[i].timestamp, t);
+      const auto tick = Decode<experiment_marker_t>(out[i]);
+      EXPECT_EQ(tick.utime, t);
+      EXPECT_EQ(tick.note, std::to_string(k));
+      ++i;
+    }
+    ASSERT_EQ(out[i].channel, "ECHO_OUT") << "event " << i;
+    EXPECT_EQ(out[i].timestamp, t);
+    const ft_sample_t expected_in = Sample(legs[k % 6], t - 5 * ms, k + 1.0);
+    const auto echoed = Decode<ft_sample_t>(out[i]);
+    EXPECT_EQ(echoed.utime, t);
+    EXPECT_EQ(echoed.leg, expected_in.leg);
+    EXPECT_EQ(echoed.rdt_sequence, expected_in.rdt_sequence);
+    for (int a = 0; a < 6; ++a) {
+      EXPECT_EQ(echoed.counts[a], expected_in.counts[a]);
+      EXPECT_EQ(echoed.wrench[a], 2 * expected_in.wrench[a]);
+    }
+    ++i;
+  }
+  ASSERT_EQ(out[i].channel, "FTCAL_STATUS");
+  EXPECT_EQ(out[i].timestamp, t0 + 2500 * ms);
+  const auto status = Decode<service_status_t>(out[i]);
+  EXPECT_EQ(status.name, "ftcal-echo-stage");
+  EXPECT_EQ(status.state, int8_t{service_status_t::STOPPING});
+  EXPECT_EQ(status.msgs_in, 11 + 4);    // every ECHO_IN event, bad ones included
+  EXPECT_EQ(status.msgs_out, 11 + 2);   // echoes and ticks; the status does not count itself
+  EXPECT_EQ(status.drops, 3);           // corrupt, wrong type, unknown leg
+  EXPECT_EQ(status.errors, 2);          // the damaged bytes, the handler's exception
+  EXPECT_EQ(status.last_error, "handler for ECHO_IN: handler failure requested by status 666");
+  ASSERT_EQ(status.num_counters, 1);
+  EXPECT_EQ(status.counter_name[0], "echoed");
+  EXPECT_EQ(status.counter_value[0], 11);
+  // The damage was reported with where it is.
+  EXPECT_NE(ReadFile(Path("stage.err")).find("skipped " + std::to_string(damaged_bytes) + " unreadable bytes"), std::string::npos)
+      << ReadFile(Path("stage.err"));
+  // Written atomically: nothing but the input and the output in the directory.
+  int files = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(dir_)) {
+    const auto name = entry.path().filename().string();
+    if (name.find(".lcmlog") != std::string::npos) {
+      EXPECT_TRUE(name == "in.lcmlog" || name == "out.lcmlog") << name;
+      ++files;
+    }
+  }
+  EXPECT_EQ(files, 2);
+}
+
+TEST_F(ReplayStageTest, ATruncatedLastEventIsCountedAndTheRestReplayed) {
+  const std::string in_path = Path("in.lcmlog");
+  {
+    lcm::LogFile in(in_path, "w");
+    Write(in, "ECHO_IN", 1'000'000, Encode(Sample("HL", 1, 1.0)));
+    Write(in, "ECHO_IN", 2'000'000, Encode(Sample("ML", 2, 1.0)));
+  }
+  const auto size = std::filesystem::file_size(in_path);
+  std::filesystem::resize_file(in_path, size - 5);
+  const std::string out_path = Path("out.lcmlog");
+  Child stage({FTCAL_ECHO_STAGE, "--replay", in_path, "--out", out_path}, Path("stage.out"),
+              Path("stage.err"));
+  const auto rc = stage.Wait(30);
+  ASSERT_TRUE(rc.has_value());
+  ASSERT_EQ(DescribeWaitStatus(*rc), "exit 0") << ReadFile(Path("stage.err"));
+  const auto out = ReadLog(out_path);
+  ASSERT_EQ(out.size(), 2u);  // one echo, the final status
+  EXPECT_EQ(out[0].channel, "ECHO_OUT");
+  EXPECT_EQ(out[0].timestamp, 1'000'000);
+  const auto status = Decode<service_status_t>(out[1]);
+  EXPECT_EQ(status.msgs_in, 1);
+  EXPECT_EQ(status.errors, 1);
+  EXPECT_NE(status.last_error.find("unreadable bytes at offset"), std::string::npos)
+      << status.last_error;
+}
+
+TEST_F(ReplayStageTest, AMissingInputIsRefusedAndNoOutputIsLeft) {
+  const std::string out_path = Path("out.lcmlog");
+  Child stage({FTCAL_ECHO_STAGE, "--replay", Path("absent.lcmlog"), "--out", out_path},
+              Path("stage.out"), Path("stage.err"));
+  const auto rc = stage.Wait(30);
+  ASSERT_TRUE(rc.has_value());
+  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 1");
+  const std::string err = ReadFile(Path("stage.err"));
+  EXPECT_NE(err.find(Path("absent.lcmlog")), std::string::npos) << err;
+  EXPECT_NE(err.find("No such file"), std::string::npos) << err;
+  EXPECT_FALSE(std::filesystem::exists(out_path));
+}
+
+TEST_F(ReplayStageTest, ABadConfigFileExitsTwoNamingTheFile) {
+  const std::string config = Path("bad.pbtxt");
+  std::ofstream(config) << "lcm_url: \"memq://\"\nno_such_field: 3\n";
+  Child stage({FTCAL_ECHO_STAGE, "--config", config}, Path("stage.out"), Path("stage.err"));
+  const auto rc = stage.Wait(30);
+  ASSERT_TRUE(rc.has_value());
+  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 2");
+  const std::string err = ReadFile(Path("stage.err"));
+  EXPECT_NE(err.find(config + ":2:"), std::string::npos) << err;
+  EXPECT_NE(err.find("no_such_field"), std::string::npos) << err;
+}
+
+TEST_F(ReplayStageTest, ReplayFlagsMustComeTogether) {
+  Child stage({FTCAL_ECHO_STAGE, "--replay", Path("x.lcmlog")}, Path("stage.out"),
+              Path("stage.err"));
+  const auto rc = stage.Wait(30);
+  ASSERT_TRUE(rc.has_value());
+  EXPECT_NE(DescribeWaitStatus(*rc), "exit 0");
+  EXPECT_NE(ReadFile(Path("stage.err")).find("--out"), std::string::npos)
+      << ReadFile(Path("stage.err"));
+}
+
+}  // namespace
+}  // namespace ftcal
