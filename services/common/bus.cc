@@ -1,5 +1,6 @@
 #include "common/bus.h"
 
+#include <fcntl.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -291,6 +292,14 @@ void LogReplayBus::Commit() {
                              out_path_ + "': " + std::strerror(errno));
   }
   committed_ = true;
+  // The rename itself is durable only once the directory is synced.
+  const auto slash = out_path_.rfind('/');
+  const std::string dir = slash == std::string::npos ? "." : out_path_.substr(0, slash + 1);
+  const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dir_fd >= 0) {
+    ::fsync(dir_fd);
+    ::close(dir_fd);
+  }
 }
 
 }  // namespace ftcal

@@ -13,6 +13,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "ftcal/ft_sample_t.hpp"
 #include "ftcal/service_status_t.hpp"
 
 namespace ftcal {
@@ -143,8 +144,10 @@ TEST_F(HeartbeatNetnsTest, StatusShowsPublisherSigtermEndsItAndTheLogHoldsItsHea
                                                         : int8_t{service_status_t::RUNNING};
     EXPECT_EQ(beats[i].state, expected_state) << "beat " << i << " of " << beats.size();
   }
-  EXPECT_LT(beats.front().uptime_s, 0.5);
-  EXPECT_NEAR(beats.back().uptime_s, demo_run_s, 0.6);
+  EXPECT_LT(beats.front().uptime_s, 1.0);
+  // Uptime counts from the process's start, a little after the spawn measured here.
+  EXPECT_LE(beats.back().uptime_s, demo_run_s + 0.3);
+  EXPECT_GE(beats.back().uptime_s, demo_run_s - 1.0);
 }
 
 TEST_F(HeartbeatNetnsTest, StatusMarksAKilledPublisherLost) {
@@ -167,6 +170,112 @@ TEST_F(HeartbeatNetnsTest, StatusMarksAKilledPublisherLost) {
   // Silent for >= ~4 s (killed at ~2.7 s, table at ~6.6 s) with no goodbye: LOST.
   EXPECT_EQ(dead_row[3], "LOST") << table;
   EXPECT_EQ(live_row[3], "RUNNING") << table;
+}
+
+struct Event {
+  std::string channel;
+  int64_t timestamp;
+  std::vector<uint8_t> data;
+};
+
+std::vector<Event> ReadLog(const std::string& path) {
+  std::vector<Event> events;
+  lcm::LogFile log(path, "r");
+  if (!log.good()) return events;
+  for (const lcm::LogEvent* e = log.readNextEvent(); e != nullptr; e = log.readNextEvent()) {
+    const auto* p = static_cast<const uint8_t*>(e->data);
+    events.push_back({e->channel, e->timestamp, std::vector<uint8_t>(p, p + e->datalen)});
+  }
+  return events;
+}
+
+ft_sample_t DecodeSample(const Event& e) {
+  ft_sample_t s;
+  EXPECT_EQ(s.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+            static_cast<int>(e.data.size()));
+  return s;
+}
+
+// The architecture's promise: the same handler code live and over the recording of that run
+// gives the same outputs, except the time stamps, which replay takes from the recording.
+TEST_F(HeartbeatNetnsTest, AStageLiveAndOverItsRecordingPublishesTheSame) {
+  ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) was not found at configure time";
+  const std::string log_path = Path("live.lcmlog");
+  auto logger = Start("logger", {FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", log_path});
+  auto stage = Start("stage", {FTCAL_ECHO_STAGE, "--lcm-url", kUrl});
+  SleepS(0.7);  // both subscribed
+
+  lcm::LCM lcm(kUrl);
+  ASSERT_TRUE(lcm.good());
+  const std::string legs[] = {"HL", "ML", "FL", "HR", "MR", "FR"};
+  constexpr int kSamples = 20;
+  for (int k = 0; k < kSamples; ++k) {
+    ft_sample_t s{};
+    s.utime = 1000 + k;
+    s.leg = k == 7 ? "XX" : legs[k % 6];  // one refused
+    s.rdt_sequence = k + 1;
+    for (int a = 0; a < 6; ++a) s.wrench[a] = 0.5 * k - a;
+    ASSERT_EQ(lcm.publish("ECHO_IN", &s), 0);
+    if (k == 12) {
+      const uint8_t junk[5] = {9, 9, 9, 9, 9};
+      ASSERT_EQ(lcm.publish("ECHO_IN", junk, sizeof(junk)), 0);  // undecodable
+    }
+    SleepS(0.02);
+  }
+  SleepS(0.5);
+  stage->Signal(SIGTERM);
+  const auto stage_rc = stage->Wait(2);
+  ASSERT_TRUE(stage_rc.has_value());
+  EXPECT_EQ(DescribeWaitStatus(*stage_rc), "exit 0") << ReadFile(Path("stage.err"));
+  SleepS(0.3);
+  logger->Signal(SIGINT);
+  ASSERT_TRUE(logger->Wait(5).has_value());
+
+  const std::string out_path = Path("replayed.lcmlog");
+  Child replay({FTCAL_ECHO_STAGE, "--replay", log_path, "--out", out_path}, Path("replay.out"),
+               Path("replay.err"));
+  const auto replay_rc = replay.Wait(30);
+  ASSERT_TRUE(replay_rc.has_value());
+  ASSERT_EQ(DescribeWaitStatus(*replay_rc), "exit 0") << ReadFile(Path("replay.err"));
+
+  const auto recorded = ReadLog(log_path);
+  std::vector<Event> inputs, live, replayed;
+  for (const auto& e : recorded) {
+    if (e.channel == "ECHO_IN" && e.data.size() > 5) inputs.push_back(e);
+    if (e.channel == "ECHO_OUT") live.push_back(e);
+  }
+  service_status_t final_status{};
+  for (const auto& e : ReadLog(out_path)) {
+    if (e.channel == "ECHO_OUT") replayed.push_back(e);
+    if (e.channel == "FTCAL_STATUS") {
+      ASSERT_EQ(final_status.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                static_cast<int>(e.data.size()));
+    }
+  }
+  ASSERT_EQ(inputs.size(), static_cast<size_t>(kSamples));
+  ASSERT_EQ(live.size(), static_cast<size_t>(kSamples - 1));
+  ASSERT_EQ(replayed.size(), live.size());
+  size_t j = 0;
+  for (const auto& in_event : inputs) {
+    const ft_sample_t in = DecodeSample(in_event);
+    if (in.leg == "XX") continue;
+    const ft_sample_t a = DecodeSample(live[j]), b = DecodeSample(replayed[j]);
+    EXPECT_EQ(a.leg, in.leg);
+    EXPECT_EQ(b.leg, in.leg);
+    EXPECT_EQ(a.rdt_sequence, b.rdt_sequence);
+    for (int k = 0; k < 6; ++k) {
+      EXPECT_EQ(a.wrench[k], 2 * in.wrench[k]);
+      EXPECT_EQ(b.wrench[k], a.wrench[k]);
+    }
+    // Replay stamps with the recorded input's time; live with the time it handled it.
+    EXPECT_EQ(replayed[j].timestamp, in_event.timestamp);
+    EXPECT_EQ(b.utime, in_event.timestamp);
+    EXPECT_GE(a.utime, in_event.timestamp - 100'000);
+    ++j;
+  }
+  EXPECT_EQ(final_status.msgs_in, kSamples + 1);
+  EXPECT_EQ(final_status.drops, 2);  // the refused leg and the undecodable bytes
+  EXPECT_EQ(final_status.errors, 0);
 }
 
 }  // namespace
