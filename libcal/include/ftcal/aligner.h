@@ -1,0 +1,140 @@
+// Stream alignment: six asynchronous transducer streams, the servo state and motion capture
+// into SyncSamples at the transducers' rate (pipeline item 2; the segmenter's input).
+//
+// Rule. A sample is emitted when every leg has a reading newer than the last emitted time.
+// The sync time is the NEWEST of those six readings' times: it is the moment the set became
+// complete, so it never waits on a reading that has not arrived and it is strictly increasing
+// (a median would repeat a time when one leg runs ahead). Each leg contributes its latest
+// reading; the readings of one BigAnt frame are stamped within a millisecond of each other, so
+// no wrench is resampled (interpolating a wrench would smear the settling the segmenter looks
+// for).
+//
+// Shaft angles are interpolated linearly to the sync time between the two servo states that
+// bracket it, the later one unwrapped against the earlier (a step of more than pi between two
+// states is taken the short way round). When no later state has arrived yet the sample waits
+// for one, at most max_servo_age_s of transducer time; after that it takes the newest state as
+// is (counted as servo_held) when that is within max_servo_age_s of the sync time, and is
+// dropped (stale_servo) otherwise. Angles are never extrapolated.
+//
+// Attitude: R_WC of the latest motion-capture frame received; attitude_ok is false when the
+// body was untracked or that frame is more than max_mocap_age_s from the sync time.
+//
+// Everything is keyed on the inputs' own utime stamps and their arrival order, never on a
+// clock, so the same input order gives the same output live and on replay. Inputs older than
+// the previous one of their stream (per leg for the transducers) and non-finite inputs are
+// counted and dropped.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <optional>
+
+#include "ftcal/geometry.h"
+#include "ftcal/legs.h"
+#include "ftcal/segmenter.h"
+
+namespace ftcal {
+
+struct FtInput {
+  int64_t utime = 0;
+  int leg = 0;  // index in kLegNames (config order)
+  Vec6 wrench = Vec6::Zero();
+  int32_t flags = 0;  // ft_sample_t FLAG_* bits, passed through (OR over the six legs)
+};
+
+struct ServoInput {
+  int64_t utime = 0;
+  std::array<double, kNumLegs> angle_rad{};  // by leg index
+};
+
+struct MocapInput {
+  int64_t utime = 0;
+  bool tracked = false;
+  Mat3 R_WC = Mat3::Identity();
+  bool markers_ok = false;  // every chassis marker tracked in this frame
+};
+
+// Servo states in time order, for angles at a given time (the aligner and the corrector).
+class ServoHistory {
+ public:
+  struct Lookup {
+    std::array<double, kNumLegs> angle_rad{};
+    // |t - time of the state held| when held; the distance to the nearer bracketing state when
+    // interpolated. Seconds.
+    double age_s = 0.0;
+    bool interpolated = false;
+  };
+  explicit ServoHistory(size_t capacity = 16);
+
+  // Returns false (and keeps nothing) for a state not newer than the newest one.
+  bool Add(const ServoInput& state);
+  bool empty() const { return states_.empty(); }
+  const ServoInput& newest() const { return states_.back(); }
+  // Interpolated between the bracketing states when there are two; else the nearest state
+  // held (before the first or after the last). nullopt when empty.
+  std::optional<Lookup> At(int64_t utime) const;
+
+ private:
+  size_t capacity_;
+  std::deque<ServoInput> states_;
+};
+
+struct AlignerOptions {
+  double max_servo_age_s = 0.05;
+  double max_mocap_age_s = 0.05;
+};
+
+struct AlignedSample {
+  SyncSample sample;
+  int32_t flags = 0;  // OR of the six readings' flags
+};
+
+struct AlignerCounters {
+  int64_t ft_in = 0, servo_in = 0, mocap_in = 0;
+  int64_t emitted = 0;
+  int64_t out_of_order = 0;  // an input not newer than the previous one of its stream
+  int64_t non_finite = 0;    // a NaN/inf wrench, angle or tracked attitude
+  int64_t servo_held = 0;    // emitted with the newest servo state held (no later state came)
+  int64_t stale_servo = 0;   // dropped: no servo state within max_servo_age_s
+  int64_t stale_mocap = 0;   // emitted with attitude_ok false (none, untracked or old)
+};
+
+class Aligner {
+ public:
+  using Callback = std::function<void(const AlignedSample&)>;
+  Aligner(const AlignerOptions& options, Callback on_sample);
+
+  // Each returns false when the input was dropped (counted).
+  bool AddFt(const FtInput& in);
+  bool AddServo(const ServoInput& in);
+  bool AddMocap(const MocapInput& in);
+
+  const AlignerCounters& counters() const { return counters_; }
+  // Samples complete but still waiting for a later servo state.
+  size_t pending() const { return pending_.size(); }
+
+ private:
+  struct Pending {
+    AlignedSample out;
+  };
+  // Resolves pending samples in order; `newest_ft_utime` is the transducer clock that bounds
+  // the wait for a later servo state.
+  void Resolve(int64_t newest_ft_utime);
+  void Emit(AlignedSample& out, const ServoHistory::Lookup& angles);
+
+  AlignerOptions options_;
+  int64_t max_servo_age_us_;
+  int64_t max_mocap_age_us_;
+  Callback on_sample_;
+  std::array<std::optional<FtInput>, kNumLegs> latest_ft_;
+  int64_t last_sync_utime_;
+  int64_t newest_ft_utime_;
+  ServoHistory servo_;
+  std::optional<MocapInput> mocap_;
+  std::deque<Pending> pending_;
+  AlignerCounters counters_;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,117 @@
+// The corrector: every transducer sample into ground-contact wrenches (method.md,
+// "Correction"; pipeline item 4).
+//
+// Model: eq. 3 rotated to W (the same as GroundWrenchW in sensing_model.h),
+//   w^W_gc,k = X(R_WC) [ X(X_C_ft,k) (w_m,k - w_o,k) - (m_k g^C ; (X_C_ft,k r_k(phi_k)) x m_k g^C) ],
+// g^C = R_WC^T (0, 0, -g0), phi_k = wrap(theta_k / 2 pi). Nothing is estimated here: the
+// calibration fixes every parameter, so there are no unknowns and no null spaces. The sum of
+// the six, standing still, is (0, 0, G, 0, 0, 0) (eq. 8's target); its difference from that is
+// published as the residual.
+//
+// Per sample: the angle of the sample's leg comes from the servo states interpolated to the
+// sample's time (held, never extrapolated, when no later state has arrived yet: the corrector
+// cannot wait), R_WC from the latest motion-capture frame, or level (identity) flagged
+// kFlagStaleMocap when there is none, it was untracked, or it is older than max_mocap_age_s.
+// Each leg keeps the wrench of its own latest sample; the output carries all six and their sum.
+// An input older than its configured age sets its stale flag: the number is still published,
+// flagged, never silently used.
+//
+// Speed: the per-leg constant transforms (R, p of X_C_ft,k, the offset, the weight, the CoM
+// curve) are precomputed when a calibration is set; a sample costs one leg's correction and a
+// six-term sum, with no allocation.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <optional>
+
+#include "ftcal/aligner.h"
+#include "ftcal/geometry.h"
+#include "ftcal/legs.h"
+#include "ftcal/sensing_model.h"
+
+namespace ftcal {
+
+struct CorrectorOptions {
+  double max_ft_age_s = 0.05;
+  double max_servo_age_s = 0.05;
+  double max_mocap_age_s = 0.05;
+};
+
+// Output flags: the same bits as contact_wrench_t's FLAG_* (libcal does not include it).
+inline constexpr int32_t kFlagStaleFt = 1;
+inline constexpr int32_t kFlagStaleServo = 2;
+inline constexpr int32_t kFlagStaleMocap = 4;  // no fresh attitude: level assumed
+inline constexpr int32_t kFlagSaturated = 8;
+
+struct ContactWrenches {
+  int64_t utime = 0;      // the triggering sample's time
+  int updated_leg = 0;
+  std::array<Vec6, kNumLegs> wrench_W;  // NaN for a leg that has no sample yet
+  Vec6 total_W = Vec6::Zero();
+  Vec6 residual_W = Vec6::Zero();       // total_W - (0, 0, G, 0, 0, 0)
+  int64_t calibration_version = 0;
+  std::array<double, kNumLegs> ft_age_s{};  // -1: no sample yet
+  double servo_age_s = -1.0;               // -1: no servo state
+  double mocap_age_s = -1.0;               // -1: no mocap frame
+  int32_t flags = 0;
+};
+
+struct CorrectorCounters {
+  int64_t ft_in = 0, servo_in = 0, mocap_in = 0;
+  int64_t corrected = 0;
+  int64_t no_calibration = 0;  // samples that came before any calibration
+  int64_t out_of_order = 0;
+  int64_t non_finite = 0;
+  int64_t no_servo = 0;        // samples before any servo state (corrected, flagged)
+};
+
+class Corrector {
+ public:
+  explicit Corrector(const CorrectorOptions& options);
+
+  // Precomputes the per-leg transforms. Throws std::invalid_argument naming the leg and
+  // quantity when a parameter is not finite or a rotation is not one.
+  void SetCalibration(const RobotCalibration& cal, int64_t version);
+  bool has_calibration() const { return has_calibration_; }
+  int64_t calibration_version() const { return version_; }
+
+  // Return false when the input was dropped (out of order, non-finite: counted).
+  bool AddServo(const ServoInput& in);
+  bool AddMocap(const MocapInput& in);
+  // A transducer sample of leg `in.leg`. Returns the corrected wrenches of all legs, or
+  // nullopt when the sample was dropped or no calibration is set yet. `saturated` flags it.
+  std::optional<ContactWrenches> AddFt(const FtInput& in, bool saturated);
+  // Same without the optional (the hot path): false when there is no output.
+  bool AddFt(const FtInput& in, bool saturated, ContactWrenches* out);
+
+  const CorrectorCounters& counters() const { return counters_; }
+
+ private:
+  struct LegConst {
+    Mat3 R_C_ft;      // rotation of X_C_ft
+    Vec3 p_C_ft;      // translation of X_C_ft
+    Vec6 offset;
+    double weight_n;
+    LegComModel com;
+  };
+  Vec6 CorrectLeg(int k, const Vec6& w_m, double angle_rad, const Mat3& R_WC) const;
+
+  CorrectorOptions options_;
+  bool has_calibration_ = false;
+  int64_t version_ = 0;
+  double weight_total_n_ = 0.0;
+  std::array<LegConst, kNumLegs> leg_;
+  ServoHistory servo_;
+  std::optional<MocapInput> mocap_;
+  struct LegState {
+    bool seen = false;
+    int64_t utime = 0;
+    bool saturated = false;
+    Vec6 wrench_W = Vec6::Zero();
+  };
+  std::array<LegState, kNumLegs> state_;
+  CorrectorCounters counters_;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,178 @@
+#include "ftcal/aligner.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+
+namespace ftcal {
+namespace {
+
+// The short way round: the servo's angle may be wrapped to (-pi, pi] by its bridge.
+double WrapToPi(double a) { return a - 2.0 * M_PI * std::floor((a + M_PI) / (2.0 * M_PI)); }
+
+int64_t SecondsToUs(double s, const char* what) {
+  if (!(s > 0) || !std::isfinite(s)) {
+    throw std::invalid_argument(std::string("Aligner: ") + what + " must be > 0 s, got " +
+                                std::to_string(s));
+  }
+  return static_cast<int64_t>(std::llround(s * 1e6));
+}
+
+}  // namespace
+
+ServoHistory::ServoHistory(size_t capacity) : capacity_(std::max<size_t>(capacity, 2)) {}
+
+bool ServoHistory::Add(const ServoInput& state) {
+  if (!states_.empty() && state.utime <= states_.back().utime) return false;
+  states_.push_back(state);
+  if (states_.size() > capacity_) states_.pop_front();
+  return true;
+}
+
+std::optional<ServoHistory::Lookup> ServoHistory::At(int64_t utime) const {
+  if (states_.empty()) return std::nullopt;
+  Lookup out;
+  if (utime <= states_.front().utime) {
+    out.angle_rad = states_.front().angle_rad;
+    out.age_s = 1e-6 * static_cast<double>(states_.front().utime - utime);
+    return out;
+  }
+  if (utime >= states_.back().utime) {
+    out.angle_rad = states_.back().angle_rad;
+    out.age_s = 1e-6 * static_cast<double>(utime - states_.back().utime);
+    return out;
+  }
+  // The wanted time is almost always near the newest state: search from the back.
+  size_t i = states_.size() - 1;
+  while (states_[i - 1].utime > utime) --i;
+  const ServoInput& s0 = states_[i - 1];
+  const ServoInput& s1 = states_[i];
+  const double span = static_cast<double>(s1.utime - s0.utime);
+  const double alpha = static_cast<double>(utime - s0.utime) / span;
+  for (int k = 0; k < kNumLegs; ++k) {
+    out.angle_rad[k] = s0.angle_rad[k] + alpha * WrapToPi(s1.angle_rad[k] - s0.angle_rad[k]);
+  }
+  out.age_s = 1e-6 * static_cast<double>(std::min(utime - s0.utime, s1.utime - utime));
+  out.interpolated = true;
+  return out;
+}
+
+Aligner::Aligner(const AlignerOptions& options, Callback on_sample)
+    : options_(options),
+      max_servo_age_us_(SecondsToUs(options.max_servo_age_s, "max_servo_age_s")),
+      max_mocap_age_us_(SecondsToUs(options.max_mocap_age_s, "max_mocap_age_s")),
+      on_sample_(std::move(on_sample)),
+      last_sync_utime_(INT64_MIN),
+      newest_ft_utime_(INT64_MIN) {}
+
+bool Aligner::AddFt(const FtInput& in) {
+  if (in.leg < 0 || in.leg >= kNumLegs) {
+    throw std::invalid_argument("Aligner::AddFt: leg index " + std::to_string(in.leg) +
+                                " outside [0, " + std::to_string(kNumLegs) + ")");
+  }
+  ++counters_.ft_in;
+  if (!in.wrench.allFinite()) {
+    ++counters_.non_finite;
+    return false;
+  }
+  std::optional<FtInput>& latest = latest_ft_[in.leg];
+  if (latest && in.utime <= latest->utime) {
+    ++counters_.out_of_order;
+    return false;
+  }
+  latest = in;
+  newest_ft_utime_ = std::max(newest_ft_utime_, in.utime);
+
+  bool complete = true;
+  int64_t sync_utime = INT64_MIN;
+  for (const auto& l : latest_ft_) {
+    if (!l || l->utime <= last_sync_utime_) {
+      complete = false;
+      break;
+    }
+    sync_utime = std::max(sync_utime, l->utime);
+  }
+  if (complete) {
+    Pending p;
+    p.out.sample.utime = sync_utime;
+    for (int k = 0; k < kNumLegs; ++k) {
+      p.out.sample.wrench[k] = latest_ft_[k]->wrench;
+      p.out.flags |= latest_ft_[k]->flags;
+    }
+    pending_.push_back(p);
+    last_sync_utime_ = sync_utime;
+  }
+  Resolve(newest_ft_utime_);
+  return true;
+}
+
+bool Aligner::AddServo(const ServoInput& in) {
+  ++counters_.servo_in;
+  for (double a : in.angle_rad) {
+    if (!std::isfinite(a)) {
+      ++counters_.non_finite;
+      return false;
+    }
+  }
+  if (!servo_.Add(in)) {
+    ++counters_.out_of_order;
+    return false;
+  }
+  Resolve(newest_ft_utime_);
+  return true;
+}
+
+bool Aligner::AddMocap(const MocapInput& in) {
+  ++counters_.mocap_in;
+  if (in.tracked && !in.R_WC.allFinite()) {
+    ++counters_.non_finite;
+    return false;
+  }
+  if (mocap_ && in.utime <= mocap_->utime) {
+    ++counters_.out_of_order;
+    return false;
+  }
+  mocap_ = in;
+  return true;
+}
+
+void Aligner::Resolve(int64_t newest_ft_utime) {
+  while (!pending_.empty()) {
+    AlignedSample& out = pending_.front().out;
+    const int64_t t = out.sample.utime;
+    if (!servo_.empty() && servo_.newest().utime >= t) {
+      const auto angles = servo_.At(t);
+      if (!angles->interpolated && angles->age_s * 1e6 > static_cast<double>(max_servo_age_us_)) {
+        ++counters_.stale_servo;  // only states long after it: the stream just started
+      } else {
+        Emit(out, *angles);
+      }
+      pending_.pop_front();
+      continue;
+    }
+    // No later state yet: wait while the transducers are less than max_servo_age ahead.
+    if (newest_ft_utime - t <= max_servo_age_us_) return;
+    if (!servo_.empty() && t - servo_.newest().utime <= max_servo_age_us_) {
+      ++counters_.servo_held;
+      Emit(out, *servo_.At(t));
+    } else {
+      ++counters_.stale_servo;
+    }
+    pending_.pop_front();
+  }
+}
+
+void Aligner::Emit(AlignedSample& out, const ServoHistory::Lookup& angles) {
+  SyncSample& s = out.sample;
+  s.angle_rad = angles.angle_rad;
+  const bool fresh =
+      mocap_ && std::llabs(s.utime - mocap_->utime) <= max_mocap_age_us_;
+  s.R_WC = (mocap_ && mocap_->tracked) ? mocap_->R_WC : Mat3::Identity();
+  s.attitude_ok = fresh && mocap_->tracked;
+  s.markers_ok = s.attitude_ok && mocap_->markers_ok;
+  if (!s.attitude_ok) ++counters_.stale_mocap;
+  ++counters_.emitted;
+  if (on_sample_) on_sample_(out);
+}
+
+}  // namespace ftcal

@@ -1,0 +1,223 @@
+// The corrector engine: readings made by the forward model (TransducerReading) from known
+// ground wrenches come back as those wrenches; stale inputs are flagged; no calibration, no
+// output; a new calibration replaces the old.
+#include "ftcal/corrector.h"
+
+#include <cmath>
+#include <random>
+
+#include <gtest/gtest.h>
+
+namespace ftcal {
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+// A BigAnt-like calibration with every parameter away from its trivial value.
+RobotCalibration MakeCalibration(uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  RobotCalibration cal;
+  cal.total_mass_kg = 8.18;
+  cal.g0 = 9.80665;
+  const double hip_x[kNumLegs] = {-0.2, 0.0, 0.2, -0.2, 0.0, 0.2};
+  cal.p_C_B = Vec3(0.01 * u(rng), 0.01 * u(rng), 0.01 * u(rng));
+  for (int k = 0; k < kNumLegs; ++k) {
+    const bool left = k < 3;
+    cal.X_B_ft[k] = Pose3(left ? Mat3::Identity() : RotationFromRollPitchYaw(0, 0, M_PI),
+                          Vec3(hip_x[k], left ? 0.15 : -0.15, -0.03));
+    LegCalibration& l = cal.leg[k];
+    l.offset << 8 * u(rng), 8 * u(rng), 8 * u(rng), 0.3 * u(rng), 0.3 * u(rng), 0.3 * u(rng);
+    l.weight_n = 6.2 + 0.3 * u(rng);
+    l.com.x = {0.015 + 0.005 * u(rng), M_PI * u(rng), 0.01 * u(rng)};
+    l.com.y = 0.005 * u(rng);
+    l.com.z = {0.015 + 0.005 * u(rng), M_PI * u(rng), -0.06 + 0.02 * u(rng)};
+    l.R_tilde = ExpSO3(Vec3(u(rng), u(rng), u(rng)).normalized() * 2.5 * kDeg);
+    l.p_tilde_prime = Vec3(0.01 * u(rng), 0.01 * u(rng), 0.01 * u(rng));
+  }
+  return cal;
+}
+
+Vec6 RandomGroundWrenchC(std::mt19937_64& rng) {
+  std::normal_distribution<double> n(0.0, 1.0);
+  Vec6 w;
+  w << 3 * n(rng), 3 * n(rng), 13 + 4 * n(rng), 2 * n(rng), 2 * n(rng), 0.1 * n(rng);
+  return w;
+}
+
+Vec6 ToW(const Mat3& R_WC, const Vec6& w_C) { return TransformWrench(Pose3(R_WC, Vec3::Zero()), w_C); }
+
+std::array<double, kNumLegs> Fill(double a) {
+  std::array<double, kNumLegs> x;
+  x.fill(a);
+  return x;
+}
+
+TEST(Corrector, NoiseFreeReadingsReproduceTheTrueGroundWrenches) {
+  const RobotCalibration cal = MakeCalibration(3);
+  Corrector c({});
+  c.SetCalibration(cal, 42);
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::array<Vec6, kNumLegs> truth_W;
+  for (int frame = 0; frame < 200; ++frame) {
+    const int64_t t = 5'000'000 + 10'000 * static_cast<int64_t>(frame);
+    // Angles over several turns (the phase wraps), attitude tilted up to ~10 deg.
+    std::array<double, kNumLegs> angle;
+    for (int k = 0; k < kNumLegs; ++k) angle[k] = 8.0 * u(rng);
+    const Mat3 R_WC = RotationFromRollPitchYaw(0.15 * u(rng), 0.15 * u(rng), 0.0);
+    c.AddServo({t, angle});
+    c.AddMocap({t, true, R_WC, true});
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Vec6 w_C = RandomGroundWrenchC(rng);
+      truth_W[k] = ToW(R_WC, w_C);
+      const Vec6 reading = TransducerReading(cal, k, w_C, angle[k], R_WC);
+      const auto out = c.AddFt({t, k, reading, 0}, false);
+      ASSERT_TRUE(out);
+      EXPECT_EQ(out->updated_leg, k);
+      EXPECT_EQ(out->utime, t);
+      EXPECT_EQ(out->calibration_version, 42);
+      EXPECT_LT((out->wrench_W[k] - truth_W[k]).cwiseAbs().maxCoeff(), 1e-9)
+          << "frame " << frame << " leg " << k;
+      if (k == kNumLegs - 1) {  // all six legs of this frame are in
+        Vec6 sum = Vec6::Zero();
+        for (const Vec6& w : truth_W) sum += w;
+        EXPECT_LT((out->total_W - sum).cwiseAbs().maxCoeff(), 1e-9);
+        Vec6 expect_residual = sum;
+        expect_residual[2] -= cal.TotalWeightN();
+        EXPECT_LT((out->residual_W - expect_residual).cwiseAbs().maxCoeff(), 1e-9);
+        EXPECT_EQ(out->flags, 0);
+      }
+    }
+  }
+}
+
+TEST(Corrector, AgreesWithGroundWrenchWOnTheInterpolatedAngle) {
+  const RobotCalibration cal = MakeCalibration(5);
+  Corrector c({});
+  c.SetCalibration(cal, 1);
+  const Mat3 R_WC = RotationFromRollPitchYaw(0.05, -0.08, 0.0);
+  c.AddMocap({1'000'000, true, R_WC, true});
+  c.AddServo({1'000'000, Fill(0.2)});
+  c.AddServo({1'010'000, Fill(0.6)});
+  Vec6 w_m;
+  w_m << 1, -2, 30, 0.4, -0.3, 0.05;
+  const auto out = c.AddFt({1'002'500, 4, w_m, 0}, false);  // alpha 0.25: angle 0.3
+  ASSERT_TRUE(out);
+  const Vec6 expect = GroundWrenchW(cal, 4, w_m, 0.3, R_WC);
+  EXPECT_LT((out->wrench_W[4] - expect).cwiseAbs().maxCoeff(), 1e-12);
+  EXPECT_NEAR(out->servo_age_s, 0.0025, 1e-12);
+  EXPECT_NEAR(out->mocap_age_s, 0.0025, 1e-12);
+}
+
+TEST(Corrector, PublishesNothingWithoutACalibration) {
+  Corrector c({});
+  c.AddServo({0, Fill(0.0)});
+  EXPECT_FALSE(c.AddFt({1000, 0, Vec6::Ones(), 0}, false));
+  EXPECT_FALSE(c.has_calibration());
+  EXPECT_EQ(c.counters().no_calibration, 1);
+  c.SetCalibration(MakeCalibration(1), 7);
+  EXPECT_TRUE(c.AddFt({2000, 0, Vec6::Ones(), 0}, false));
+}
+
+TEST(Corrector, FlagsStaleInputsAndMissingLegsAndAssumesLevelWithoutFreshMocap) {
+  const RobotCalibration cal = MakeCalibration(2);
+  CorrectorOptions opt;
+  opt.max_ft_age_s = 0.05;
+  opt.max_servo_age_s = 0.05;
+  opt.max_mocap_age_s = 0.05;
+  Corrector c(opt);
+  c.SetCalibration(cal, 1);
+  Vec6 w;
+  w << 0.5, 0.2, 20, 0.1, 0.1, 0.0;
+
+  // No servo state, no mocap, one leg only.
+  auto out = c.AddFt({1'000'000, 0, w, 0}, false);
+  ASSERT_TRUE(out);
+  EXPECT_EQ(out->flags, kFlagStaleFt | kFlagStaleServo | kFlagStaleMocap);
+  EXPECT_TRUE(out->wrench_W[0].array().isNaN().all()) << "no phase: no number";
+  EXPECT_TRUE(out->wrench_W[1].array().isNaN().all());
+  EXPECT_EQ(out->ft_age_s[1], -1.0);
+  EXPECT_EQ(out->servo_age_s, -1.0);
+  EXPECT_EQ(out->mocap_age_s, -1.0);
+
+  // Everything fresh for every leg: no flags.
+  const Mat3 tilt = RotationFromRollPitchYaw(0.1, 0, 0);
+  c.AddServo({1'100'000, Fill(0.3)});
+  c.AddMocap({1'100'000, true, tilt, true});
+  for (int k = 0; k < kNumLegs; ++k) out = c.AddFt({1'100'000 + k, k, w, 0}, false);
+  EXPECT_EQ(out->flags, 0);
+  EXPECT_LT((out->wrench_W[2] - GroundWrenchW(cal, 2, w, 0.3, tilt)).cwiseAbs().maxCoeff(), 1e-12);
+
+  // 80 ms later, only leg 2 reports: the other legs, the servo state and the mocap are stale;
+  // the attitude is taken level.
+  out = c.AddFt({1'180'000, 2, w, 0}, false);
+  EXPECT_EQ(out->flags, kFlagStaleFt | kFlagStaleServo | kFlagStaleMocap);
+  EXPECT_NEAR(out->ft_age_s[0], 0.08, 1e-9);
+  EXPECT_NEAR(out->servo_age_s, 0.08, 1e-9);
+  EXPECT_NEAR(out->mocap_age_s, 0.08, 1e-9);
+  EXPECT_LT((out->wrench_W[2] - GroundWrenchW(cal, 2, w, 0.3, Mat3::Identity())).cwiseAbs().maxCoeff(),
+            1e-12);
+
+  // An untracked frame is no attitude either, however fresh.
+  c.AddMocap({1'190'000, false, Mat3::Identity(), false});
+  c.AddServo({1'190'000, Fill(0.3)});
+  out = c.AddFt({1'190'000, 2, w, 0}, true);
+  EXPECT_TRUE(out->flags & kFlagStaleMocap);
+  EXPECT_FALSE(out->flags & kFlagStaleServo);
+  EXPECT_TRUE(out->flags & kFlagSaturated);
+}
+
+TEST(Corrector, DropsOutOfOrderAndNonFiniteSamples) {
+  Corrector c({});
+  c.SetCalibration(MakeCalibration(4), 1);
+  c.AddServo({0, Fill(0.0)});
+  EXPECT_TRUE(c.AddFt({1000, 1, Vec6::Ones(), 0}, false));
+  EXPECT_FALSE(c.AddFt({1000, 1, Vec6::Ones(), 0}, false));
+  Vec6 nan = Vec6::Ones();
+  nan[2] = std::nan("");
+  EXPECT_FALSE(c.AddFt({2000, 1, nan, 0}, false));
+  EXPECT_FALSE(c.AddServo({0, Fill(1.0)}));
+  EXPECT_FALSE(c.AddServo({5, Fill(std::nan(""))}));
+  EXPECT_EQ(c.counters().out_of_order, 2);
+  EXPECT_EQ(c.counters().non_finite, 2);
+}
+
+TEST(Corrector, ANewCalibrationReplacesTheOldAndForgetsWrenchesCorrectedWithIt) {
+  const RobotCalibration a = MakeCalibration(8), b = MakeCalibration(9);
+  Corrector c({});
+  c.SetCalibration(a, 1);
+  c.AddServo({0, Fill(0.1)});
+  c.AddMocap({0, true, Mat3::Identity(), true});
+  Vec6 w;
+  w << 1, 1, 25, 0, 0, 0;
+  for (int k = 0; k < kNumLegs; ++k) c.AddFt({1000, k, w, 0}, false);
+  c.SetCalibration(b, 2);
+  const auto out = c.AddFt({2000, 0, w, 0}, false);
+  EXPECT_EQ(out->calibration_version, 2);
+  EXPECT_LT((out->wrench_W[0] - GroundWrenchW(b, 0, w, 0.1, Mat3::Identity())).cwiseAbs().maxCoeff(), 1e-12);
+  EXPECT_TRUE(out->wrench_W[1].array().isNaN().all());
+  EXPECT_TRUE(out->flags & kFlagStaleFt);
+}
+
+TEST(Corrector, RefusesANonFiniteCalibrationAndKeepsTheOldOne) {
+  Corrector c({});
+  const RobotCalibration good = MakeCalibration(1);
+  c.SetCalibration(good, 1);
+  RobotCalibration bad = good;
+  bad.leg[3].com.z.a = std::nan("");
+  EXPECT_THROW(
+      {
+        try {
+          c.SetCalibration(bad, 2);
+        } catch (const std::invalid_argument& e) {
+          EXPECT_NE(std::string(e.what()).find("HR"), std::string::npos) << e.what();
+          throw;
+        }
+      },
+      std::invalid_argument);
+  EXPECT_EQ(c.calibration_version(), 1);
+}
+
+}  // namespace
+}  // namespace ftcal
