@@ -418,6 +418,49 @@ TEST(Twin, QuantizedReadingsAreWholeCounts) {
   });
 }
 
+// The drift moves the offsets and nothing else: the same seed draws the same noise, so a
+// drifted frame differs from the undrifted one by exactly the drift.
+TEST(Twin, OffsetDriftAppliesFromItsTimeOnAndChangesOnlyTheOffsets) {
+  TwinOptions o;
+  o.seed = 21;
+  const BigAntTwin twin(SimConfig(), o);
+  std::vector<TwinFrame> plain, drifted;
+  twin.TripodStances(2, RunOptions{}, [&](const TwinFrame& f) { plain.push_back(f); });
+  twin.TripodStances(2, RunOptions{0.0, 10.0}, [&](const TwinFrame& f) { drifted.push_back(f); });
+  ASSERT_EQ(plain.size(), drifted.size());
+  int after = 0;
+  for (size_t i = 0; i < plain.size(); ++i) {
+    ASSERT_EQ(drifted[i].drifted, drifted[i].t_s >= 10.0);
+    after += drifted[i].drifted;
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Vec6 expected = drifted[i].drifted ? Vec6(twin.DriftedTruth().leg[k].offset - twin.Truth().leg[k].offset)
+                                               : Vec6::Zero();
+      ASSERT_LT((drifted[i].reading[k] - plain[i].reading[k] - expected).cwiseAbs().maxCoeff(), 1e-12);
+    }
+  }
+  EXPECT_GT(after, 100);
+  EXPECT_GT((twin.DriftedTruth().leg[0].offset - twin.Truth().leg[0].offset).norm(), 0.1);
+}
+
+// Buehler clock at 0.08 Hz turning right by 9.08 deg per cycle; the body moves forward.
+TEST(Twin, TripodWalkTurnsRightAtTheConfiguredRate) {
+  const BigAntTwin twin(SimConfig(), NoiseFree());
+  std::vector<TwinFrame> frames;
+  twin.TripodWalk(2.0 / 0.08, RunOptions{}, [&](const TwinFrame& f) { frames.push_back(f); });
+  ASSERT_EQ(frames.size(), 2500u);
+  const TwinFrame& a = frames.front();
+  const TwinFrame& b = frames[1250];  // one gait cycle later
+  EXPECT_NEAR(std::remainder(HeadingYaw(b.R_GC) - HeadingYaw(a.R_GC), 2 * M_PI), -9.08 * kDeg, 0.1 * kDeg);
+  const Vec3 heading(std::cos(HeadingYaw(a.R_GC)), std::sin(HeadingYaw(a.R_GC)), 0.0);
+  EXPECT_GT((b.p_GB_m - a.p_GB_m).dot(heading), 0.02);
+  // Every leg turns one full turn per cycle, the right ones the other way.
+  for (int k = 0; k < kNumLegs; ++k) {
+    const double turn = frames[1250].angle_rad[k] - frames[0].angle_rad[k];
+    EXPECT_NEAR(std::abs(turn), 2 * M_PI, 1e-9) << kLegNames[k];
+    EXPECT_EQ(turn > 0, k < 3) << kLegNames[k];
+  }
+}
+
 TEST(Twin, BadOptionsAreRefusedByName) {
   TwinOptions o;
   o.force_noise_n = -1.0;
