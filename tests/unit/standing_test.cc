@@ -180,6 +180,10 @@ TEST_F(NoisyGrid, AlternatingSchemeStopsShortOfTheJointOptimum) {
   EXPECT_TRUE(alt.converged);  // its own 1e-3 rule fired
   EXPECT_GE(alt.iterations, 1);
   EXPECT_GE(alt.rss, joint.rss * (1.0 - 1e-9));  // the joint solution is the optimum
+  // method.md's warning, measured: the 1e-3 rule (mixed Cayley and metre units) fires while
+  // the strongly coupled yaw / horizontal p~' are still far from the optimum.
+  EXPECT_GT(rot_gap, 0.1);
+  EXPECT_GT(p_gap, 0.5e-3);
 }
 
 TEST_F(NoisyGrid, FillsTheCalibrationProto) {
@@ -257,6 +261,68 @@ TEST(Standing, LegAwareComRemovesTheBiasOfAMovingCoM) {
   EXPECT_GT(eb.p_prime_m, 0.5e-3);
   EXPECT_LT(ef.p_prime_m, 1e-9);
   EXPECT_LT(ef.rot_deg * kDeg, 1e-9);
+}
+
+TEST(Standing, RobustLossResistsOutlierPoses) {
+  const RobotCalibration truth = MakeTruth(71, Mounting::kFull);
+  auto poses = MakePoses(truth, GridSubset(400, 72), kReportNoise, false, 73);
+  // One pose in 20 with a foot caught on something: a few newtons the model cannot explain.
+  for (size_t p = 0; p < poses.size(); p += 20) {
+    poses[p].wrench[p % kNumLegs][0] += 5.0;
+    poses[p].wrench[p % kNumLegs][4] += 0.5;
+  }
+  StandingOptions plain, huber;
+  huber.robust_loss = StandingLoss::kHuber;
+  huber.robust_loss_scale = 0.1;  // residual units: sqrt(K)-weighted N, typical |r_p| ~ 0.04
+  const Errors ep = MaxErrors(
+      FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, plain), truth);
+  const Errors eh = MaxErrors(
+      FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, huber), truth);
+  std::printf("outliers: plain %.3f deg / %.3f mm, Huber %.3f deg / %.3f mm\n", ep.rot_deg,
+              ep.p_prime_m * 1e3, eh.rot_deg, eh.p_prime_m * 1e3);
+  EXPECT_LT(eh.rot_deg, 0.15);
+  EXPECT_LT(eh.p_prime_m, 0.5e-3);
+  EXPECT_LT(eh.p_prime_m, 0.5 * ep.p_prime_m);
+}
+
+TEST(Standing, OptionsFromConfig) {
+  config::Calibrator c;
+  StandingOptions o = StandingOptionsFromConfig(c);
+  EXPECT_EQ(o.k_weights, (Vec6() << 1, 1, 1, 10, 10, 10).finished());
+  EXPECT_EQ(o.solver, StandingSolver::kJoint);
+  EXPECT_EQ(o.alternating_tolerance, 1e-3);
+  EXPECT_EQ(o.robust_loss, StandingLoss::kNone);
+  EXPECT_EQ(o.cv_folds, 5);
+  EXPECT_EQ(o.min_poses, 30);
+  EXPECT_FALSE(o.leg_aware_com);
+  c.set_solver(config::ALTERNATING);
+  c.set_robust_loss(config::CAUCHY);
+  c.set_robust_loss_scale(0.5);
+  c.set_leg_aware_com(true);
+  c.set_cv_folds(4);
+  for (double w : {2.0, 2.0, 2.0, 5.0, 5.0, 5.0}) c.add_k_weights(w);
+  o = StandingOptionsFromConfig(c);
+  EXPECT_EQ(o.k_weights, (Vec6() << 2, 2, 2, 5, 5, 5).finished());
+  EXPECT_EQ(o.solver, StandingSolver::kAlternating);
+  EXPECT_EQ(o.robust_loss, StandingLoss::kCauchy);
+  EXPECT_EQ(o.robust_loss_scale, 0.5);
+  EXPECT_TRUE(o.leg_aware_com);
+  EXPECT_EQ(o.cv_folds, 4);
+}
+
+TEST(Standing, ConfiguredAlternatingSolverGivesTheSelectedModelsParameters) {
+  const RobotCalibration truth = MakeTruth(81, Mounting::kFull);
+  const auto poses = MakePoses(truth, GridSubset(150, 82), kReportNoise, false, 83);
+  StandingOptions options;
+  options.solver = StandingSolver::kAlternating;
+  const StandingResult r = CalibrateStanding(Step1Of(truth), poses, {}, options);
+  EXPECT_EQ(r.selected, StandingModel::kFull);  // selection compares the models' optima
+  EXPECT_EQ(r.fit.solver, "alternating");
+  EXPECT_GE(r.fit.rss, r.fits[0].rss * (1.0 - 1e-9));
+  calibration::Calibration proto;
+  FillStandingProto(r, &proto);
+  EXPECT_EQ(proto.solver().solver(), "alternating");
+  EXPECT_EQ(proto.solver().iterations(), static_cast<uint32_t>(r.fit.iterations));
 }
 
 TEST(Standing, RefusesTooFewPoses) {
