@@ -677,7 +677,8 @@ double BigAntTwin::TripodWalk(double duration_s, const RunOptions& run, const Fr
     for (int k = 0; k < kNumLegs; ++k) {
       const double leg_clock = clock + 0.5 * kTripod[k];
       const double psi = leg_clock - std::floor(leg_clock);
-      // Right modules are turned about z: they turn the other way to walk forward.
+      // In stance the foot must move backward in B: d(foot_B.x)/dtheta = -rx R_B_ft(0, 0) at
+      // theta = 0, so a module turned about z (the right side in the config) turns the other way.
       const bool right = truth_.X_B_ft[k].R(0, 0) < 0.0;
       angle[k] = (right ? -1.0 : 1.0) * buehler(leg_clock);
       contact[k] = psi < d;

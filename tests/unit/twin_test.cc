@@ -178,7 +178,10 @@ TEST(Twin, FeetInTheAirHaveZeroGroundWrench) {
   ASSERT_EQ(samples.size(), 4u);
   for (int i = 0; i < 4; ++i) {
     // Stances alternate tripods: {HL, FL, MR} first, then {ML, HR, FR}.
-    for (int k = 0; k < kNumLegs; ++k) EXPECT_EQ(samples[i].unloaded[k], (k == 0 || k == 2 || k == 4) == (i % 2 == 0));
+    for (int k = 0; k < kNumLegs; ++k) {
+      const bool first_tripod = kLegNames[k] == "HL" || kLegNames[k] == "FL" || kLegNames[k] == "MR";
+      EXPECT_EQ(samples[i].unloaded[k], first_tripod == (i % 2 == 0)) << kLegNames[k];
+    }
   }
 }
 
@@ -200,12 +203,12 @@ TEST(Twin, HangingReadingMatchesTheHandComputedOne) {
     if (seen) return;
     seen = true;
     ASSERT_EQ(f.angle_rad[0], 0.0);
-    for (int k : {0, 3}) {  // HL (left), HR (right)
+    for (int k : {*LegIndex("HL"), *LegIndex("HR")}) {
       const LegCalibration& leg = twin.Truth().leg[k];
       const double W = leg.weight_n;
       const double r_y = leg.com.y;
       const double r_z = leg.com.z.a * std::sin(leg.com.z.c) + leg.com.z.d;
-      const double s = k == 0 ? 1.0 : -1.0;
+      const double s = kLegNames[k] == "HL" ? 1.0 : -1.0;
       Vec6 expected;
       expected << s * W, 0.0, 0.0, 0.0, s * r_z * W, -s * r_y * W;
       expected += leg.offset;
@@ -457,7 +460,7 @@ TEST(Twin, TripodWalkTurnsRightAtTheConfiguredRate) {
   for (int k = 0; k < kNumLegs; ++k) {
     const double turn = frames[1250].angle_rad[k] - frames[0].angle_rad[k];
     EXPECT_NEAR(std::abs(turn), 2 * M_PI, 1e-9) << kLegNames[k];
-    EXPECT_EQ(turn > 0, k < 3) << kLegNames[k];
+    EXPECT_EQ(turn > 0, kLegNames[k].back() == 'L') << kLegNames[k];
   }
 }
 
