@@ -37,6 +37,7 @@
 #include <limits>
 #include <sstream>
 #include <stdexcept>
+#include <tuple>
 
 namespace ftcal {
 namespace {
@@ -56,7 +57,8 @@ std::string Where(HangSeries series, int leg) {
 
 [[noreturn]] void Fail(const std::string& what) { throw std::invalid_argument(what); }
 
-double WrapPi(double angle) { return std::remainder(angle, kTwoPi); }
+// To [-pi, pi] (std::remainder is exact but several times slower, and this runs per sample).
+double WrapPi(double angle) { return angle - kTwoPi * std::nearbyint(angle / kTwoPi); }
 
 // R(s) v and R(s)^-1 v for the first-order (I + [s]) or exact (exp([s])) model.
 Vec3 RotApply(const Vec3& s, const Vec3& v, bool exact) {
@@ -363,9 +365,10 @@ Vec3 RefineSPlus(const Vec3& s0, const std::vector<Vec3>& f_minus, int lo, int h
   ceres::GradientProblemSolver::Options solver_options;
   solver_options.logging_type = ceres::SILENT;
   solver_options.max_num_iterations = 100;
-  solver_options.function_tolerance = 1e-14;
-  solver_options.gradient_tolerance = 1e-14;
-  solver_options.parameter_tolerance = 1e-14;
+  // The objective is ~ the noise rms (1e-2 N): relative 1e-10 is far below anything it resolves.
+  solver_options.function_tolerance = 1e-10;
+  solver_options.gradient_tolerance = 1e-12;
+  solver_options.parameter_tolerance = 1e-12;
   ceres::GradientProblemSolver::Summary summary;
   ceres::Solve(solver_options, problem, t, &summary);
   if (!std::isfinite(t[0]) || !std::isfinite(t[1]) || !(summary.final_cost <= initial_cost)) {
@@ -713,29 +716,61 @@ Vec3Sigma Combine(const Vec3Sigma& a, const Vec3Sigma& b) {
   return out;
 }
 
+// The ranks k_lo <= k_hi (0-based) of component `comp` of v, exactly: one pass counts the
+// values into buckets between their min and max (monotone, so ranks are preserved), a second
+// collects the two buckets holding the ranks and selects inside them. Several times faster than
+// std::nth_element over the whole vector, which dominated the step's run time.
+std::pair<double, double> TwoRanks(const std::vector<Vec6>& v, int comp, double lo, double hi,
+                                   size_t k_lo, size_t k_hi) {
+  if (!(hi > lo)) return {lo, lo};
+  constexpr int kBuckets = 1024;
+  const double scale = kBuckets / (hi - lo);
+  auto bucket = [&](double x) { return std::min(kBuckets - 1, static_cast<int>((x - lo) * scale)); };
+  std::array<size_t, kBuckets> count{};
+  for (const Vec6& r : v) ++count[bucket(r(comp))];
+  auto find = [&](size_t k, size_t* rank_in_bucket) {
+    size_t before = 0;
+    int b = 0;
+    while (before + count[b] <= k) before += count[b++];
+    *rank_in_bucket = k - before;
+    return b;
+  };
+  size_t rank_lo = 0, rank_hi = 0;
+  const int b_lo = find(k_lo, &rank_lo), b_hi = find(k_hi, &rank_hi);
+  std::vector<double> in_lo, in_hi;
+  in_lo.reserve(count[b_lo]);
+  in_hi.reserve(count[b_hi]);
+  for (const Vec6& r : v) {
+    const int b = bucket(r(comp));
+    if (b == b_lo) in_lo.push_back(r(comp));
+    if (b == b_hi) in_hi.push_back(r(comp));
+  }
+  std::nth_element(in_lo.begin(), in_lo.begin() + rank_lo, in_lo.end());
+  std::nth_element(in_hi.begin(), in_hi.begin() + rank_hi, in_hi.end());
+  return {in_lo[rank_lo], in_hi[rank_hi]};
+}
+
 WrenchResidualStats Stats(const std::string& label, const std::vector<Vec6>& residual) {
   WrenchResidualStats s;
   s.label = label;
   s.count = static_cast<int>(residual.size());
   if (residual.empty()) return s;
   const double n = static_cast<double>(residual.size());
+  Vec6 lo = residual[0], hi = residual[0];
   for (const Vec6& r : residual) {
     s.mean += r;
     s.rms += r.cwiseProduct(r);
+    lo = lo.cwiseMin(r);
+    hi = hi.cwiseMax(r);
   }
   s.mean /= n;
   s.rms = (s.rms / n).cwiseSqrt();
   for (const Vec6& r : residual) s.std += (r - s.mean).cwiseProduct(r - s.mean);
   s.std = (s.std / std::max(1.0, n - 1.0)).cwiseSqrt();
-  std::vector<double> c(residual.size());
+  const size_t i05 = static_cast<size_t>(std::floor(0.05 * (n - 1)));
+  const size_t i95 = static_cast<size_t>(std::ceil(0.95 * (n - 1)));
   for (int k = 0; k < 6; ++k) {
-    for (size_t i = 0; i < residual.size(); ++i) c[i] = residual[i](k);
-    const size_t i05 = static_cast<size_t>(std::floor(0.05 * (n - 1)));
-    const size_t i95 = static_cast<size_t>(std::ceil(0.95 * (n - 1)));
-    std::nth_element(c.begin(), c.begin() + i05, c.end());
-    s.p05(k) = c[i05];
-    std::nth_element(c.begin(), c.begin() + i95, c.end());
-    s.p95(k) = c[i95];
+    std::tie(s.p05(k), s.p95(k)) = TwoRanks(residual, k, lo(k), hi(k), i05, i95);
   }
   return s;
 }
@@ -991,7 +1026,26 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
     for (int i = 0; i < n; ++i) r_fit[i] = out.com.model.At(m.phase[i]);
 
     // Both variants and their residuals over every raw sample of the four series.
+    std::array<std::vector<Vec3>, 4> com_raw;  // r(phi) at each raw sample, shared by both
+    size_t raw_count = 0;
+    {
+      // r(phi) = LegComModel::At, with one sin/cos of the shaft angle per sample:
+      // a sin(theta + c) + d = a (sin theta cos c + cos theta sin c) + d (2 pi phi = theta mod 2 pi).
+      const LegComModel& com = out.com.model;
+      const double xs = com.x.a * std::cos(com.x.c), xc = com.x.a * std::sin(com.x.c);
+      const double zs = com.z.a * std::cos(com.z.c), zc = com.z.a * std::sin(com.z.c);
+      for (int slot = 0; slot < 4; ++slot) {
+        const LegSamples& ls = by_series[series_of_slot[slot]]->legs[leg];
+        com_raw[slot].resize(ls.angle_rad.size());
+        for (size_t i = 0; i < ls.angle_rad.size(); ++i) {
+          const double sn = std::sin(ls.angle_rad[i]), cs = std::cos(ls.angle_rad[i]);
+          com_raw[slot][i] = Vec3(xs * sn + xc * cs + com.x.d, com.y, zs * sn + zc * cs + com.z.d);
+        }
+        raw_count += ls.angle_rad.size();
+      }
+    }
     std::vector<Vec6> residual;
+    residual.reserve(raw_count);
     for (int variant = 0; variant < 2; ++variant) {
       const bool use_s = variant == 0;
       HangingVariant& v = use_s ? out.with_s : out.without_s;
@@ -1022,7 +1076,7 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
         for (size_t i = 0; i < ls.t_s.size(); ++i) {
           Vec6 model;
           model << f_leg + v.force_offset_n.value,
-              out.com.model.At(LegPhase(ls.angle_rad[i])).cross(f_leg) + v.torque_offset_nm.value;
+              com_raw[slot][i].cross(f_leg) + v.torque_offset_nm.value;
           residual.push_back(ls.wrench[i] - model);
         }
       }

@@ -6,6 +6,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <random>
@@ -480,6 +481,26 @@ TEST(Hanging, NoisyDataWithinToleranceAndSigmasHonest) {
     const Vec3 f_up = (slot_up == 2 ? 1.0 : -1.0) * t.weight_n *
                       ((Mat3::Identity() + Skew(t.s[slot_up])) * Vec3::UnitZ());
     EXPECT_LT((r.naive_offset.head<3>() - (t.offset.head<3>() + f_up)).norm(), 0.02);
+  }
+  // Residual statistics of the naive tare, recomputed by brute force (sort) for one leg.
+  {
+    const LegHangingResult& r = res.leg[4];
+    std::vector<std::vector<double>> c(6);
+    for (const HangingRecording& rec : recs) {
+      for (const Vec6& w : rec.legs[4].wrench) {
+        for (int k = 0; k < 6; ++k) c[k].push_back(w(k) - r.naive_offset(k));
+      }
+    }
+    ASSERT_EQ(r.naive_residual.count, static_cast<int>(c[0].size()));
+    const size_t n = c[0].size();
+    for (int k = 0; k < 6; ++k) {
+      std::sort(c[k].begin(), c[k].end());
+      EXPECT_EQ(r.naive_residual.p05(k), c[k][static_cast<size_t>(std::floor(0.05 * (n - 1)))]);
+      EXPECT_EQ(r.naive_residual.p95(k), c[k][static_cast<size_t>(std::ceil(0.95 * (n - 1)))]);
+      double sum = 0.0;
+      for (double v : c[k]) sum += v;
+      EXPECT_NEAR(r.naive_residual.mean(k), sum / n, 1e-9);
+    }
   }
   // The sigmas describe the actual errors: mean squared z-score near 1.
   const double mean_z2 = z2 / nz;
