@@ -1,0 +1,419 @@
+#include "dynamixel_bridge.h"
+
+#include <poll.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+
+#include "common/bus.h"
+
+namespace ftcal {
+namespace {
+
+// Addresses 64-70 in one SYNC READ: Torque Enable (64) ... Hardware Error Status (70).
+constexpr std::uint16_t kErrorBlockAddress = dxl::kAddrTorqueEnable;
+constexpr std::uint16_t kErrorBlockBytes = dxl::kAddrHardwareErrorStatus - dxl::kAddrTorqueEnable + 1;
+// Position mode (3) keeps goals inside the default position limits (§2.7).
+constexpr std::int32_t kMinGoalCount = 0;
+constexpr std::int32_t kMaxGoalCount = 4095;
+// An unwrapped tick is meaningless across an outage longer than one wrap of the 15-bit tick.
+constexpr double kTickUnwrapMaxGapS = 30.0;
+
+std::string ServoName(std::uint8_t id, const std::string& leg) {
+  return "servo " + std::to_string(id) + " (" + leg + ")";
+}
+
+}  // namespace
+
+DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOptions options,
+                                 ServiceStats& stats, Publisher publish,
+                                 std::function<int64_t()> now_utime)
+    : config_(config),
+      options_(std::move(options)),
+      stats_(stats),
+      publish_(std::move(publish)),
+      now_utime_(std::move(now_utime)),
+      parser_(1024),
+      reopen_delay_s_(options_.reopen_min_s) {
+  if (!config_.has_dynamixel()) throw std::invalid_argument("config: no dynamixel section");
+  device_ = options_.device.empty() ? config_.dynamixel().device() : options_.device;
+  if (device_.empty()) throw std::invalid_argument("config: dynamixel.device is empty");
+  baud_ = config_.dynamixel().baud();
+  reply_timeout_s_ = config_.dynamixel().reply_timeout_s();
+  if (!(reply_timeout_s_ > 0 && reply_timeout_s_ < 1)) {
+    throw std::invalid_argument("config: dynamixel.reply_timeout_s must be in (0, 1) s");
+  }
+  if (options_.hardware_error_every < 1) {
+    throw std::invalid_argument("hardware_error_every must be >= 1");
+  }
+  for (const auto& leg : config_.robot().leg()) {
+    ServoSlot s;
+    s.leg = leg.name();
+    s.id = static_cast<std::uint8_t>(leg.servo().id());
+    s.zero_count = leg.servo().zero_count();
+    s.direction = leg.servo().direction();
+    if (s.direction != 1 && s.direction != -1) {
+      throw std::invalid_argument("config: leg " + s.leg + " servo direction must be +1 or -1");
+    }
+    s.min_angle_rad = leg.servo().min_angle_rad();
+    s.max_angle_rad = leg.servo().max_angle_rad();
+    ids_.push_back(s.id);
+    servos_.push_back(std::move(s));
+  }
+  if (servos_.empty()) throw std::invalid_argument("config: no servos");
+}
+
+DynamixelBridge::ServoSlot* DynamixelBridge::FindId(std::uint8_t id) {
+  for (auto& s : servos_) {
+    if (s.id == id) return &s;
+  }
+  return nullptr;
+}
+
+bool DynamixelBridge::Connect() {
+  try {
+    port_ = std::make_unique<dxl::SerialPort>(device_, baud_);
+  } catch (const dxl::SerialError& e) {
+    stats_.Error("serial port cannot be opened", e.what());
+    down_reason_ = e.what();
+    next_reopen_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                      std::chrono::duration<double>(reopen_delay_s_));
+    reopen_delay_s_ = std::min(options_.reopen_max_s, 2 * reopen_delay_s_);
+    return false;
+  }
+  ++stats_.Counter("port_opens");
+  reopen_delay_s_ = options_.reopen_min_s;
+  down_reason_.clear();
+  parser_ = dxl::PacketParser(1024);
+  synced_ = {};
+  stats_.log().info("opened {} at {} bit/s", device_, baud_);
+
+  missing_at_start_.clear();
+  for (auto& s : servos_) {
+    const auto got = Transact(dxl::BuildPing(s.id), {s.id},
+                              [&](std::size_t, const dxl::StatusPacket& p) {
+                                if (p.params.size() != 3) return false;
+                                const int model = p.params[0] | (p.params[1] << 8);
+                                if (model != 321) {
+                                  stats_.Error(ServoName(s.id, s.leg) + " is not an MX-106(2.0)",
+                                               ServoName(s.id, s.leg) + " reports model " +
+                                                   std::to_string(model) + ", expected 321");
+                                }
+                                return true;
+                              });
+    if (!port_) return false;
+    if (!got[0]) {
+      missing_at_start_.push_back(s.id);
+      stats_.Error(ServoName(s.id, s.leg) + " missing",
+                   ServoName(s.id, s.leg) + " does not answer PING on " + device_);
+    }
+  }
+  if (missing_at_start_.empty()) {
+    stats_.log().info("all {} servos answer PING", servos_.size());
+  }
+  return true;
+}
+
+void DynamixelBridge::PortLost(const std::string& why) {
+  port_.reset();
+  ++stats_.Counter("port_lost");
+  stats_.Error("serial port lost", why);
+  down_reason_ = why;
+  next_reopen_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                    std::chrono::duration<double>(reopen_delay_s_));
+}
+
+void DynamixelBridge::SyncParserStats() {
+  const auto& now = parser_.stats();
+  for (auto n = synced_.crc_errors; n < now.crc_errors; ++n) {
+    stats_.Drop("CRC error", "a status packet failed its CRC");
+  }
+  for (auto n = synced_.malformed; n < now.malformed; ++n) {
+    stats_.Drop("malformed packet", "bad length, id or stuffing, or not a status packet");
+  }
+  stats_.Counter("crc_errors") += static_cast<std::int64_t>(now.crc_errors - synced_.crc_errors);
+  stats_.Counter("malformed") += static_cast<std::int64_t>(now.malformed - synced_.malformed);
+  stats_.Counter("noise_bytes") += static_cast<std::int64_t>(now.noise_bytes - synced_.noise_bytes);
+  stats_.Counter("timeouts") += static_cast<std::int64_t>(now.timeouts - synced_.timeouts);
+  synced_ = now;
+}
+
+std::vector<bool> DynamixelBridge::Transact(
+    const std::vector<std::uint8_t>& packet, const std::vector<std::uint8_t>& ids,
+    const std::function<bool(std::size_t, const dxl::StatusPacket&)>& on_reply) {
+  std::vector<bool> got(ids.size(), false);
+  if (!port_) return got;
+  const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                           std::chrono::duration<double>(reply_timeout_s_));
+  try {
+    port_->WriteAll(packet.data(), packet.size(), 100);
+    std::size_t remaining = ids.size();
+    std::uint8_t buf[1024];
+    while (remaining > 0) {
+      const auto left = deadline - Clock::now();
+      if (left <= Clock::duration::zero()) break;
+      const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(left).count();
+      timespec ts{static_cast<time_t>(ns / 1'000'000'000), static_cast<long>(ns % 1'000'000'000)};
+      pollfd p{port_->fd(), POLLIN, 0};
+      if (::ppoll(&p, 1, &ts, nullptr) <= 0) continue;
+      const std::size_t n = port_->ReadSome(buf, sizeof buf);
+      parser_.Feed(buf, n);
+      while (auto status = parser_.NextStatus()) {
+        const auto it = std::find(ids.begin(), ids.end(), status->id);
+        const std::size_t i = static_cast<std::size_t>(it - ids.begin());
+        if (it == ids.end() || got[i]) {
+          ++stats_.Counter("unexpected_replies");
+          stats_.Drop("unexpected status packet",
+                      "status from id " + std::to_string(status->id) + " that was not asked");
+          continue;
+        }
+        if (on_reply(i, *status)) {
+          got[i] = true;
+          --remaining;
+        }
+      }
+    }
+    if (remaining > 0) parser_.Timeout();
+  } catch (const dxl::SerialError& e) {
+    PortLost(e.what());
+  }
+  SyncParserStats();
+  return got;
+}
+
+void DynamixelBridge::SendPendingWrites() {
+  std::vector<std::pair<std::uint8_t, std::vector<std::uint8_t>>> torque;
+  std::vector<std::pair<std::uint8_t, std::int32_t>> goals;
+  for (auto& s : servos_) {
+    if (s.pending_torque) {
+      torque.push_back({s.id, {static_cast<std::uint8_t>(*s.pending_torque ? 1 : 0)}});
+      s.pending_torque.reset();
+    }
+    if (s.goal_count) {
+      goals.emplace_back(s.id, *s.goal_count);
+      s.goal_count.reset();
+    }
+  }
+  if (!port_ || (torque.empty() && goals.empty())) return;
+  try {
+    // Torque first: a goal written before the enable would be ignored by a servo still off.
+    if (!torque.empty()) {
+      const auto p = dxl::BuildSyncWrite(dxl::kAddrTorqueEnable, 1, torque);
+      port_->WriteAll(p.data(), p.size(), 100);
+      stats_.Counter("torque_writes") += static_cast<std::int64_t>(torque.size());
+      force_error_read_ = true;
+    }
+    if (!goals.empty()) {
+      const auto p = dxl::BuildSyncWriteGoalPosition(goals);
+      port_->WriteAll(p.data(), p.size(), 100);
+      stats_.Counter("goal_writes") += static_cast<std::int64_t>(goals.size());
+    }
+  } catch (const dxl::SerialError& e) {
+    PortLost(e.what());
+  }
+}
+
+void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
+  const auto now = Clock::now();
+  *fresh = Transact(
+      dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, ids_), ids_,
+      [&](std::size_t i, const dxl::StatusPacket& p) {
+        ServoSlot& s = servos_[i];
+        if (p.error_number() != 0) {
+          ++stats_.Counter("status_errors");
+          stats_.Drop(ServoName(s.id, s.leg) + ": " + dxl::DescribeStatusError(p.error),
+                      "the reply to the present-block read carries an error; its data is not used");
+          return false;
+        }
+        if (p.params.size() != dxl::kPresentBlockBytes) {
+          ++stats_.Counter("malformed");
+          stats_.Drop("present block of the wrong size",
+                      ServoName(s.id, s.leg) + " sent " + std::to_string(p.params.size()) +
+                          " bytes, expected 28");
+          return false;
+        }
+        const dxl::PresentState st = dxl::DecodePresentBlock(p.params.data(), p.params.size());
+        if (s.ever_read && now - s.last_read > std::chrono::duration_cast<Clock::duration>(
+                                                   std::chrono::duration<double>(
+                                                       kTickUnwrapMaxGapS))) {
+          s.ticks.Reset();
+        }
+        s.ever_read = true;
+        s.last_read = now;
+        s.angle_rad = dxl::PositionToRad(st.present_position, s.zero_count, s.direction);
+        s.velocity_rad_s = s.direction * dxl::VelocityToRadPerS(st.present_velocity);
+        s.current_a = s.direction * dxl::CurrentToA(st.present_current);
+        s.tick_ms = s.ticks.Update(st.realtime_tick_ms);
+        if (p.alert() && !s.alert) {
+          ++stats_.Counter("hw_error_alerts");
+          stats_.Error(ServoName(s.id, s.leg) + " hardware error",
+                       ServoName(s.id, s.leg) + " raised its Alert bit");
+        }
+        s.alert = p.alert();
+        s.consecutive_misses = 0;
+        stats_.CountIn();
+        return true;
+      });
+  for (std::size_t i = 0; i < servos_.size(); ++i) {
+    ServoSlot& s = servos_[i];
+    if ((*fresh)[i]) continue;
+    ++s.consecutive_misses;
+    ++stats_.Counter("stale");
+    stats_.Drop(ServoName(s.id, s.leg) + " no valid reply",
+                "no valid reply this cycle: published STALE with its last good values");
+  }
+}
+
+void DynamixelBridge::ReadHardwareErrors() {
+  Transact(dxl::BuildSyncRead(kErrorBlockAddress, kErrorBlockBytes, ids_), ids_,
+           [&](std::size_t i, const dxl::StatusPacket& p) {
+             ServoSlot& s = servos_[i];
+             if (p.error_number() != 0 || p.params.size() != kErrorBlockBytes) {
+               ++stats_.Counter("status_errors");
+               stats_.Drop(ServoName(s.id, s.leg) + " bad hardware-error reply",
+                           "error '" + dxl::DescribeStatusError(p.error) + "' or " +
+                               std::to_string(p.params.size()) + " bytes");
+               return false;
+             }
+             s.torque_enable = p.params[0];
+             const int hw = p.params[kErrorBlockBytes - 1];
+             if (hw != 0 && hw != s.hardware_error) {
+               stats_.Error(ServoName(s.id, s.leg) + " hardware error status",
+                            ServoName(s.id, s.leg) + " reports Hardware Error Status " +
+                                std::to_string(hw) + " (bit 0 voltage, 2 overheating, 3 encoder, "
+                                                     "4 electrical shock, 5 overload)");
+             }
+             s.hardware_error = hw;
+             s.alert = p.alert();
+             return true;
+           });
+}
+
+void DynamixelBridge::Cycle() {
+  if (!port_) {
+    if (Clock::now() < next_reopen_) return;
+    if (!Connect()) return;
+    ++stats_.Counter("reopens");
+  }
+  ++cycles_;
+  ++stats_.Counter("cycles");
+  SendPendingWrites();
+  std::vector<bool> fresh;
+  ReadPresent(&fresh);
+  bool want_errors = force_error_read_ || cycles_ % options_.hardware_error_every == 1 ||
+                     options_.hardware_error_every == 1;
+  for (const auto& s : servos_) want_errors = want_errors || s.alert || s.hardware_error != 0;
+  if (port_ && want_errors) {
+    force_error_read_ = false;
+    ReadHardwareErrors();
+  }
+  if (!port_) return;  // lost during the cycle: nothing trustworthy to publish
+  last_fresh_ = fresh;
+  Publish(now_utime_(), fresh);
+}
+
+void DynamixelBridge::Publish(std::int64_t utime, const std::vector<bool>& fresh) {
+  servo_state_t msg;
+  msg.utime = utime;
+  msg.num_servos = static_cast<int32_t>(servos_.size());
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  for (std::size_t i = 0; i < servos_.size(); ++i) {
+    const ServoSlot& s = servos_[i];
+    msg.leg.push_back(s.leg);
+    msg.id.push_back(s.id);
+    msg.angle_rad.push_back(s.ever_read ? s.angle_rad : nan);
+    msg.velocity_rad_s.push_back(s.ever_read ? s.velocity_rad_s : nan);
+    msg.current_a.push_back(s.ever_read ? s.current_a : nan);
+    msg.hardware_error.push_back(s.hardware_error);
+    msg.device_tick_ms.push_back(s.tick_ms);
+    int32_t flags = 0;
+    if (!fresh[i]) flags |= servo_state_t::FLAG_STALE;
+    if (s.hardware_error != 0 || s.alert) flags |= servo_state_t::FLAG_HW_ERROR;
+    if (s.torque_enable == 0) flags |= servo_state_t::FLAG_TORQUE_OFF;
+    msg.flags.push_back(flags);
+  }
+  publish_(msg);
+}
+
+void DynamixelBridge::OnDeviceReadable() {
+  if (!port_) return;
+  try {
+    std::uint8_t buf[1024];
+    while (const std::size_t n = port_->ReadSome(buf, sizeof buf)) {
+      // Between cycles nobody was asked: whatever comes is a late reply or noise.
+      parser_.Feed(buf, n);
+      while (auto status = parser_.NextStatus()) {
+        ++stats_.Counter("unexpected_replies");
+        stats_.Drop("late status packet",
+                    "status from id " + std::to_string(status->id) + " after its deadline");
+      }
+    }
+  } catch (const dxl::SerialError& e) {
+    PortLost(e.what());
+  }
+  SyncParserStats();
+}
+
+void DynamixelBridge::OnCommand(const servo_command_t& cmd) {
+  if (cmd.num_servos < 0 || static_cast<std::size_t>(cmd.num_servos) != cmd.id.size()) {
+    throw BadInput("servo_command_t inconsistent", "num_servos does not match the arrays");
+  }
+  // Validate everything before applying anything: a command is taken whole or not at all.
+  std::vector<std::pair<ServoSlot*, std::optional<std::int32_t>>> plan;
+  for (std::size_t i = 0; i < cmd.id.size(); ++i) {
+    const int id = cmd.id[i];
+    ServoSlot* s = (id >= 0 && id <= dxl::kMaxId) ? FindId(static_cast<std::uint8_t>(id)) : nullptr;
+    if (s == nullptr) {
+      throw BadInput("servo_command_t unknown id",
+                     "SERVO_CMD names servo id " + std::to_string(id) + ", not in the config");
+    }
+    std::optional<std::int32_t> count;
+    if (cmd.torque_enable) {
+      const double goal = cmd.goal_angle_rad[i];
+      if (!std::isfinite(goal)) {
+        throw BadInput("servo_command_t non-finite goal",
+                       "SERVO_CMD goal for " + ServoName(s->id, s->leg) + " is not finite");
+      }
+      const double clamped = std::clamp(goal, s->min_angle_rad, s->max_angle_rad);
+      if (clamped != goal) {
+        ++stats_.Counter("goals_clamped");
+        stats_.log().debug("goal {} rad for {} clamped to {}", goal, ServoName(s->id, s->leg),
+                           clamped);
+      }
+      count = dxl::RadToPosition(clamped, s->zero_count, s->direction);
+      if (*count < kMinGoalCount || *count > kMaxGoalCount) {
+        throw BadInput("servo_command_t goal outside the encoder range",
+                       "SERVO_CMD goal for " + ServoName(s->id, s->leg) + " is count " +
+                           std::to_string(*count) + ", outside 0-4095 of position mode");
+      }
+    }
+    plan.emplace_back(s, count);
+  }
+  for (auto& [s, count] : plan) {
+    s->pending_torque = cmd.torque_enable;
+    s->goal_count = count;
+  }
+  ++stats_.Counter("commands");
+}
+
+bool DynamixelBridge::Degraded(std::string* why) const {
+  std::string reason;
+  if (!port_) {
+    reason = "port " + device_ + " down" + (down_reason_.empty() ? "" : ": " + down_reason_);
+  } else {
+    for (std::size_t i = 0; i < servos_.size(); ++i) {
+      const ServoSlot& s = servos_[i];
+      if (i < last_fresh_.size() && !last_fresh_[i]) {
+        reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " not answering";
+      } else if (s.hardware_error != 0 || s.alert) {
+        reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " hardware error";
+      }
+    }
+  }
+  if (why) *why = reason;
+  return !reason.empty();
+}
+
+}  // namespace ftcal

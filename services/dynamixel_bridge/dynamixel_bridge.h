@@ -1,0 +1,130 @@
+// The Dynamixel bridge's work, without LCM's loop: open the bus, ping the servos, and run one
+// read-write cycle at a time (pending torque/goal writes, SYNC READ of the present block,
+// Hardware Error Status now and then), turning the replies into a servo_state_t.
+//
+// Rules (docs/device-protocols.md §2.9): replies are matched by id, never by position; a servo
+// that does not answer this cycle is flagged STALE with its last good values (NaN before it
+// ever answered), and the other servos are published as usual; CRC errors, timeouts, malformed
+// packets, status errors and hardware errors are counted and logged once per kind; a port
+// that vanishes is reopened with back-off. Nothing a servo did not say is ever published as a
+// value.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "common/service_stats.h"
+#include "ftcal/servo_command_t.hpp"
+#include "ftcal/servo_state_t.hpp"
+#include "proto/config.pb.h"
+#include "protocol2.h"
+#include "serial_port.h"
+
+namespace ftcal {
+
+struct DynamixelBridgeOptions {
+  std::string device;          // serial device; empty: the config's
+  int hardware_error_every = 10;  // read address 64-70 every n-th cycle (and after an alert)
+  double reopen_min_s = 0.1;   // back-off between attempts to reopen a vanished port
+  double reopen_max_s = 2.0;
+};
+
+class DynamixelBridge {
+ public:
+  using Publisher = std::function<void(const servo_state_t&)>;
+  using Clock = std::chrono::steady_clock;
+
+  // Throws std::invalid_argument when the config has no dynamixel section or a servo's
+  // direction is not +-1.
+  DynamixelBridge(const config::Config& config, DynamixelBridgeOptions options,
+                  ServiceStats& stats, Publisher publish, std::function<int64_t()> now_utime);
+
+  // Opens the port and pings every configured servo; logs each one that does not answer or is
+  // not an MX-106(2.0). Returns false (and schedules a retry) when the port cannot be opened.
+  bool Connect();
+  bool connected() const { return port_ != nullptr; }
+  // The device fd to poll between cycles, -1 while disconnected.
+  int fd() const { return port_ ? port_->fd() : -1; }
+
+  // One cycle: reconnects when due, sends pending writes, reads the servos, publishes one
+  // servo_state_t. Takes at most about two reply timeouts.
+  void Cycle();
+  // The device fd is readable between cycles: bytes nobody asked for (counted as noise), or a
+  // hang-up (the port is closed and reopened later).
+  void OnDeviceReadable();
+  // SERVO_CMD. Throws BadInput (unknown id, NaN goal) without applying any of it.
+  void OnCommand(const servo_command_t& cmd);
+
+  // True while a servo is missing, stale, in hardware error, or the port is down; `why` says
+  // which.
+  bool Degraded(std::string* why = nullptr) const;
+  // Ids that did not answer the start-up PING.
+  const std::vector<std::uint8_t>& missing_at_start() const { return missing_at_start_; }
+  std::int64_t cycles() const { return cycles_; }
+
+ private:
+  struct ServoSlot {
+    std::string leg;
+    std::uint8_t id = 0;
+    std::int32_t zero_count = 2048;
+    int direction = 1;
+    double min_angle_rad = 0, max_angle_rad = 0;
+    // Last good values.
+    bool ever_read = false;
+    double angle_rad = 0, velocity_rad_s = 0, current_a = 0;
+    dxl::TickUnwrapper ticks;
+    std::int64_t tick_ms = 0;
+    std::int32_t hardware_error = 0;
+    int torque_enable = -1;  // -1 unknown
+    bool alert = false;
+    int consecutive_misses = 0;
+    Clock::time_point last_read{};
+    // Pending from SERVO_CMD.
+    std::optional<bool> pending_torque;
+    std::optional<std::int32_t> goal_count;
+  };
+
+  // Sends `packet` and collects one status per id in `ids` until all came or the reply
+  // timeout passed; `on_reply` gets each matched status. Returns the ids that answered.
+  // `on_reply` returns false to reject a reply (error byte, wrong size): that servo stays
+  // unanswered.
+  std::vector<bool> Transact(
+      const std::vector<std::uint8_t>& packet, const std::vector<std::uint8_t>& ids,
+      const std::function<bool(std::size_t, const dxl::StatusPacket&)>& on_reply);
+  void ReadPresent(std::vector<bool>* fresh);
+  void ReadHardwareErrors();
+  void SendPendingWrites();
+  void Publish(std::int64_t utime, const std::vector<bool>& fresh);
+  void PortLost(const std::string& why);
+  void SyncParserStats();
+  ServoSlot* FindId(std::uint8_t id);
+
+  config::Config config_;
+  DynamixelBridgeOptions options_;
+  ServiceStats& stats_;
+  Publisher publish_;
+  std::function<int64_t()> now_utime_;
+  std::string device_;
+  std::uint32_t baud_;
+  double reply_timeout_s_;
+
+  std::unique_ptr<dxl::SerialPort> port_;
+  dxl::PacketParser parser_;
+  dxl::PacketParser::Stats synced_{};  // parser counts already moved into stats_
+  std::vector<ServoSlot> servos_;
+  std::vector<std::uint8_t> ids_;
+  std::vector<std::uint8_t> missing_at_start_;
+  std::vector<bool> last_fresh_;
+  bool force_error_read_ = true;
+  std::int64_t cycles_ = 0;
+  double reopen_delay_s_;
+  Clock::time_point next_reopen_{};
+  std::string down_reason_;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,149 @@
+// ftcal-dynamixel-bridge: the Dynamixel MX-106 bus (Protocol 2.0) to SERVO_STATE, SERVO_CMD to
+// the bus. A thin main around DynamixelBridge: one poll() over the serial port and the LCM
+// socket, a read-write cycle at dynamixel.rate_hz, the FTCAL_STATUS heartbeat.
+#include <poll.h>
+
+#include <chrono>
+#include <cmath>
+#include <string>
+
+#include <lcm/lcm-cpp.hpp>
+
+#include "common/bus.h"
+#include "common/service.h"
+#include "common/shutdown.h"
+#include "dynamixel_bridge/dynamixel_bridge.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// LCM 1.3.1 subscribes member functions, not closures. The bridge needs the LCM socket's fd in
+// its own poll() (ServiceApp's bus does not expose it), so SERVO_CMD arrives on an lcm::LCM of
+// its own; decoding and counting follow Bus::Subscribe.
+struct CommandSink {
+  ftcal::DynamixelBridge* bridge;
+  ftcal::ServiceStats* stats;
+  void OnMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    stats->CountIn();
+    try {
+      ftcal::servo_command_t cmd;
+      const int used = cmd.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size));
+      if (used < 0 || used != static_cast<int>(rbuf->data_size)) {
+        throw ftcal::BadInput("undecodable ftcal.servo_command_t on " + channel,
+                              std::to_string(rbuf->data_size) + " bytes do not decode");
+      }
+      bridge->OnCommand(cmd);
+    } catch (const ftcal::BadInput& e) {
+      stats->Drop(e.kind(), e.what());
+    } catch (const std::exception& e) {
+      stats->Error("handler for " + channel, e.what());
+    }
+  }
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  ftcal::ServiceApp app(
+      {"ftcal-dynamixel-bridge",
+       "Reads the Dynamixel MX-106 servos (Protocol 2.0) on the config's serial device: SYNC "
+       "READ of the present block at dynamixel.rate_hz, Hardware Error Status now and then, and "
+       "publishes SERVO_STATE (servo_state_t: shaft angles in rad, 0 = leg straight down, "
+       "velocity, current, hardware error, unwrapped device tick, STALE/HW_ERROR/TORQUE_OFF "
+       "flags). Reads SERVO_CMD (servo_command_t) and writes torque enable and goal positions, "
+       "clamped to the config's angle limits. DEGRADED while a servo is silent or faulty or the "
+       "port is down (it is reopened with back-off).",
+       /*replayable=*/false});
+  ftcal::DynamixelBridgeOptions options;
+  app.cli().add_option("--device", options.device,
+                       "serial device; overrides the config's dynamixel.device");
+  app.cli()
+      .add_option("--hw-error-every", options.hardware_error_every,
+                  "read Hardware Error Status every n-th cycle (and after any alert)")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  if (auto rc = app.Init(argc, argv)) return *rc;
+
+  const auto& config = app.config();
+  const double rate_hz = config.dynamixel().rate_hz();
+  if (!(rate_hz > 0 && rate_hz <= 1000)) {
+    app.log().critical("config: dynamixel.rate_hz {} outside (0, 1000]", rate_hz);
+    return 2;
+  }
+  std::string url = config.lcm_url();
+  if (auto* opt = app.cli().get_option("--lcm-url"); opt->count() > 0) url = opt->as<std::string>();
+
+  try {
+    ftcal::DynamixelBridge bridge(
+        config, options, app.stats(),
+        [&](const ftcal::servo_state_t& msg) {
+          app.bus().Publish(config.channels().servo_state(), msg);
+        },
+        [&] { return app.bus().NowUtime(); });
+
+    lcm::LCM cmd_lcm(url);
+    if (!cmd_lcm.good()) {
+      app.log().critical("cannot open LCM at {}", url);
+      return 1;
+    }
+    CommandSink sink{&bridge, &app.stats()};
+    cmd_lcm.subscribe(config.channels().servo_cmd(), &CommandSink::OnMessage, &sink);
+
+    auto publish_status = [&] {
+      std::string why;
+      const bool degraded = bridge.Degraded(&why);
+      const int8_t state =
+          degraded ? ftcal::service_status_t::DEGRADED : ftcal::service_status_t::RUNNING;
+      if (state != app.state()) {
+        if (degraded) {
+          app.log().warn("DEGRADED: {}", why);
+        } else {
+          app.log().info("RUNNING: all servos answer");
+        }
+      }
+      app.SetState(state);
+      app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);
+    };
+
+    bridge.Connect();
+    const auto period = std::chrono::duration_cast<Clock::duration>(
+        std::chrono::duration<double>(1.0 / rate_hz));
+    auto next_cycle = Clock::now();
+    auto next_status = Clock::now();
+    while (!ftcal::ShutdownRequested()) {
+      auto now = Clock::now();
+      if (now >= next_status) {
+        publish_status();
+        next_status += std::chrono::seconds(1);
+        if (next_status <= now) next_status = now + std::chrono::seconds(1);
+      }
+      if (now >= next_cycle) {
+        bridge.Cycle();
+        next_cycle += period;
+        now = Clock::now();
+        if (next_cycle <= now) {  // the cycle overran its slot: skip ahead, do not burst
+          ++app.stats().Counter("late_cycles");
+          next_cycle = now + period;
+        }
+        continue;
+      }
+      // Wait for the next cycle, a command, or bytes nobody asked for (and hang-ups).
+      const auto wait = std::min({next_cycle, next_status, now + std::chrono::milliseconds(100)}) - now;
+      const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(wait).count();
+      timespec ts{static_cast<time_t>(ns / 1'000'000'000), static_cast<long>(ns % 1'000'000'000)};
+      pollfd fds[2] = {{cmd_lcm.getFileno(), POLLIN, 0}, {bridge.fd(), POLLIN, 0}};
+      const nfds_t nfds = bridge.fd() >= 0 ? 2 : 1;
+      if (::ppoll(fds, nfds, &ts, nullptr) <= 0) continue;
+      if (fds[0].revents & POLLIN) cmd_lcm.handleTimeout(0);
+      if (nfds == 2 && fds[1].revents != 0) bridge.OnDeviceReadable();
+    }
+  } catch (const std::exception& e) {
+    app.log().critical("{}", e.what());
+    return 2;
+  }
+  app.SetState(ftcal::service_status_t::STOPPING);
+  app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);
+  app.stats().LogSummary();
+  return 0;
+}
