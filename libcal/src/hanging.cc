@@ -37,7 +37,6 @@
 #include <limits>
 #include <sstream>
 #include <stdexcept>
-#include <tuple>
 
 namespace ftcal {
 namespace {
@@ -716,38 +715,53 @@ Vec3Sigma Combine(const Vec3Sigma& a, const Vec3Sigma& b) {
   return out;
 }
 
-// The ranks k_lo <= k_hi (0-based) of component `comp` of v, exactly: one pass counts the
-// values into buckets between their min and max (monotone, so ranks are preserved), a second
-// collects the two buckets holding the ranks and selects inside them. Several times faster than
-// std::nth_element over the whole vector, which dominated the step's run time.
-std::pair<double, double> TwoRanks(const std::vector<Vec6>& v, int comp, double lo, double hi,
-                                   size_t k_lo, size_t k_hi) {
-  if (!(hi > lo)) return {lo, lo};
+// Per component, the values of ranks k_lo <= k_hi (0-based), exactly: one pass counts every
+// component into buckets between its min and max (monotone, so ranks are preserved), a second
+// collects the values of the two buckets holding the ranks, and the selection runs inside them.
+// Both passes read each sample once for all six components: std::nth_element per component
+// over the whole vector dominated the step's run time.
+void TwoRanks(const std::vector<Vec6>& v, const Vec6& lo, const Vec6& hi, size_t k_lo,
+              size_t k_hi, Vec6* at_lo, Vec6* at_hi) {
   constexpr int kBuckets = 1024;
-  const double scale = kBuckets / (hi - lo);
-  auto bucket = [&](double x) { return std::min(kBuckets - 1, static_cast<int>((x - lo) * scale)); };
-  std::array<size_t, kBuckets> count{};
-  for (const Vec6& r : v) ++count[bucket(r(comp))];
-  auto find = [&](size_t k, size_t* rank_in_bucket) {
+  Vec6 scale;
+  for (int c = 0; c < 6; ++c) scale(c) = hi(c) > lo(c) ? kBuckets / (hi(c) - lo(c)) : 0.0;
+  auto bucket = [&](const Vec6& r, int c) {
+    return std::min(kBuckets - 1, static_cast<int>((r(c) - lo(c)) * scale(c)));
+  };
+  std::vector<std::array<size_t, kBuckets>> count(6);
+  for (auto& c : count) c.fill(0);
+  for (const Vec6& r : v) {
+    for (int c = 0; c < 6; ++c) ++count[c][bucket(r, c)];
+  }
+  std::array<int, 6> b_lo, b_hi;
+  std::array<size_t, 6> rank_lo, rank_hi;
+  auto find = [&](int c, size_t k, size_t* rank_in_bucket) {
     size_t before = 0;
     int b = 0;
-    while (before + count[b] <= k) before += count[b++];
+    while (before + count[c][b] <= k) before += count[c][b++];
     *rank_in_bucket = k - before;
     return b;
   };
-  size_t rank_lo = 0, rank_hi = 0;
-  const int b_lo = find(k_lo, &rank_lo), b_hi = find(k_hi, &rank_hi);
-  std::vector<double> in_lo, in_hi;
-  in_lo.reserve(count[b_lo]);
-  in_hi.reserve(count[b_hi]);
-  for (const Vec6& r : v) {
-    const int b = bucket(r(comp));
-    if (b == b_lo) in_lo.push_back(r(comp));
-    if (b == b_hi) in_hi.push_back(r(comp));
+  std::array<std::vector<double>, 6> in_lo, in_hi;
+  for (int c = 0; c < 6; ++c) {
+    b_lo[c] = find(c, k_lo, &rank_lo[c]);
+    b_hi[c] = find(c, k_hi, &rank_hi[c]);
+    in_lo[c].reserve(count[c][b_lo[c]]);
+    in_hi[c].reserve(count[c][b_hi[c]]);
   }
-  std::nth_element(in_lo.begin(), in_lo.begin() + rank_lo, in_lo.end());
-  std::nth_element(in_hi.begin(), in_hi.begin() + rank_hi, in_hi.end());
-  return {in_lo[rank_lo], in_hi[rank_hi]};
+  for (const Vec6& r : v) {
+    for (int c = 0; c < 6; ++c) {
+      const int b = bucket(r, c);
+      if (b == b_lo[c]) in_lo[c].push_back(r(c));
+      if (b == b_hi[c]) in_hi[c].push_back(r(c));
+    }
+  }
+  for (int c = 0; c < 6; ++c) {
+    std::nth_element(in_lo[c].begin(), in_lo[c].begin() + rank_lo[c], in_lo[c].end());
+    std::nth_element(in_hi[c].begin(), in_hi[c].begin() + rank_hi[c], in_hi[c].end());
+    (*at_lo)(c) = in_lo[c][rank_lo[c]];
+    (*at_hi)(c) = in_hi[c][rank_hi[c]];
+  }
 }
 
 WrenchResidualStats Stats(const std::string& label, const std::vector<Vec6>& residual) {
@@ -769,9 +783,7 @@ WrenchResidualStats Stats(const std::string& label, const std::vector<Vec6>& res
   s.std = (s.std / std::max(1.0, n - 1.0)).cwiseSqrt();
   const size_t i05 = static_cast<size_t>(std::floor(0.05 * (n - 1)));
   const size_t i95 = static_cast<size_t>(std::ceil(0.95 * (n - 1)));
-  for (int k = 0; k < 6; ++k) {
-    std::tie(s.p05(k), s.p95(k)) = TwoRanks(residual, k, lo(k), hi(k), i05, i95);
-  }
+  TwoRanks(residual, lo, hi, i05, i95, &s.p05, &s.p95);
   return s;
 }
 
