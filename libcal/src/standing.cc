@@ -18,6 +18,7 @@
 #include <memory>
 #include <sstream>
 #include <stdexcept>
+#include <utility>
 
 #include <Eigen/Cholesky>
 #include <Eigen/SVD>
@@ -643,6 +644,34 @@ void ValidateOptions(const StandingOptions& o) {
 }
 
 }  // namespace
+
+namespace {
+// PoseCost with its own copy of the precomputed pose terms.
+class OwningPoseCost final : public ceres::CostFunction {
+ public:
+  OwningPoseCost(Prepared prep, bool shared, bool cayley)
+      : prep_(std::move(prep)), cost_(&prep_.poses[0], prep_, shared, cayley) {
+    set_num_residuals(cost_.num_residuals());
+    *mutable_parameter_block_sizes() = cost_.parameter_block_sizes();
+  }
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    return cost_.Evaluate(parameters, residuals, jacobians);
+  }
+
+ private:
+  Prepared prep_;
+  PoseCost cost_;
+};
+}  // namespace
+
+std::unique_ptr<ceres::CostFunction> StandingPoseCostForCheck(const RobotCalibration& step1,
+                                                              const StandingPose& pose,
+                                                              StandingModel model, bool cayley,
+                                                              const StandingOptions& options) {
+  return std::make_unique<OwningPoseCost>(Prepare(step1, {pose}, options),
+                                          SharedTranslation(model), cayley);
+}
 
 StandingFit::StandingFit() {
   for (int k = 0; k < kNumLegs; ++k) {

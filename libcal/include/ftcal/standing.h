@@ -19,6 +19,7 @@
 #pragma once
 
 #include <array>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -30,6 +31,10 @@
 #include "ftcal/sensing_model.h"
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
+
+namespace ceres {
+class CostFunction;
+}
 
 namespace ftcal {
 
@@ -162,5 +167,13 @@ calibration::ResidualStats ResidualStatsOf(const std::string& label,
 // standing_residual ("naive tare", "without T~", "full calibration"), standing_poses,
 // standing_uncertainty. Legs missing in `out` are added with their names.
 void FillStandingProto(const StandingResult& result, calibration::Calibration* out);
+
+// The cost function of one pose as the solvers use it (6 residuals; parameter blocks: rotations
+// as 24 quaternion entries (x, y, z, w per leg) or 18 Cayley entries, then 18 p~' or 3 p^C_B
+// entries). For gradient checks; owns a copy of what it needs.
+std::unique_ptr<ceres::CostFunction> StandingPoseCostForCheck(const RobotCalibration& step1,
+                                                              const StandingPose& pose,
+                                                              StandingModel model, bool cayley,
+                                                              const StandingOptions& options);
 
 }  // namespace ftcal
