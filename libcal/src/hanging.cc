@@ -941,6 +941,13 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
       Fail(s.str());
     }
     LegMatched m;
+    {
+      size_t total = 0;
+      for (int n_b : matched_per_bin) total += n_b;
+      for (auto& w : m.w) w.reserve(total);
+      m.phase.reserve(total);
+      m.bin.reserve(total);
+    }
     for (int j = 0; j < cycles_max; ++j) {
       const int begin = static_cast<int>(m.phase.size());
       for (int b = 0; b < bins; ++b) {

@@ -367,6 +367,34 @@ TEST(Hanging, NoisyDataWithinToleranceAndSigmasHonest) {
   EXPECT_LT(mean_z2, 2.5);
 }
 
+TEST(Hanging, NoisyFiniteRotationsExactOption) {
+  const auto X = NominalPoses();
+  const auto truth = MakeTruth(0.06);  // 4-6 deg: I + [s] would be off by ~0.25% of m g
+  Motion m;
+  m.exact = true;
+  m.aligned = false;
+  m.samples_per_cycle = 830.0;
+  m.cycles = 10.01;
+  m.angle_quantum_rad = kTwoPi / 4096;
+  m.f_noise_n = 0.05;
+  m.tau_noise_nm = 0.002;
+  std::mt19937 rng(99);
+  const auto recs = MakeRecordings(X, truth, m, &rng);
+  HangingOptions o;
+  o.exact_rotations = true;
+  const HangingResult res = RunHanging(recs, X, o);
+  for (int k = 0; k < kNumLegs; ++k) {
+    SCOPED_TRACE(std::string(kLegNames[k]));
+    const LegHangingResult& r = res.leg[k];
+    const LegTruth& t = truth[k];
+    EXPECT_NEAR(r.with_s.weight_n.value, t.weight_n, 0.015);
+    EXPECT_LT(std::abs(r.with_s.weight_n.value - t.weight_n), 5.0 * r.with_s.weight_n.sigma);
+    EXPECT_LT((r.with_s.force_offset_n.value - t.offset.head<3>()).cwiseAbs().maxCoeff(), 0.02);
+    EXPECT_LT((r.with_s.torque_offset_nm.value - t.offset.tail<3>()).cwiseAbs().maxCoeff(), 0.001);
+    EXPECT_LT(CurveError(r.com.model, t.com), 0.2e-3);
+  }
+}
+
 // ------------------------------------------------------------ output
 
 TEST(Hanging, WritesCalibrationProto) {
