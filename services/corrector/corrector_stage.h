@@ -1,0 +1,66 @@
+// ftcal-corrector's work, transport-agnostic through the Bus (method.md, "Correction"):
+// every FT_<LEG> sample becomes one CONTACT_WRENCH with all six legs' ground-contact wrenches
+// in W about the CoM (libcal's Corrector), using SERVO_STATE for the leg phase and MOCAP_BODY
+// for R_WC.
+//
+// Calibration: from --calibration FILE at start and/or any CALIBRATION message, picked up
+// without a restart. A message is checked (its SHA-256, the protobuf, CalibrationFromProto
+// against the config, the corrector's own checks); a bad one is refused with its reason
+// logged and kept as last_error, and the calibration in use stays. A message with the hash of
+// the calibration in use is a repeat and changes nothing. Until a calibration is in use
+// nothing is published and the state is DEGRADED with last_error saying why.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "common/bus.h"
+#include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_t.hpp"
+#include "ftcal/corrector.h"
+#include "ftcal/service_status_t.hpp"
+#include "pose_segmenter/stage_inputs.h"
+#include "proto/calibration.pb.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+CorrectorOptions CorrectorOptionsFromConfig(const config::Corrector& corrector);
+
+class CorrectorStage {
+ public:
+  using StateSink = std::function<void(int8_t service_state)>;
+  // Subscribes its handlers on `bus`; reports RUNNING/DEGRADED through `set_state`.
+  CorrectorStage(const config::Config& config, Bus& bus, StateSink set_state);
+
+  // Validates and adopts a calibration; throws std::runtime_error with the reason (nothing
+  // changes then). `sha256` identifies it (repeats are ignored); `version` is published.
+  void UseCalibration(const calibration::Calibration& proto, int64_t version,
+                      const std::string& sha256);
+  bool has_calibration() const { return corrector_.has_calibration(); }
+
+ private:
+  void OnFt(int leg, const ft_sample_t& msg);
+  void OnServo(const servo_state_t& msg);
+  void OnMocap(const mocap_body_t& msg);
+  void OnCalibration(const calibration_t& msg);
+  void UpdateCounters();
+
+  const config::Config& config_;
+  Bus& bus_;
+  StateSink set_state_;
+  StageInputs inputs_;
+  Corrector corrector_;
+  std::string calibration_sha256_;
+  ContactWrenches out_;
+  contact_wrench_t msg_;  // reused: no allocation per sample
+  std::vector<uint8_t> buffer_;
+  struct Counters {
+    int64_t *corrected, *no_calibration, *calibrations, *calibrations_refused, *drop_out_of_order,
+        *drop_non_finite, *stale;
+  } counters_{};
+  int64_t calibrations_ = 0, refused_ = 0, stale_ = 0;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,44 @@
+// ftcal-corrector: ground-contact wrenches from every transducer sample (pipeline item 4).
+#include <exception>
+
+#include "common/service.h"
+#include "corrector/corrector_stage.h"
+#include "ftcal/calibration_io.h"
+#include "ftcal/config.h"
+
+int main(int argc, char** argv) {
+  ftcal::ServiceApp app(
+      {"ftcal-corrector",
+       "Reads FT_<LEG> (ft_sample_t), SERVO_STATE, MOCAP_BODY and CALIBRATION (calibration_t). "
+       "Publishes CONTACT_WRENCH (contact_wrench_t) for every transducer sample: each leg's "
+       "ground-contact wrench in W about the CoM (method.md eq. 3, the leg's latest sample), "
+       "their sum, its residual against (0,0,G,0,0,0), the calibration version, input ages and "
+       "stale/saturated flags (inputs older than corrector.max_*_age_s). A new CALIBRATION is "
+       "validated against the config and used without a restart; a bad one is refused and "
+       "logged. Publishes nothing (state DEGRADED) until a calibration is in use.",
+       /*replayable=*/true});
+  std::string calibration_path;
+  app.cli().add_option("--calibration", calibration_path,
+                       "start with this calibration file (text format, "
+                       "libcal/proto/calibration.proto)");
+  if (auto rc = app.Init(argc, argv)) return *rc;
+  try {
+    ftcal::CorrectorStage stage(app.config(), app.bus(),
+                                [&app](int8_t state) { app.SetState(state); });
+    if (!calibration_path.empty()) {
+      try {
+        const auto proto = ftcal::ReadCalibrationFile(calibration_path);
+        std::string bytes;
+        proto.SerializeToString(&bytes);
+        stage.UseCalibration(proto, static_cast<int64_t>(proto.version()), ftcal::Sha256Hex(bytes));
+      } catch (const std::exception& e) {
+        app.log().critical("--calibration {}: {}", calibration_path, e.what());
+        return 2;
+      }
+    }
+    return app.Run();
+  } catch (const std::exception& e) {
+    app.log().critical("{}", e.what());
+    return 2;
+  }
+}

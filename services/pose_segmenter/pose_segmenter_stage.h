@@ -1,0 +1,73 @@
+// ftcal-pose-segmenter's work, transport-agnostic through the Bus: FT_<LEG>, SERVO_STATE and
+// MOCAP_BODY go through the Aligner into SYNC_SAMPLE (every aligned sample); while the
+// EXPERIMENT phase is STANDING (between its start and stop markers) the aligned samples also
+// go through the PoseSegmenter and every steady pose is published on STEADY_POSE with the
+// session id and a running pose index.
+//
+// A stop marker (or a start of another phase) closes the run in progress, which becomes a pose
+// when long enough. A repeated STANDING start of the session already running changes nothing,
+// so a sequencer that repeats its marker lets a restarted segmenter resume: a restart then
+// loses only the pose in progress (the derivative window refills in savgol_window samples).
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "common/bus.h"
+#include "ftcal/aligner.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/segmenter.h"
+#include "ftcal/steady_pose_t.hpp"
+#include "ftcal/sync_sample_t.hpp"
+#include "pose_segmenter/stage_inputs.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+// The segmenter's options from the config (segmenter section).
+SegmenterOptions SegmenterOptionsFromConfig(const config::Segmenter& segmenter);
+// The aligner's freshness limits: the corrector's (corrector.max_servo_age_s,
+// max_mocap_age_s), so both stages call the same input stale.
+AlignerOptions AlignerOptionsFromConfig(const config::Config& config);
+
+class PoseSegmenterStage {
+ public:
+  // Subscribes its handlers on `bus`. Throws std::invalid_argument for a config it cannot use.
+  PoseSegmenterStage(const config::Config& config, Bus& bus);
+
+  int64_t poses_published() const { return poses_published_; }
+  const AlignerCounters& aligner_counters() const { return aligner_.counters(); }
+
+ private:
+  void OnFt(int leg, const ft_sample_t& msg);
+  void OnServo(const servo_state_t& msg);
+  void OnMocap(const mocap_body_t& msg);
+  void OnExperiment(const experiment_marker_t& msg);
+  void OnAligned(const AlignedSample& s);
+  void OnPose(const SteadyPoseOut& pose);
+  // Counts an input the aligner refused, by reason, from the change of its counters.
+  void CountAlignerDrop(const std::string& stream, const AlignerCounters& before);
+  void PublishCounters();
+
+  const config::Config& config_;
+  Bus& bus_;
+  StageInputs inputs_;
+  SegmenterOptions segmenter_options_;
+  Aligner aligner_;
+  std::unique_ptr<PoseSegmenter> segmenter_;  // while standing
+  std::string session_id_;
+  int32_t pose_index_ = 0;
+  int64_t poses_published_ = 0;
+  int64_t sync_published_ = 0;
+  SegmenterCounters segmenter_totals_;  // of the segmenters of earlier phases
+  sync_sample_t sync_msg_;              // reused: no allocation per sample
+  // The status counters (ServiceStats' map entries: their addresses are stable), updated on
+  // every input without a lookup.
+  struct Counters {
+    int64_t *sync_samples, *standing_samples, *poses, *drop_out_of_order, *drop_non_finite,
+        *drop_stale_servo, *servo_held, *attitude_not_ok, *pose_dropped_short,
+        *pose_dropped_markers, *window_resets;
+  } counters_{};
+};
+
+}  // namespace ftcal
