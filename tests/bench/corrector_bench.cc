@@ -1,0 +1,155 @@
+// Corrector throughput (target >= 1,000,000 leg samples/s): the engine alone over the twin's
+// standing frames held in memory, and the whole ftcal-corrector stage (decode, correct,
+// encode, write) over an LCM log of the same frames through LogReplayBus.
+//
+//   <build>/tests/bench/corrector_bench
+#include <unistd.h>
+
+#include <cstdio>
+#include <vector>
+
+#include <benchmark/benchmark.h>
+#include <lcm/lcm-cpp.hpp>
+#include <spdlog/sinks/null_sink.h>
+#include <spdlog/spdlog.h>
+
+#include "common/bus.h"
+#include "corrector/corrector_stage.h"
+#include "ftcal/calibration_t.hpp"
+#include "ftcal/config.h"
+#include "ftcal/corrector.h"
+#include "sim/twin.h"
+
+namespace ftcal {
+namespace {
+
+constexpr int64_t kT0 = 1'700'000'000'000'000;
+const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
+
+struct Data {
+  config::Config config = LoadConfigFile(kConfig);
+  BigAntTwin twin{config, TwinOptions{}};
+  std::vector<TwinFrame> frames;
+  std::string log_path;
+  Data() {
+    twin.Standing(11, {}, [this](const TwinFrame& f) { frames.push_back(f); });  // ~60 s
+    log_path = "/tmp/ftcal_corrector_bench_" + std::to_string(::getpid()) + ".lcmlog";
+    lcm::LogFile log(log_path, "w");
+    int64_t n = 0;
+    auto write = [&](int64_t t, const std::string& channel, const auto& msg) {
+      std::vector<uint8_t> buf(static_cast<size_t>(msg.getEncodedSize()));
+      msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+      lcm::LogEvent ev;
+      ev.eventnum = n++;
+      ev.timestamp = t;
+      ev.channel = channel;
+      ev.datalen = static_cast<int32_t>(buf.size());
+      ev.data = buf.data();
+      log.writeEvent(&ev);
+    };
+    calibration_t cal{};
+    std::string bytes;
+    twin.TruthProto().SerializeToString(&bytes);
+    cal.utime = kT0;
+    cal.version = 1;
+    cal.data.assign(bytes.begin(), bytes.end());
+    cal.size = static_cast<int32_t>(bytes.size());
+    cal.content_sha256 = Sha256Hex(bytes);
+    write(kT0 - 1, config.channels().calibration(), cal);
+    for (const TwinFrame& f : frames) {
+      const int64_t t = Utime(f);
+      servo_state_t s{};
+      s.utime = t;
+      s.num_servos = kNumLegs;
+      for (int k = 0; k < kNumLegs; ++k) {
+        s.leg.push_back(std::string(kLegNames[k]));
+        s.id.push_back(k + 1);
+        s.angle_rad.push_back(f.angle_rad[k]);
+        s.velocity_rad_s.push_back(0);
+        s.current_a.push_back(0);
+        s.hardware_error.push_back(0);
+        s.device_tick_ms.push_back(0);
+        s.flags.push_back(0);
+      }
+      write(t, config.channels().servo_state(), s);
+      mocap_body_t b{};
+      b.utime = t;
+      b.body = config.mocap().body_name();
+      b.tracked = true;
+      const Eigen::Vector4d q = RotationToQuaternion(RemoveHeading(f.R_GC));
+      for (int i = 0; i < 4; ++i) b.q_wc[i] = b.q_gc[i] = q[i];
+      b.num_markers = 0;
+      write(t, config.channels().mocap_body(), b);
+      for (int k = 0; k < kNumLegs; ++k) {
+        ft_sample_t m{};
+        m.utime = t;
+        m.leg = std::string(kLegNames[k]);
+        for (int i = 0; i < 6; ++i) m.wrench[i] = f.reading[k][i];
+        write(t, config.channels().ft_prefix() + m.leg, m);
+      }
+    }
+  }
+  ~Data() { ::unlink(log_path.c_str()); }
+  static int64_t Utime(const TwinFrame& f) { return kT0 + std::llround(f.t_s * 1e6); }
+};
+
+const Data& TheData() {
+  static const Data data;
+  return data;
+}
+
+void BM_CorrectorEngine(benchmark::State& state) {
+  const Data& d = TheData();
+  const RobotCalibration cal = d.twin.Truth();
+  ContactWrenches out;
+  int64_t samples = 0;
+  double checksum = 0;
+  for (auto _ : state) {
+    Corrector c({});
+    c.SetCalibration(cal, 1);
+    for (const TwinFrame& f : d.frames) {
+      const int64_t t = Data::Utime(f);
+      c.AddServo({t, f.angle_rad});
+      c.AddMocap({t, true, f.R_WC, true});
+      for (int k = 0; k < kNumLegs; ++k) {
+        if (c.AddFt({t, k, f.reading[k], 0}, false, &out)) checksum += out.total_W[2];
+        ++samples;
+      }
+    }
+  }
+  benchmark::DoNotOptimize(checksum);
+  state.counters["leg_samples_per_s"] =
+      benchmark::Counter(static_cast<double>(samples), benchmark::Counter::kIsRate);
+  state.SetLabel(std::to_string(d.frames.size() * kNumLegs) + " leg samples per pass");
+}
+BENCHMARK(BM_CorrectorEngine)->Unit(benchmark::kMillisecond);
+
+// The process's handler code end to end (replay at full speed), output log written.
+void BM_CorrectorStageReplay(benchmark::State& state) {
+  const Data& d = TheData();
+  auto log = std::make_shared<spdlog::logger>("corrector_bench", std::make_shared<spdlog::sinks::null_sink_mt>());
+  const std::string out = d.log_path + ".out";
+  int64_t samples = 0;
+  for (auto _ : state) {
+    ServiceStats stats(log);
+    LogReplayBus bus(d.log_path, out, stats);
+    CorrectorStage stage(d.config, bus, [](int8_t) {});
+    bus.Run([] {}, 100'000);
+    bus.Commit();
+    samples += static_cast<int64_t>(d.frames.size()) * kNumLegs;
+    if (stats.Counter("corrected") != static_cast<int64_t>(d.frames.size()) * kNumLegs) {
+      state.SkipWithError("the stage did not correct every sample");
+    }
+  }
+  ::unlink(out.c_str());
+  state.counters["leg_samples_per_s"] =
+      benchmark::Counter(static_cast<double>(samples), benchmark::Counter::kIsRate);
+  state.counters["x_real_time"] = benchmark::Counter(
+      static_cast<double>(samples) / kNumLegs / 100.0, benchmark::Counter::kIsRate);
+}
+BENCHMARK(BM_CorrectorStageReplay)->Unit(benchmark::kMillisecond);
+
+}  // namespace
+}  // namespace ftcal
+
+BENCHMARK_MAIN();
