@@ -106,6 +106,26 @@ Request DecodeRequest(const std::uint8_t* data, std::size_t size) {
   return Request{static_cast<Command>(command), GetU32Be(data + 4)};
 }
 
+Record DecodeRecord(const std::uint8_t* p) {
+  Record r;
+  r.rdt_sequence = GetU32Be(p);
+  r.ft_sequence = GetU32Be(p + 4);
+  r.status = GetU32Be(p + 8);
+  for (int i = 0; i < 6; ++i) {
+    // Two's complement by conversion: well defined since C++20 and what every C++17
+    // compiler does; static_cast keeps it explicit.
+    r.counts[i] = static_cast<std::int32_t>(GetU32Be(p + 12 + 4 * i));
+  }
+  return r;
+}
+
+void EncodeRecord(const Record& r, std::uint8_t* p) {
+  PutU32Be(r.rdt_sequence, p);
+  PutU32Be(r.ft_sequence, p + 4);
+  PutU32Be(r.status, p + 8);
+  for (int i = 0; i < 6; ++i) PutU32Be(static_cast<std::uint32_t>(r.counts[i]), p + 12 + 4 * i);
+}
+
 std::vector<Record> DecodeDatagram(const std::uint8_t* data, std::size_t size) {
   if (size == 0 || size % kRecordBytes != 0 || data == nullptr) {
     throw RdtError("RDT datagram: length " + std::to_string(size) +
@@ -113,16 +133,7 @@ std::vector<Record> DecodeDatagram(const std::uint8_t* data, std::size_t size) {
   }
   std::vector<Record> records(size / kRecordBytes);
   for (std::size_t k = 0; k < records.size(); ++k) {
-    const std::uint8_t* p = data + k * kRecordBytes;
-    Record& r = records[k];
-    r.rdt_sequence = GetU32Be(p);
-    r.ft_sequence = GetU32Be(p + 4);
-    r.status = GetU32Be(p + 8);
-    for (int i = 0; i < 6; ++i) {
-      // Two's complement by conversion: well defined since C++20 and what every C++17
-      // compiler does; static_cast keeps it explicit.
-      r.counts[i] = static_cast<std::int32_t>(GetU32Be(p + 12 + 4 * i));
-    }
+    records[k] = DecodeRecord(data + k * kRecordBytes);
   }
   return records;
 }
@@ -130,12 +141,7 @@ std::vector<Record> DecodeDatagram(const std::uint8_t* data, std::size_t size) {
 std::vector<std::uint8_t> EncodeDatagram(const std::vector<Record>& records) {
   std::vector<std::uint8_t> out(records.size() * kRecordBytes);
   for (std::size_t k = 0; k < records.size(); ++k) {
-    std::uint8_t* p = out.data() + k * kRecordBytes;
-    const Record& r = records[k];
-    PutU32Be(r.rdt_sequence, p);
-    PutU32Be(r.ft_sequence, p + 4);
-    PutU32Be(r.status, p + 8);
-    for (int i = 0; i < 6; ++i) PutU32Be(static_cast<std::uint32_t>(r.counts[i]), p + 12 + 4 * i);
+    EncodeRecord(records[k], out.data() + k * kRecordBytes);
   }
   return out;
 }

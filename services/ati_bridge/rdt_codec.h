@@ -67,6 +67,12 @@ struct Record {
 // not a positive multiple of 36.
 std::vector<Record> DecodeDatagram(const std::uint8_t* data, std::size_t size);
 
+// One record from exactly kRecordBytes bytes at `data` (the caller has checked the length):
+// the allocation-free path of the bridge's receive loop.
+Record DecodeRecord(const std::uint8_t* data);
+// Writes one record's kRecordBytes bytes to `out` (the emulator's allocation-free path).
+void EncodeRecord(const Record& record, std::uint8_t* out);
+
 // Records back to back, BE (what a NetBox sends; used by the simulator).
 std::vector<std::uint8_t> EncodeDatagram(const std::vector<Record>& records);
 

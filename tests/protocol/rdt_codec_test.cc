@@ -93,6 +93,18 @@ TEST(RdtRecord, EncodeMatchesHandBuiltBytes) {
   EXPECT_EQ(EncodeDatagram({r}), kRecordA);
 }
 
+TEST(RdtRecord, SingleRecordPathMatchesHandBuiltBytes) {
+  const Record r = DecodeRecord(kRecordA.data());
+  EXPECT_EQ(r.rdt_sequence, 0xFFFFFFFFu);
+  EXPECT_EQ(r.ft_sequence, 0x00010203u);
+  EXPECT_EQ(r.status, 0x80020000u);
+  EXPECT_EQ(r.counts, (std::array<std::int32_t, 6>{1, -1, -2000000, 2147483647,
+                                                   -2147483647 - 1, 250000}));
+  Bytes out(kRecordBytes, 0xAA);
+  EncodeRecord(r, out.data());
+  EXPECT_EQ(out, kRecordA);
+}
+
 TEST(RdtRecord, WrongLengthsRejectedWithReason) {
   Bytes datagram = kRecordA;
   for (std::size_t n : {0u, 1u, 35u, 37u, 71u}) {

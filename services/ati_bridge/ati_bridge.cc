@@ -1,0 +1,604 @@
+#include "ati_bridge.h"
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <time.h>
+#include <unistd.h>
+
+#include <httplib.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstring>
+
+#include "ftcal/legs.h"
+
+namespace ftcal {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr int kBatch = 64;             // datagrams per recvmmsg
+constexpr std::size_t kSlotBytes = 1536;  // an Ethernet frame: the largest buffered datagram we take
+constexpr auto kCalibrationRetry = std::chrono::seconds(1);
+// After a start, leftovers of the previous stream may still be in flight for a moment.
+constexpr auto kStaleRetry = std::chrono::milliseconds(20);
+
+std::int64_t RealtimeNs() {
+  timespec ts;
+  ::clock_gettime(CLOCK_REALTIME, &ts);
+  return std::int64_t{ts.tv_sec} * 1'000'000'000 + ts.tv_nsec;
+}
+
+Clock::duration Seconds(double s) {
+  return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
+}
+
+}  // namespace
+
+// ---- LatencyHistogram ----
+
+void LatencyHistogram::Add(std::int64_t ns) {
+  const std::int64_t us = std::max<std::int64_t>(0, ns / 1000);
+  ++bins_[static_cast<std::size_t>(std::min<std::int64_t>(us, kMaxUs))];
+  ++count_;
+}
+
+double LatencyHistogram::QuantileUs(double q) const {
+  if (count_ == 0) return 0;
+  const auto rank = static_cast<std::uint64_t>(std::ceil(q * static_cast<double>(count_)));
+  std::uint64_t seen = 0;
+  for (int us = 0; us <= kMaxUs; ++us) {
+    seen += bins_[static_cast<std::size_t>(us)];
+    if (seen >= std::max<std::uint64_t>(rank, 1)) return us + 1;
+  }
+  return kMaxUs + 1;
+}
+
+void LatencyHistogram::Merge(const LatencyHistogram& other) {
+  for (std::size_t i = 0; i < bins_.size(); ++i) bins_[i] += other.bins_[i];
+  count_ += other.count_;
+}
+
+// ---- one transducer ----
+
+struct AtiBridge::Transducer {
+  std::string leg;
+  std::string channel;
+  std::string address;
+  std::uint16_t rdt_port = 0;
+  std::uint16_t http_port = 0;
+  std::string url;
+  int sign = 1;
+  sockaddr_in device{};
+
+  bool counts_from_config = false;
+  bool range_from_config = false;
+  bool calibrated = false;
+  double counts_per_force = 0;
+  double counts_per_torque = 0;
+  std::array<double, 6> rated_range{};
+  Clock::time_point next_calibration_try{};
+
+  int fd = -1;
+  rdt::SequenceTracker tracker;
+  bool have_ft = false;
+  std::uint32_t last_ft = 0;
+  std::int64_t pending_gap = 0;  // accepted but unpublished (no calibration) since the last sample
+  bool restart_pending = false;  // the next published sample carries FLAG_RESTARTED
+
+  // Liveness.
+  bool up = false;
+  bool silent = false;
+  Clock::time_point last_record{};
+  Clock::time_point next_request{};
+  Clock::time_point last_request{};
+  double backoff_s = 0;
+  int unanswered = 0;
+
+  ft_sample_t msg;
+  std::vector<std::uint8_t> encoded;
+
+  // recvmmsg slots.
+  std::vector<std::uint8_t> slots;
+  std::array<mmsghdr, kBatch> headers{};
+  std::array<iovec, kBatch> iovs{};
+  std::array<sockaddr_in, kBatch> sources{};
+  std::array<std::array<char, CMSG_SPACE(sizeof(timespec))>, kBatch> controls{};
+
+  AtiTransducerCounters c;
+  // Once-per-kind logging of bad input.
+  bool logged_wrong_length = false, logged_duplicate = false, logged_late = false,
+       logged_stale = false, logged_status = false, logged_foreign = false,
+       logged_saturated = false, logged_publish = false, logged_recv = false;
+};
+
+AtiBridge::AtiBridge(const config::Config& config, const std::vector<std::string>& legs,
+                     Publisher publish, std::shared_ptr<spdlog::logger> log,
+                     AtiBridgeOptions options)
+    : options_(options), publish_(std::move(publish)), log_(std::move(log)) {
+  if (!publish_) throw AtiBridgeError("ati bridge: no publisher");
+  std::vector<std::string> names = legs;
+  if (names.empty()) {
+    for (const auto& leg : config.robot().leg()) names.push_back(leg.name());
+  }
+  for (const std::string& name : names) {
+    const config::Leg* found = nullptr;
+    for (const auto& leg : config.robot().leg()) {
+      if (leg.name() == name) found = &leg;
+    }
+    if (found == nullptr) throw AtiBridgeError("leg '" + name + "' is not in the config");
+    if (!found->has_ati()) throw AtiBridgeError("leg " + name + " has no ati transducer in the config");
+    for (const auto& t : transducers_) {
+      if (t->leg == name) throw AtiBridgeError("leg " + name + " given twice");
+    }
+    const config::AtiTransducer& ati = found->ati();
+    auto t = std::make_unique<Transducer>();
+    t->leg = name;
+    t->channel = config.channels().ft_prefix() + name;
+    t->address = ati.address();
+    if (ati.rdt_port() == 0 || ati.rdt_port() > 65535 || ati.http_port() == 0 ||
+        ati.http_port() > 65535) {
+      throw AtiBridgeError("leg " + name + ": ati port out of range");
+    }
+    t->rdt_port = static_cast<std::uint16_t>(ati.rdt_port());
+    t->http_port = static_cast<std::uint16_t>(ati.http_port());
+    t->url = "http://" + t->address + ":" + std::to_string(t->http_port) + "/netftapi2.xml";
+    if (ati.sign() != 1 && ati.sign() != -1) {
+      throw AtiBridgeError("leg " + name + ": ati sign must be +1 or -1, got " +
+                           std::to_string(ati.sign()));
+    }
+    t->sign = ati.sign();
+    t->device.sin_family = AF_INET;
+    t->device.sin_port = htons(t->rdt_port);
+    if (::inet_pton(AF_INET, t->address.c_str(), &t->device.sin_addr) != 1) {
+      throw AtiBridgeError("leg " + name + ": ati address '" + t->address +
+                           "' is not an IPv4 address");
+    }
+    if (ati.has_counts_per_force() != ati.has_counts_per_torque()) {
+      throw AtiBridgeError("leg " + name +
+                           ": give both counts_per_force and counts_per_torque, or neither");
+    }
+    if (ati.has_counts_per_force()) {
+      if (!(ati.counts_per_force() > 0 && ati.counts_per_torque() > 0 &&
+            std::isfinite(ati.counts_per_force()) && std::isfinite(ati.counts_per_torque()))) {
+        throw AtiBridgeError("leg " + name + ": counts per unit must be positive and finite");
+      }
+      t->counts_from_config = true;
+      t->calibrated = true;
+      t->counts_per_force = ati.counts_per_force();
+      t->counts_per_torque = ati.counts_per_torque();
+    }
+    if (ati.rated_range_size() == 6) {
+      t->range_from_config = true;
+      for (int i = 0; i < 6; ++i) t->rated_range[static_cast<std::size_t>(i)] = ati.rated_range(i);
+    } else if (ati.rated_range_size() != 0) {
+      throw AtiBridgeError("leg " + name + ": rated_range needs 6 values, has " +
+                           std::to_string(ati.rated_range_size()));
+    }
+    if (t->counts_from_config && !t->range_from_config) {
+      // Counts from the config but no range: the page still supplies cfgmr.
+      t->calibrated = false;
+    }
+
+    t->msg.leg = name;
+    t->encoded.resize(static_cast<std::size_t>(t->msg.getEncodedSize()));
+    t->slots.resize(kBatch * kSlotBytes);
+    for (int i = 0; i < kBatch; ++i) {
+      t->iovs[i] = {t->slots.data() + i * kSlotBytes, kSlotBytes};
+    }
+    transducers_.push_back(std::move(t));
+  }
+  if (transducers_.empty()) throw AtiBridgeError("no transducers to serve");
+}
+
+AtiBridge::~AtiBridge() {
+  Stop();
+  for (auto& t : transducers_) {
+    if (t->fd >= 0) ::close(t->fd);
+  }
+}
+
+std::size_t AtiBridge::size() const { return transducers_.size(); }
+const std::string& AtiBridge::leg(std::size_t i) const { return transducers_.at(i)->leg; }
+bool AtiBridge::up(std::size_t i) const { return transducers_.at(i)->up; }
+const AtiTransducerCounters& AtiBridge::counters(std::size_t i) const {
+  return transducers_.at(i)->c;
+}
+
+bool AtiBridge::AllUp() const {
+  for (const auto& t : transducers_) {
+    if (!t->up) return false;
+  }
+  return true;
+}
+
+void AtiBridge::ReadCalibration(Transducer& t) {
+  httplib::Client client(t.address, t.http_port);
+  const auto timeout = std::chrono::duration<double>(options_.http_timeout_s);
+  client.set_connection_timeout(std::chrono::duration_cast<std::chrono::microseconds>(timeout));
+  client.set_read_timeout(std::chrono::duration_cast<std::chrono::microseconds>(timeout));
+  const auto res = client.Get("/netftapi2.xml");
+  if (!res) {
+    throw AtiBridgeError("leg " + t.leg + ": cannot read the calibration page " + t.url + ": " +
+                         httplib::to_string(res.error()));
+  }
+  if (res->status != 200) {
+    throw AtiBridgeError("leg " + t.leg + ": calibration page " + t.url + " answered HTTP " +
+                         std::to_string(res->status));
+  }
+  rdt::NetFtConfig page;
+  try {
+    page = rdt::ParseNetFtXml(res->body, t.url);
+  } catch (const rdt::RdtError& e) {
+    throw AtiBridgeError("leg " + t.leg + ": " + e.what());
+  }
+  if (!t.counts_from_config) {
+    t.counts_per_force = page.counts_per_force;
+    t.counts_per_torque = page.counts_per_torque;
+  }
+  if (!t.range_from_config) t.rated_range = page.rated_range;
+  t.calibrated = true;
+  ++t.c.calibration_reads;
+  log_->info("{}: {} counts/N, {} counts/Nm, rated range {} N / {} N*m, RDT {} Hz (from {})",
+             t.leg, t.counts_per_force, t.counts_per_torque, t.rated_range[2], t.rated_range[5],
+             page.rdt_rate_hz, t.url);
+}
+
+void AtiBridge::Start() {
+  if (started_) return;
+  for (auto& tp : transducers_) {
+    Transducer& t = *tp;
+    if (!t.calibrated) ReadCalibration(t);  // throws: no streaming without counts per unit
+
+    t.fd = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+    if (t.fd < 0) throw AtiBridgeError("leg " + t.leg + ": socket: " + std::strerror(errno));
+    // Large receive buffer: a scheduling hiccup of the bridge must not cost records.
+    ::setsockopt(t.fd, SOL_SOCKET, SO_RCVBUF, &options_.receive_buffer_bytes,
+                 sizeof options_.receive_buffer_bytes);
+    const int one = 1;
+    ::setsockopt(t.fd, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one);
+    sockaddr_in any{};
+    any.sin_family = AF_INET;
+    any.sin_addr.s_addr = htonl(INADDR_ANY);
+    any.sin_port = 0;  // ephemeral
+    if (::bind(t.fd, reinterpret_cast<const sockaddr*>(&any), sizeof any) != 0) {
+      throw AtiBridgeError("leg " + t.leg + ": bind: " + std::strerror(errno));
+    }
+    int granted = 0;
+    socklen_t len = sizeof granted;
+    ::getsockopt(t.fd, SOL_SOCKET, SO_RCVBUF, &granted, &len);
+    log_->debug("{}: receive buffer {} bytes", t.leg, granted);
+
+    const auto now = Clock::now();
+    SendRequest(t, rdt::Command::kRealtime);
+    t.last_record = now;
+    t.next_request = now + Seconds(options_.silence_timeout_s);
+    t.backoff_s = options_.silence_timeout_s;
+    t.up = true;  // until it stays silent
+  }
+  started_ = true;
+}
+
+void AtiBridge::SendRequest(Transducer& t, rdt::Command command) {
+  const auto bytes = rdt::EncodeRequest(command, 0);
+  const ssize_t sent = ::sendto(t.fd, bytes.data(), bytes.size(), MSG_DONTWAIT,
+                                reinterpret_cast<const sockaddr*>(&t.device), sizeof t.device);
+  if (command == rdt::Command::kRealtime) {
+    ++t.c.start_requests;
+    t.last_request = Clock::now();
+    // The box restarts rdt_sequence at 1 (§1.5).
+    t.tracker.Reset();
+    t.restart_pending = true;
+  }
+  if (sent != static_cast<ssize_t>(bytes.size())) {
+    log_->warn("{}: sending the RDT command 0x{:04x} to {}:{} failed: {}", t.leg,
+               static_cast<unsigned>(command), t.address, t.rdt_port, std::strerror(errno));
+  }
+}
+
+void AtiBridge::Stop() {
+  if (!started_) return;
+  for (auto& t : transducers_) {
+    if (t->fd >= 0) SendRequest(*t, rdt::Command::kStop);
+  }
+  started_ = false;
+}
+
+int AtiBridge::Poll(int timeout_ms) {
+  if (!started_) throw AtiBridgeError("Poll() before Start()");
+  // Wake for the earliest re-send deadline at the latest.
+  auto now = Clock::now();
+  auto wake = now + std::chrono::milliseconds(std::max(0, timeout_ms));
+  for (const auto& t : transducers_) {
+    wake = std::min(wake, std::max(t->last_record + Seconds(options_.silence_timeout_s),
+                                   t->next_request));
+  }
+  const auto wait_ms = std::chrono::ceil<std::chrono::milliseconds>(wake - now).count();
+  std::array<pollfd, kNumLegs> fds{};
+  for (std::size_t i = 0; i < transducers_.size(); ++i) fds[i] = {transducers_[i]->fd, POLLIN, 0};
+  const int ready = ::poll(fds.data(), transducers_.size(),
+                           static_cast<int>(std::clamp<std::int64_t>(wait_ms, 0, timeout_ms)));
+  std::uint64_t before = 0, after = 0;
+  for (const auto& t : transducers_) before += t->c.published;
+  if (ready > 0) {
+    for (std::size_t i = 0; i < transducers_.size(); ++i) {
+      if (fds[i].revents & (POLLIN | POLLERR)) HandleSocket(*transducers_[i]);
+    }
+  }
+  now = Clock::now();
+  for (auto& t : transducers_) Service(*t, now);
+  for (const auto& t : transducers_) after += t->c.published;
+  return static_cast<int>(after - before);
+}
+
+void AtiBridge::HandleSocket(Transducer& t) {
+  for (;;) {
+    for (int i = 0; i < kBatch; ++i) {
+      msghdr& h = t.headers[i].msg_hdr;
+      h.msg_name = &t.sources[i];
+      h.msg_namelen = sizeof(sockaddr_in);
+      h.msg_iov = &t.iovs[i];
+      h.msg_iovlen = 1;
+      h.msg_control = t.controls[i].data();
+      h.msg_controllen = t.controls[i].size();
+      h.msg_flags = 0;
+    }
+    const int n = ::recvmmsg(t.fd, t.headers.data(), kBatch, MSG_DONTWAIT, nullptr);
+    if (n < 0) {
+      if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR) {
+        // ECONNREFUSED after an ICMP "port unreachable" for our request (the box is down).
+        ++t.c.recv_errors;
+        if (!t.logged_recv) {
+          t.logged_recv = true;
+          log_->warn("{}: receive error: {} (counted from now on)", t.leg, std::strerror(errno));
+        }
+        continue;
+      }
+      return;
+    }
+    const std::int64_t user_ns = RealtimeNs();
+    const auto batch_time = Clock::now();
+    const std::uint64_t accepted_before = t.tracker.accepted();
+    for (int i = 0; i < n; ++i) {
+      ++t.c.datagrams;
+      const msghdr& h = t.headers[i].msg_hdr;
+      std::int64_t kernel_ns = user_ns;
+      for (cmsghdr* cm = CMSG_FIRSTHDR(&h); cm != nullptr;
+           cm = CMSG_NXTHDR(const_cast<msghdr*>(&h), cm)) {
+        if (cm->cmsg_level == SOL_SOCKET && cm->cmsg_type == SCM_TIMESTAMPNS) {
+          timespec ts;
+          std::memcpy(&ts, CMSG_DATA(cm), sizeof ts);
+          kernel_ns = std::int64_t{ts.tv_sec} * 1'000'000'000 + ts.tv_nsec;
+        }
+      }
+      const sockaddr_in& from = t.sources[i];
+      if (from.sin_addr.s_addr != t.device.sin_addr.s_addr || from.sin_port != t.device.sin_port) {
+        if (!t.logged_foreign) {
+          t.logged_foreign = true;
+          log_->warn("{}: datagram from {}:{}, not the box: dropped (counted from now on)", t.leg,
+                     inet_ntoa(from.sin_addr), ntohs(from.sin_port));
+        }
+        ++t.c.foreign;
+        continue;
+      }
+      const std::size_t len = t.headers[i].msg_len;
+      if (len == 0 || len % rdt::kRecordBytes != 0 || (h.msg_flags & MSG_TRUNC) != 0) {
+        ++t.c.wrong_length;
+        if (!t.logged_wrong_length) {
+          t.logged_wrong_length = true;
+          log_->warn("{}: a {}-byte datagram is not a whole number of 36-byte records: dropped "
+                     "(counted from now on)", t.leg, len);
+        }
+        continue;
+      }
+      const std::uint8_t* data = t.slots.data() + static_cast<std::size_t>(i) * kSlotBytes;
+      for (std::size_t off = 0; off < len; off += rdt::kRecordBytes) {
+        HandleRecord(t, data + off, kernel_ns, user_ns, kernel_ns / 1000);
+      }
+    }
+    if (t.tracker.accepted() != accepted_before) {
+      t.last_record = batch_time;
+      t.backoff_s = options_.silence_timeout_s;
+      t.unanswered = 0;
+      if (!t.up || t.silent) log_->info("{}: streaming again", t.leg);
+      t.silent = false;
+      t.up = t.calibrated;
+    }
+    if (n < kBatch) return;
+  }
+}
+
+void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
+                             std::int64_t user_ns, std::int64_t utime) {
+  const rdt::Record rec = rdt::DecodeRecord(bytes);
+  ++t.c.received;
+  const rdt::SequenceTracker::Result r = t.tracker.Update(rec.rdt_sequence);
+  using V = rdt::SequenceTracker::Verdict;
+  if (!r.accept()) {
+    switch (r.verdict) {
+      case V::kDuplicate:
+        ++t.c.duplicates;
+        if (!t.logged_duplicate) {
+          t.logged_duplicate = true;
+          log_->warn("{}: duplicated record (rdt_sequence {}) dropped (counted from now on)",
+                     t.leg, rec.rdt_sequence);
+        }
+        break;
+      case V::kLate:
+        ++t.c.late;
+        if (!t.logged_late) {
+          t.logged_late = true;
+          log_->warn("{}: late (reordered) record (rdt_sequence {}) dropped (counted from now on)",
+                     t.leg, rec.rdt_sequence);
+        }
+        break;
+      default:
+        ++t.c.stale;
+        // The box is reachable and still sends an older stream (after a network outage):
+        // ask again soon instead of waiting out the back-off.
+        if (t.silent) {
+          t.next_request = std::min(t.next_request, t.last_request + kStaleRetry);
+        }
+        if (!t.logged_stale) {
+          t.logged_stale = true;
+          log_->info("{}: record of a previous stream (rdt_sequence {}) dropped (counted from now "
+                     "on)", t.leg, rec.rdt_sequence);
+        }
+        break;
+    }
+    return;
+  }
+  t.c.lost += r.lost;
+  if (r.verdict == V::kStart) ++t.c.restarts;
+
+  // A box that rebooted restarts ft_sequence near 0 (§1.7): its configuration may have changed.
+  if (t.have_ft && static_cast<std::int32_t>(rec.ft_sequence - t.last_ft) < 0) {
+    ++t.c.reboots;
+    log_->warn("{}: ft_sequence went back from {} to {}: the box restarted; reading its "
+               "calibration page again", t.leg, t.last_ft, rec.ft_sequence);
+    if (!t.counts_from_config || !t.range_from_config) {
+      try {
+        ReadCalibration(t);
+      } catch (const AtiBridgeError& e) {
+        t.calibrated = false;
+        t.up = false;
+        t.next_calibration_try = Clock::now() + kCalibrationRetry;
+        log_->error("{} (not publishing until it can be read)", e.what());
+      }
+    }
+  }
+  t.have_ft = true;
+  t.last_ft = rec.ft_sequence;
+
+  if (!t.calibrated) {
+    t.pending_gap += 1 + r.lost;
+    return;
+  }
+
+  const rdt::Vector6d w =
+      rdt::CountsToWrench(rec.counts, t.counts_per_force, t.counts_per_torque, t.sign);
+  std::int32_t flags = 0;
+  const bool saturated = rdt::StatusSaturated(rec.status) || rdt::ExceedsRatedRange(w, t.rated_range);
+  if (saturated) {
+    flags |= ft_sample_t::FLAG_SATURATED;
+    ++t.c.saturated;
+    if (!t.logged_saturated) {
+      t.logged_saturated = true;
+      log_->warn("{}: saturated sample (status bit 17 or beyond the rated range), published "
+                 "flagged (counted from now on)", t.leg);
+    }
+  }
+  if (rec.status != 0) {
+    flags |= ft_sample_t::FLAG_STATUS_ERROR;
+    ++t.c.status_nonzero;
+    if (!t.logged_status) {
+      t.logged_status = true;
+      std::string bits;
+      for (const auto& s : rdt::DescribeStatus(rec.status)) bits += (bits.empty() ? "" : "; ") + s;
+      log_->warn("{}: status word 0x{:08x} ({}), published flagged (counted from now on)", t.leg,
+                 rec.status, bits);
+    }
+  }
+  const std::int64_t gap = t.pending_gap + r.lost;
+  t.pending_gap = 0;
+  if (gap > 0) flags |= ft_sample_t::FLAG_GAP;
+  if (t.restart_pending) {
+    flags |= ft_sample_t::FLAG_RESTARTED;
+    t.restart_pending = false;
+  }
+
+  ft_sample_t& m = t.msg;
+  m.utime = utime;
+  m.rdt_sequence = rec.rdt_sequence;
+  m.ft_sequence = rec.ft_sequence;
+  m.status = rec.status;
+  for (int i = 0; i < 6; ++i) {
+    m.counts[i] = rec.counts[static_cast<std::size_t>(i)];
+    m.wrench[i] = w(i);
+  }
+  m.gap = static_cast<std::int32_t>(std::min<std::int64_t>(gap, INT32_MAX));
+  m.flags = flags;
+  const int size = static_cast<int>(t.encoded.size());
+  if (m.encode(t.encoded.data(), 0, size) != size) {
+    ++t.c.publish_errors;
+    return;
+  }
+  try {
+    publish_(t.channel, t.encoded.data(), size);
+    ++t.c.published;
+  } catch (const std::exception& e) {
+    ++t.c.publish_errors;
+    if (!t.logged_publish) {
+      t.logged_publish = true;
+      log_->error("{}: publish failed: {} (counted from now on)", t.leg, e.what());
+    }
+    return;
+  }
+  const std::int64_t done_ns = RealtimeNs();
+  kernel_latency_.Add(done_ns - kernel_ns);
+  user_latency_.Add(done_ns - user_ns);
+}
+
+void AtiBridge::Service(Transducer& t, Clock::time_point now) {
+  if (!t.calibrated && now >= t.next_calibration_try) {
+    try {
+      ReadCalibration(t);
+    } catch (const AtiBridgeError& e) {
+      t.next_calibration_try = now + kCalibrationRetry;
+      log_->debug("{}", e.what());
+    }
+  }
+  const auto deadline =
+      std::max(t.last_record + Seconds(options_.silence_timeout_s), t.next_request);
+  if (now < deadline) return;
+  if (!t.silent) {
+    t.silent = true;
+    ++t.c.silences;
+    log_->warn("{}: no record for {:.0f} ms: sending start again", t.leg,
+               std::chrono::duration<double, std::milli>(now - t.last_record).count());
+  }
+  SendRequest(t, rdt::Command::kRealtime);
+  ++t.unanswered;
+  if (t.up && t.unanswered >= options_.down_after_requests) {
+    t.up = false;
+    log_->error("{}: the box at {}:{} does not answer: reported down", t.leg, t.address,
+                t.rdt_port);
+  }
+  t.next_request = now + Seconds(t.backoff_s);
+  t.backoff_s = std::min(2 * t.backoff_s, options_.max_backoff_s);
+}
+
+std::vector<std::pair<std::string, std::int64_t>> AtiBridge::CounterTable() const {
+  std::vector<std::pair<std::string, std::int64_t>> out;
+  for (const auto& t : transducers_) {
+    const AtiTransducerCounters& c = t->c;
+    const std::pair<const char*, std::uint64_t> rows[] = {
+        {"datagrams", c.datagrams},       {"received", c.received},
+        {"published", c.published},       {"lost", c.lost},
+        {"duplicates", c.duplicates},     {"late", c.late},
+        {"stale", c.stale},               {"wrong_length", c.wrong_length},
+        {"foreign", c.foreign},
+        {"status_nonzero", c.status_nonzero}, {"saturated", c.saturated},
+        {"start_requests", c.start_requests}, {"restarts", c.restarts},
+        {"silences", c.silences},         {"reboots", c.reboots},
+        {"calibration_reads", c.calibration_reads}, {"recv_errors", c.recv_errors},
+        {"publish_errors", c.publish_errors}, {"up", t->up ? 1u : 0u},
+    };
+    for (const auto& [name, value] : rows) {
+      out.emplace_back(t->leg + "." + name, static_cast<std::int64_t>(value));
+    }
+  }
+  out.emplace_back("latency_p50_us", static_cast<std::int64_t>(user_latency_.QuantileUs(0.5)));
+  out.emplace_back("latency_p99_us", static_cast<std::int64_t>(user_latency_.QuantileUs(0.99)));
+  out.emplace_back("kernel_latency_p50_us",
+                   static_cast<std::int64_t>(kernel_latency_.QuantileUs(0.5)));
+  out.emplace_back("kernel_latency_p99_us",
+                   static_cast<std::int64_t>(kernel_latency_.QuantileUs(0.99)));
+  return out;
+}
+
+}  // namespace ftcal

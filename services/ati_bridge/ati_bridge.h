@@ -1,0 +1,144 @@
+// ftcal-ati-bridge's work: ATI Net F/T transducers over RDT (docs/device-protocols.md §1) in,
+// ft_sample_t on FT_<LEG> out.
+//
+// Per transducer: a UDP socket bound to an ephemeral port, from which the start command
+// (0x0002, count 0) is sent, so the box streams back to it (§1.2). Counts per unit come from the
+// config or else from the box's calibration page (GET /netftapi2.xml); without them the bridge
+// refuses to start. Every record is checked (length, sequence) before it is published: lost,
+// duplicated, late (reordered), stale and wrong-length records are counted and never
+// published; a published sample is always a record as the device sent it, converted. After
+// ~100 ms of silence the start is re-sent with a bounded back-off and the transducer is reported
+// down until records come back; when ft_sequence jumps backwards (the box rebooted) the
+// calibration page is read again. Stop (0x0000) is sent on shutdown.
+//
+// The receive path allocates nothing: recvmmsg into fixed buffers, an ft_sample_t per
+// transducer reused, its encoding into a fixed buffer. Latency from receipt (kernel timestamp
+// SO_TIMESTAMPNS, and the clock when recvmmsg returned) to the end of the publish call is kept
+// in fixed histograms.
+#pragma once
+
+#include <array>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include <spdlog/logger.h>
+
+#include "ftcal/ft_sample_t.hpp"
+#include "proto/config.pb.h"
+#include "rdt_codec.h"
+
+namespace ftcal {
+
+// The bridge cannot run as configured (no calibration page, a bad address, a socket error);
+// the message names the transducer and the URL or address.
+class AtiBridgeError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct AtiBridgeOptions {
+  double silence_timeout_s = 0.1;  // no record for this long: re-send the start command
+  double max_backoff_s = 1.0;      // re-sends back off 0.1, 0.2, 0.4 ... up to this
+  int down_after_requests = 2;     // unanswered re-sends before the transducer is reported down
+  double http_timeout_s = 1.0;
+  int receive_buffer_bytes = 8 << 20;  // SO_RCVBUF (the kernel caps it at rmem_max)
+};
+
+// Per transducer. All but the latency are also published in the heartbeat.
+struct AtiTransducerCounters {
+  std::uint64_t datagrams = 0;      // received on the socket
+  std::uint64_t received = 0;       // well-formed records
+  std::uint64_t published = 0;
+  std::uint64_t lost = 0;           // by rdt_sequence (a reordered record counts here first)
+  std::uint64_t duplicates = 0;
+  std::uint64_t late = 0;           // older than the last accepted (reordered): dropped
+  std::uint64_t stale = 0;          // leftovers of a previous stream: dropped
+  std::uint64_t wrong_length = 0;   // datagrams not a multiple of 36 bytes: dropped
+  std::uint64_t foreign = 0;        // datagrams from another address than the box: dropped
+  std::uint64_t status_nonzero = 0; // published with FLAG_STATUS_ERROR
+  std::uint64_t saturated = 0;      // published with FLAG_SATURATED
+  std::uint64_t start_requests = 0;
+  std::uint64_t restarts = 0;       // streams begun (first record after a start)
+  std::uint64_t silences = 0;       // times the stream went quiet past the timeout
+  std::uint64_t reboots = 0;        // ft_sequence went backwards
+  std::uint64_t calibration_reads = 0;
+  std::uint64_t recv_errors = 0;
+  std::uint64_t publish_errors = 0;
+};
+
+// Latency histogram, 1 us bins up to kMaxUs (the last bin holds everything beyond).
+class LatencyHistogram {
+ public:
+  static constexpr int kMaxUs = 20000;
+  void Add(std::int64_t ns);
+  std::uint64_t count() const { return count_; }
+  // The q-quantile in microseconds (upper edge of its bin); 0 when empty.
+  double QuantileUs(double q) const;
+  void Merge(const LatencyHistogram& other);
+
+ private:
+  std::array<std::uint64_t, kMaxUs + 1> bins_{};
+  std::uint64_t count_ = 0;
+};
+
+class AtiBridge {
+ public:
+  // Called for every sample: channel, LCM-encoded ft_sample_t bytes. Must not keep the pointer.
+  using Publisher = std::function<void(const std::string& channel, const void* data, int size)>;
+
+  // `legs`: names of the transducers to serve (empty: every leg of the config). Throws
+  // AtiBridgeError for an unknown leg, a leg without `ati`, or a bad address or sign.
+  AtiBridge(const config::Config& config, const std::vector<std::string>& legs,
+            Publisher publish, std::shared_ptr<spdlog::logger> log,
+            AtiBridgeOptions options = {});
+  ~AtiBridge();
+  AtiBridge(const AtiBridge&) = delete;
+  AtiBridge& operator=(const AtiBridge&) = delete;
+
+  // Opens the sockets, reads each calibration page the config does not replace, and sends the
+  // start commands. Throws AtiBridgeError naming the transducer and URL when a page cannot be
+  // read or parsed: the bridge refuses to stream with guessed counts per unit.
+  void Start();
+  // Waits up to `timeout_ms` for datagrams, handles all that are there, and re-sends starts
+  // that are due. Returns the number of samples published.
+  int Poll(int timeout_ms);
+  // Sends stop to every transducer (idempotent).
+  void Stop();
+
+  // True when every transducer is streaming (none silent past the timeout).
+  bool AllUp() const;
+  std::size_t size() const;
+  const std::string& leg(std::size_t i) const;
+  bool up(std::size_t i) const;
+  const AtiTransducerCounters& counters(std::size_t i) const;
+  // Receipt -> published, from the kernel's receive timestamp and from recvmmsg's return.
+  const LatencyHistogram& kernel_latency() const { return kernel_latency_; }
+  const LatencyHistogram& user_latency() const { return user_latency_; }
+  // Names and values for the heartbeat: "<LEG>.<counter>" for every counter, plus
+  // latency_p50_us/latency_p99_us (user-space) and kernel_latency_p99_us.
+  std::vector<std::pair<std::string, std::int64_t>> CounterTable() const;
+
+ private:
+  struct Transducer;
+  void HandleSocket(Transducer& t);
+  void HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
+                    std::int64_t user_ns, std::int64_t utime);
+  void SendRequest(Transducer& t, rdt::Command command);
+  void ReadCalibration(Transducer& t);
+  void Service(Transducer& t, std::chrono::steady_clock::time_point now);
+
+  AtiBridgeOptions options_;
+  Publisher publish_;
+  std::shared_ptr<spdlog::logger> log_;
+  std::vector<std::unique_ptr<Transducer>> transducers_;
+  LatencyHistogram kernel_latency_;
+  LatencyHistogram user_latency_;
+  bool started_ = false;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,117 @@
+// ftcal-ati-bridge: ATI Net F/T transducers (RDT over UDP) -> ft_sample_t on FT_<LEG>.
+//
+// The loop is the bridge's own poll() over its device sockets rather than the bus's: the
+// bridge subscribes to nothing, and LCM's udpm provider opens no receive socket until something
+// subscribes, so there is no LCM fd to wait on. It wakes at least every 100 ms for the shutdown
+// flag, the re-send deadlines and the 1 Hz heartbeat, which is also sent at once when the
+// state changes (RUNNING <-> DEGRADED).
+#include <spdlog/spdlog.h>
+
+#include <chrono>
+#include <string>
+#include <vector>
+
+#include "ati_bridge.h"
+#include "common/service.h"
+#include "common/shutdown.h"
+
+int main(int argc, char** argv) {
+  ftcal::ServiceApp app(
+      {"ftcal-ati-bridge",
+       "Streams the legs' ATI Net F/T transducers over RDT (UDP; a start command from an "
+       "ephemeral port of this host, stop on exit) and publishes every valid record as "
+       "ft_sample_t on FT_<LEG>: counts, wrench [N; N*m] (counts per unit from the config or "
+       "the sensor's /netftapi2.xml, the config's sign applied), sequence numbers, status, gap "
+       "and flags. Lost, duplicated, reordered and malformed records are counted, never "
+       "published. Heartbeat counters per leg; DEGRADED while a transducer is silent.",
+       /*replayable=*/false});
+  std::vector<std::string> legs;
+  ftcal::AtiBridgeOptions options;
+  app.cli()
+      .add_option("--legs", legs, "legs to serve, e.g. HL,ML (default: every leg of the config)")
+      ->delimiter(',');
+  app.cli()
+      .add_option("--silence-timeout", options.silence_timeout_s,
+                  "seconds without a record before the start command is sent again")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  if (auto rc = app.Init(argc, argv)) return *rc;
+
+  auto log = spdlog::get("ftcal-ati-bridge");
+  ftcal::Bus& bus = app.bus();
+  std::unique_ptr<ftcal::AtiBridge> bridge;
+  try {
+    bridge = std::make_unique<ftcal::AtiBridge>(
+        app.config(), legs,
+        [&bus](const std::string& channel, const void* data, int size) {
+          bus.PublishRaw(channel, data, size);
+        },
+        log, options);
+    bridge->Start();
+  } catch (const std::exception& e) {
+    log->critical("{}", e.what());
+    app.SetState(ftcal::service_status_t::FAILED);
+    app.stats().Error("start", e.what());
+    try {
+      bus.Publish(app.config().channels().status(), app.Status(), /*count=*/false);
+    } catch (const std::exception&) {
+    }
+    return 3;
+  }
+
+  const std::string& status_channel = app.config().channels().status();
+  std::int64_t reported_in = 0;
+  auto publish_status = [&] {
+    std::int64_t received = 0;
+    for (std::size_t i = 0; i < bridge->size(); ++i) {
+      received += static_cast<std::int64_t>(bridge->counters(i).received);
+    }
+    // msgs_in counts device records: catch the stats up (CountIn has no bulk form).
+    for (; reported_in < received; ++reported_in) app.stats().CountIn();
+    for (const auto& [name, value] : bridge->CounterTable()) app.stats().Counter(name) = value;
+    bus.Publish(status_channel, app.Status(), /*count=*/false);
+  };
+
+  using Clock = std::chrono::steady_clock;
+  app.SetState(ftcal::service_status_t::RUNNING);
+  publish_status();
+  auto next_heartbeat = Clock::now() + std::chrono::seconds(1);
+  while (!ftcal::ShutdownRequested()) {
+    try {
+      bridge->Poll(100);
+    } catch (const std::exception& e) {
+      app.stats().Error("poll", e.what());
+    }
+    const int8_t state = bridge->AllUp() ? ftcal::service_status_t::RUNNING
+                                         : ftcal::service_status_t::DEGRADED;
+    const bool changed = state != app.state();
+    app.SetState(state);
+    const auto now = Clock::now();
+    if (changed || now >= next_heartbeat) {
+      try {
+        publish_status();
+      } catch (const std::exception& e) {
+        app.stats().Error("heartbeat", e.what());
+      }
+      if (now >= next_heartbeat) next_heartbeat = now + std::chrono::seconds(1);
+    }
+  }
+  bridge->Stop();
+  app.SetState(ftcal::service_status_t::STOPPING);
+  try {
+    publish_status();
+  } catch (const std::exception& e) {
+    log->warn("final heartbeat not sent: {}", e.what());
+  }
+  for (std::size_t i = 0; i < bridge->size(); ++i) {
+    const auto& c = bridge->counters(i);
+    log->info("{}: received {} published {} lost {} duplicates {} late {} wrong_length {} "
+              "restarts {} reboots {}", bridge->leg(i), c.received, c.published, c.lost,
+              c.duplicates, c.late, c.wrong_length, c.restarts, c.reboots);
+  }
+  log->info("latency receipt->published: p50 {} us p99 {} us (kernel timestamp: p50 {} us p99 {} us)",
+            bridge->user_latency().QuantileUs(0.5), bridge->user_latency().QuantileUs(0.99),
+            bridge->kernel_latency().QuantileUs(0.5), bridge->kernel_latency().QuantileUs(0.99));
+  app.stats().LogSummary();
+  return 0;
+}
