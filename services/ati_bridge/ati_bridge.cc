@@ -24,8 +24,6 @@ using Clock = std::chrono::steady_clock;
 constexpr int kBatch = 64;             // datagrams per recvmmsg
 constexpr std::size_t kSlotBytes = 1536;  // an Ethernet frame: the largest buffered datagram we take
 constexpr auto kCalibrationRetry = std::chrono::seconds(1);
-// After a start, leftovers of the previous stream may still be in flight for a moment.
-constexpr auto kStaleRetry = std::chrono::milliseconds(20);
 
 std::int64_t RealtimeNs() {
   timespec ts;
@@ -416,8 +414,16 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
                              std::int64_t user_ns, std::int64_t utime) {
   const rdt::Record rec = rdt::DecodeRecord(bytes);
   ++t.c.received;
-  const rdt::SequenceTracker::Result r = t.tracker.Update(rec.rdt_sequence);
   using V = rdt::SequenceTracker::Verdict;
+  rdt::SequenceTracker::Result r = t.tracker.Update(rec.rdt_sequence);
+  if (r.verdict == V::kLate && rec.rdt_sequence == 1) {
+    // Record 1 after a later one: a newer stream has begun. With two start commands in flight
+    // (a re-send while the box was slow to answer the first), the tracker locked onto the
+    // stream of the first; the box serves the last one, so follow it.
+    t.tracker.Reset();
+    r = t.tracker.Update(rec.rdt_sequence);
+    t.restart_pending = true;
+  }
   if (!r.accept()) {
     switch (r.verdict) {
       case V::kDuplicate:
@@ -438,10 +444,12 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
         break;
       default:
         ++t.c.stale;
-        // The box is reachable and still sends an older stream (after a network outage):
-        // ask again soon instead of waiting out the back-off.
+        // The box is reachable and still sends an older stream (after a network outage, or
+        // it has not yet seen our start): ask again after the silence timeout rather than the
+        // full back-off, but not sooner, or every re-send would begin yet another stream.
         if (t.silent) {
-          t.next_request = std::min(t.next_request, t.last_request + kStaleRetry);
+          t.next_request = std::min(t.next_request,
+                                    t.last_request + Seconds(options_.silence_timeout_s));
         }
         if (!t.logged_stale) {
           t.logged_stale = true;

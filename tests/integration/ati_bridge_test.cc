@@ -17,10 +17,20 @@
 #include <sstream>
 #include <thread>
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
+#include <spdlog/sinks/null_sink.h>
+#include <spdlog/spdlog.h>
 
+#include "ati_bridge.h"
+#include "ati_emulator.h"
 #include "child_process.h"
+#include "ftcal/config.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/service_status_t.hpp"
 
@@ -470,6 +480,202 @@ TEST_F(AtiBridgeTest, RefusesToStreamWithoutTheCalibrationPage) {
   EXPECT_NE(ReadFile(Path("emulator.err")).find("HL records 0 datagrams 0 starts 0"),
             std::string::npos)
       << ReadFile(Path("emulator.err"));
+}
+
+
+// ---- In process: the emulator and the bridge class driven by one loop, no LCM ----
+
+// A fixed device state: the counts of internal sample n are kBase + n on Fx (so every record
+// is told apart), the rest constant.
+sim::AtiDeviceSample FixedState(std::uint64_t n, std::array<std::int32_t, 6> base,
+                                std::uint32_t status = 0) {
+  sim::AtiDeviceSample s;
+  s.counts = base;
+  s.counts[0] += static_cast<std::int32_t>(n % 1000);
+  s.status = status;
+  return s;
+}
+
+// Receives records on a plain UDP socket (the test is the RDT client here).
+class RdtClient {
+ public:
+  RdtClient() {
+    fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+    sockaddr_in any{};
+    any.sin_family = AF_INET;
+    EXPECT_EQ(::bind(fd_, reinterpret_cast<sockaddr*>(&any), sizeof any), 0);
+  }
+  ~RdtClient() { ::close(fd_); }
+  void Send(rdt::Command c, std::uint32_t count, const std::string& address) {
+    sockaddr_in to{};
+    to.sin_family = AF_INET;
+    to.sin_port = htons(rdt::kUdpPort);
+    ::inet_pton(AF_INET, address.c_str(), &to.sin_addr);
+    const auto bytes = rdt::EncodeRequest(c, count);
+    ::sendto(fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to), sizeof to);
+  }
+  // Steps the emulator for `seconds`, collecting every record that arrives.
+  std::vector<rdt::Record> Run(sim::AtiEmulator& box, double seconds) {
+    std::vector<rdt::Record> out;
+    const auto end = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                        std::chrono::duration<double>(seconds));
+    while (Clock::now() < end) {
+      box.Step(Clock::now());
+      pollfd p{fd_, POLLIN, 0};
+      if (::poll(&p, 1, 1) > 0) {
+        std::uint8_t buf[128];
+        const ssize_t n = ::recv(fd_, buf, sizeof buf, 0);
+        if (n == static_cast<ssize_t>(rdt::kRecordBytes)) out.push_back(rdt::DecodeRecord(buf));
+      }
+    }
+    return out;
+  }
+
+ private:
+  int fd_ = -1;
+};
+
+TEST(AtiEmulatorInProcess, CountedStartBiasAndStopBehaveAsTheManualSays) {
+  sim::AtiEmulatorOptions o;
+  o.name = "HL";
+  o.address = "127.0.1.1";
+  o.http_port = 0;
+  o.rdt_rate_hz = 1000;
+  const std::array<std::int32_t, 6> base{1000000, -2000000, 3000000, 40000, -50000, 60000};
+  sim::AtiEmulator box(o, [&](std::uint64_t n, double) { return FixedState(n, base); });
+  RdtClient client;
+
+  // Start with count 5: exactly five records, rdt_sequence 1..5, ft_sequence 7 apart (7000 Hz
+  // internal, 1000 Hz out), then the box stops by itself.
+  client.Send(rdt::Command::kRealtime, 5, o.address);
+  auto got = client.Run(box, 0.1);
+  ASSERT_EQ(got.size(), 5u);
+  for (std::size_t i = 0; i < got.size(); ++i) {
+    EXPECT_EQ(got[i].rdt_sequence, i + 1);
+    if (i > 0) EXPECT_EQ(got[i].ft_sequence - got[i - 1].ft_sequence, 7u);
+    EXPECT_EQ(got[i].counts, FixedState(got[i].ft_sequence, base).counts);
+  }
+  EXPECT_FALSE(box.streaming());
+
+  // Bias tares the present counts: afterwards only the Fx ramp's change since then remains.
+  client.Send(rdt::Command::kBias, 0, o.address);
+  client.Send(rdt::Command::kRealtime, 0, o.address);
+  got = client.Run(box, 0.05);
+  ASSERT_GT(got.size(), 10u);
+  EXPECT_EQ(got.front().rdt_sequence, 1u);  // every start restarts the stream
+  for (const auto& r : got) {
+    for (int i = 1; i < 6; ++i) EXPECT_EQ(r.counts[i], 0) << "axis " << i;
+    EXPECT_LT(std::abs(r.counts[0]), 1000);
+  }
+  client.Send(rdt::Command::kStop, 0, o.address);
+  got = client.Run(box, 0.05);
+  EXPECT_LE(got.size(), 2u);  // at most what was already on its way
+  EXPECT_FALSE(box.streaming());
+  const auto c = box.counters();
+  EXPECT_EQ(c.starts, 2u);
+  EXPECT_EQ(c.stops, 1u);
+}
+
+struct Published {
+  std::string channel;
+  ft_sample_t msg;
+};
+
+// The bridge class against one emulated box, driven in one loop; returns what it published.
+std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& box,
+                                 double seconds) {
+  std::vector<Published> out;
+  auto log = std::make_shared<spdlog::logger>("ati-test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  AtiBridge bridge(
+      cfg, {"HL"},
+      [&out](const std::string& channel, const void* data, int size) {
+        Published p{channel, {}};
+        EXPECT_EQ(p.msg.decode(data, 0, size), size);
+        out.push_back(p);
+      },
+      log);
+  bridge.Start();
+  const auto end = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                      std::chrono::duration<double>(seconds));
+  while (Clock::now() < end) {
+    box.Step(Clock::now());
+    bridge.Poll(1);
+  }
+  bridge.Stop();
+  return out;
+}
+
+config::Config SimConfig() { return LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt"); }
+
+TEST(AtiBridgeInProcess, ConfigSignAndCountsPerUnitOverrideThePage) {
+  sim::AtiEmulatorOptions o;
+  o.address = "127.0.1.1";
+  o.http_port = 8080;
+  o.rdt_rate_hz = 1000;
+  o.counts_per_force = 1e6;  // the page says 1e6 ...
+  const std::array<std::int32_t, 6> base{2000000, -4000000, 6000000, 8000, -10000, 12000};
+  sim::AtiEmulator box(o, [&](std::uint64_t n, double) { return FixedState(n, base); });
+  config::Config cfg = SimConfig();
+  auto* ati = cfg.mutable_robot()->mutable_leg(0)->mutable_ati();
+  ASSERT_EQ(cfg.robot().leg(0).name(), "HL");
+  ati->set_sign(-1);
+  ati->set_counts_per_force(2e6);  // ... the config says 2e6 counts/N and 4000 counts/Nm
+  ati->set_counts_per_torque(4000);
+  const auto out = RunBridge(cfg, box, 0.2);
+  ASSERT_GT(out.size(), 100u);
+  for (const auto& p : out) {
+    EXPECT_EQ(p.channel, "FT_HL");
+    EXPECT_EQ(p.msg.leg, "HL");
+    for (int i = 0; i < 3; ++i) EXPECT_DOUBLE_EQ(p.msg.wrench[i], -p.msg.counts[i] / 2e6);
+    for (int i = 3; i < 6; ++i) EXPECT_DOUBLE_EQ(p.msg.wrench[i], -p.msg.counts[i] / 4000.0);
+    // 2 N/-3 N/-2.5 N*m: within the rated range; healthy status.
+    EXPECT_EQ(p.msg.flags & ~ft_sample_t::FLAG_RESTARTED, 0);
+  }
+  EXPECT_EQ(out.front().msg.flags, ft_sample_t::FLAG_RESTARTED);
+  // Counts per unit and rated range both come from the config: the page is never read.
+  EXPECT_EQ(box.counters().http_requests, 0u);
+}
+
+TEST(AtiBridgeInProcess, SaturationFromStatusBitOrRatedRangeAndStatusErrorAreFlagged) {
+  for (int variant = 0; variant < 2; ++variant) {
+    SCOPED_TRACE(variant == 0 ? "status bit 17" : "Fz beyond the 400 N rated range");
+    sim::AtiEmulatorOptions o;
+    o.address = "127.0.1.1";
+    o.http_port = 8080;
+    o.rdt_rate_hz = 1000;
+    const std::array<std::int32_t, 6> base{0, 0, variant == 0 ? 100000000 : 450000000, 0, 0, 0};
+    const std::uint32_t status = variant == 0 ? 0x80020000u : 0u;
+    sim::AtiEmulator box(o, [&](std::uint64_t n, double) { return FixedState(n, base, status); });
+    const auto out = RunBridge(SimConfig(), box, 0.15);
+    ASSERT_GT(out.size(), 50u);
+    for (const auto& p : out) {
+      EXPECT_TRUE(p.msg.flags & ft_sample_t::FLAG_SATURATED);
+      EXPECT_EQ((p.msg.flags & ft_sample_t::FLAG_STATUS_ERROR) != 0, variant == 0);
+      EXPECT_EQ(p.msg.status, static_cast<std::int64_t>(status));
+      EXPECT_DOUBLE_EQ(p.msg.wrench[2], p.msg.counts[2] / 1e6);
+    }
+    EXPECT_EQ(box.counters().http_requests, 1u);  // counts per unit from the page
+  }
+}
+
+TEST(AtiBridgeInProcess, UnknownLegAndBadSignAreRefusedByName) {
+  auto log = std::make_shared<spdlog::logger>("ati-test2", std::make_shared<spdlog::sinks::null_sink_mt>());
+  auto publish = [](const std::string&, const void*, int) {};
+  try {
+    AtiBridge bridge(SimConfig(), {"XX"}, publish, log);
+    ADD_FAILURE() << "unknown leg accepted";
+  } catch (const AtiBridgeError& e) {
+    EXPECT_NE(std::string(e.what()).find("'XX'"), std::string::npos) << e.what();
+  }
+  config::Config cfg = SimConfig();
+  cfg.mutable_robot()->mutable_leg(1)->mutable_ati()->set_sign(2);
+  try {
+    AtiBridge bridge(cfg, {"ML"}, publish, log);
+    ADD_FAILURE() << "sign 2 accepted";
+  } catch (const AtiBridgeError& e) {
+    EXPECT_NE(std::string(e.what()).find("ML"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("sign"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace
