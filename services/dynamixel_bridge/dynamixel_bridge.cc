@@ -148,6 +148,8 @@ std::vector<bool> DynamixelBridge::Transact(
   const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                            std::chrono::duration<double>(reply_timeout_s_));
   try {
+    // A reply that missed its deadline must not pass for the answer to this request.
+    DrainLate();
     port_->WriteAll(packet.data(), packet.size(), 100);
     std::size_t remaining = ids.size();
     std::uint8_t buf[1024];
@@ -337,19 +339,23 @@ void DynamixelBridge::Publish(std::int64_t utime, const std::vector<bool>& fresh
   publish_(msg);
 }
 
+void DynamixelBridge::DrainLate() {
+  std::uint8_t buf[1024];
+  while (const std::size_t n = port_->ReadSome(buf, sizeof buf)) {
+    // Nobody is being asked: whatever comes is a late reply or noise.
+    parser_.Feed(buf, n);
+    while (auto status = parser_.NextStatus()) {
+      ++stats_.Counter("late_replies");
+      stats_.Drop("late status packet",
+                  "status from id " + std::to_string(status->id) + " after its deadline");
+    }
+  }
+}
+
 void DynamixelBridge::OnDeviceReadable() {
   if (!port_) return;
   try {
-    std::uint8_t buf[1024];
-    while (const std::size_t n = port_->ReadSome(buf, sizeof buf)) {
-      // Between cycles nobody was asked: whatever comes is a late reply or noise.
-      parser_.Feed(buf, n);
-      while (auto status = parser_.NextStatus()) {
-        ++stats_.Counter("unexpected_replies");
-        stats_.Drop("late status packet",
-                    "status from id " + std::to_string(status->id) + " after its deadline");
-      }
-    }
+    DrainLate();
   } catch (const dxl::SerialError& e) {
     PortLost(e.what());
   }

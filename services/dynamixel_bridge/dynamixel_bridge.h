@@ -97,6 +97,9 @@ class DynamixelBridge {
       const std::vector<std::uint8_t>& packet, const std::vector<std::uint8_t>& ids,
       const std::function<bool(std::size_t, const dxl::StatusPacket&)>& on_reply);
   void ReadPresent(std::vector<bool>* fresh);
+  // Reads what is waiting; complete status packets are late replies (counted, dropped). Throws
+  // dxl::SerialError.
+  void DrainLate();
   void ReadHardwareErrors();
   void SendPendingWrites();
   void Publish(std::int64_t utime, const std::vector<bool>& fresh);

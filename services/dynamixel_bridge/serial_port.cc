@@ -70,16 +70,16 @@ void SerialPort::WriteAll(const std::uint8_t* data, std::size_t n, int timeout_m
 std::size_t SerialPort::ReadSome(std::uint8_t* buf, std::size_t capacity) {
   const ssize_t n = ::read(fd_, buf, capacity);
   if (n > 0) return static_cast<std::size_t>(n);
-  if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
-    // "Nothing yet" is EAGAIN; a hang-up (the pty master or the USB adapter gone) shows only in
-    // poll()'s revents, so check it: a vanished port must not look like a quiet bus.
+  if (n == 0 || errno == EAGAIN || errno == EINTR) {
+    // With VMIN = VTIME = 0 a tty reads 0 bytes when there is nothing (not EAGAIN), and a
+    // hang-up (the pty master or the USB adapter gone) also reads 0: only poll()'s revents tell
+    // them apart, and a vanished port must not look like a quiet bus.
     pollfd p{fd_, POLLIN, 0};
     if (::poll(&p, 1, 0) > 0 && (p.revents & (POLLHUP | POLLERR | POLLNVAL))) {
-      throw SerialError("serial port " + path_ + ": hung up");
+      throw SerialError("serial port " + path_ + ": hung up (device gone)");
     }
     return 0;
   }
-  if (n == 0) throw SerialError("serial port " + path_ + ": end of file (device gone)");
   throw SerialError("serial port " + path_ + ": read: " + Errno());
 }
 

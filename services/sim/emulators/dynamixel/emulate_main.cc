@@ -100,7 +100,9 @@ int main(int argc, char** argv) {
                  "positions are the twin's shaft angles in real time")
       ->capture_default_str()
       ->check(CLI::IsMember({"dynamics", "tripod-walk", "standing"}));
-  cli.add_option("--duration", duration_s, "seconds to run; 0 = until SIGINT/SIGTERM")
+  cli.add_option("--duration", duration_s,
+                 "seconds to run; 0 = until SIGINT/SIGTERM (the twin's motion then lasts 120 s "
+                 "and holds its last pose)")
       ->check(CLI::NonNegativeNumber);
   cli.add_option("--truth", truth_path, "CSV of every reply produced (written at the end)");
   cli.add_option("--seed", rates.seed, "fault and twin seed")->capture_default_str();
@@ -188,7 +190,7 @@ int main(int argc, char** argv) {
       ftcal::BigAntTwin twin(config, twin_options);
       frame_period_s = 1.0 / twin_options.sample_rate_hz;
       auto sink = [&angles](const ftcal::TwinFrame& f) { angles.push_back(f.angle_rad); };
-      const double length_s = duration_s > 0 ? duration_s + 1.0 : 600.0;
+      const double length_s = duration_s > 0 ? duration_s + 1.0 : 120.0;
       if (scenario == "tripod-walk") {
         twin.TripodWalk(length_s, ftcal::RunOptions{}, sink);
       } else {

@@ -1,0 +1,643 @@
+// ftcal-dynamixel-bridge against the twin's emulated MX-106 bus (ftcal-emulate-dynamixel on a
+// pseudo-terminal). Three layers:
+//   - the emulator alone, bytes in and out, against Protocol 2.0 facts and closed-form dynamics;
+//   - the DynamixelBridge class against the emulator on a pty in this process (no network);
+//   - the real processes over real LCM inside a private network namespace (ctest runs this
+//     binary through scripts/netns-exec): what the bridge published (heard on LCM) and counted
+//     (its final heartbeat) against the emulator's truth CSV of every reply and its fate.
+#include <signal.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdlib>
+#include <fstream>
+#include <map>
+#include <mutex>
+#include <regex>
+#include <sstream>
+#include <thread>
+
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+#include <spdlog/sinks/null_sink.h>
+
+#include "child_process.h"
+#include "common/bus.h"
+#include "dynamixel_bridge.h"
+#include "dynamixel_emulator.h"
+#include "ftcal/config.h"
+#include "ftcal/servo_command_t.hpp"
+#include "ftcal/servo_state_t.hpp"
+#include "ftcal/service_status_t.hpp"
+#include "protocol2.h"
+
+namespace ftcal {
+namespace {
+
+using testing::Child;
+using Clock = std::chrono::steady_clock;
+
+constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
+constexpr double kOneCountRad = 2.0 * M_PI / 4096.0;
+
+void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+
+std::vector<dxl::StatusPacket> ParseAll(const std::vector<std::uint8_t>& bytes) {
+  dxl::PacketParser parser;
+  parser.Feed(bytes.data(), bytes.size());
+  std::vector<dxl::StatusPacket> out;
+  while (auto s = parser.NextStatus()) out.push_back(*s);
+  return out;
+}
+
+// The sim config with the device, the servo angle limits and the reply timeout replaced. The
+// timeouts are longer than the config's 10 ms so that a loaded test machine does not turn a
+// reply into a late one.
+std::string TestConfigText(const std::string& device, double limit_rad, double timeout_s) {
+  std::ifstream in(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  std::string text = ss.str();
+  text = std::regex_replace(text, std::regex("device: \"[^\"]*\""), "device: \"" + device + "\"");
+  char limits[128];
+  std::snprintf(limits, sizeof limits, " min_angle_rad: %.6f max_angle_rad: %.6f }", -limit_rad,
+                limit_rad);
+  text = std::regex_replace(text, std::regex("servo \\{ id: ([0-9]+) \\}"),
+                            std::string("servo { id: $1") + limits);
+  text = std::regex_replace(text, std::regex("reply_timeout_s: [0-9.]+"),
+                            "reply_timeout_s: " + std::to_string(timeout_s));
+  return text;
+}
+
+// ---- The emulator alone ----
+
+TEST(DynamixelEmulator, PingAnswersModel321AndFirmware) {
+  sim::DynamixelBusEmulator emu({});
+  const auto bytes = dxl::BuildPing(3);
+  const auto reply = emu.Receive(bytes.data(), bytes.size(), 0.0);
+  // Model 321 = 0x0141 LSB first, firmware 45 = 0x2D (device-protocols.md §2.6, §2.7); the CRC
+  // is checked by the parser.
+  const auto statuses = ParseAll(reply);
+  ASSERT_EQ(statuses.size(), 1u);
+  EXPECT_EQ(statuses[0].id, 3);
+  EXPECT_EQ(statuses[0].error, 0);
+  EXPECT_EQ(statuses[0].params, (std::vector<std::uint8_t>{0x41, 0x01, 0x2D}));
+  EXPECT_EQ(reply.size(), 14u);  // 7 header + instruction, error, 3 params, CRC 2
+}
+
+TEST(DynamixelEmulator, SyncReadAnswersInListOrderWithThePresentBlock) {
+  sim::DxlEmulatorOptions options;
+  options.initial_tick_ms = 1000;
+  sim::DynamixelBusEmulator emu(options);
+  const auto req = dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes,
+                                      {6, 2, 4});
+  const auto statuses = ParseAll(emu.Receive(req.data(), req.size(), 0.25));
+  ASSERT_EQ(statuses.size(), 3u);
+  const std::uint8_t want[] = {6, 2, 4};
+  for (int i = 0; i < 3; ++i) {
+    EXPECT_EQ(statuses[i].id, want[i]);
+    ASSERT_EQ(statuses[i].params.size(), dxl::kPresentBlockBytes);
+    const auto st = dxl::DecodePresentBlock(statuses[i].params.data(), statuses[i].params.size());
+    EXPECT_EQ(st.present_position, 2048);
+    EXPECT_EQ(st.realtime_tick_ms, 1250);  // 1000 ms + 0.25 s
+    EXPECT_EQ(st.present_input_voltage, 120);
+  }
+}
+
+TEST(DynamixelEmulator, GoalFollowsFirstOrderDynamicsOnlyWithTorque) {
+  sim::DxlEmulatorOptions options;
+  options.time_constant_s = 0.1;
+  sim::DynamixelBusEmulator emu(options);
+  auto send = [&](const std::vector<std::uint8_t>& p, double t) {
+    return ParseAll(emu.Receive(p.data(), p.size(), t));
+  };
+  send(dxl::BuildSyncWriteGoalPosition({{1, 3072}, {2, 1024}}), 0.0);
+  emu.Advance(0.5);
+  EXPECT_EQ(emu.ExactPosition(1), 2048.0) << "torque is off: the servo must not move";
+  const auto ack = send(dxl::BuildTorqueEnable(1, true), 0.5);
+  ASSERT_EQ(ack.size(), 1u);
+  EXPECT_EQ(ack[0].error, 0);
+  // One time constant later: 2048 + 1024 (1 - 1/e), whatever the step size.
+  emu.Advance(0.55);
+  emu.Advance(0.6);
+  EXPECT_NEAR(emu.ExactPosition(1), 2048.0 + 1024.0 * (1.0 - std::exp(-1.0)), 1e-9);
+  EXPECT_EQ(emu.ExactPosition(2), 2048.0);
+  // Goal outside the position limits: Data Limit Error, goal unchanged.
+  const auto bad = send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x20, 0x00, 0x00}), 0.6);
+  ASSERT_EQ(bad.size(), 1u);
+  EXPECT_EQ(bad[0].error_number(), 6);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrGoalPosition), 3072);
+}
+
+TEST(DynamixelEmulator, OverloadCutsTorqueRaisesAlertAndNeedsReboot) {
+  sim::DxlEmulatorOptions options;
+  options.events.push_back({sim::DxlFaultKind::kHardwareError, 1.0, 0.0, 5, 0x20});
+  sim::DynamixelBusEmulator emu(options);
+  auto send = [&](const std::vector<std::uint8_t>& p, double t) {
+    return ParseAll(emu.Receive(p.data(), p.size(), t));
+  };
+  ASSERT_EQ(send(dxl::BuildTorqueEnable(5, true), 0.5)[0].error, 0);
+  EXPECT_EQ(emu.TableByte(5, dxl::kAddrTorqueEnable), 1);
+  const auto after = send(dxl::BuildRead(5, dxl::kAddrHardwareErrorStatus, 1), 1.1);
+  ASSERT_EQ(after.size(), 1u);
+  EXPECT_TRUE(after[0].alert());
+  EXPECT_EQ(after[0].params, std::vector<std::uint8_t>{0x20});
+  EXPECT_EQ(emu.TableByte(5, dxl::kAddrTorqueEnable), 0);
+  // Re-enabling is refused until REBOOT.
+  EXPECT_EQ(send(dxl::BuildTorqueEnable(5, true), 1.2)[0].error_number(), 1);
+  EXPECT_EQ(emu.TableByte(5, dxl::kAddrTorqueEnable), 0);
+  ASSERT_EQ(send(dxl::BuildReboot(5), 1.3).size(), 1u);
+  EXPECT_EQ(emu.TableByte(5, dxl::kAddrHardwareErrorStatus), 0);
+  EXPECT_EQ(send(dxl::BuildTorqueEnable(5, true), 1.4)[0].error, 0);
+}
+
+TEST(DynamixelEmulator, SeededFaultsAreRepeatableAndRecorded) {
+  auto run = [](std::vector<sim::DxlReplyRecord>* records) {
+    sim::DxlEmulatorOptions options;
+    options.rates = {7, 0.2, 0.2, 0.3, 6};
+    sim::DynamixelBusEmulator emu(options);
+    emu.SetReplyObserver([records](const sim::DxlReplyRecord& r) { records->push_back(r); });
+    std::vector<std::uint8_t> all;
+    const auto req = dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes,
+                                        {1, 2, 3, 4, 5, 6});
+    for (int i = 0; i < 100; ++i) {
+      const auto out = emu.Receive(req.data(), req.size(), 0.01 * i);
+      all.insert(all.end(), out.begin(), out.end());
+    }
+    return std::make_pair(all, emu.fault_counts());
+  };
+  std::vector<sim::DxlReplyRecord> a, b;
+  const auto [bytes_a, counts_a] = run(&a);
+  const auto [bytes_b, counts_b] = run(&b);
+  EXPECT_EQ(bytes_a, bytes_b);
+  ASSERT_EQ(a.size(), 600u);
+  EXPECT_GT(counts_a.dropped, 60);
+  EXPECT_GT(counts_a.corrupted, 60);
+  // What the parser makes of the stream agrees with the record: every reply sent intact is
+  // found, every corrupted one fails its CRC, noise never forges a packet.
+  dxl::PacketParser parser;
+  parser.Feed(bytes_a.data(), bytes_a.size());
+  std::int64_t valid = 0;
+  while (parser.NextStatus()) ++valid;
+  std::int64_t sent = 0;
+  for (const auto& r : a) sent += r.fate == sim::DxlReplyFate::kSent;
+  EXPECT_EQ(valid, sent);
+  EXPECT_EQ(static_cast<std::int64_t>(parser.stats().crc_errors), counts_a.corrupted);
+}
+
+// ---- The bridge class against the emulator on a pty, in this process ----
+
+class DynamixelBridgePty : public ::testing::Test {
+ protected:
+  void Start(sim::DxlEmulatorOptions options, double limit_rad = M_PI - 0.01) {
+    dir_ = testing::MakeTempDir();
+    link_ = dir_ + "/tty";
+    emu_ = std::make_unique<sim::DynamixelBusEmulator>(std::move(options));
+    emu_->SetReplyObserver([this](const sim::DxlReplyRecord& r) {
+      std::lock_guard<std::mutex> lock(mu_);
+      records_.push_back(r);
+    });
+    pty_ = std::make_unique<sim::PtyBus>(*emu_, link_);
+    pty_->Open();
+    t0_ = Clock::now();
+    server_ = std::thread([this] {
+      while (!stop_) {
+        std::lock_guard<std::mutex> lock(emu_mu_);
+        pty_->ServeOnce(1, std::chrono::duration<double>(Clock::now() - t0_).count());
+      }
+    });
+    config_ = LoadConfigText(TestConfigText(link_, limit_rad, 0.03), "test config");
+    stats_ = std::make_unique<ServiceStats>(
+        std::make_shared<spdlog::logger>("dxl-test", std::make_shared<spdlog::sinks::null_sink_mt>()));
+    bridge_ = std::make_unique<DynamixelBridge>(
+        config_, DynamixelBridgeOptions{}, *stats_,
+        [this](const servo_state_t& m) { published_.push_back(m); },
+        [] { return std::int64_t{0}; });
+  }
+  void TearDown() override {
+    stop_ = true;
+    if (server_.joinable()) server_.join();
+    bridge_.reset();
+    pty_.reset();
+    if (!dir_.empty()) testing::RemoveTree(dir_);
+  }
+  // Present-block replies sent intact, by (id, tick).
+  std::map<std::pair<int, int>, sim::DxlReplyRecord> SentPresent() {
+    std::lock_guard<std::mutex> lock(mu_);
+    std::map<std::pair<int, int>, sim::DxlReplyRecord> m;
+    for (const auto& r : records_) {
+      if (r.address == dxl::kAddrPresentBlock && r.fate == sim::DxlReplyFate::kSent) {
+        m[{r.id, r.tick_ms}] = r;
+      }
+    }
+    return m;
+  }
+
+  std::string dir_, link_;
+  std::unique_ptr<sim::DynamixelBusEmulator> emu_;
+  std::unique_ptr<sim::PtyBus> pty_;
+  std::thread server_;
+  std::atomic<bool> stop_{false};
+  std::mutex emu_mu_;  // the emulator: served by the thread, inspected by the test
+  std::mutex mu_;      // records_
+  std::vector<sim::DxlReplyRecord> records_;
+  Clock::time_point t0_;
+  config::Config config_;
+  std::unique_ptr<ServiceStats> stats_;
+  std::unique_ptr<DynamixelBridge> bridge_;
+  std::vector<servo_state_t> published_;
+};
+
+TEST_F(DynamixelBridgePty, AMissingServoIsStaleAndTheOtherFiveAreExact) {
+  sim::DxlEmulatorOptions options;
+  options.events.push_back({sim::DxlFaultKind::kMissingServo, 0.0, 1e9, 4, 0});
+  // Each servo moves along its own ramp, so a reply matched to the wrong id would show.
+  options.initial_tick_ms = 32000;  // the tick wraps during the test
+  Start(options);
+  std::unique_lock<std::mutex> lock(emu_mu_);
+  emu_->SetStateSource([](std::uint8_t id, double t) -> std::optional<sim::DxlDrivenState> {
+    sim::DxlDrivenState s;
+    s.position_counts = 1000.0 + 300.0 * id + 2000.0 * t;
+    s.velocity_counts_s = 2000.0;
+    return s;
+  });
+  lock.unlock();
+  ASSERT_TRUE(bridge_->Connect());
+  EXPECT_EQ(bridge_->missing_at_start(), std::vector<std::uint8_t>{4});
+  for (int i = 0; i < 60; ++i) {
+    bridge_->Cycle();
+    SleepS(0.01);
+  }
+  ASSERT_EQ(published_.size(), 60u);
+  const auto truth = SentPresent();
+  std::int64_t checked = 0;
+  std::map<int, std::int64_t> last_tick;
+  for (const auto& m : published_) {
+    ASSERT_EQ(m.num_servos, 6);
+    for (int k = 0; k < 6; ++k) {
+      if (m.id[k] == 4) {
+        EXPECT_TRUE(m.flags[k] & servo_state_t::FLAG_STALE);
+        EXPECT_TRUE(std::isnan(m.angle_rad[k])) << "never read: no angle may be invented";
+        continue;
+      }
+      ASSERT_FALSE(m.flags[k] & servo_state_t::FLAG_STALE) << "servo " << m.id[k];
+      const auto it = truth.find({m.id[k], static_cast<int>(m.device_tick_ms[k] % 32768)});
+      ASSERT_NE(it, truth.end()) << "servo " << m.id[k] << " tick " << m.device_tick_ms[k];
+      EXPECT_NEAR(m.angle_rad[k], (it->second.position - 2048) * kOneCountRad, 1e-12);
+      EXPECT_NEAR(m.angle_rad[k], (it->second.position_exact_counts - 2048) * kOneCountRad,
+                  0.5 * kOneCountRad + 1e-12);
+      EXPECT_NEAR(m.velocity_rad_s[k], dxl::VelocityToRadPerS(it->second.velocity), 1e-12);
+      if (last_tick.count(m.id[k])) EXPECT_GT(m.device_tick_ms[k], last_tick[m.id[k]]);
+      last_tick[m.id[k]] = m.device_tick_ms[k];
+      ++checked;
+    }
+  }
+  EXPECT_EQ(checked, 300);
+  EXPECT_GT(last_tick[1], 32768) << "the unwrapped tick passes the 15-bit wrap";
+  std::string why;
+  EXPECT_TRUE(bridge_->Degraded(&why));
+  EXPECT_NE(why.find("servo 4 (HR)"), std::string::npos) << why;
+  EXPECT_EQ(stats_->counters().at("stale"), 60);
+}
+
+TEST_F(DynamixelBridgePty, CommandsAreClampedValidatedAndMoveTheServos) {
+  sim::DxlEmulatorOptions options;
+  options.time_constant_s = 0.02;
+  Start(options, 1.0);
+  ASSERT_TRUE(bridge_->Connect());
+  servo_command_t cmd;
+  cmd.num_servos = 6;
+  cmd.id = {1, 2, 3, 4, 5, 6};
+  cmd.goal_angle_rad = {0.2, -0.3, 5.0, 0.0, 0.5, -1.5};
+  cmd.torque_enable = true;
+  servo_command_t bad = cmd;
+  bad.id[2] = 9;
+  EXPECT_THROW(bridge_->OnCommand(bad), BadInput);
+  bad = cmd;
+  bad.goal_angle_rad[1] = std::nan("");
+  EXPECT_THROW(bridge_->OnCommand(bad), BadInput);
+  bridge_->OnCommand(cmd);
+  EXPECT_EQ(stats_->counters().at("goals_clamped"), 2);
+  for (int i = 0; i < 40; ++i) {
+    bridge_->Cycle();
+    SleepS(0.01);
+  }
+  const std::vector<double> want = {0.2, -0.3, 1.0, 0.0, 0.5, -1.0};  // clamped to +-1 rad
+  const auto& last = published_.back();
+  for (int k = 0; k < 6; ++k) {
+    EXPECT_NEAR(last.angle_rad[k], want[k], 1.01 * kOneCountRad) << "servo " << last.id[k];
+    EXPECT_FALSE(last.flags[k] & servo_state_t::FLAG_TORQUE_OFF);
+    std::lock_guard<std::mutex> lock(emu_mu_);
+    EXPECT_EQ(emu_->TableByte(last.id[k], dxl::kAddrTorqueEnable), 1);
+  }
+  cmd.torque_enable = false;
+  bridge_->OnCommand(cmd);
+  bridge_->Cycle();
+  bridge_->Cycle();
+  for (int k = 0; k < 6; ++k) {
+    EXPECT_TRUE(published_.back().flags[k] & servo_state_t::FLAG_TORQUE_OFF);
+  }
+}
+
+// ---- Real processes over LCM ----
+
+struct Heard {
+  double t_s;  // since the test's start
+  servo_state_t msg;
+};
+
+class Listener {
+ public:
+  explicit Listener(Clock::time_point t0) : lcm_(kUrl), t0_(t0) {
+    lcm_.subscribe("SERVO_STATE", &Listener::OnState, this);
+    lcm_.subscribe("FTCAL_STATUS", &Listener::OnStatus, this);
+    thread_ = std::thread([this] {
+      while (!stop_) lcm_.handleTimeout(50);
+    });
+  }
+  ~Listener() {
+    stop_ = true;
+    thread_.join();
+  }
+  bool good() { return lcm_.good(); }
+  void OnState(const lcm::ReceiveBuffer*, const std::string&, const servo_state_t* m) {
+    std::lock_guard<std::mutex> lock(mu_);
+    states.push_back({std::chrono::duration<double>(Clock::now() - t0_).count(), *m});
+  }
+  void OnStatus(const lcm::ReceiveBuffer*, const std::string&, const service_status_t* m) {
+    if (m->name != "ftcal-dynamixel-bridge") return;
+    std::lock_guard<std::mutex> lock(mu_);
+    statuses.push_back(*m);
+  }
+  void Publish(const servo_command_t& cmd) { lcm_.publish("SERVO_CMD", &cmd); }
+  std::vector<Heard> States() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return states;
+  }
+  std::vector<service_status_t> Statuses() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return statuses;
+  }
+
+ private:
+  lcm::LCM lcm_;
+  Clock::time_point t0_;
+  std::thread thread_;
+  std::atomic<bool> stop_{false};
+  std::mutex mu_;
+  std::vector<Heard> states;
+  std::vector<service_status_t> statuses;
+};
+
+struct TruthRow {
+  double t_s;
+  int id, address;
+  std::string fate;
+  int tick_ms, position, velocity, hardware_error;
+  double exact;
+};
+
+std::vector<TruthRow> ReadTruth(const std::string& path) {
+  std::ifstream in(path);
+  EXPECT_TRUE(in.good()) << path;
+  std::string line;
+  std::getline(in, line);
+  std::vector<TruthRow> rows;
+  while (std::getline(in, line)) {
+    std::vector<std::string> f;
+    std::stringstream ss(line);
+    for (std::string item; std::getline(ss, item, ',');) f.push_back(item);
+    if (f.size() != 15) {
+      ADD_FAILURE() << "bad truth line: " << line;
+      continue;
+    }
+    rows.push_back({std::stod(f[0]), std::stoi(f[1]), std::stoi(f[3]), f[5], std::stoi(f[8]),
+                    std::stoi(f[9]), std::stoi(f[10]), std::stoi(f[13]), std::stod(f[14])});
+  }
+  return rows;
+}
+
+std::int64_t Counter(const service_status_t& s, const std::string& name) {
+  for (int i = 0; i < s.num_counters; ++i) {
+    if (s.counter_name[i] == name) return s.counter_value[i];
+  }
+  return 0;
+}
+
+class DynamixelBridgeProcesses : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    if (std::getenv("FTCAL_NETNS") == nullptr) {
+      GTEST_SKIP() << "uses LCM multicast: run inside scripts/netns-exec (ctest does)";
+    }
+    dir_ = testing::MakeTempDir();
+    link_ = dir_ + "/tty";
+    config_path_ = dir_ + "/config.pbtxt";
+    std::ofstream(config_path_) << TestConfigText(link_, 1.0, 0.05);
+    t0_ = Clock::now();
+  }
+  void TearDown() override {
+    if (!dir_.empty()) testing::RemoveTree(dir_);
+  }
+  double Now() const { return std::chrono::duration<double>(Clock::now() - t0_).count(); }
+  std::unique_ptr<Child> StartEmulator(std::vector<std::string> args) {
+    std::vector<std::string> argv = {FTCAL_EMULATE_DYNAMIXEL, "--link", link_, "--config",
+                                     config_path_, "--truth", dir_ + "/truth.csv"};
+    argv.insert(argv.end(), args.begin(), args.end());
+    auto child = std::make_unique<Child>(argv, dir_ + "/emu.out", dir_ + "/emu.err");
+    for (int i = 0; i < 1000 && ::access(link_.c_str(), F_OK) != 0; ++i) SleepS(0.01);
+    EXPECT_EQ(::access(link_.c_str(), F_OK), 0) << testing::ReadFile(dir_ + "/emu.err");
+    return child;
+  }
+  std::unique_ptr<Child> StartBridge(const std::string& tag) {
+    return std::make_unique<Child>(
+        std::vector<std::string>{FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path_, "--lcm-url",
+                                 kUrl, "--log-level", "info"},
+        dir_ + "/bridge" + tag + ".out", dir_ + "/bridge" + tag + ".err");
+  }
+  void Stop(Child& c, const std::string& what) {
+    c.Signal(SIGTERM);
+    const auto status = c.Wait(5.0);
+    ASSERT_TRUE(status.has_value()) << what << " did not stop";
+    EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+        << what << ": " << testing::DescribeWaitStatus(*status);
+  }
+
+  std::string dir_, link_, config_path_;
+  Clock::time_point t0_;
+};
+
+TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEveryFault) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  auto emu = StartEmulator({"--scenario", "tripod-walk", "--seed", "3", "--drop", "0.02",
+                            "--corrupt", "0.02", "--noise", "0.05", "--missing", "3:1.0:1.6",
+                            "--hw-error", "5:2.0", "--tick-start", "31500", "--duration", "10"});
+  auto bridge = StartBridge("");
+  SleepS(3.5);
+  Stop(*bridge, "bridge");
+  SleepS(0.3);  // the final heartbeat
+  Stop(*emu, "emulator");
+  const auto truth = ReadTruth(dir_ + "/truth.csv");
+  const auto heard = listener.States();
+  ASSERT_GT(heard.size(), 80u) << testing::ReadFile(dir_ + "/bridge.err");
+
+  // Truth by (id, tick): the values every intact present-block reply carried.
+  std::map<std::pair<int, int>, TruthRow> sent;
+  std::int64_t corrupted = 0, present_lost = 0, present_sent = 0;
+  for (const auto& r : truth) {
+    corrupted += r.fate == "corrupted";
+    if (r.address != dxl::kAddrPresentBlock) continue;
+    if (r.fate == "sent") {
+      sent[{r.id, r.tick_ms}] = r;
+      ++present_sent;
+    } else {
+      ++present_lost;
+    }
+  }
+  ASSERT_GT(corrupted, 2);
+  ASSERT_GT(present_lost, 10);
+
+  std::int64_t fresh = 0, stale = 0;
+  std::map<int, double> last_angle;
+  std::map<int, std::int64_t> last_tick;
+  bool saw_stale_3 = false, saw_hw_5 = false;
+  for (const auto& h : heard) {
+    const auto& m = h.msg;
+    for (int k = 0; k < m.num_servos; ++k) {
+      const int id = m.id[k];
+      if (m.flags[k] & servo_state_t::FLAG_STALE) {
+        ++stale;
+        saw_stale_3 = saw_stale_3 || id == 3;
+        // Stale: the last good values, never a new number.
+        if (last_angle.count(id)) EXPECT_EQ(m.angle_rad[k], last_angle[id]);
+        continue;
+      }
+      ++fresh;
+      const auto it = sent.find({id, static_cast<int>(m.device_tick_ms[k] % 32768)});
+      ASSERT_NE(it, sent.end()) << "published a value no servo sent: id " << id;
+      EXPECT_NEAR(m.angle_rad[k], (it->second.position - 2048) * kOneCountRad, 1e-12);
+      EXPECT_NEAR(m.angle_rad[k], (it->second.exact - 2048) * kOneCountRad,
+                  0.5 * kOneCountRad + 1e-9);
+      if (last_tick.count(id)) EXPECT_GT(m.device_tick_ms[k], last_tick[id]);
+      last_tick[id] = m.device_tick_ms[k];
+      last_angle[id] = m.angle_rad[k];
+      if (id == 5 && m.hardware_error[k] == 0x20) {
+        saw_hw_5 = true;
+        EXPECT_TRUE(m.flags[k] & servo_state_t::FLAG_HW_ERROR);
+      }
+    }
+  }
+  EXPECT_TRUE(saw_stale_3);
+  EXPECT_TRUE(saw_hw_5);
+  EXPECT_GT(last_tick[1], 32768) << "the tick started at 31500 ms and must unwrap";
+  // Every intact reply was published, and every lost one was published as STALE. A reply the
+  // emulator sent after the bridge's deadline (a loaded machine) is the one exception: the
+  // bridge counts it late and publishes STALE.
+  const auto statuses = listener.Statuses();
+  ASSERT_FALSE(statuses.empty());
+  const auto& final_status = statuses.back();
+  const std::int64_t late = Counter(final_status, "late_replies");
+  EXPECT_LE(present_sent - fresh, late);
+  EXPECT_GE(present_sent, fresh);
+  EXPECT_EQ(stale - present_lost, present_sent - fresh);
+  const auto& last = heard.back().msg;
+  for (int k = 0; k < 6; ++k) {
+    if (last.id[k] == 5) EXPECT_TRUE(last.flags[k] & servo_state_t::FLAG_TORQUE_OFF);
+  }
+
+  // The bridge's own counts (final heartbeat) agree with the emulator's record.
+  EXPECT_EQ(final_status.state, static_cast<int8_t>(service_status_t::STOPPING));
+  EXPECT_EQ(Counter(final_status, "crc_errors"), corrupted);
+  EXPECT_EQ(Counter(final_status, "stale"), stale);
+  EXPECT_EQ(final_status.msgs_out, static_cast<std::int64_t>(heard.size()));
+  bool degraded = false;
+  for (const auto& s : statuses) degraded = degraded || s.state == service_status_t::DEGRADED;
+  EXPECT_TRUE(degraded);
+}
+
+TEST_F(DynamixelBridgeProcesses, RestartAndVanishingPortResumeWithAVisibleGap) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  auto emu = StartEmulator({"--scenario", "tripod-walk", "--disconnect", "2.5:3.0", "--duration", "10"});
+  auto bridge = StartBridge("1");
+  SleepS(1.2);
+  bridge->Signal(SIGKILL);
+  bridge->Wait(2.0);
+  const double killed_s = Now();
+  SleepS(0.3);
+  const double restarted_s = Now();
+  auto bridge2 = StartBridge("2");
+  SleepS(3.0);
+  Stop(*bridge2, "restarted bridge");
+  Stop(*emu, "emulator");
+  const auto heard = listener.States();
+
+  // Resumes within 1 s of the restart; the device tick shows the gap.
+  const Heard* before = nullptr;
+  const Heard* after = nullptr;
+  for (const auto& h : heard) {
+    if (h.t_s < killed_s) before = &h;
+    if (h.t_s > restarted_s && after == nullptr) after = &h;
+  }
+  ASSERT_NE(before, nullptr);
+  ASSERT_NE(after, nullptr);
+  EXPECT_LT(after->t_s - restarted_s, 1.0);
+  const double tick_gap_s = (after->msg.device_tick_ms[0] - before->msg.device_tick_ms[0]) / 1e3;
+  EXPECT_GT(tick_gap_s, 0.25) << "the restart's gap must show in the device tick";
+
+  // The port vanishes at 2.5 s (test clock ~ emulator clock + its start-up) and returns at 3.0.
+  double largest_gap = 0, gap_end = 0;
+  std::int64_t tick_jump = 0;
+  for (std::size_t i = 1; i < heard.size(); ++i) {
+    if (heard[i - 1].t_s < restarted_s) continue;
+    const double gap = heard[i].t_s - heard[i - 1].t_s;
+    if (gap > largest_gap) {
+      largest_gap = gap;
+      gap_end = heard[i].t_s;
+      tick_jump = heard[i].msg.device_tick_ms[0] - heard[i - 1].msg.device_tick_ms[0];
+    }
+  }
+  EXPECT_GT(largest_gap, 0.4) << "no outage seen";
+  EXPECT_LT(largest_gap, 0.5 + 1.0) << "did not come back within 1 s of the port";
+  EXPECT_GT(tick_jump, 400);
+  EXPECT_GT(gap_end, 2.5);
+  const auto statuses = listener.Statuses();
+  ASSERT_FALSE(statuses.empty());
+  EXPECT_GE(Counter(statuses.back(), "port_lost"), 1);
+  EXPECT_GE(Counter(statuses.back(), "reopens"), 1);
+}
+
+TEST_F(DynamixelBridgeProcesses, ServoCommandsOverLcmMoveTheEmulatedServos) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
+  auto bridge = StartBridge("");
+  SleepS(0.7);
+  servo_command_t cmd;
+  cmd.num_servos = 6;
+  cmd.id = {1, 2, 3, 4, 5, 6};
+  cmd.goal_angle_rad = {0.3, -0.4, 2.0, 0.1, -0.2, -3.0};
+  cmd.torque_enable = true;
+  listener.Publish(cmd);
+  SleepS(1.0);
+  Stop(*bridge, "bridge");
+  Stop(*emu, "emulator");
+  const auto heard = listener.States();
+  ASSERT_FALSE(heard.empty());
+  const auto& m = heard.back().msg;
+  const std::vector<double> want = {0.3, -0.4, 1.0, 0.1, -0.2, -1.0};  // limits +-1 rad
+  for (int k = 0; k < 6; ++k) {
+    EXPECT_NEAR(m.angle_rad[k], want[k], 1.01 * kOneCountRad) << "servo " << m.id[k];
+    EXPECT_EQ(m.flags[k], 0) << "servo " << m.id[k];
+  }
+  const auto statuses = listener.Statuses();
+  ASSERT_FALSE(statuses.empty());
+  EXPECT_EQ(Counter(statuses.back(), "commands"), 1);
+  EXPECT_EQ(Counter(statuses.back(), "goals_clamped"), 2);
+}
+
+}  // namespace
+}  // namespace ftcal
