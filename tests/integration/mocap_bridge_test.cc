@@ -221,6 +221,7 @@ TEST(MocapBridgeTest, CountsEveryFaultAndPublishesNothingCorrupt) {
   eo.faults.marker_dropout_ticks = 7;
   eo.faults.untracked = {{100, 30}};
   eo.faults.settings_changed = {200};
+  eo.reorder_bodies_on_change = true;  // the chassis is body 2, then body 1 after the event
   PairRun run = RunWithBridge(eo, 400);
   ASSERT_GE(run.sent.size(), 300u);
   const auto sent = ByFrame(run.sent);
@@ -287,6 +288,7 @@ TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
   eo.faults.no_more_data = {{100, 60}};   // 0.3 s not capturing; numbering restarts after
   eo.faults.disconnected = {{300, 60}};   // QTM down 0.3 s, connections refused
   eo.faults.silent = {{480, 120}};        // 0.6 s without a packet, connection kept
+  eo.reorder_bodies_on_change = true;     // QTM comes back with the bodies in another order
   PairRun run = RunWithBridge(eo, 700);
   EXPECT_EQ(run.emulator.disconnects, 1);
   EXPECT_EQ(run.Counter("no_more_data"), 1);
@@ -310,8 +312,9 @@ TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
 
   // Every frame the bridge published is one that was sent, and the stream resumed within
   // 1 s (200 ticks) of QTM accepting connections again at tick 360.
-  const auto sent = ByFrame({run.sent.begin() + static_cast<long>(run.sent.size() / 2),
-                             run.sent.end()});  // after the restart: numbers unique
+  const std::vector<sim::QtmSentFrame> second_half(  // after the restart: numbers unique
+      run.sent.begin() + static_cast<long>(run.sent.size() / 2), run.sent.end());
+  const auto sent = ByFrame(second_half);
   int64_t first_tick_after = -1;
   for (const auto& s : run.sent) {
     if (s.tick >= 360) {
@@ -325,6 +328,20 @@ TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
   ASSERT_TRUE(sent.count(last.frame_number));
   EXPECT_EQ(sent.at(last.frame_number)->tick, 699);
   ExpectMatchesWire(last, *sent.at(last.frame_number), "last frame");
+  // Every frame after the reconnect is the chassis, although it is now listed first.
+  size_t restart = 0;
+  for (size_t i = 1; i < run.published.size(); ++i) {
+    if (run.published[i].frame_number < run.published[i - 1].frame_number) restart = i;
+  }
+  int matched = 0;
+  for (size_t i = restart; i < run.published.size(); ++i) {
+    const auto& m = run.published[i];
+    auto it = sent.find(m.frame_number);
+    if (it == sent.end() || it->second->tick < 360) continue;
+    ExpectMatchesWire(m, *it->second, "frame " + std::to_string(m.frame_number));
+    ++matched;
+  }
+  EXPECT_GE(matched, 100);
 }
 
 TEST(MocapBridgeTest, RefusedVersionIsAConfigurationErrorNotAFallback) {

@@ -84,6 +84,7 @@ QtmEmulator::QtmEmulator(QtmEmulatorOptions options, QtmFrameSource source)
   }
   if (options_.max_clients < 1) throw std::invalid_argument("QtmEmulator: max_clients < 1");
   marker_dropout_until_.assign(options_.labels.size(), -1);
+  decoy_first_ = options_.decoy_body_first;
   Listen();
 }
 
@@ -339,11 +340,13 @@ std::string QtmEmulator::ParametersXml(const std::vector<std::string>& sections,
       orient.append_attribute("Relative_body") = -1;
       orient.text().set("0");
     };
-    if (options_.decoy_body_first) {
+    const auto wand = [&] {
       body("wand", {{0, 0, 0}, {0.25, 0, 0}, {0.5, 0, 0}}, {"wand_1", "wand_2", "wand_3"});
-    }
+    };
+    if (options_.decoy_body_first && decoy_first_) wand();
     body(options_.body_name, options_.body_points_m,
          options_.body_points_m.empty() ? std::vector<std::string>{} : options_.labels);
+    if (options_.decoy_body_first && !decoy_first_) wand();
   }
   std::ostringstream out;
   doc.save(out, "  ", pugi::format_default, pugi::encoding_utf8);
@@ -373,6 +376,7 @@ void QtmEmulator::Tick() {
   const bool disconnected = InAny(f.disconnected, k);
   if (StartsAny(f.disconnected, k)) {
     ++counters_.disconnects;
+    if (options_.reorder_bodies_on_change) decoy_first_ = !decoy_first_;
     Broadcast(EventPacket(qtm::kEventQtmShuttingDown));
     for (auto& c : clients_) ::close(c->fd);
     clients_.clear();
@@ -382,6 +386,7 @@ void QtmEmulator::Tick() {
   if (std::find(f.settings_changed.begin(), f.settings_changed.end(), k) !=
       f.settings_changed.end()) {
     ++counters_.events_sent;
+    if (options_.reorder_bodies_on_change) decoy_first_ = !decoy_first_;
     Broadcast(EventPacket(qtm::kEventCameraSettingsChanged));
   }
   const bool no_data = InAny(f.no_more_data, k);
@@ -430,13 +435,13 @@ void QtmEmulator::Tick() {
   }
   frame.has_bodies = true;
   frame.bodies_have_residuals = true;
-  if (options_.decoy_body_first) {
-    qtm::Body wand;  // lying on the floor, never moving
-    wand.p_GoBo_G_mm = {1500.0, -800.0, 5.0};
-    wand.R_GB.setIdentity();
-    wand.residual_mm = 0.3;
-    frame.bodies.push_back(wand);
-  }
+  qtm::Body wand;  // lying on the floor, never moving
+  wand.p_GoBo_G_mm = {1500.0, -800.0, 5.0};
+  wand.R_GB.setIdentity();
+  wand.residual_mm = 0.3;
+  const bool with_wand = options_.decoy_body_first;
+  if (with_wand && decoy_first_) frame.bodies.push_back(wand);
+  const size_t chassis_index = frame.bodies.size();
   qtm::Body chassis;
   const bool untracked = !pose->body_tracked || InAny(f.untracked, k);
   if (!untracked) {
@@ -445,6 +450,7 @@ void QtmEmulator::Tick() {
     chassis.residual_mm = pose->residual_m * 1000.0;
   }
   frame.bodies.push_back(chassis);
+  if (with_wand && !decoy_first_) frame.bodies.push_back(wand);
 
   if (!(no_data || disconnected || InAny(f.silent, k))) {
     // Encoded once per component set the clients asked for.
@@ -485,7 +491,7 @@ void QtmEmulator::Tick() {
         sent.frame_number = wire.frame_number;
         sent.timestamp_us = wire.timestamp_us;
         sent.corrupt = corrupt;
-        sent.body = wire.bodies.back();
+        sent.body = wire.bodies[chassis_index];
         sent.markers = wire.markers;
         sent.clients = sent_to;
         observer_(sent);

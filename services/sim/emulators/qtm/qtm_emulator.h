@@ -75,6 +75,9 @@ struct QtmEmulatorOptions {
   std::string body_name = "chassis";
   // A second body listed before the chassis, so a client must map bodies by name.
   bool decoy_body_first = true;
+  // With the decoy: swap the two bodies' order at every settings-changed event and every
+  // disconnect (a QTM restart), as a changed project would, so a client must re-map.
+  bool reorder_bodies_on_change = false;
   std::vector<std::string> labels;  // 3D label names; empty: chassis_m01..chassis_m12
   // The chassis' points in its own frame (mm in the XML), one per label; optional.
   std::vector<Eigen::Vector3d> body_points_m;
@@ -158,6 +161,7 @@ class QtmEmulator {
   int64_t tick_ = 0;
   int32_t frame_base_ = 0;  // frame number = tick - frame_base_ + 1 + skipped
   int64_t skipped_ = 0;
+  bool decoy_first_ = true;  // current order of the two bodies (with a decoy)
   std::mt19937_64 rng_;
   std::vector<int64_t> marker_dropout_until_;
   QtmEmulatorCounters counters_;
