@@ -1,0 +1,65 @@
+// The whole method in one call (method.md, steps 1 and 2): hanging recordings and steady
+// standing poses in, a complete calibration file and the parameters of eq. 3 out.
+//
+// Order: step 1 (RunHanging) on the four hanging series gives offsets, leg weights and CoM
+// curves; those are applied to the nominal robot (config) and held fixed while step 2
+// (CalibrateStanding) fits the four mounting models jointly, selects the one with the lowest
+// BIC (5-fold CV MSE reported beside it) and makes its parameters the calibration. Optionally
+// the report's alternating scheme is run on the selected model too, for comparison only.
+#pragma once
+
+#include <array>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "ftcal/dataset.h"
+#include "ftcal/hanging.h"
+#include "ftcal/sensing_model.h"
+#include "ftcal/standing.h"
+#include "proto/calibration.pb.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+// A stage refused its input; what() reads "step 1 (hanging): <the stage's message>" or
+// "step 2 (standing): ...". Derives from std::invalid_argument like the stages' own errors.
+class CalibrationStageError : public std::invalid_argument {
+ public:
+  using std::invalid_argument::invalid_argument;
+};
+
+struct CalibrateOptions {
+  // Also run the report's alternating scheme on the selected model (StandingRun.alternating);
+  // the calibration stays the configured solver's.
+  bool compare_alternating = false;
+};
+
+struct CalibrationRun {
+  HangingResult hanging;
+  RobotCalibration step1;          // nominal robot + step 1 (R~ = I, p~' = 0)
+  StandingResult standing;         // the four fits, Table I, residuals
+  bool has_alternating = false;
+  StandingFit alternating;         // the report's scheme on the selected model
+  RobotCalibration calibration;    // step 1 + the selected model: the parameters of eq. 3
+  calibration::Calibration proto;  // everything, as written to the calibration file
+};
+
+// The nominal robot of the config (X_B_ft, total mass, g0) with no calibration applied.
+RobotCalibration NominalRobot(const config::Config& config);
+
+// Step 1 + step 2 + the calibration file. Options come from config.calibrator() (and
+// config.mocap() for the hanging axis tolerance). Throws CalibrationStageError naming the stage
+// for degenerate input (the stage's message kept in full).
+CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
+                         const std::vector<StandingPose>& poses, const config::Config& config,
+                         const CalibrateOptions& options = CalibrateOptions());
+
+// Step 2 fed from a finished step 1 (for callers that vary only step 2's options).
+CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
+                                    const std::vector<StandingPose>& poses,
+                                    const config::Config& config,
+                                    const StandingOptions& standing_options,
+                                    const CalibrateOptions& options = CalibrateOptions());
+
+}  // namespace ftcal
