@@ -575,7 +575,7 @@ TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKi
   testing::Child emulator(
       {FTCAL_EMULATE_QTM, "--scenario", "walk", "--duration", "14", "--truth", path("truth.csv"),
        "--seed", "5", "--untracked", "2:0.5", "--gap-probability", "0.01", "--corrupt-probability",
-       "0.01", "--settings-changed", "9"},
+       "0.01", "--settings-changed", "9", "--reorder-bodies"},
       path("emulator.out"), path("emulator.err"));
   listener.Pump(0.5);
   auto bridge = std::make_unique<testing::Child>(

@@ -97,6 +97,10 @@ int main(int argc, char** argv) {
   cli.add_option("--disconnect", disconnect,
                  "START_S:DURATION_S QTM shuts down: clients closed, refused meanwhile");
   cli.add_option("--settings-changed", settings_changed, "T_S Camera Settings Changed event");
+  bool reorder_bodies = false;
+  cli.add_flag("--reorder-bodies", reorder_bodies,
+               "swap the chassis and a decoy body in the 6D list at every settings change and "
+               "restart, so a client must re-map bodies by name");
   CLI11_PARSE(cli, argc, argv);
 
   try {
@@ -142,6 +146,7 @@ int main(int argc, char** argv) {
     for (const auto& m : twin.MarkersB()) options.body_points_m.push_back(m);
     options.labels = ftcal::sim::DefaultQtmLabels(ftcal::kNumChassisMarkers);
     options.faults = faults;
+    options.reorder_bodies_on_change = reorder_bodies;
 
     const int64_t total_ticks = std::llround(duration_s * rate_hz);
     ftcal::sim::QtmEmulator emulator(options, [&poses, total_ticks](int64_t tick)
