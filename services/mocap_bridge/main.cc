@@ -59,8 +59,7 @@ int main(int argc, char** argv) {
     }
     app.SetState(ftcal::service_status_t::STOPPING);
   } catch (const ftcal::MocapConfigError& e) {
-    app.log().critical("{}", e.what());
-    app.stats().Error("configuration", e.what());
+    app.stats().Error("configuration", e.what());  // logs it, and the last heartbeat carries it
     app.SetState(ftcal::service_status_t::FAILED);
     rc = 2;
   }
