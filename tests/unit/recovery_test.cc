@@ -100,7 +100,7 @@ void ExpectRotationsWithinBoundButCommonYaw(const StandingFit& fit, const RobotC
 // tilt plus mounting tilt, 2-5 deg): 0.05-0.4 %, i.e. up to ~0.02 N on a 6 N leg, more than
 // the 0.015 N bound and far more than the cycle-spread sigma. So the weight bound is asserted
 // on the exact form, and the first-order form is asserted to carry that bias (low, in range).
-TEST(Recovery, Step1ParametersAgainstTheTruth) {
+void CheckStep1ParametersAgainstTheTruth() {
   const RobotCalibration& truth = Default().twin->Truth();
   for (const bool exact : {false, true}) {
     const RobotCalibration& est = exact ? DefaultExact().calibration : Default().run.calibration;
@@ -131,7 +131,7 @@ TEST(Recovery, Step1ParametersAgainstTheTruth) {
   }
 }
 
-TEST(Recovery, MountingParametersAgainstTheTruth) {
+void CheckMountingParametersAgainstTheTruth() {
   const RobotCalibration& truth = Default().twin->Truth();
   for (const bool exact : {false, true}) {
     const StandingFit& fit = exact ? DefaultExact().standing.fit : Default().run.standing.fit;
@@ -169,7 +169,7 @@ TEST(Recovery, MountingParametersAgainstTheTruth) {
   }
 }
 
-TEST(Recovery, ResidualAtTheNoiseFloorAndBaselinesWorse) {
+void CheckResidualAtTheNoiseFloorAndBaselinesWorse() {
   const Scenario& s = Default();
   const Vec6 k = s.run.standing.options.k_weights;
   const double truth_rms = Rms(TotalWrenchResiduals(s.twin->Truth(), s.poses, false), k);
@@ -191,7 +191,7 @@ TEST(Recovery, ResidualAtTheNoiseFloorAndBaselinesWorse) {
   EXPECT_GT(naive, without);
 }
 
-TEST(Recovery, ModelSelectionPicksFullWithMountingErrors) {
+void CheckModelSelectionPicksFullWithMountingErrors() {
   const Scenario& s = Default();
   for (const ModelSelectionRow& row : s.run.standing.model_selection)
     std::printf("recovery: mounting errors: model %s dof %d cv_mse %.5f rss %.3f bic %.1f%s\n",
@@ -201,7 +201,7 @@ TEST(Recovery, ModelSelectionPicksFullWithMountingErrors) {
   EXPECT_EQ(s.run.proto.model(), calibration::FULL);
 }
 
-TEST(Recovery, ModelSelectionPicksASmallerModelWithoutMountingErrors) {
+void CheckModelSelectionPicksASmallerModelWithoutMountingErrors() {
   const Scenario& s = NoMounting();
   for (const ModelSelectionRow& row : s.run.standing.model_selection)
     std::printf("recovery: no mounting errors: model %s dof %d cv_mse %.5f rss %.3f bic %.1f%s\n",
@@ -213,7 +213,7 @@ TEST(Recovery, ModelSelectionPicksASmallerModelWithoutMountingErrors) {
 // Model 2 (six R~, one p^C_B) is the model whose p^C_B means something: it holds exactly when
 // p~ = 0. The twin tilts transducers about their own origins (p~ = (I - R~) p_B_ft != 0), so
 // the twin whose truth has p~ = 0 is the one without mounting errors (R~ = I as well).
-TEST(Recovery, CoMOffsetFromModelTwo) {
+void CheckCoMOffsetFromModelTwo() {
   const Scenario& s = NoMounting();
   const StandingFit& fit = s.run.standing.fits[1];
   ASSERT_EQ(fit.model, StandingModel::kRotationsOneTranslation);
@@ -225,7 +225,7 @@ TEST(Recovery, CoMOffsetFromModelTwo) {
   EXPECT_LT(e.norm(), 1.5e-3);
 }
 
-TEST(Recovery, AlternatingSchemeAgainstTheJointOptimum) {
+void CheckAlternatingSchemeAgainstTheJointOptimum() {
   const Scenario& s = Default();
   ASSERT_TRUE(s.run.has_alternating);
   const StandingFit& joint = s.run.standing.fits[0];
@@ -242,7 +242,7 @@ TEST(Recovery, AlternatingSchemeAgainstTheJointOptimum) {
   EXPECT_GE(alt.rss, joint.rss * (1.0 - 1e-9));
 }
 
-TEST(Recovery, ExactHangingRotationsRemoveTheWeightBias) {
+void CheckExactHangingRotationsRemoveTheWeightBias() {
   const RobotCalibration& truth = Default().twin->Truth();
   const CalibrationRun& first = Default().run;
   const CalibrationRun& exact = DefaultExact();
@@ -271,18 +271,18 @@ TEST(Recovery, ExactHangingRotationsRemoveTheWeightBias) {
 // With the physical CoM (the legs carry nearly half the mass, so the robot's CoM moves with the
 // shaft angles) the report's fixed-CoM target is wrong by delta x (0, 0, G), a moment of up to
 // ~0.1 N*m that the plain model absorbs into p~'. The leg-aware target (method.md) removes it.
-// Step 1 is the default twin's (exact rotations, to isolate this effect): the truth depends on
-// the seed only, which is checked.
-TEST(Recovery, LegAwareComRemovesTheBiasOfAMovingCoM) {
+// Step 1 with exact rotations, to isolate this effect.
+void CheckLegAwareComRemovesTheBiasOfAMovingCoM() {
   TwinOptions o;
   o.physical_com = true;
   const BigAntTwin twin(SimConfig(), o);
-  for (int k = 0; k < kNumLegs; ++k) {
-    ASSERT_EQ(twin.Truth().leg[k].offset, Default().twin->Truth().leg[k].offset);
-    ASSERT_EQ(twin.Truth().leg[k].R_tilde, Default().twin->Truth().leg[k].R_tilde);
-  }
   const std::vector<StandingPose> poses = twin.MakeSteadyPoses(kAllPoses);
-  const RobotCalibration& step1 = DefaultExact().step1;
+  config::Config config = SimConfig();
+  config.mutable_calibrator()->set_exact_hanging_rotations(true);
+  RobotCalibration step1 = NominalRobot(config);
+  ApplyHangingResult(RunHanging(HangingOf(twin), step1.X_B_ft,
+                                HangingOptionsFromConfig(config.calibrator(), config.mocap())),
+                     &step1);
   StandingOptions options = StandingOptionsFromConfig(SimConfig().calibrator());
   double rot[2] = {0, 0}, pp[2] = {0, 0};
   StandingFit aware_fit;
@@ -305,7 +305,7 @@ TEST(Recovery, LegAwareComRemovesTheBiasOfAMovingCoM) {
   ExpectRotationsWithinBoundButCommonYaw(aware_fit, twin.Truth(), "physical CoM, leg-aware");
 }
 
-TEST(Recovery, CalibrationFileIsComplete) {
+void CheckCalibrationFileIsComplete() {
   const calibration::Calibration& p = Default().run.proto;
   ASSERT_EQ(p.leg_size(), kNumLegs);
   for (int k = 0; k < kNumLegs; ++k) {
@@ -332,7 +332,7 @@ TEST(Recovery, CalibrationFileIsComplete) {
   EXPECT_EQ(p.robot_name(), SimConfig().robot().name());
 }
 
-TEST(Recovery, DegenerateInputNamesTheStage) {
+void CheckDegenerateInputNamesTheStage() {
   const Scenario& s = Default();
   const config::Config config = SimConfig();
   std::vector<HangingRecording> three(s.hanging.begin(), s.hanging.begin() + 3);
@@ -352,6 +352,26 @@ TEST(Recovery, DegenerateInputNamesTheStage) {
     EXPECT_EQ(std::string(e.what()).rfind("step 2 (standing): ", 0), 0u) << e.what();
   }
 }
+
+// One test per twin scenario: ctest runs every test in its own process, and the scenarios (twin
+// data and calibration) are the cost.
+TEST(Recovery, DefaultTwin) {
+  for (void (*check)() : {CheckStep1ParametersAgainstTheTruth, CheckMountingParametersAgainstTheTruth,
+                          CheckResidualAtTheNoiseFloorAndBaselinesWorse,
+                          CheckModelSelectionPicksFullWithMountingErrors,
+                          CheckAlternatingSchemeAgainstTheJointOptimum,
+                          CheckExactHangingRotationsRemoveTheWeightBias,
+                          CheckCalibrationFileIsComplete, CheckDegenerateInputNamesTheStage}) {
+    check();
+  }
+}
+
+TEST(Recovery, TwinWithoutMountingErrors) {
+  CheckModelSelectionPicksASmallerModelWithoutMountingErrors();
+  CheckCoMOffsetFromModelTwo();
+}
+
+TEST(Recovery, TwinWithPhysicalCoM) { CheckLegAwareComRemovesTheBiasOfAMovingCoM(); }
 
 }  // namespace
 }  // namespace ftcal
