@@ -444,13 +444,8 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
         break;
       default:
         ++t.c.stale;
-        // The box is reachable and still sends an older stream (after a network outage, or
-        // it has not yet seen our start): ask again after the silence timeout rather than the
-        // full back-off, but not sooner, or every re-send would begin yet another stream.
-        if (t.silent) {
-          t.next_request = std::min(t.next_request,
-                                    t.last_request + Seconds(options_.silence_timeout_s));
-        }
+        // No earlier re-send for these: the box may simply not have served our start yet, and
+        // every re-send begins yet another stream; the back-off paces them.
         if (!t.logged_stale) {
           t.logged_stale = true;
           log_->info("{}: record of a previous stream (rdt_sequence {}) dropped (counted from now "

@@ -3,7 +3,7 @@
 // seconds. Prints per leg what was sent, received, lost and published, the bridge's CPU time
 // (wait4 rusage) and its receipt-to-publish latency p50/p99, measured in the bridge from the
 // kernel's receive timestamp (SO_TIMESTAMPNS) and from the clock when recvmmsg returned, as its
-// final heartbeat reports them. Must run inside scripts/netns-exec (ctest does).
+// exit summary reports them. Must run inside scripts/netns-exec (ctest does).
 //
 //   scripts/netns-exec build/tests/bench/ati_bridge_bench --duration 5
 #include <signal.h>
@@ -19,6 +19,7 @@
 #include <cstdlib>
 #include <fstream>
 #include <map>
+#include <memory>
 #include <mutex>
 #include <sstream>
 #include <string>
@@ -29,7 +30,6 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "ftcal/ft_sample_t.hpp"
-#include "ftcal/service_status_t.hpp"
 
 extern char** environ;
 
@@ -83,7 +83,6 @@ class Listener {
  public:
   Listener() : lcm_(kUrl) {
     lcm_.subscribe("FT_.*", &Listener::OnSample, this);
-    lcm_.subscribe("FTCAL_STATUS", &Listener::OnStatus, this);
     thread_ = std::thread([this] {
       while (!stop_) lcm_.handleTimeout(50);
     });
@@ -96,36 +95,18 @@ class Listener {
     std::lock_guard<std::mutex> lock(mu_);
     ++heard_[channel.substr(3)];
   }
-  void OnStatus(const lcm::ReceiveBuffer* rbuf, const std::string&) {
-    ftcal::service_status_t s;
-    if (s.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) < 0) return;
-    std::lock_guard<std::mutex> lock(mu_);
-    last_status_[s.pid] = s;
-  }
   std::map<std::string, long long> heard() {
     std::lock_guard<std::mutex> lock(mu_);
     return heard_;
   }
-  std::map<long long, ftcal::service_status_t> statuses() {
-    std::lock_guard<std::mutex> lock(mu_);
-    return last_status_;
-  }
-
  private:
   lcm::LCM lcm_;
   std::atomic<bool> stop_{false};
   std::thread thread_;
   std::mutex mu_;
   std::map<std::string, long long> heard_;
-  std::map<long long, ftcal::service_status_t> last_status_;
 };
 
-long long CounterOf(const ftcal::service_status_t& s, const std::string& name) {
-  for (int i = 0; i < s.num_counters; ++i) {
-    if (s.counter_name[i] == name) return s.counter_value[i];
-  }
-  return -1;
-}
 
 }  // namespace
 
@@ -135,6 +116,10 @@ int main(int argc, char** argv) {
   double duration_s = 60;
   int bridges = 1;
   int rate_hz = 7000;
+  bool listen = false;
+  cli.add_flag("--listen", listen,
+               "also count the samples on LCM in this program (costs the machine a core's "
+               "share at full rate; the figures come from the bridge's own exit summary)");
   cli.add_option("--duration", duration_s, "seconds of streaming")->capture_default_str();
   cli.add_option("--bridges", bridges, "1: one bridge for all six legs; 6: one per leg")
       ->check(CLI::IsMember({1, 6}))
@@ -162,17 +147,18 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "emulator not ready: %s\n", ReadFile(dir + "/emulator.err").c_str());
     return 1;
   }
-  Listener listener;
+  std::unique_ptr<Listener> listener;
+  if (listen) listener = std::make_unique<Listener>();
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
 
   std::vector<pid_t> bridge_pids;
   if (bridges == 1) {
-    bridge_pids.push_back(Spawn({FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level", "warn"},
+    bridge_pids.push_back(Spawn({FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level", "info"},
                                 dir + "/bridge.err"));
   } else {
     for (const auto& leg : kLegs) {
       bridge_pids.push_back(Spawn(
-          {FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level", "warn", "--legs", leg},
+          {FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level", "info", "--legs", leg},
           dir + "/bridge-" + leg + ".err"));
     }
   }
@@ -193,49 +179,61 @@ int main(int argc, char** argv) {
       sent[leg] = datagrams;
     }
   }
-  const auto heard = listener.heard();
-  const auto statuses = listener.statuses();
+  const auto heard = listener ? listener->heard() : std::map<std::string, long long>{};
+
+  // The bridge's exit summary (its log): per leg "HL: received N published N lost N ...", then
+  // "latency receipt->published: p50 A us p99 B us (kernel timestamp: p50 C us p99 D us)".
+  struct Figures {
+    long long received = -1, published = -1, lost = -1;
+  };
+  std::map<std::string, Figures> figures;
+  std::vector<std::string> latency(bridge_pids.size());
+  for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
+    const std::string err =
+        ReadFile(dir + (bridges == 1 ? std::string("/bridge.err") : "/bridge-" + kLegs[i] + ".err"));
+    std::istringstream in(err);
+    for (std::string line; std::getline(in, line);) {
+      for (const auto& leg : kLegs) {
+        const auto at = line.find("] " + leg + ": received ");
+        if (at == std::string::npos) continue;
+        std::istringstream words(line.substr(at + 2 + leg.size() + 2));
+        std::string k1, k2, k3;
+        Figures f;
+        words >> k1 >> f.received >> k2 >> f.published >> k3 >> f.lost;
+        figures[leg] = f;
+      }
+      const auto at = line.find("latency receipt->published: ");
+      if (at != std::string::npos) latency[i] = line.substr(at + 28);
+    }
+  }
 
   std::printf("ati_bridge_bench: %d boxes x %d records/s for %.1f s on loopback, %d bridge "
               "process(es)\n", 6, rate_hz, duration_s, bridges);
   std::printf("%-4s %10s %10s %10s %8s %10s %10s\n", "leg", "sent", "received", "published",
               "lost", "heard_lcm", "recv/sent");
-  long long total_sent = 0, total_received = 0, total_lost = 0;
-  for (std::size_t i = 0; i < kLegs.size(); ++i) {
-    const std::string& leg = kLegs[i];
-    const pid_t pid = bridge_pids[bridges == 1 ? 0 : i];
-    const auto it = statuses.find(pid);
-    long long received = -1, published = -1, lost = -1;
-    if (it != statuses.end()) {
-      received = CounterOf(it->second, leg + ".received");
-      published = CounterOf(it->second, leg + ".published");
-      lost = CounterOf(it->second, leg + ".lost");
-    }
+  long long total_sent = 0, total_received = 0, total_published = 0, total_lost = 0;
+  for (const auto& leg : kLegs) {
+    const Figures f = figures.count(leg) ? figures.at(leg) : Figures{};
     const long long s = sent.count(leg) ? sent.at(leg) : -1;
-    const long long h = heard.count(leg) ? heard.at(leg) : 0;
+    const long long h = heard.count(leg) ? heard.at(leg) : -1;
     total_sent += s;
-    total_received += received;
-    total_lost += lost;
-    std::printf("%-4s %10lld %10lld %10lld %8lld %10lld %10.6f\n", leg.c_str(), s, received,
-                published, lost, h, s > 0 ? double(received) / double(s) : 0.0);
+    total_received += f.received;
+    total_published += f.published;
+    total_lost += f.lost;
+    std::printf("%-4s %10lld %10lld %10lld %8lld %10lld %10.6f\n", leg.c_str(), s, f.received,
+                f.published, f.lost, h, s > 0 ? double(f.received) / double(s) : 0.0);
   }
-  std::printf("total: sent %lld received %lld lost %lld (heard_lcm: what this program's own "
-              "LCM listener kept up with, for information)\n", total_sent, total_received,
-              total_lost);
+  std::printf("total: sent %lld received %lld published %lld lost (by rdt_sequence) %lld\n",
+              total_sent, total_received, total_published, total_lost);
   for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
-    const auto it = statuses.find(bridge_pids[i]);
-    std::printf("bridge %zu: CPU %.2f s = %.1f%% of one core", i, ended[i].cpu_s,
-                100.0 * ended[i].cpu_s / duration_s);
-    if (it != statuses.end()) {
-      std::printf("; latency receipt->published p50 %lld us p99 %lld us (user clock at "
-                  "recvmmsg), p50 %lld us p99 %lld us (kernel SO_TIMESTAMPNS)",
-                  CounterOf(it->second, "latency_p50_us"), CounterOf(it->second, "latency_p99_us"),
-                  CounterOf(it->second, "kernel_latency_p50_us"),
-                  CounterOf(it->second, "kernel_latency_p99_us"));
-    } else {
-      std::printf("; no final heartbeat heard");
-    }
-    std::printf("\n");
+    std::printf("bridge %zu: CPU %.2f s = %.1f%% of one core; latency receipt->published %s\n", i,
+                ended[i].cpu_s, 100.0 * ended[i].cpu_s / duration_s,
+                latency[i].empty() ? "(no summary)" : latency[i].c_str());
+  }
+  double load[3] = {0, 0, 0};
+  if (::getloadavg(load, 3) == 3) {
+    std::printf("machine load average %.2f %.2f %.2f on %ld cores (figures are only as good as "
+                "the machine is quiet)\n", load[0], load[1], load[2], ::sysconf(_SC_NPROCESSORS_ONLN));
   }
   std::printf("emulator: CPU %.2f s\n", emu.cpu_s);
   return 0;
