@@ -5,6 +5,7 @@
 // log and lcm-logger recording, giving the same STEADY_POSEs as --replay.
 #include <signal.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
@@ -41,6 +42,7 @@ constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
 constexpr int64_t kT0 = 1'700'000'000'000'000;  // us, the log's first frame
 constexpr int kPoses = 3;
 const std::string kSession = "stages-test";
+constexpr size_t kBadEvents = 6;
 
 const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
 
@@ -175,6 +177,7 @@ struct Fixture {
   std::vector<TwinFrame> frames;
   std::string log_path;              // calibration v1, a corrupt one, then v2 halfway
   std::string log_no_cal_path;       // no calibration at all
+  std::string log_bad_path;          // log_path with kBadEvents bad inputs at frame 100
   int64_t v2_utime = 0;
 };
 Fixture* fx = nullptr;
@@ -219,6 +222,50 @@ class StagesTest : public ::testing::Test {
     fx->log_no_cal_path = fx->dir + "/in_no_cal.lcmlog";
     WriteLog(fx->log_path, events);
     WriteLog(fx->log_no_cal_path, no_cal);
+
+    // The same log with bad inputs just before frame 100's events: every one must be counted
+    // as a drop and change nothing.
+    const int64_t t100 = Utime(fx->frames[100].t_s), t99 = Utime(fx->frames[99].t_s);
+    std::vector<Event> bad;
+    ft_sample_t ft{};
+    ft.utime = t100 - 5;
+    ft.leg = "HL";
+    ft.wrench[2] = std::nan("");
+    bad.push_back(Encode(t100 - 5, ch.ft_prefix() + "HL", ft));  // NaN
+    ft.wrench[2] = 1.0;
+    bad.push_back(Encode(t100 - 5, ch.ft_prefix() + "ML", ft));  // another leg's sample
+    ft.leg = "HR";
+    ft.utime = t99;
+    bad.push_back(Encode(t100 - 4, ch.ft_prefix() + "HR", ft));  // not newer than HR's last
+    bad.push_back(Event{t100 - 4, ch.ft_prefix() + "FR", {1, 2, 3, 4, 5}});  // undecodable
+    servo_state_t servo{};
+    servo.utime = t100 - 3;
+    servo.num_servos = 1;
+    servo.leg = {"HL"};
+    servo.id = {1};
+    servo.angle_rad = {0.0};
+    servo.velocity_rad_s = {0.0};
+    servo.current_a = {0.0};
+    servo.hardware_error = {0};
+    servo.device_tick_ms = {0};
+    servo.flags = {0};
+    bad.push_back(Encode(t100 - 3, ch.servo_state(), servo));  // five legs missing
+    mocap_body_t body{};
+    body.utime = t100 - 2;
+    body.body = fx->config.mocap().body_name();
+    body.tracked = true;
+    body.q_wc[0] = 2.0;  // not a unit quaternion
+    bad.push_back(Encode(t100 - 2, ch.mocap_body(), body));
+    std::vector<Event> with_bad;
+    for (const Event& e : events) {
+      if (e.utime == t100 && e.channel == ch.ft_prefix() + "HL") {
+        with_bad.insert(with_bad.end(), bad.begin(), bad.end());
+      }
+      with_bad.push_back(e);
+    }
+    ASSERT_EQ(with_bad.size(), events.size() + kBadEvents);
+    fx->log_bad_path = fx->dir + "/in_bad.lcmlog";
+    WriteLog(fx->log_bad_path, with_bad);
   }
   static void TearDownTestSuite() {
     testing::RemoveTree(fx->dir);
@@ -360,6 +407,41 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
   ASSERT_EQ(status.size(), 1u);
   EXPECT_NE(status[0].last_error.find("refused calibration"), std::string::npos)
       << status[0].last_error;
+}
+
+// Comparable outputs of two runs: every event on `channel`, raw bytes, FTCAL_STATUS aside.
+std::vector<std::vector<uint8_t>> RawChannel(const std::string& path, const std::string& channel) {
+  std::vector<std::vector<uint8_t>> out;
+  lcm::LogFile log(path, "r");
+  while (const lcm::LogEvent* e = log.readNextEvent()) {
+    if (e->channel != channel) continue;
+    const auto* b = static_cast<const uint8_t*>(e->data);
+    out.emplace_back(b, b + e->datalen);
+  }
+  return out;
+}
+
+TEST_F(StagesTest, BadInputsAreCountedAsDropsAndChangeNoOutput) {
+  const auto& ch = fx->config.channels();
+  for (const char* exe : {FTCAL_POSE_SEGMENTER, FTCAL_CORRECTOR}) {
+    const std::string tag = std::string(exe).substr(std::string(exe).rfind('/') + 1);
+    const std::string clean = Replay(exe, fx->log_path, tag + "_clean");
+    const std::string dirty = Replay(exe, fx->log_bad_path, tag + "_dirty");
+    for (const std::string& channel : {ch.sync_sample(), ch.steady_pose(), ch.contact_wrench()}) {
+      const auto a = RawChannel(clean, channel), b = RawChannel(dirty, channel);
+      ASSERT_EQ(a.size(), b.size()) << tag << " " << channel;
+      // STEADY_POSE's utime is the publish time (the input event's): compare from byte 16 on
+      // (fingerprint, utime).
+      const size_t skip = channel == ch.steady_pose() ? 16 : 0;
+      for (size_t i = 0; i < a.size(); ++i) {
+        ASSERT_TRUE(std::equal(a[i].begin() + skip, a[i].end(), b[i].begin() + skip, b[i].end()))
+            << tag << " " << channel << " #" << i;
+      }
+    }
+    const auto status = ReadChannel<service_status_t>(dirty, ch.status());
+    ASSERT_EQ(status.size(), 1u);
+    EXPECT_EQ(status[0].drops, static_cast<int64_t>(kBadEvents)) << tag;
+  }
 }
 
 TEST_F(StagesTest, CorrectorWithoutACalibrationPublishesNothingAndSaysWhy) {
