@@ -254,9 +254,15 @@ void AtiBridge::Start() {
 
     t.fd = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
     if (t.fd < 0) throw AtiBridgeError("leg " + t.leg + ": socket: " + std::strerror(errno));
-    // Large receive buffer: a scheduling hiccup of the bridge must not cost records.
-    ::setsockopt(t.fd, SOL_SOCKET, SO_RCVBUF, &options_.receive_buffer_bytes,
-                 sizeof options_.receive_buffer_bytes);
+    // Large receive buffer: a scheduling hiccup of the bridge must not cost records. SO_RCVBUF
+    // is capped at net.core.rmem_max (~200 kB by default, ~40 ms at 7000 records/s, since each
+    // datagram is charged its whole buffer); SO_RCVBUFFORCE passes the cap where we have
+    // CAP_NET_ADMIN (as root, or as the owner of our network namespace).
+    if (::setsockopt(t.fd, SOL_SOCKET, SO_RCVBUFFORCE, &options_.receive_buffer_bytes,
+                     sizeof options_.receive_buffer_bytes) != 0) {
+      ::setsockopt(t.fd, SOL_SOCKET, SO_RCVBUF, &options_.receive_buffer_bytes,
+                   sizeof options_.receive_buffer_bytes);
+    }
     const int one = 1;
     ::setsockopt(t.fd, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one);
     sockaddr_in any{};
@@ -269,7 +275,10 @@ void AtiBridge::Start() {
     int granted = 0;
     socklen_t len = sizeof granted;
     ::getsockopt(t.fd, SOL_SOCKET, SO_RCVBUF, &granted, &len);
-    log_->debug("{}: receive buffer {} bytes", t.leg, granted);
+    if (granted < options_.receive_buffer_bytes) {
+      log_->info("{}: receive buffer {} bytes of the {} asked (raise net.core.rmem_max)", t.leg,
+                 granted, options_.receive_buffer_bytes);
+    }
 
     const auto now = Clock::now();
     SendRequest(t, rdt::Command::kRealtime);
@@ -558,6 +567,13 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
   const auto deadline =
       std::max(t.last_record + Seconds(options_.silence_timeout_s), t.next_request);
   if (now < deadline) return;
+  // Records may have arrived since poll() looked (a process descheduled between poll() and
+  // here would otherwise take its own lateness for the box's silence).
+  HandleSocket(t);
+  if (Clock::now() < std::max(t.last_record + Seconds(options_.silence_timeout_s),
+                              t.next_request)) {
+    return;
+  }
   if (!t.silent) {
     t.silent = true;
     ++t.c.silences;
