@@ -178,6 +178,8 @@ struct Fixture {
   std::string log_path;              // calibration v1, a corrupt one, then v2 halfway
   std::string log_no_cal_path;       // no calibration at all
   std::string log_bad_path;          // log_path with kBadEvents bad inputs at frame 100
+  std::string log_head_path;         // log_path up to the middle of pose 1's dwell ...
+  std::string log_tail_path;         // ... and the rest, opened by a repeated STANDING marker
   int64_t v2_utime = 0;
 };
 Fixture* fx = nullptr;
@@ -266,6 +268,20 @@ class StagesTest : public ::testing::Test {
     ASSERT_EQ(with_bad.size(), events.size() + kBadEvents);
     fx->log_bad_path = fx->dir + "/in_bad.lcmlog";
     WriteLog(fx->log_bad_path, with_bad);
+
+    // A segmenter restart in the middle of pose 1's steady part (the sequencer repeats its
+    // marker, so the new process knows the phase).
+    size_t split_frame = 0;
+    while (!(fx->frames[split_frame].segment == 1 && fx->frames[split_frame].steady)) ++split_frame;
+    split_frame += 50;
+    const int64_t t_split = Utime(fx->frames[split_frame].t_s);
+    std::vector<Event> head, tail;
+    tail.push_back(Encode(t_split - 1, ch.experiment(), Marker(t_split - 1, true)));
+    for (const Event& e : events) (e.utime < t_split ? head : tail).push_back(e);
+    fx->log_head_path = fx->dir + "/in_head.lcmlog";
+    fx->log_tail_path = fx->dir + "/in_tail.lcmlog";
+    WriteLog(fx->log_head_path, head);
+    WriteLog(fx->log_tail_path, tail);
   }
   static void TearDownTestSuite() {
     testing::RemoveTree(fx->dir);
@@ -441,6 +457,31 @@ TEST_F(StagesTest, BadInputsAreCountedAsDropsAndChangeNoOutput) {
     const auto status = ReadChannel<service_status_t>(dirty, ch.status());
     ASSERT_EQ(status.size(), 1u);
     EXPECT_EQ(status[0].drops, static_cast<int64_t>(kBadEvents)) << tag;
+  }
+}
+
+// Restarted mid-pose, the segmenter loses at most the pose in progress: the poses before and
+// after it come out as in one uninterrupted run (the index restarts with the process).
+TEST_F(StagesTest, SegmenterRestartedMidPoseLosesAtMostThatPose) {
+  const auto& ch = fx->config.channels();
+  const auto whole = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_path, "whole"), ch.steady_pose());
+  const auto head = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_head_path, "head"), ch.steady_pose());
+  const auto tail = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_tail_path, "tail"), ch.steady_pose());
+  ASSERT_EQ(whole.size(), static_cast<size_t>(kPoses));
+  auto same = [](const steady_pose_t& a, const steady_pose_t& b) {
+    return a.session_id == b.session_id && a.start_utime == b.start_utime &&
+           a.end_utime == b.end_utime && a.num_samples == b.num_samples && a.wrench == b.wrench &&
+           a.angle_rad == b.angle_rad;
+  };
+  ASSERT_EQ(head.size(), 1u) << "pose 0; pose 1 was in progress";
+  EXPECT_TRUE(same(head[0], whole[0]));
+  // The tail sees the rest of pose 1's steady part (a shorter pose, or none) and all of pose 2.
+  ASSERT_GE(tail.size(), 1u);
+  ASSERT_LE(tail.size(), 2u);
+  EXPECT_TRUE(same(tail.back(), whole[2]));
+  if (tail.size() == 2) {
+    EXPECT_EQ(tail[0].end_utime, whole[1].end_utime);
+    EXPECT_LT(tail[0].num_samples, whole[1].num_samples);
   }
 }
 
