@@ -22,6 +22,7 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 constexpr int kBatch = 64;             // datagrams per recvmmsg
+constexpr int kMaxBatchesPerCall = 4;  // per socket, before the others get their turn
 constexpr std::size_t kSlotBytes = 1536;  // an Ethernet frame: the largest buffered datagram we take
 constexpr auto kCalibrationRetry = std::chrono::seconds(1);
 
@@ -343,7 +344,10 @@ int AtiBridge::Poll(int timeout_ms) {
 }
 
 void AtiBridge::HandleSocket(Transducer& t) {
-  for (;;) {
+  // A bounded number of batches per call: a bridge that has fallen behind serves its sockets in
+  // turn (poll() returns at once while any has data) instead of draining the first one while
+  // the last one's buffer overflows.
+  for (int batches = 0; batches < kMaxBatchesPerCall; ++batches) {
     for (int i = 0; i < kBatch; ++i) {
       msghdr& h = t.headers[i].msg_hdr;
       h.msg_name = &t.sources[i];
