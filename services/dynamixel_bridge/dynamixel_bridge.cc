@@ -219,6 +219,7 @@ void DynamixelBridge::SendPendingWrites() {
 
 void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
   const auto now = Clock::now();
+  std::vector<bool> repeated(servos_.size(), false);
   *fresh = Transact(
       dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, ids_), ids_,
       [&](std::size_t i, const dxl::StatusPacket& p) {
@@ -237,6 +238,20 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
           return false;
         }
         const dxl::PresentState st = dxl::DecodePresentBlock(p.params.data(), p.params.size());
+        // Protocol 2.0 has no sequence number: under load a reply that missed its deadline can
+        // arrive during the next request and look like its answer. The Realtime Tick is the
+        // only witness: a block with the tick of the last one accepted is that same late
+        // reply (or a second read within one ms, which says nothing new either): this cycle
+        // publishes that servo STALE rather than the same sample twice.
+        if (s.ever_read && st.realtime_tick_ms == s.last_raw_tick) {
+          ++stats_.Counter("repeated_tick");
+          stats_.Drop("repeated Realtime Tick",
+                      ServoName(s.id, s.leg) + " sent a present block with the tick of the last "
+                                               "one (a late reply); not published again");
+          repeated[i] = true;
+          return true;
+        }
+        s.last_raw_tick = st.realtime_tick_ms;
         if (s.ever_read && now - s.last_read > std::chrono::duration_cast<Clock::duration>(
                                                    std::chrono::duration<double>(
                                                        kTickUnwrapMaxGapS))) {
@@ -260,6 +275,7 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
       });
   for (std::size_t i = 0; i < servos_.size(); ++i) {
     ServoSlot& s = servos_[i];
+    if (repeated[i]) (*fresh)[i] = false;
     if ((*fresh)[i]) continue;
     ++s.consecutive_misses;
     ++stats_.Counter("stale");

@@ -79,6 +79,7 @@ class DynamixelBridge {
     double angle_rad = 0, velocity_rad_s = 0, current_a = 0;
     dxl::TickUnwrapper ticks;
     std::int64_t tick_ms = 0;
+    std::uint16_t last_raw_tick = 0;
     std::int32_t hardware_error = 0;
     int torque_enable = -1;  // -1 unknown
     bool alert = false;

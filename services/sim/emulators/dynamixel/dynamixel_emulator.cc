@@ -527,7 +527,7 @@ void PtyBus::Close() {
   slave_path_.clear();
 }
 
-bool PtyBus::ServeOnce(int timeout_ms, double now_s) {
+bool PtyBus::ServeOnce(int timeout_ms, const std::function<double()>& clock_s) {
   if (!is_open()) return false;
   pollfd pfd{master_fd_, POLLIN, 0};
   const int r = ::poll(&pfd, 1, timeout_ms);
@@ -536,7 +536,7 @@ bool PtyBus::ServeOnce(int timeout_ms, double now_s) {
   const ssize_t n = ::read(master_fd_, buf, sizeof buf);
   if (n <= 0) return true;
   const std::vector<std::uint8_t> reply =
-      emulator_.Receive(buf, static_cast<std::size_t>(n), now_s);
+      emulator_.Receive(buf, static_cast<std::size_t>(n), clock_s());
   std::size_t done = 0;
   int waits = 0;
   while (done < reply.size()) {

@@ -185,9 +185,10 @@ class PtyBus {
   int master_fd() const { return master_fd_; }
   const std::string& slave_path() const { return slave_path_; }
 
-  // Waits up to `timeout_ms` for bytes from the bridge, hands them to the emulator at `now_s`
-  // and writes its answer back. Returns false when closed.
-  bool ServeOnce(int timeout_ms, double now_s);
+  // Waits up to `timeout_ms` for bytes from the bridge, hands them to the emulator at the time
+  // `clock_s()` gives when they arrived (seconds on the emulator's clock) and writes its answer
+  // back. Returns false when closed.
+  bool ServeOnce(int timeout_ms, const std::function<double()>& clock_s);
 
  private:
   DynamixelBusEmulator& emulator_;

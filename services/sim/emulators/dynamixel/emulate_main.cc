@@ -254,7 +254,9 @@ int main(int argc, char** argv) {
         std::fflush(stdout);
       }
       if (bus.is_open()) {
-        bus.ServeOnce(2, now_s);
+        bus.ServeOnce(2, [&t0] {
+          return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        });
       } else {
         ::usleep(2000);
       }
