@@ -35,6 +35,8 @@ std::string DefaultTruthPath(const std::string& log_path) {
 int main(int argc, char** argv) {
   CLI::App cli{"ftcal-sim: the BigAnt twin (truth model) as a program."};
   cli.require_subcommand(1);
+  // --config may come before or after the subcommand.
+  cli.fallthrough();
   std::string config_path;
   cli.add_option("--config", config_path,
                  "config file (default: the embedded config/sim.pbtxt)");
