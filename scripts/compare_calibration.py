@@ -1,0 +1,126 @@
+#!/usr/bin/python3
+"""Compares a calibration file with the twin's truth file, parameter class by parameter class.
+
+    scripts/compare_calibration.py CAL.pbtxt TRUTH.pbtxt [--label NAME]
+
+Prints each class's largest error beside its bound (the method issue's recovery bounds) and a
+PASS/FAIL verdict; exits 1 if any class fails. Both files follow libcal/proto/calibration.proto.
+"""
+import argparse
+import math
+import os
+import sys
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+BUILD = os.environ.get("FTCAL_BUILD_DIR", os.path.join(HERE, "..", "build"))
+sys.path.insert(0, os.path.join(BUILD, "python"))
+try:
+    import calibration_pb2  # generated at build time by protoc
+    from google.protobuf import text_format
+except ImportError as e:  # a clear message instead of a traceback
+    sys.exit(f"compare_calibration: cannot import the calibration schema from {BUILD}/python "
+             f"(build first with scripts/setup): {e}")
+
+# (class, bound, unit) from the method issue's recovery tests.
+BOUNDS = {
+    "leg weight": (0.015, "N"),
+    "force offsets": (0.02, "N"),
+    "torque offsets": (0.001, "N*m"),
+    "leg CoM curve": (0.2e-3, "m"),
+    "mounting rotations": (0.15, "deg"),
+    "p~' (mounting translations)": (0.5e-3, "m"),
+}
+
+
+def load(path):
+    cal = calibration_pb2.Calibration()
+    try:
+        with open(path) as f:
+            text_format.Parse(f.read(), cal)
+    except (OSError, text_format.ParseError) as e:
+        sys.exit(f"compare_calibration: {path}: {e}")
+    return cal
+
+
+def vec(v):
+    return np.array([v.x, v.y, v.z])
+
+
+def sinus(fit, phase):
+    return fit.a_m * np.sin(2 * np.pi * phase + fit.c_rad) + fit.d_m
+
+
+def com_curve(com, phase):
+    return np.stack([sinus(com.x, phase), np.full_like(phase, com.y_m.value), sinus(com.z, phase)])
+
+
+def quat_to_rot(q):
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def rotation_angle_deg(R):
+    return math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("calibration")
+    ap.add_argument("truth")
+    ap.add_argument("--label", default="")
+    args = ap.parse_args()
+    cal, truth = load(args.calibration), load(args.truth)
+
+    truth_legs = {l.name: l for l in truth.leg}
+    if [l.name for l in cal.leg] != [l.name for l in truth.leg]:
+        sys.exit(f"compare_calibration: legs differ: {[l.name for l in cal.leg]} vs {[l.name for l in truth.leg]}")
+
+    phase = np.linspace(0, 1, 400, endpoint=False)
+    worst = {k: (0.0, "") for k in BOUNDS}
+
+    def note(cls, err, leg):
+        if err > worst[cls][0] or not math.isfinite(err):
+            worst[cls] = (err, leg)
+
+    has_mounting = all(l.HasField("mounting") and len(l.mounting.quaternion_wxyz) == 4 for l in cal.leg)
+    for l in cal.leg:
+        t = truth_legs[l.name]
+        note("leg weight", abs(l.leg_weight_n.value - t.leg_weight_n.value), l.name)
+        note("force offsets", np.max(np.abs(vec(l.force_offset_n) - vec(t.force_offset_n))), l.name)
+        note("torque offsets", np.max(np.abs(vec(l.torque_offset_nm) - vec(t.torque_offset_nm))), l.name)
+        d = np.linalg.norm(com_curve(l.com, phase) - com_curve(t.com, phase), axis=0)
+        note("leg CoM curve", float(np.max(d)), l.name)
+        if has_mounting:
+            R = quat_to_rot(l.mounting.quaternion_wxyz)
+            Rt = quat_to_rot(t.mounting.quaternion_wxyz)
+            note("mounting rotations", rotation_angle_deg(R.T @ Rt), l.name)
+            note("p~' (mounting translations)",
+                 float(np.linalg.norm(vec(l.mounting.p_tilde_prime_m) - vec(t.mounting.p_tilde_prime_m))), l.name)
+
+    title = f" {args.label}" if args.label else ""
+    print(f"Recovered parameters vs truth{title} (model {calibration_pb2.StandingModel.Name(cal.model)}):")
+    print(f"  {'class':30s} {'largest error':>16s} {'bound':>12s}  leg  verdict")
+    failed = False
+    for cls, (bound, unit) in BOUNDS.items():
+        if not has_mounting and cls in ("mounting rotations", "p~' (mounting translations)"):
+            print(f"  {cls:30s} {'(not in file)':>16s}")
+            continue
+        err, leg = worst[cls]
+        scale = 1e3 if unit == "m" else 1.0
+        shown_unit = "mm" if unit == "m" else unit
+        ok = math.isfinite(err) and err <= bound
+        failed |= not ok
+        print(f"  {cls:30s} {err * scale:12.5f} {shown_unit:3s} {bound * scale:8.4f} {shown_unit:3s}  "
+              f"{leg:3s}  {'PASS' if ok else 'FAIL'}")
+    for s in cal.standing_residual:
+        if s.rms:
+            print(f"  residual rms [{s.label}]: " + " ".join(f"{v:.4f}" for v in s.rms))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
