@@ -1,0 +1,296 @@
+"""The calibration report: DIR/index.html and the PNGs it shows, from a calibration file, its
+per-pose residuals (the CSV ftcal-calibrator writes beside it) and optionally the twin's truth.
+
+Every number on the page is read from those files; nothing is copied by hand. Run through
+scripts/report, which picks Debian's python3 (numpy, matplotlib, python3-protobuf) and finds the
+generated calibration_pb2.py in the build tree.
+"""
+import argparse
+import csv
+import html
+import math
+import os
+import sys
+import tempfile
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from google.protobuf import text_format  # noqa: E402
+
+import calibration_pb2  # noqa: E402  (generated; scripts/report puts it on sys.path)
+
+COMPONENTS = ["fx (N)", "fy (N)", "fz (N)", "tx (N m)", "ty (N m)", "tz (N m)"]
+VARIANTS = ["naive tare", "without T~", "full calibration"]
+
+
+class ReportError(Exception):
+    pass
+
+
+def read_calibration(path):
+    cal = calibration_pb2.Calibration()
+    try:
+        with open(path, encoding="utf-8") as f:
+            text_format.Parse(f.read(), cal)
+    except OSError as e:
+        raise ReportError(f"{path}: {e.strerror}")
+    except text_format.ParseError as e:
+        raise ReportError(f"{path}: {e}")
+    if len(cal.leg) == 0:
+        raise ReportError(f"{path}: no legs in the calibration")
+    return cal
+
+
+def read_residuals(path):
+    """{variant: array (poses x 6)} from pose,variant,fx_n,...,tz_nm rows."""
+    out = {v: [] for v in VARIANTS}
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None or header[:2] != ["pose", "variant"] or len(header) != 8:
+                raise ReportError(f"{path}: header is not pose,variant,fx_n,...,tz_nm")
+            for line, row in enumerate(reader, start=2):
+                if len(row) != 8:
+                    raise ReportError(f"{path}:{line}: {len(row)} fields, expected 8")
+                if row[1] not in out:
+                    raise ReportError(f"{path}:{line}: unknown variant '{row[1]}'")
+                try:
+                    values = [float(x) for x in row[2:]]
+                except ValueError:
+                    raise ReportError(f"{path}:{line}: a value is not a number")
+                out[row[1]].append(values)
+    except OSError as e:
+        raise ReportError(f"{path}: {e.strerror}")
+    for v in VARIANTS:
+        if not out[v]:
+            raise ReportError(f"{path}: no rows for '{v}'")
+        out[v] = np.array(out[v])
+    return out
+
+
+def save(fig, outdir, name):
+    """Atomic: a temporary file in DIR renamed onto the name."""
+    fd, tmp = tempfile.mkstemp(dir=outdir, suffix=".png.tmp")
+    os.close(fd)
+    fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+    os.replace(tmp, os.path.join(outdir, name))
+    return name
+
+
+def plot_residual_violins(res, outdir):
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
+    for i, ax in enumerate(axes.flat):
+        data = [res[v][:, i] for v in VARIANTS]
+        ax.violinplot(data, showmedians=True)
+        ax.set_xticks([1, 2, 3])
+        ax.set_xticklabels(["naive", "without T~", "full"])
+        ax.set_title(COMPONENTS[i])
+        ax.axhline(0.0, color="gray", lw=0.5)
+    fig.suptitle("Residual of the total wrench at the CoM in W, per steady pose")
+    fig.tight_layout()
+    return save(fig, outdir, "residuals_violin.png")
+
+
+def hanging_stats(cal):
+    """{(leg, variant): ResidualStats} with variant in 'with s', 'without s', 'naive tare'."""
+    out = {}
+    for r in cal.hanging_residual:
+        leg, _, variant = r.label.partition(" ")
+        out[(leg, variant)] = r
+    return out
+
+
+def plot_hanging_residuals(cal, outdir):
+    stats = hanging_stats(cal)
+    legs = [leg.name for leg in cal.leg]
+    variants = ["naive tare", "without s", "with s"]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
+    width = 0.27
+    x = np.arange(len(legs))
+    for i, ax in enumerate(axes.flat):
+        for j, v in enumerate(variants):
+            rms = [stats[(leg, v)].rms[i] if (leg, v) in stats else np.nan for leg in legs]
+            ax.bar(x + (j - 1) * width, rms, width, label=v)
+        ax.set_xticks(x)
+        ax.set_xticklabels(legs)
+        ax.set_title("rms " + COMPONENTS[i])
+        ax.set_yscale("log")
+    axes.flat[0].legend(fontsize=8)
+    fig.suptitle("Hanging residuals (reading minus model) per leg")
+    fig.tight_layout()
+    return save(fig, outdir, "hanging_residuals.png")
+
+
+def sinusoid(fit, phi):
+    return fit.a_m * np.sin(2 * np.pi * phi + fit.c_rad) + fit.d_m
+
+
+def plot_com(cal, truth, outdir):
+    names = []
+    phi = np.linspace(0.0, 1.0, 400)
+    for k, leg in enumerate(cal.leg):
+        com = leg.com
+        fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+        bins = [com.bin_x_m, com.bin_y_m, com.bin_z_m]
+        sig = [com.bin_sigma_x_m, com.bin_sigma_y_m, com.bin_sigma_z_m]
+        fitted = [sinusoid(com.x, phi), np.full_like(phi, com.y_m.value), sinusoid(com.z, phi)]
+        true_leg = truth.leg[k] if truth is not None and k < len(truth.leg) else None
+        for i, ax in enumerate(axes):
+            if len(com.bin_phase) and len(bins[i]) == len(com.bin_phase):
+                yerr = np.array(sig[i]) * 1e3 if len(sig[i]) == len(com.bin_phase) else None
+                ax.errorbar(np.array(com.bin_phase), np.array(bins[i]) * 1e3, yerr=yerr, fmt=".",
+                            ms=2, lw=0.5, color="tab:blue", label="bins (median, spread)")
+            ax.plot(phi, fitted[i] * 1e3, color="tab:red", label="fit")
+            if true_leg is not None and true_leg.HasField("com"):
+                tc = true_leg.com
+                t = [sinusoid(tc.x, phi), np.full_like(phi, tc.y_m.value), sinusoid(tc.z, phi)][i]
+                ax.plot(phi, t * 1e3, "k--", lw=0.8, label="truth")
+            ax.set_xlabel("phase")
+            ax.set_ylabel(["x", "y", "z"][i] + " (mm)")
+        axes[0].legend(fontsize=7)
+        fig.suptitle(f"Leg {leg.name}: CoM r(phase) in ft")
+        fig.tight_layout()
+        names.append(save(fig, outdir, f"com_{leg.name}.png"))
+    return names
+
+
+def estimates(cal):
+    """[(name, value, sigma)] of every scalar estimate, in a fixed order."""
+    out = []
+    for leg in cal.leg:
+        n = leg.name
+        for field, unit in (("force_offset_n", "N"), ("torque_offset_nm", "N m")):
+            e = getattr(leg, field)
+            for ax in "xyz":
+                out.append((f"{n} {field} {ax}", getattr(e, ax), getattr(e, "sigma_" + ax), unit))
+        out.append((f"{n} leg_weight_n", leg.leg_weight_n.value, leg.leg_weight_n.sigma, "N"))
+        if leg.HasField("mounting"):
+            for field, unit, scale in (("rotation_vector_deg", "deg", 1.0),
+                                       ("p_tilde_prime_m", "mm", 1e3)):
+                e = getattr(leg.mounting, field)
+                if not leg.mounting.HasField(field):
+                    continue
+                for ax in "xyz":
+                    out.append((f"{n} {field} {ax}", scale * getattr(e, ax),
+                                scale * getattr(e, "sigma_" + ax), unit))
+    if cal.HasField("p_c_b_m"):
+        for ax in "xyz":
+            out.append((f"p_c_b_m {ax}", 1e3 * getattr(cal.p_c_b_m, ax),
+                        1e3 * getattr(cal.p_c_b_m, "sigma_" + ax), "mm"))
+    return out
+
+
+def plot_vs_truth(est, tru, outdir):
+    truth = {name: value for name, value, _, _ in tru}
+    rows = [(name, (v - truth[name]) / s) for name, v, s, _ in est
+            if name in truth and s > 0 and math.isfinite(v)]
+    if not rows:
+        return None
+    fig, ax = plt.subplots(figsize=(12, 4))
+    z = np.array([r[1] for r in rows])
+    ax.plot(np.arange(len(z)), z, ".")
+    for y in (-2, 2):
+        ax.axhline(y, color="gray", lw=0.5, ls="--")
+    ax.set_ylabel("(estimate - truth) / sigma")
+    ax.set_xlabel("parameter (table order)")
+    ax.set_title(f"Estimates against the truth: {np.mean(np.abs(z) <= 2) * 100:.0f}% within 2 sigma")
+    fig.tight_layout()
+    return save(fig, outdir, "vs_truth.png")
+
+
+def table(header, rows):
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>"
+                   for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def fmt(x, digits=4):
+    return f"{x:.{digits}g}" if math.isfinite(x) else "nan"
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("calibration")
+    p.add_argument("residuals")
+    p.add_argument("outdir")
+    p.add_argument("--truth")
+    a = p.parse_args()
+    try:
+        cal = read_calibration(a.calibration)
+        res = read_residuals(a.residuals)
+        truth = read_calibration(a.truth) if a.truth else None
+    except ReportError as e:
+        print(f"report: {e}", file=sys.stderr)
+        return 2
+    os.makedirs(a.outdir, exist_ok=True)
+
+    imgs = [plot_residual_violins(res, a.outdir), plot_hanging_residuals(cal, a.outdir)]
+    com_imgs = plot_com(cal, truth, a.outdir)
+    est = estimates(cal)
+    tru = estimates(truth) if truth is not None else None
+    vs = plot_vs_truth(est, tru, a.outdir) if tru is not None else None
+
+    truth_by_name = {n: v for n, v, _, _ in tru} if tru is not None else {}
+    est_header = ["parameter", "estimate", "± sigma", "unit"] + (["truth", "(est-truth)/sigma"]
+                                                               if tru is not None else [])
+    est_rows = []
+    for name, v, s, unit in est:
+        row = [name, fmt(v), fmt(s, 2), unit]
+        if tru is not None:
+            t = truth_by_name.get(name, float("nan"))
+            row += [fmt(t), fmt((v - t) / s, 2) if s > 0 else "-"]
+        est_rows.append(row)
+
+    model_rows = [["*" if r.selected else "", calibration_pb2.StandingModel.Name(r.model), r.dof,
+                   fmt(r.cv_mse), fmt(r.rss), fmt(r.bic)] for r in cal.model_selection]
+    res_rows = [[r.label, r.count] + [fmt(x, 3) for x in r.rms] for r in cal.standing_residual]
+    hang_rows = [[r.label, r.count] + [fmt(x, 3) for x in r.rms] for r in cal.hanging_residual]
+    prov = cal.provenance
+    prov_rows = [["input", f"{i.path} ({i.bytes} bytes, sha256 {i.sha256})"] for i in prov.input]
+    prov_rows += [["config", f"{prov.config_path} (sha256 {prov.config_sha256})"],
+                  ["software", prov.software_version], ["created", prov.created_utc],
+                  ["host", prov.host], ["command", prov.command_line]]
+
+    def img(name):
+        return f'<img src="{html.escape(name)}" alt="{html.escape(name)}">'
+
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>ftcal calibration report</title>",
+        "<style>body{font-family:sans-serif;max-width:1250px;margin:auto}"
+        "table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;"
+        "padding:2px 6px;font-size:13px;text-align:right}img{max-width:100%}</style></head><body>",
+        f"<h1>Calibration of {html.escape(cal.robot_name)}</h1>",
+        f"<p>Selected model <b>{calibration_pb2.StandingModel.Name(cal.model)}</b> from "
+        f"{cal.standing_poses} steady poses.</p>",
+        "<h2>Residuals of the total wrench at the CoM (W)</h2>", img(imgs[0]),
+        table(["variant", "poses"] + ["rms " + c for c in COMPONENTS], res_rows),
+        "<h2>Model selection</h2>",
+        table(["selected", "model", "DOF", "CV MSE", "RSS", "BIC"], model_rows),
+        "<h2>Estimates" + (" and truth" if tru is not None else "") + "</h2>",
+        table(est_header, est_rows),
+    ]
+    if vs:
+        parts.append(img(vs))
+    parts += ["<h2>Hanging residuals per leg (with and without s)</h2>", img(imgs[1]),
+              table(["series", "samples"] + ["rms " + c for c in COMPONENTS], hang_rows),
+              "<h2>Leg CoM against phase (bins and fit)</h2>"] + [img(n) for n in com_imgs]
+    parts += ["<h2>Provenance</h2>", table(["", ""], prov_rows), "</body></html>"]
+
+    fd, tmp = tempfile.mkstemp(dir=a.outdir, suffix=".html.tmp")
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write("\n".join(parts))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, os.path.join(a.outdir, "index.html"))
+    print(os.path.join(a.outdir, "index.html"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,389 @@
+#include "calibrator/calibrator.h"
+
+#include <unistd.h>
+
+#include <cmath>
+#include <ctime>
+#include <filesystem>
+#include <sstream>
+
+#include <spdlog/fmt/fmt.h>
+#include <spdlog/spdlog.h>
+
+#include "ftcal/config.h"
+#include "ftcal/hanging.h"
+#include "ftcal/standing.h"
+#include "pose_segmenter/pose_segmenter_stage.h"
+
+#ifndef FTCAL_SOFTWARE_VERSION
+#define FTCAL_SOFTWARE_VERSION "unknown"
+#endif
+
+namespace ftcal {
+
+namespace {
+
+bool IsHangPhase(int phase) {
+  return phase >= experiment_marker_t::HANG_X_POS && phase <= experiment_marker_t::HANG_Z_NEG;
+}
+
+HangSeries SeriesOfPhase(int phase) {
+  return static_cast<HangSeries>(phase - experiment_marker_t::HANG_X_POS);
+}
+
+std::string PhaseName(int phase) {
+  if (IsHangPhase(phase)) return HangSeriesName(SeriesOfPhase(phase));
+  switch (phase) {
+    case experiment_marker_t::IDLE: return "IDLE";
+    case experiment_marker_t::STANDING: return "STANDING";
+    case experiment_marker_t::WALKING: return "WALKING";
+    case experiment_marker_t::TRIPOD: return "TRIPOD";
+    default: return "phase " + std::to_string(phase);
+  }
+}
+
+std::string UtcNowIso8601() {
+  const std::time_t now = std::time(nullptr);
+  std::tm tm{};
+  gmtime_r(&now, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%SZ", &tm);
+  return buf;
+}
+
+std::string HostName() {
+  char buf[256] = {};
+  if (::gethostname(buf, sizeof buf - 1) != 0) return "unknown";
+  return buf;
+}
+
+}  // namespace
+
+CalibrationCollector::CalibrationCollector(const config::Config& config)
+    : config_(config),
+      inputs_(config),
+      segmenter_options_(SegmenterOptionsFromConfig(config.segmenter())),
+      aligner_(AlignerOptionsFromConfig(config), [this](const AlignedSample& a) { OnAligned(a); }) {
+  PoseSegmenter check(segmenter_options_, nullptr);  // refuse unusable options at start
+}
+
+void CalibrationCollector::Attach(Bus& bus) {
+  const auto& ch = config_.channels();
+  // Every FT_* channel, not just the config's: a log from a robot with other legs must be told
+  // apart from one whose legs are silent.
+  bus.SubscribeRaw(ch.ft_prefix() + ".*", [this](const MessageInfo& info, const void* data,
+                                                 int size) { OnFtRaw(info, data, size); });
+  bus.Subscribe<servo_state_t>(ch.servo_state(),
+                               [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
+  bus.Subscribe<mocap_body_t>(ch.mocap_body(),
+                              [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
+  bus.Subscribe<experiment_marker_t>(
+      ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
+  bus.Subscribe<steady_pose_t>(ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) {
+    OnSteadyPose(m);
+  });
+}
+
+void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, int size) {
+  ft_channels_seen_.insert(info.channel);
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (info.channel != inputs_.FtChannel(k)) continue;
+    ft_sample_t msg;
+    const int used = msg.decode(data, 0, size);
+    if (used != size) {
+      throw BadInput("undecodable ftcal.ft_sample_t on " + info.channel,
+                     std::to_string(size) + " bytes do not decode");
+    }
+    aligner_.AddFt(inputs_.FromFt(k, msg));
+    return;
+  }
+}
+
+void CalibrationCollector::OnServo(const servo_state_t& msg) {
+  aligner_.AddServo(inputs_.FromServo(msg));
+}
+
+void CalibrationCollector::OnMocap(const mocap_body_t& msg) {
+  if (const auto in = inputs_.FromMocap(msg)) aligner_.AddMocap(*in);
+}
+
+void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
+  ++counters_.markers;
+  const bool same = phase_ == msg.phase && phase_session_ == msg.session_id;
+  if (msg.start) {
+    if (same) return;  // a repeated start marker (the sequencer repeats them)
+    if (phase_ >= 0) {
+      spdlog::warn("EXPERIMENT: {} started while {} had no stop marker; {} discarded",
+                   PhaseName(msg.phase), PhaseName(phase_), PhaseName(phase_));
+      EndPhase(false);
+    }
+    phase_ = msg.phase;
+    phase_session_ = msg.session_id;
+    if (IsHangPhase(phase_)) {
+      current_hang_ = HangingRecording();
+      current_hang_.series = SeriesOfPhase(phase_);
+      current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
+    } else if (phase_ == experiment_marker_t::STANDING) {
+      current_poses_.clear();
+      segmenter_ = std::make_unique<PoseSegmenter>(
+          segmenter_options_, [this](const SteadyPoseOut& p) {
+            if (!p.markers_ok) return;
+            current_poses_.push_back(p.pose);
+            ++counters_.segmented_poses;
+          });
+    }
+    spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase_), phase_session_);
+    return;
+  }
+  if (!same) {
+    spdlog::warn("EXPERIMENT: stop marker of {} (session '{}') without its start; ignored",
+                 PhaseName(msg.phase), msg.session_id);
+    return;
+  }
+  const bool standing = phase_ == experiment_marker_t::STANDING;
+  EndPhase(true);
+  if (standing && on_standing_stop_) on_standing_stop_();
+}
+
+void CalibrationCollector::EndPhase(bool completed) {
+  if (IsHangPhase(phase_)) {
+    if (completed) {
+      const int s = static_cast<int>(current_hang_.series);
+      if (hang_[s]) {
+        spdlog::warn("{} recorded again: the later recording replaces the earlier one",
+                     HangSeriesName(current_hang_.series));
+      }
+      spdlog::info("{} complete: {} samples per leg, {} attitude samples",
+                   HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
+                   current_hang_.attitude.size());
+      hang_[s] = std::move(current_hang_);
+    }
+    current_hang_ = HangingRecording();
+  } else if (phase_ == experiment_marker_t::STANDING) {
+    if (segmenter_) segmenter_->Flush();
+    segmenter_.reset();
+    if (completed) {
+      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented",
+                   phase_session_, current_poses_.size());
+      segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(),
+                              current_poses_.end());
+      standing_session_ = phase_session_;
+    }
+    current_poses_.clear();
+  }
+  phase_ = -1;
+  phase_session_.clear();
+}
+
+void CalibrationCollector::Flush() {
+  if (phase_ >= 0) {
+    spdlog::warn("input ended inside {} (no stop marker): that phase is discarded",
+                 PhaseName(phase_));
+    EndPhase(false);
+  }
+}
+
+void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
+  ++counters_.logged_poses;
+  if (msg.num_legs != kNumLegs) {
+    throw BadInput("STEADY_POSE leg count", std::to_string(msg.num_legs) + " legs, expected " +
+                                                std::to_string(kNumLegs));
+  }
+  if (!msg.markers_ok) {
+    ++counters_.poses_dropped_markers;
+    return;
+  }
+  StandingPose pose;
+  for (int i = 0; i < kNumLegs; ++i) {
+    const auto k = LegIndex(msg.leg[i]);
+    if (!k) throw BadInput("STEADY_POSE unknown leg", "leg '" + msg.leg[i] + "'");
+    for (int c = 0; c < 6; ++c) pose.wrench[*k][c] = msg.wrench[i][c];
+    pose.angle_rad[*k] = msg.angle_rad[i];
+  }
+  pose.R_WC = QuaternionToRotation(Eigen::Vector4d(msg.q_wc[0], msg.q_wc[1], msg.q_wc[2], msg.q_wc[3]));
+  pose.t_s = 0.5e-6 * static_cast<double>(msg.start_utime + msg.end_utime);
+  logged_poses_.push_back(pose);
+}
+
+void CalibrationCollector::OnAligned(const AlignedSample& a) {
+  ++counters_.aligned_samples;
+  const SyncSample& s = a.sample;
+  if (IsHangPhase(phase_)) {
+    ++counters_.hanging_samples;
+    const double t_s = 1e-6 * static_cast<double>(s.utime);
+    for (int k = 0; k < kNumLegs; ++k) {
+      LegSamples& leg = current_hang_.legs[k];
+      leg.t_s.push_back(t_s);
+      leg.angle_rad.push_back(s.angle_rad[k]);
+      leg.wrench.push_back(s.wrench[k]);
+    }
+    if (s.attitude_ok) current_hang_.attitude.push_back(s.R_WC);
+  } else if (phase_ == experiment_marker_t::STANDING && segmenter_) {
+    ++counters_.standing_samples;
+    segmenter_->Add(s);
+  }
+}
+
+std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
+  std::vector<HangingRecording> out;
+  std::string missing;
+  for (int s = 0; s < kNumHangSeries; ++s) {
+    if (hang_[s]) {
+      out.push_back(*hang_[s]);
+    } else {
+      missing += (missing.empty() ? "" : ", ") + HangSeriesName(static_cast<HangSeries>(s));
+    }
+  }
+  if (!missing.empty()) {
+    throw CalibratorInputError("missing hanging series: " + missing +
+                               " (no EXPERIMENT start..stop marker pair with samples)");
+  }
+  for (const HangingRecording& r : out) {
+    if (r.legs[0].t_s.empty()) {
+      throw CalibratorInputError("hanging series " + HangSeriesName(r.series) +
+                                 " has markers but no aligned samples (FT_*/SERVO_STATE "
+                                 "missing in that span)");
+    }
+  }
+  return out;
+}
+
+std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
+  // Poses a segmenter already published are what the operator saw; when the log has none, the
+  // same segmenter logic over the STANDING spans gives them.
+  return logged_poses_.empty() ? segmented_poses_ : logged_poses_;
+}
+
+void CalibrationCollector::CheckLegsMatchConfig() const {
+  std::string unknown, silent;
+  std::set<std::string> expected;
+  for (int k = 0; k < kNumLegs; ++k) expected.insert(inputs_.FtChannel(k));
+  for (const std::string& c : ft_channels_seen_) {
+    if (!expected.count(c)) unknown += (unknown.empty() ? "" : ", ") + c;
+  }
+  for (const std::string& c : expected) {
+    if (!ft_channels_seen_.count(c)) silent += (silent.empty() ? "" : ", ") + c;
+  }
+  if (!unknown.empty() || !silent.empty()) {
+    std::string msg = "the config's legs do not match the log's FT channels:";
+    if (!unknown.empty()) msg += " channels for legs the config does not have: " + unknown + ";";
+    if (!silent.empty()) msg += " config legs with no channel in the log: " + silent + ";";
+    msg += " (" + std::to_string(ft_channels_seen_.size()) + " FT channels in the log, " +
+           std::to_string(kNumLegs) + " legs in the config)";
+    throw CalibratorInputError(msg);
+  }
+}
+
+std::string SoftwareVersion() { return FTCAL_SOFTWARE_VERSION; }
+
+CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
+                              const CalibratorOptions& options) {
+  if (collector.counters().markers == 0) {
+    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config.channels().experiment() +
+                               "') in the input: cannot tell hanging series from standing");
+  }
+  collector.CheckLegsMatchConfig();
+  const std::vector<HangingRecording> hanging = collector.HangingRecordings();
+  const std::vector<StandingPose> poses = collector.StandingPoses();
+  if (poses.empty()) {
+    throw CalibratorInputError(
+        "no steady standing poses: no STEADY_POSE events and no completed STANDING phase with "
+        "a steady pose");
+  }
+  spdlog::info("calibrating: 4 hanging series, {} standing poses ({})", poses.size(),
+               collector.counters().logged_poses > 0 ? "from STEADY_POSE events"
+                                                     : "segmented from the STANDING spans");
+  CalibrationRun run;
+  try {
+    run = Calibrate(hanging, poses, config);
+  } catch (const CalibrationStageError& e) {
+    throw CalibratorInputError(e.what());
+  }
+  spdlog::info("calibration done: model {}", StandingModelName(run.standing.selected));
+
+  calibration::Provenance* p = run.proto.mutable_provenance();
+  for (const std::string& path : options.log_paths) {
+    calibration::InputFile* in = p->add_input();
+    in->set_path(std::filesystem::absolute(path).string());
+    in->set_sha256(Sha256File(path));
+    in->set_bytes(std::filesystem::file_size(path));
+  }
+  if (!options.config_path.empty()) {
+    p->set_config_path(std::filesystem::absolute(options.config_path).string());
+    p->set_config_sha256(Sha256File(options.config_path));
+  }
+  p->set_software_version(SoftwareVersion());
+  p->set_created_utc(UtcNowIso8601());
+  p->set_host(HostName());
+  p->set_command_line(options.command_line);
+  return run;
+}
+
+std::string SummaryTable(const CalibrationRun& run) {
+  const calibration::Calibration& c = run.proto;
+  std::string o;
+  o += fmt::format("Calibration of {} ({} standing poses, model {})\n", c.robot_name(),
+                   c.standing_poses(), calibration::StandingModel_Name(c.model()));
+  o += fmt::format("{:<4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}\n",
+                   "leg", "fo_x N", "fo_y N", "fo_z N", "to_x Nm", "to_y Nm", "to_z Nm", "mg N",
+                   "+-", "rx deg", "ry deg", "rz deg", "p~'x mm", "p~'y mm");
+  for (const auto& leg : c.leg()) {
+    const auto& f = leg.force_offset_n();
+    const auto& t = leg.torque_offset_nm();
+    const auto& r = leg.mounting().rotation_vector_deg();
+    const auto& p = leg.mounting().p_tilde_prime_m();
+    o += fmt::format(
+        "{:<4} {:>8.3f} {:>8.3f} {:>8.3f} {:>8.4f} {:>8.4f} {:>8.4f} {:>9.3f} {:>8.4f} {:>8.3f} "
+        "{:>8.3f} {:>9.3f} {:>9.2f} {:>9.2f}  p~'z {:.2f} mm\n",
+        leg.name(), f.x(), f.y(), f.z(), t.x(), t.y(), t.z(), leg.leg_weight_n().value(),
+        leg.leg_weight_n().sigma(), r.x(), r.y(), r.z(), 1e3 * p.x(), 1e3 * p.y(), 1e3 * p.z());
+  }
+  if (c.has_p_c_b_m()) {
+    o += fmt::format("p^C_B = ({:.2f}, {:.2f}, {:.2f}) mm\n", 1e3 * c.p_c_b_m().x(),
+                     1e3 * c.p_c_b_m().y(), 1e3 * c.p_c_b_m().z());
+  }
+  o += "\nModel selection (lowest BIC selected):\n";
+  o += fmt::format("  {:<28} {:>4} {:>12} {:>12} {:>12}\n", "model", "DOF", "CV MSE", "RSS", "BIC");
+  for (const auto& row : c.model_selection()) {
+    o += fmt::format("{} {:<28} {:>4} {:>12.5g} {:>12.5g} {:>12.5g}\n", row.selected() ? "*" : " ",
+                     calibration::StandingModel_Name(row.model()), row.dof(), row.cv_mse(),
+                     row.rss(), row.bic());
+  }
+  o += "\nResidual of the total wrench at the CoM in W (rms per component):\n";
+  o += fmt::format("  {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}\n", "variant", "fx N", "fy N",
+                   "fz N", "tx Nm", "ty Nm", "tz Nm");
+  for (const auto& r : c.standing_residual()) {
+    o += fmt::format("  {:<18}", r.label());
+    for (int i = 0; i < r.rms_size(); ++i) o += fmt::format(" {:>8.4f}", r.rms(i));
+    o += "\n";
+  }
+  return o;
+}
+
+std::string ResidualsCsv(const StandingResult& standing) {
+  std::ostringstream out;
+  out.precision(10);
+  out << "pose,variant,fx_n,fy_n,fz_n,tx_nm,ty_nm,tz_nm\n";
+  const std::pair<const char*, const std::vector<Vec6>*> variants[] = {
+      {"naive tare", &standing.residual_naive},
+      {"without T~", &standing.residual_without},
+      {"full calibration", &standing.residual_full}};
+  for (const auto& [label, rows] : variants) {
+    for (size_t p = 0; p < rows->size(); ++p) {
+      out << p << ',' << label;
+      for (int i = 0; i < 6; ++i) out << ',' << (*rows)[p][i];
+      out << '\n';
+    }
+  }
+  return out.str();
+}
+
+std::string ResidualsPathFor(const std::string& calibration_path) {
+  std::string base = calibration_path;
+  const auto slash = base.rfind('/');
+  const auto dot = base.rfind('.');
+  if (dot != std::string::npos && (slash == std::string::npos || dot > slash)) base.resize(dot);
+  return base + ".residuals.csv";
+}
+
+}  // namespace ftcal

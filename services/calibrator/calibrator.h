@@ -1,0 +1,135 @@
+// ftcal-calibrator's work (pipeline items 3 and 5): the recorded (or live) experiment in, the
+// calibration file out.
+//
+// CalibrationCollector listens on a Bus (a LogReplayBus per input log, or live LCM) and turns
+// FT_<LEG>, SERVO_STATE, MOCAP_BODY, EXPERIMENT and STEADY_POSE into what Calibrate() consumes:
+//   - every aligned sample (libcal's Aligner, the same rule as ftcal-pose-segmenter) between a
+//     HANG_* start and its stop marker goes into that series' HangingRecording (per leg: time,
+//     shaft angle, reading; gravity_b from the start marker; the attitude when tracked);
+//   - steady standing poses: the STEADY_POSE events of the log when it has any, else the
+//     PoseSegmenter run over the STANDING spans (as ftcal-pose-segmenter would have).
+// Nothing is guessed: a series without its start..stop pair is missing, not reconstructed.
+//
+// RunCalibration() checks what was collected (every series, markers present, the config's legs
+// are the log's FT_* channels, no damaged bytes), runs Calibrate() and fills provenance. Every
+// refusal is a CalibratorInputError naming what is wrong; main() turns it into exit code 2.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <set>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "common/bus.h"
+#include "ftcal/aligner.h"
+#include "ftcal/calibrate.h"
+#include "ftcal/dataset.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/segmenter.h"
+#include "ftcal/steady_pose_t.hpp"
+#include "pose_segmenter/stage_inputs.h"
+#include "proto/calibration.pb.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+// The input cannot give a calibration (missing series, no markers, a config for another robot,
+// a damaged log, a stage that refused its data). what() names the problem.
+class CalibratorInputError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct CollectorCounters {
+  int64_t markers = 0;
+  int64_t aligned_samples = 0;
+  int64_t hanging_samples = 0;
+  int64_t standing_samples = 0;
+  int64_t logged_poses = 0;      // STEADY_POSE events seen
+  int64_t segmented_poses = 0;   // poses the collector's own segmenter found
+  int64_t poses_dropped_markers = 0;  // logged poses without every marker
+};
+
+class CalibrationCollector {
+ public:
+  // Throws std::invalid_argument for a config whose legs are not kLegNames in order.
+  explicit CalibrationCollector(const config::Config& config);
+
+  // Subscribes the handlers on `bus` (call once per bus; several logs = several buses, fed in
+  // order).
+  void Attach(Bus& bus);
+  // Ends a phase in progress (its samples are kept only if its stop marker came).
+  void Flush();
+
+  // Called when a STANDING phase stops (live mode calibrates then).
+  void SetOnStandingStop(std::function<void()> fn) { on_standing_stop_ = std::move(fn); }
+
+  // What was collected. Throws CalibratorInputError naming what is missing or inconsistent.
+  std::vector<HangingRecording> HangingRecordings() const;
+  std::vector<StandingPose> StandingPoses() const;
+  // The FT_* channels seen against the config's legs: throws CalibratorInputError on mismatch.
+  void CheckLegsMatchConfig() const;
+
+  const CollectorCounters& counters() const { return counters_; }
+  const std::string& standing_session() const { return standing_session_; }
+
+ private:
+  void OnFtRaw(const MessageInfo& info, const void* data, int size);
+  void OnServo(const servo_state_t& msg);
+  void OnMocap(const mocap_body_t& msg);
+  void OnExperiment(const experiment_marker_t& msg);
+  void OnSteadyPose(const steady_pose_t& msg);
+  void OnAligned(const AlignedSample& a);
+  void EndPhase(bool completed);
+
+  const config::Config& config_;
+  StageInputs inputs_;
+  SegmenterOptions segmenter_options_;
+  Aligner aligner_;
+  std::unique_ptr<PoseSegmenter> segmenter_;
+
+  // The phase in progress (experiment_marker_t phase code, -1 for none).
+  int phase_ = -1;
+  std::string phase_session_;
+  HangingRecording current_hang_;
+  std::vector<StandingPose> current_poses_;
+
+  std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
+  std::vector<StandingPose> segmented_poses_;
+  std::vector<StandingPose> logged_poses_;
+  std::string standing_session_;
+  std::set<std::string> ft_channels_seen_;
+  std::function<void()> on_standing_stop_;
+  CollectorCounters counters_;
+};
+
+struct CalibratorOptions {
+  std::vector<std::string> log_paths;  // provenance inputs (empty live)
+  std::string config_path;
+  std::string command_line;
+};
+
+// Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.
+CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
+                              const CalibratorOptions& options);
+
+// The software version recorded in provenance: PROJECT_VERSION (+ git describe at build time).
+std::string SoftwareVersion();
+
+// The short table printed at the end: per leg offsets, weights, mounting; model selection;
+// standing residuals before/after.
+std::string SummaryTable(const CalibrationRun& run);
+
+// Per-pose residuals of the total wrench at the CoM in W, one row per pose and variant:
+// "pose,variant,fx_n,fy_n,fz_n,tx_nm,ty_nm,tz_nm" (variants: naive tare, without T~, full
+// calibration). The report's violin plots read this.
+std::string ResidualsCsv(const StandingResult& standing);
+
+// The path of the residuals file written beside a calibration file: cal.pbtxt -> cal.residuals.csv.
+std::string ResidualsPathFor(const std::string& calibration_path);
+
+}  // namespace ftcal

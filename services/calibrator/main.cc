@@ -1,0 +1,232 @@
+// ftcal-calibrator: the whole method (steps 1 and 2) on recorded logs or live, the calibration
+// file (atomically, with provenance), a summary table and optionally the HTML report.
+// Exit codes: 0 done, 2 input refused (message names what), 1 I/O or other failure.
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <exception>
+#include <filesystem>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/cfg/env.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include "calibrator/calibrator.h"
+#include "common/bus.h"
+#include "common/service.h"
+#include "common/service_stats.h"
+#include "common/shutdown.h"
+#include "ftcal/calibration_io.h"
+#include "ftcal/calibration_t.hpp"
+#include "ftcal/config.h"
+
+#ifndef FTCAL_PYTHON_DIR
+#define FTCAL_PYTHON_DIR "build/python"
+#endif
+#ifndef FTCAL_REPORT_SCRIPT
+#define FTCAL_REPORT_SCRIPT "scripts/report"
+#endif
+
+namespace {
+
+using ftcal::CalibratorInputError;
+
+struct Args {
+  std::vector<std::string> logs;
+  std::string out;
+  std::string report_dir;
+  std::string truth;
+  std::string config_path;
+  std::string lcm_url;
+  std::string log_level;
+  std::string command_line;
+};
+
+// Runs scripts/report; returns its exit status (its messages go to our stderr).
+int RunReport(const std::string& cal, const std::string& residuals, const Args& args) {
+  std::vector<std::string> argv = {FTCAL_REPORT_SCRIPT, cal, residuals, args.report_dir};
+  if (!args.truth.empty()) {
+    argv.push_back("--truth");
+    argv.push_back(args.truth);
+  }
+  std::vector<char*> cargv;
+  for (auto& a : argv) cargv.push_back(a.data());
+  cargv.push_back(nullptr);
+  const pid_t pid = ::fork();
+  if (pid < 0) return 1;
+  if (pid == 0) {
+    // The schemas of this build, unless the caller chose others.
+    ::setenv("FTCAL_PYTHON_DIR", FTCAL_PYTHON_DIR, /*overwrite=*/0);
+    ::execv(cargv[0], cargv.data());
+    std::perror(cargv[0]);
+    ::_exit(127);
+  }
+  int status = 0;
+  if (::waitpid(pid, &status, 0) < 0) return 1;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 1;
+}
+
+// Writes the calibration and its residuals, prints the summary, runs the report.
+int Finish(const ftcal::CalibrationRun& run, const Args& args) {
+  ftcal::WriteCalibrationFile(run.proto, args.out);
+  const std::string residuals = ftcal::ResidualsPathFor(args.out);
+  ftcal::WriteFileAtomic(residuals, ftcal::ResidualsCsv(run.standing));
+  spdlog::info("wrote {} and {}", args.out, residuals);
+  std::cout << ftcal::SummaryTable(run) << std::flush;
+  if (!args.report_dir.empty()) {
+    spdlog::info("writing the report into {}", args.report_dir);
+    const int rc = RunReport(args.out, residuals, args);
+    if (rc != 0) {
+      spdlog::error("report failed (exit {}); the calibration file is written", rc);
+      return 1;
+    }
+  }
+  return 0;
+}
+
+int Offline(const ftcal::config::Config& config, const Args& args) {
+  ftcal::CalibrationCollector collector(config);
+  auto log = spdlog::default_logger();
+  const std::string scratch = (std::filesystem::temp_directory_path() /
+                               ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
+                                  .string();
+  for (const std::string& path : args.logs) {
+    ftcal::ServiceStats stats(log);
+    // Nothing is published: the replay output stays uncommitted and is removed.
+    ftcal::LogReplayBus bus(path, scratch, stats);
+    collector.Attach(bus);
+    int64_t first_utime = -1;
+    bus.Run(
+        [&] {
+          if (first_utime < 0) first_utime = bus.NowUtime();
+          spdlog::info("{}: {:.0f} s of log read, {} events", path,
+                       1e-6 * static_cast<double>(bus.NowUtime() - first_utime), bus.events_read());
+        },
+        60'000'000);
+    if (!bus.finished()) {
+      spdlog::error("{}: reading interrupted; no calibration written", path);
+      return 1;
+    }
+    // A damaged log may have lost any part of a series: refuse rather than calibrate on the
+    // rest. Each kind names the byte span or the message skipped.
+    int64_t undecodable = 0;
+    std::string kinds;
+    for (const auto& [kind, n] : stats.kinds()) {
+      kinds += "; " + kind + " x" + std::to_string(n);
+      if (kind.rfind("undecodable", 0) == 0) undecodable += n;
+    }
+    if (stats.errors() > 0 || undecodable > 0) {
+      throw CalibratorInputError("log '" + path + "' is damaged or truncated: " +
+                                 std::to_string(stats.errors()) + " unreadable spans, " +
+                                 std::to_string(undecodable) + " undecodable messages, " +
+                                 std::to_string(bus.events_read()) + " events read (" +
+                                 stats.last_error() + kinds + ")");
+    }
+    if (stats.drops() > 0) {
+      spdlog::warn("{}: {} inputs dropped{}", path, stats.drops(), kinds);
+    }
+    spdlog::info("{}: {} events", path, bus.events_read());
+  }
+  collector.Flush();
+  ftcal::CalibratorOptions options;
+  options.log_paths = args.logs;
+  options.config_path = args.config_path;
+  options.command_line = args.command_line;
+  const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
+  return Finish(run, args);
+}
+
+// Live: collect by markers; calibrate when a STANDING phase stops, publish CALIBRATION and
+// write the file. A refused calibration is logged and the collector keeps listening.
+int Live(const ftcal::config::Config& config, const Args& args) {
+  ftcal::ServiceStats stats(spdlog::default_logger());
+  const std::string url = args.lcm_url.empty() ? config.lcm_url() : args.lcm_url;
+  ftcal::LcmBus bus(url, stats);
+  ftcal::CalibrationCollector collector(config);
+  collector.Attach(bus);
+  ftcal::InstallShutdownHandlers();
+  int64_t version = 0;
+  int rc = 0;
+  collector.SetOnStandingStop([&] {
+    try {
+      ftcal::CalibratorOptions options;
+      options.config_path = args.config_path;
+      options.command_line = args.command_line;
+      ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
+      run.proto.set_version(static_cast<uint64_t>(++version));
+      std::string bytes;
+      run.proto.SerializeToString(&bytes);
+      ftcal::calibration_t msg{};
+      msg.utime = bus.NowUtime();
+      msg.version = version;
+      msg.content_sha256 = ftcal::Sha256Hex(bytes);
+      msg.data.assign(bytes.begin(), bytes.end());
+      msg.size = static_cast<int32_t>(msg.data.size());
+      rc = Finish(run, args);
+      bus.Publish(config.channels().calibration(), msg);
+      spdlog::info("published calibration version {} on {}", version,
+                   config.channels().calibration());
+    } catch (const CalibratorInputError& e) {
+      spdlog::error("calibration refused: {}", e.what());
+    }
+  });
+  spdlog::info("listening on {} for EXPERIMENT markers", url);
+  bus.Run([] {}, 1'000'000);
+  return rc;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Args args;
+  for (int i = 0; i < argc; ++i) args.command_line += (i ? " " : "") + std::string(argv[i]);
+  CLI::App cli(
+      "Calibrates the six transducers (method.md steps 1 and 2). Offline (--log): reads the "
+      "logs in order, collects the four hanging series (EXPERIMENT HANG_* start..stop) and the "
+      "steady standing poses (STEADY_POSE events, else segmented over STANDING), runs the "
+      "method and writes --out atomically with provenance, plus <out>.residuals.csv. Live (no "
+      "--log): collects the same on LCM, calibrates when STANDING stops, publishes CALIBRATION "
+      "(calibration_t) and writes --out. Exit 2 when the input is refused.",
+      "ftcal-calibrator");
+  cli.add_option("--log", args.logs, "input log(s) (lcm-logger format), read in the order given")
+      ->check(CLI::ExistingFile);
+  cli.add_option("--out", args.out, "calibration file to write (text format)")->required();
+  cli.add_option("--report", args.report_dir, "also write the HTML report into this directory");
+  cli.add_option("--truth", args.truth, "a truth calibration file (the twin's) for the report")
+      ->check(CLI::ExistingFile);
+  cli.add_option("--config", args.config_path, "configuration file; default: the embedded " +
+                                                   ftcal::ServiceApp::DefaultConfigPath());
+  cli.add_option("--lcm-url", args.lcm_url, "live: LCM URL; overrides the config's lcm_url");
+  cli.add_option("--log-level", args.log_level, "log level (trace..off); default info");
+  CLI11_PARSE(cli, argc, argv);
+
+  spdlog::set_default_logger(spdlog::stderr_color_mt("ftcal-calibrator"));
+  spdlog::cfg::load_env_levels();
+  if (!args.log_level.empty()) spdlog::set_level(spdlog::level::from_str(args.log_level));
+  if (args.config_path.empty()) args.config_path = ftcal::ServiceApp::DefaultConfigPath();
+
+  ftcal::config::Config config;
+  try {
+    config = ftcal::LoadConfigFile(args.config_path);
+  } catch (const ftcal::ConfigError& e) {
+    spdlog::critical("{}", e.what());
+    return 2;
+  }
+  try {
+    return args.logs.empty() ? Live(config, args) : Offline(config, args);
+  } catch (const CalibratorInputError& e) {
+    spdlog::critical("refused: {}", e.what());
+    return 2;
+  } catch (const std::invalid_argument& e) {
+    spdlog::critical("refused: {}", e.what());
+    return 2;
+  } catch (const std::exception& e) {
+    spdlog::critical("{}", e.what());
+    return 1;
+  }
+}

@@ -1,0 +1,348 @@
+// ftcal-calibrator as a real process over logs the test writes from the BigAnt twin (four short
+// hanging series and 60 standing poses, with EXPERIMENT markers as the sequencer sends them):
+// the calibration is checked against the twin's truth, provenance against the log's own
+// SHA-256, the report against the files it names; damaged or incomplete logs and a config for
+// other channels must be refused with exit 2, a message naming the problem, and no output.
+#include <sys/wait.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <regex>
+#include <set>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+
+#include "calibrator/calibrator.h"
+#include "child_process.h"
+#include "ftcal/calibration_io.h"
+#include "ftcal/config.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/mocap_body_t.hpp"
+#include "ftcal/servo_state_t.hpp"
+#include "sim/twin.h"
+
+namespace ftcal {
+namespace {
+
+using testing::Child;
+using testing::ReadFile;
+
+constexpr int64_t kT0 = 1'700'000'000'000'000;
+constexpr int kPoses = 60;
+const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
+
+struct Event {
+  int64_t utime;
+  std::string channel;
+  std::vector<uint8_t> data;
+};
+
+template <class Msg>
+Event Encode(int64_t utime, const std::string& channel, const Msg& msg) {
+  Event e{utime, channel, std::vector<uint8_t>(static_cast<size_t>(msg.getEncodedSize()))};
+  msg.encode(e.data.data(), 0, static_cast<int>(e.data.size()));
+  return e;
+}
+
+void WriteLog(const std::string& path, const std::vector<Event>& events) {
+  lcm::LogFile log(path, "w");
+  ASSERT_TRUE(log.good()) << path;
+  int64_t n = 0;
+  for (const Event& e : events) {
+    lcm::LogEvent ev;
+    ev.eventnum = n++;
+    ev.timestamp = e.utime;
+    ev.channel = e.channel;
+    ev.datalen = static_cast<int32_t>(e.data.size());
+    ev.data = const_cast<uint8_t*>(e.data.data());
+    ASSERT_EQ(log.writeEvent(&ev), 0);
+  }
+}
+
+int64_t Utime(double t_s) { return kT0 + std::llround(t_s * 1e6); }
+
+// The twin's frames as the bridges would publish them.
+void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vector<Event>* events) {
+  const int64_t t = Utime(f.t_s);
+  const auto& ch = cfg.channels();
+  for (int k = 0; k < kNumLegs; ++k) {
+    ft_sample_t m{};
+    m.utime = t;
+    m.leg = std::string(kLegNames[k]);
+    m.rdt_sequence = std::llround(f.t_s * 100) + 1;
+    m.ft_sequence = 70 * m.rdt_sequence;
+    for (int i = 0; i < 6; ++i) {
+      m.counts[i] = f.counts[k][i];
+      m.wrench[i] = f.reading[k][i];
+    }
+    events->push_back(Encode(t, ch.ft_prefix() + m.leg, m));
+  }
+  servo_state_t s{};
+  s.utime = t;
+  s.num_servos = kNumLegs;
+  for (int k = 0; k < kNumLegs; ++k) {
+    s.leg.push_back(std::string(kLegNames[k]));
+    s.id.push_back(static_cast<int32_t>(cfg.robot().leg(k).servo().id()));
+    s.angle_rad.push_back(f.angle_rad[k]);
+    s.velocity_rad_s.push_back(0.0);
+    s.current_a.push_back(0.0);
+    s.hardware_error.push_back(0);
+    s.device_tick_ms.push_back(std::llround(f.t_s * 1e3));
+    s.flags.push_back(0);
+  }
+  events->push_back(Encode(t, ch.servo_state(), s));
+  mocap_body_t b{};
+  b.utime = t;
+  b.frame_number = std::llround(f.t_s * 100);
+  b.device_utime = std::llround(f.t_s * 1e6);
+  b.body = cfg.mocap().body_name();
+  b.tracked = true;
+  const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(f.R_GC));
+  const Eigen::Vector4d q_gc = RotationToQuaternion(f.R_GC);
+  for (int i = 0; i < 4; ++i) {
+    b.q_wc[i] = q_wc[i];
+    b.q_gc[i] = q_gc[i];
+  }
+  for (int i = 0; i < 3; ++i) b.position_m[i] = f.p_GB_m[i];
+  b.yaw_rad = HeadingYaw(f.R_GC);
+  b.residual_m = 0.0005;
+  b.num_markers = kNumChassisMarkers;
+  for (int i = 0; i < kNumChassisMarkers; ++i) {
+    b.marker_m.push_back({f.marker_G_m[i].x(), f.marker_G_m[i].y(), f.marker_G_m[i].z()});
+    b.marker_tracked.push_back(f.marker_tracked[i]);
+  }
+  events->push_back(Encode(t, ch.mocap_body(), b));
+}
+
+experiment_marker_t Marker(int64_t utime, int8_t phase, bool start, const Vec3& gravity_b) {
+  experiment_marker_t m{};
+  m.utime = utime;
+  m.session_id = "calibrator-test";
+  m.phase = phase;
+  m.start = start;
+  for (int i = 0; i < 3; ++i) m.gravity_b[i] = gravity_b[i];
+  m.note = "calibrator_test";
+  return m;
+}
+
+struct Fixture {
+  std::string dir;
+  config::Config config;
+  std::unique_ptr<BigAntTwin> twin;
+  std::string log, log_no_markers, log_no_z_neg, log_truncated, truth, config_other;
+};
+Fixture* fx = nullptr;
+
+class CalibratorTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    fx = new Fixture;
+    fx->dir = testing::MakeTempDir();
+    fx->config = LoadConfigFile(kConfig);
+    TwinOptions opt;
+    opt.seed = 11;
+    opt.marker_dropout_rate_hz = 0.0;
+    // Short enough for a fast test, long enough for the method: three 6 s leg cycles per
+    // series (two are the minimum for the cycle-spread sigmas) and poses that settle within
+    // 1.2 s and stay steady for about 2 s (the segmenter needs 1.5 s).
+    opt.hang_cycles = 3;
+    opt.hang_cycle_s = 6.0;
+    opt.pose_dwell_s = 3.6;
+    opt.settle_cutoff_s = 1.2;
+    fx->twin = std::make_unique<BigAntTwin>(fx->config, opt);
+    const auto& ch = fx->config.channels();
+
+    // Event lists: all, without markers, without the HANG_Z_NEG markers.
+    std::vector<Event> all, no_markers, no_z_neg;
+    // Every list has every frame; only the markers differ.
+    const auto frames = [&](const TwinFrame& f) {
+      AppendFrame(f, fx->config, &all);
+      AppendFrame(f, fx->config, &no_markers);
+      AppendFrame(f, fx->config, &no_z_neg);
+    };
+    auto marker = [&](double t_s, int8_t phase, bool start, const Vec3& g, bool in_no_z_neg) {
+      const Event e = Encode(Utime(t_s), ch.experiment(), Marker(Utime(t_s), phase, start, g));
+      all.push_back(e);
+      if (in_no_z_neg) no_z_neg.push_back(e);
+    };
+    double t = 0.0;
+    for (int s = 0; s < kNumHangSeries; ++s) {
+      const auto series = static_cast<HangSeries>(s);
+      const int8_t phase = static_cast<int8_t>(experiment_marker_t::HANG_X_POS + s);
+      const Vec3 g = fx->twin->StatedGravityB(series);
+      const bool keep = series != HangSeries::kZNeg;
+      marker(t, phase, true, g, keep);
+      RunOptions run;
+      run.t0_s = t + 0.01;
+      t = fx->twin->Hanging(series, run, frames);
+      marker(t + 0.005, phase, false, g, keep);
+      t += 1.0;
+    }
+    marker(t, experiment_marker_t::STANDING, true, Vec3::Zero(), true);
+    RunOptions run;
+    run.t0_s = t + 0.01;
+    t = fx->twin->Standing(kPoses, run, frames);
+    marker(t + 0.005, experiment_marker_t::STANDING, false, Vec3::Zero(), true);
+
+    fx->log = fx->dir + "/session.lcmlog";
+    fx->log_no_markers = fx->dir + "/no_markers.lcmlog";
+    fx->log_no_z_neg = fx->dir + "/no_z_neg.lcmlog";
+    fx->log_truncated = fx->dir + "/truncated.lcmlog";
+    WriteLog(fx->log, all);
+    WriteLog(fx->log_no_markers, no_markers);
+    WriteLog(fx->log_no_z_neg, no_z_neg);
+    // Cut in the middle of an event, 70% in: the standing poses' stop marker is lost too, but
+    // the refusal must come from the damaged tail, not from what happens to be missing.
+    const std::string bytes = ReadFile(fx->log);
+    std::ofstream(fx->log_truncated, std::ios::binary)
+        .write(bytes.data(), static_cast<std::streamsize>(bytes.size() * 7 / 10 + 13));
+    fx->truth = fx->dir + "/truth.pbtxt";
+    fx->twin->WriteTruthFile(fx->truth);
+    // The same robot with the transducers on other channels: the log's FT_* are not its legs.
+    std::string cfg = ReadFile(kConfig);
+    cfg.replace(cfg.find("channels {}"), 11, "channels { ft_prefix: \"ATI_\" }");
+    fx->config_other = fx->dir + "/other.pbtxt";
+    std::ofstream(fx->config_other) << cfg;
+  }
+  static void TearDownTestSuite() {
+    // FTCAL_TEST_KEEP=1 keeps the logs, calibration and report for a look.
+    if (std::getenv("FTCAL_TEST_KEEP") == nullptr) testing::RemoveTree(fx->dir);
+    delete fx;
+    fx = nullptr;
+  }
+
+  struct Result {
+    int exit_code = -1;
+    std::string out, err;
+  };
+  static Result Run(const std::vector<std::string>& extra, const std::string& tag) {
+    std::vector<std::string> argv = {FTCAL_CALIBRATOR};
+    argv.insert(argv.end(), extra.begin(), extra.end());
+    Child child(argv, fx->dir + "/" + tag + ".out", fx->dir + "/" + tag + ".err");
+    const auto status = child.Wait(120);
+    Result r;
+    if (status && WIFEXITED(*status)) r.exit_code = WEXITSTATUS(*status);
+    r.out = ReadFile(fx->dir + "/" + tag + ".out");
+    r.err = ReadFile(fx->dir + "/" + tag + ".err");
+    return r;
+  }
+
+  // A refusal: exit 2, `what` in the message, neither the calibration nor its residuals.
+  static void ExpectRefused(const std::vector<std::string>& args, const std::string& tag,
+                            const std::string& what) {
+    const std::string out = fx->dir + "/" + tag + ".pbtxt";
+    std::vector<std::string> argv = args;
+    argv.insert(argv.end(), {"--config", kConfig, "--out", out});
+    Result r = Run(argv, tag);
+    EXPECT_EQ(r.exit_code, 2) << r.err;
+    EXPECT_NE(r.err.find(what), std::string::npos) << "expected '" << what << "' in:\n" << r.err;
+    EXPECT_FALSE(std::filesystem::exists(out));
+    EXPECT_FALSE(std::filesystem::exists(ResidualsPathFor(out)));
+  }
+};
+
+TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport) {
+  const std::string out = fx->dir + "/cal.pbtxt";
+  const std::string report = fx->dir + "/report";
+  const Result r = Run({"--log", fx->log, "--config", kConfig, "--out", out, "--report", report,
+                        "--truth", fx->truth},
+                       "ok");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const calibration::Calibration cal = ReadCalibrationFile(out);
+  const calibration::Calibration truth = ReadCalibrationFile(fx->truth);
+  ASSERT_EQ(cal.leg_size(), kNumLegs);
+  double worst_weight = 0.0, worst_force = 0.0, worst_torque = 0.0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const auto& e = cal.leg(k);
+    const auto& t = truth.leg(k);
+    SCOPED_TRACE(e.name());
+    worst_weight = std::max(worst_weight, std::abs(e.leg_weight_n().value() - t.leg_weight_n().value()));
+    for (const auto& [a, b] : {std::pair{e.force_offset_n().x(), t.force_offset_n().x()},
+                               {e.force_offset_n().y(), t.force_offset_n().y()},
+                               {e.force_offset_n().z(), t.force_offset_n().z()}}) {
+      worst_force = std::max(worst_force, std::abs(a - b));
+    }
+    for (const auto& [a, b] : {std::pair{e.torque_offset_nm().x(), t.torque_offset_nm().x()},
+                               {e.torque_offset_nm().y(), t.torque_offset_nm().y()},
+                               {e.torque_offset_nm().z(), t.torque_offset_nm().z()}}) {
+      worst_torque = std::max(worst_torque, std::abs(a - b));
+    }
+    EXPECT_EQ(e.name(), t.name());
+    // Noise 0.05 N per sample over thousands of samples: seed 11 lands within 0.012 N
+    // (weights), 0.005 N and 0.0002 N m (offsets); the bounds leave 4-10x room for the short
+    // series (3 cycles) and are still far below the errors a wrong series or sign would give.
+    EXPECT_NEAR(e.leg_weight_n().value(), t.leg_weight_n().value(), 0.05);
+    EXPECT_NEAR(e.force_offset_n().x(), t.force_offset_n().x(), 0.05);
+    EXPECT_NEAR(e.force_offset_n().y(), t.force_offset_n().y(), 0.05);
+    EXPECT_NEAR(e.force_offset_n().z(), t.force_offset_n().z(), 0.05);
+    EXPECT_NEAR(e.torque_offset_nm().x(), t.torque_offset_nm().x(), 0.002);
+    EXPECT_NEAR(e.torque_offset_nm().y(), t.torque_offset_nm().y(), 0.002);
+    EXPECT_NEAR(e.torque_offset_nm().z(), t.torque_offset_nm().z(), 0.002);
+  }
+  std::printf("calibrator vs twin truth: |d mg| <= %.4f N, |d f_o| <= %.4f N, |d tau_o| <= "
+              "%.5f N m\n%s",
+              worst_weight, worst_force, worst_torque, r.out.c_str());
+  EXPECT_GE(cal.standing_poses(), kPoses * 9 / 10);
+  ASSERT_EQ(cal.provenance().input_size(), 1);
+  EXPECT_EQ(cal.provenance().input(0).sha256(), Sha256File(fx->log));
+  EXPECT_EQ(cal.provenance().input(0).bytes(), std::filesystem::file_size(fx->log));
+  EXPECT_EQ(cal.provenance().config_sha256(), Sha256File(kConfig));
+  EXPECT_FALSE(cal.provenance().software_version().empty());
+  // The summary table is printed, with the selected model's name.
+  EXPECT_NE(r.out.find(calibration::StandingModel_Name(cal.model())), std::string::npos) << r.out;
+
+  // Residuals: one row per pose and variant.
+  const std::string csv = ReadFile(ResidualsPathFor(out));
+  const auto rows = std::count(csv.begin(), csv.end(), '\n');
+  EXPECT_EQ(rows, 1 + 3 * static_cast<long>(cal.standing_poses()));
+
+  // The report and every image it names.
+  const std::string html = ReadFile(report + "/index.html");
+  ASSERT_FALSE(html.empty());
+  std::set<std::string> images;
+  const std::regex img("src=\"([^\"]+\\.png)\"");
+  for (auto it = std::sregex_iterator(html.begin(), html.end(), img); it != std::sregex_iterator();
+       ++it) {
+    images.insert((*it)[1]);
+  }
+  EXPECT_GE(images.size(), 4u);
+  for (const std::string& name : images) {
+    const std::string path = report + "/" + name;
+    ASSERT_TRUE(std::filesystem::exists(path)) << path;
+    EXPECT_GT(std::filesystem::file_size(path), 1000u) << path;
+  }
+  // With --truth, the true values are beside the estimates.
+  EXPECT_NE(html.find("truth"), std::string::npos);
+}
+
+TEST_F(CalibratorTest, RefusesALogWithoutMarkers) {
+  ExpectRefused({"--log", fx->log_no_markers}, "no_markers", "no EXPERIMENT markers");
+}
+
+TEST_F(CalibratorTest, RefusesALogMissingASeries) {
+  ExpectRefused({"--log", fx->log_no_z_neg}, "no_z_neg", "missing hanging series: HANG_Z_NEG");
+}
+
+TEST_F(CalibratorTest, RefusesATruncatedLog) {
+  ExpectRefused({"--log", fx->log_truncated}, "truncated", "damaged or truncated");
+}
+
+TEST_F(CalibratorTest, RefusesAConfigWhoseLegsAreNotTheLogsChannels) {
+  const std::string out = fx->dir + "/other.pbtxt.out";
+  const Result r = Run({"--log", fx->log, "--config", fx->config_other, "--out", out}, "other");
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_NE(r.err.find("config legs with no channel in the log: ATI_FL"), std::string::npos)
+      << r.err;
+  EXPECT_FALSE(std::filesystem::exists(out));
+}
+
+}  // namespace
+}  // namespace ftcal

@@ -1,0 +1,9 @@
+# ftcal-calibrator over logs the test writes from the twin (no network: the logs are read with
+# LogReplayBus), its refusals, and the HTML report (scripts/report, Debian's python3).
+ftcal_add_gtest(calibrator_test integration TIMEOUT 300
+  SOURCES "${CMAKE_CURRENT_LIST_DIR}/calibrator_test.cc"
+  LIBS ftcal_twin ftcal_calibrator ftcal_child_process)
+target_compile_definitions(calibrator_test PRIVATE
+  FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
+  FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>")
+add_dependencies(calibrator_test ftcal-calibrator)
