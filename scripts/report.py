@@ -78,6 +78,7 @@ def save(fig, outdir, name):
     os.close(fd)
     fig.savefig(tmp, format="png", dpi=90)
     plt.close(fig)
+    os.chmod(tmp, 0o644)  # mkstemp makes it 0600; the report is for everyone to read
     os.replace(tmp, os.path.join(outdir, name))
     return name
 
@@ -287,6 +288,7 @@ def main():
         f.write("\n".join(parts))
         f.flush()
         os.fsync(f.fileno())
+    os.chmod(tmp, 0o644)
     os.replace(tmp, os.path.join(a.outdir, "index.html"))
     print(os.path.join(a.outdir, "index.html"))
     return 0

@@ -321,6 +321,22 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   }
   // With --truth, the true values are beside the estimates.
   EXPECT_NE(html.find("truth"), std::string::npos);
+
+  // scripts/report on its own refuses a residuals file that is not the calibrator's, naming
+  // the line, and writes nothing.
+  const std::string bad_csv = fx->dir + "/bad.csv";
+  std::ofstream(bad_csv) << csv.substr(0, csv.find('\n') + 1) << "0,naive tare,1,2,x,4,5,6\n";
+  const std::string bad_dir = fx->dir + "/bad_report";
+  ::setenv("FTCAL_PYTHON_DIR", FTCAL_PYTHON_DIR, 1);  // this build's schemas
+  Child report_child({std::string(FTCAL_SOURCE_DIR) + "/scripts/report", out, bad_csv, bad_dir},
+               fx->dir + "/bad_report.out", fx->dir + "/bad_report.err");
+  const auto status = report_child.Wait(60);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 2);
+  EXPECT_NE(ReadFile(fx->dir + "/bad_report.err").find("bad.csv:2: a value is not a number"),
+            std::string::npos)
+      << ReadFile(fx->dir + "/bad_report.err");
+  EXPECT_FALSE(std::filesystem::exists(bad_dir + "/index.html"));
 }
 
 TEST_F(CalibratorTest, RefusesALogWithoutMarkers) {
