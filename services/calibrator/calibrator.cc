@@ -10,6 +10,8 @@
 #include <spdlog/fmt/fmt.h>
 #include <spdlog/spdlog.h>
 
+#include "ftcal/calibration_io.h"
+#include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"
 #include "ftcal/hanging.h"
 #include "ftcal/standing.h"
@@ -272,6 +274,50 @@ void CalibrationCollector::CheckLegsMatchConfig() const {
            std::to_string(kNumLegs) + " legs in the config)";
     throw CalibratorInputError(msg);
   }
+}
+
+void WriteCalibrationOutputs(const CalibrationRun& run, const std::string& out_path) {
+  WriteCalibrationFile(run.proto, out_path);
+  WriteFileAtomic(ResidualsPathFor(out_path), ResidualsCsv(run.standing));
+}
+
+LiveCalibrator::LiveCalibrator(const config::Config& config, Bus& bus, std::string out_path,
+                               CalibratorOptions options, Callback on_calibrated)
+    : config_(config),
+      bus_(bus),
+      out_path_(std::move(out_path)),
+      options_(std::move(options)),
+      on_calibrated_(std::move(on_calibrated)),
+      collector_(config) {
+  collector_.Attach(bus);
+  collector_.SetOnStandingStop([this] { OnStandingStop(); });
+}
+
+void LiveCalibrator::OnStandingStop() {
+  CalibrationRun run;
+  try {
+    run = RunCalibration(collector_, config_, options_);
+  } catch (const CalibratorInputError& e) {
+    ++refused_;
+    last_refusal_ = e.what();
+    spdlog::error("calibration refused: {}", e.what());
+    return;
+  }
+  run.proto.set_version(static_cast<uint64_t>(version_ + 1));
+  WriteCalibrationOutputs(run, out_path_);  // the file first: a published version exists on disk
+  ++version_;
+  std::string bytes;
+  run.proto.SerializeToString(&bytes);
+  calibration_t msg{};
+  msg.utime = bus_.NowUtime();
+  msg.version = version_;
+  msg.content_sha256 = Sha256Hex(bytes);
+  msg.data.assign(bytes.begin(), bytes.end());
+  msg.size = static_cast<int32_t>(msg.data.size());
+  bus_.Publish(config_.channels().calibration(), msg);
+  spdlog::info("wrote {}; published calibration version {} on {}", out_path_, version_,
+               config_.channels().calibration());
+  if (on_calibrated_) on_calibrated_(run);
 }
 
 std::string SoftwareVersion() { return FTCAL_SOFTWARE_VERSION; }

@@ -17,6 +17,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <set>
@@ -116,6 +117,37 @@ struct CalibratorOptions {
 // Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
                               const CalibratorOptions& options);
+
+// Live mode: collects on `bus`; when a STANDING phase stops, calibrates from everything
+// collected so far, writes the calibration (and its residuals CSV) atomically, publishes
+// CALIBRATION (calibration_t: version counting up from 1, SHA-256 of the bytes, the binary
+// proto) and calls on_calibrated. A refused calibration is logged and counted; the collector
+// keeps listening (a later STANDING phase may complete it).
+class LiveCalibrator {
+ public:
+  using Callback = std::function<void(const CalibrationRun&)>;
+  LiveCalibrator(const config::Config& config, Bus& bus, std::string out_path,
+                 CalibratorOptions options, Callback on_calibrated);
+  int64_t version() const { return version_; }
+  int64_t refused() const { return refused_; }
+  const std::string& last_refusal() const { return last_refusal_; }
+
+ private:
+  void OnStandingStop();
+
+  const config::Config& config_;
+  Bus& bus_;
+  std::string out_path_;
+  CalibratorOptions options_;
+  Callback on_calibrated_;
+  CalibrationCollector collector_;
+  int64_t version_ = 0;
+  int64_t refused_ = 0;
+  std::string last_refusal_;
+};
+
+// Writes the calibration file and <out>.residuals.csv beside it, both atomically.
+void WriteCalibrationOutputs(const CalibrationRun& run, const std::string& out_path);
 
 // The software version recorded in provenance: PROJECT_VERSION (+ git describe at build time).
 std::string SoftwareVersion();

@@ -71,20 +71,15 @@ int RunReport(const std::string& cal, const std::string& residuals, const Args& 
   return WIFEXITED(status) ? WEXITSTATUS(status) : 1;
 }
 
-// Writes the calibration and its residuals, prints the summary, runs the report.
-int Finish(const ftcal::CalibrationRun& run, const Args& args) {
-  ftcal::WriteCalibrationFile(run.proto, args.out);
-  const std::string residuals = ftcal::ResidualsPathFor(args.out);
-  ftcal::WriteFileAtomic(residuals, ftcal::ResidualsCsv(run.standing));
-  spdlog::info("wrote {} and {}", args.out, residuals);
+// Prints the summary and runs the report (the files are written).
+int Report(const ftcal::CalibrationRun& run, const Args& args) {
   std::cout << ftcal::SummaryTable(run) << std::flush;
-  if (!args.report_dir.empty()) {
-    spdlog::info("writing the report into {}", args.report_dir);
-    const int rc = RunReport(args.out, residuals, args);
-    if (rc != 0) {
-      spdlog::error("report failed (exit {}); the calibration file is written", rc);
-      return 1;
-    }
+  if (args.report_dir.empty()) return 0;
+  spdlog::info("writing the report into {}", args.report_dir);
+  const int rc = RunReport(args.out, ftcal::ResidualsPathFor(args.out), args);
+  if (rc != 0) {
+    spdlog::error("report failed (exit {}); the calibration file is written", rc);
+    return 1;
   }
   return 0;
 }
@@ -138,43 +133,23 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   options.config_path = args.config_path;
   options.command_line = args.command_line;
   const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
-  return Finish(run, args);
+  ftcal::WriteCalibrationOutputs(run, args.out);
+  spdlog::info("wrote {} and {}", args.out, ftcal::ResidualsPathFor(args.out));
+  return Report(run, args);
 }
 
-// Live: collect by markers; calibrate when a STANDING phase stops, publish CALIBRATION and
-// write the file. A refused calibration is logged and the collector keeps listening.
+// Live: collect by markers; calibrate when a STANDING phase stops (LiveCalibrator).
 int Live(const ftcal::config::Config& config, const Args& args) {
   ftcal::ServiceStats stats(spdlog::default_logger());
   const std::string url = args.lcm_url.empty() ? config.lcm_url() : args.lcm_url;
   ftcal::LcmBus bus(url, stats);
-  ftcal::CalibrationCollector collector(config);
-  collector.Attach(bus);
-  ftcal::InstallShutdownHandlers();
-  int64_t version = 0;
+  ftcal::CalibratorOptions options;
+  options.config_path = args.config_path;
+  options.command_line = args.command_line;
   int rc = 0;
-  collector.SetOnStandingStop([&] {
-    try {
-      ftcal::CalibratorOptions options;
-      options.config_path = args.config_path;
-      options.command_line = args.command_line;
-      ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
-      run.proto.set_version(static_cast<uint64_t>(++version));
-      std::string bytes;
-      run.proto.SerializeToString(&bytes);
-      ftcal::calibration_t msg{};
-      msg.utime = bus.NowUtime();
-      msg.version = version;
-      msg.content_sha256 = ftcal::Sha256Hex(bytes);
-      msg.data.assign(bytes.begin(), bytes.end());
-      msg.size = static_cast<int32_t>(msg.data.size());
-      rc = Finish(run, args);
-      bus.Publish(config.channels().calibration(), msg);
-      spdlog::info("published calibration version {} on {}", version,
-                   config.channels().calibration());
-    } catch (const CalibratorInputError& e) {
-      spdlog::error("calibration refused: {}", e.what());
-    }
-  });
+  ftcal::LiveCalibrator live(config, bus, args.out, options,
+                             [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
+  ftcal::InstallShutdownHandlers();
   spdlog::info("listening on {} for EXPERIMENT markers", url);
   bus.Run([] {}, 1'000'000);
   return rc;

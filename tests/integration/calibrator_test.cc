@@ -18,9 +18,13 @@
 
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
+#include <spdlog/spdlog.h>
 
 #include "calibrator/calibrator.h"
 #include "child_process.h"
+#include "common/bus.h"
+#include "common/service_stats.h"
+#include "ftcal/calibration_t.hpp"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 #include "ftcal/experiment_marker_t.hpp"
@@ -138,6 +142,7 @@ struct Fixture {
   config::Config config;
   std::unique_ptr<BigAntTwin> twin;
   std::string log, log_no_markers, log_no_z_neg, log_truncated, truth, config_other;
+  std::vector<Event> events;  // the whole session, for the live test
 };
 Fixture* fx = nullptr;
 
@@ -197,6 +202,7 @@ class CalibratorTest : public ::testing::Test {
     fx->log_no_z_neg = fx->dir + "/no_z_neg.lcmlog";
     fx->log_truncated = fx->dir + "/truncated.lcmlog";
     WriteLog(fx->log, all);
+    fx->events = all;
     WriteLog(fx->log_no_markers, no_markers);
     WriteLog(fx->log_no_z_neg, no_z_neg);
     // Cut in the middle of an event, 70% in: the standing poses' stop marker is lost too, but
@@ -358,6 +364,51 @@ TEST_F(CalibratorTest, RefusesAConfigWhoseLegsAreNotTheLogsChannels) {
   EXPECT_NE(r.err.find("config legs with no channel in the log: ATI_FL"), std::string::npos)
       << r.err;
   EXPECT_FALSE(std::filesystem::exists(out));
+}
+
+// Live mode on an in-process LCM (memq://, no network): the same session published event by
+// event; one calibration when STANDING stops, published as calibration_t whose bytes are the
+// file's proto and whose hash is theirs.
+TEST_F(CalibratorTest, LiveCalibratesWhenStandingStopsPublishesAndWrites) {
+  ServiceStats stats(spdlog::default_logger());
+  LcmBus bus("memq://", stats);
+  std::vector<calibration_t> published;
+  bus.Subscribe<calibration_t>(fx->config.channels().calibration(),
+                               [&](const MessageInfo&, const calibration_t& m) { published.push_back(m); });
+  const std::string out = fx->dir + "/live.pbtxt";
+  int calibrated = 0;
+  CalibratorOptions options;
+  options.config_path = kConfig;
+  LiveCalibrator live(fx->config, bus, out, options, [&](const CalibrationRun&) { ++calibrated; });
+  auto drain = [&] {
+    while (bus.HandleOnce(0) > 0) {
+    }
+  };
+  for (size_t i = 0; i < fx->events.size(); ++i) {
+    const Event& e = fx->events[i];
+    bus.PublishRaw(e.channel, e.data.data(), static_cast<int>(e.data.size()));
+    if (i % 512 == 0) drain();
+  }
+  drain();
+  drain();  // the calibration published from inside the STANDING stop handler
+  EXPECT_EQ(live.refused(), 0) << live.last_refusal();
+  EXPECT_EQ(calibrated, 1);
+  ASSERT_EQ(published.size(), 1u);
+  const calibration_t& m = published[0];
+  EXPECT_EQ(m.version, 1);
+  const std::string bytes(m.data.begin(), m.data.end());
+  EXPECT_EQ(m.content_sha256, Sha256Hex(bytes));
+  calibration::Calibration from_bus;
+  ASSERT_TRUE(from_bus.ParseFromString(bytes));
+  const calibration::Calibration from_file = ReadCalibrationFile(out);
+  EXPECT_EQ(from_file.SerializeAsString(), bytes);
+  EXPECT_EQ(from_bus.version(), 1u);
+  const calibration::Calibration truth = ReadCalibrationFile(fx->truth);
+  ASSERT_EQ(from_bus.leg_size(), kNumLegs);
+  for (int k = 0; k < kNumLegs; ++k) {
+    EXPECT_NEAR(from_bus.leg(k).leg_weight_n().value(), truth.leg(k).leg_weight_n().value(), 0.05);
+  }
+  EXPECT_TRUE(std::filesystem::exists(ResidualsPathFor(out)));
 }
 
 }  // namespace
