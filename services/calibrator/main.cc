@@ -90,6 +90,13 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
                                   .string();
+  // Every input before any work: a typo in the last of several logs is refused at once.
+  for (const std::string& path : args.logs) {
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(path, ec)) {
+      throw CalibratorInputError("input log '" + path + "' does not exist or is not a file");
+    }
+  }
   for (const std::string& path : args.logs) {
     ftcal::ServiceStats stats(log);
     // Nothing is published: the replay output stays uncommitted and is removed.
@@ -168,8 +175,7 @@ int main(int argc, char** argv) {
       "--log): collects the same on LCM, calibrates when STANDING stops, publishes CALIBRATION "
       "(calibration_t) and writes --out. Exit 2 when the input is refused.",
       "ftcal-calibrator");
-  cli.add_option("--log", args.logs, "input log(s) (lcm-logger format), read in the order given")
-      ->check(CLI::ExistingFile);
+  cli.add_option("--log", args.logs, "input log(s) (lcm-logger format), read in the order given");
   cli.add_option("--out", args.out, "calibration file to write (text format)")->required();
   cli.add_option("--report", args.report_dir, "also write the HTML report into this directory");
   cli.add_option("--truth", args.truth, "a truth calibration file (the twin's) for the report")

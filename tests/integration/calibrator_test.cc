@@ -353,6 +353,11 @@ TEST_F(CalibratorTest, RefusesALogMissingASeries) {
   ExpectRefused({"--log", fx->log_no_z_neg}, "no_z_neg", "missing hanging series: HANG_Z_NEG");
 }
 
+TEST_F(CalibratorTest, RefusesAMissingLog) {
+  ExpectRefused({"--log", fx->log, "--log", fx->dir + "/absent.lcmlog"}, "absent",
+                "input log '" + fx->dir + "/absent.lcmlog' does not exist");
+}
+
 TEST_F(CalibratorTest, RefusesATruncatedLog) {
   ExpectRefused({"--log", fx->log_truncated}, "truncated", "damaged or truncated");
 }
