@@ -71,6 +71,9 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
 
 void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
+  bus.SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) {
+    channels_seen_.insert(info.channel);
+  });
   // Every FT_* channel, not just the config's: a log from a robot with other legs must be told
   // apart from one whose legs are silent.
   bus.SubscribeRaw(ch.ft_prefix() + ".*", [this](const MessageInfo& info, const void* data,
@@ -270,8 +273,9 @@ void CalibrationCollector::CheckLegsMatchConfig() const {
     std::string msg = "the config's legs do not match the log's FT channels:";
     if (!unknown.empty()) msg += " channels for legs the config does not have: " + unknown + ";";
     if (!silent.empty()) msg += " config legs with no channel in the log: " + silent + ";";
-    msg += " (" + std::to_string(ft_channels_seen_.size()) + " FT channels in the log, " +
-           std::to_string(kNumLegs) + " legs in the config)";
+    std::string all;
+    for (const std::string& c : channels_seen_) all += (all.empty() ? "" : ", ") + c;
+    msg += " the log's channels: " + (all.empty() ? std::string("none") : all);
     throw CalibratorInputError(msg);
   }
 }

@@ -104,6 +104,7 @@ class CalibrationCollector {
   std::vector<StandingPose> logged_poses_;
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
+  std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
   std::function<void()> on_standing_stop_;
   CollectorCounters counters_;
 };
