@@ -43,8 +43,14 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
   bus.Subscribe<calibration_t>(ch.calibration(),
                                [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
   set_state_(service_status_t::DEGRADED);
-  bus.stats().Error("no calibration", "nothing is published until a calibration arrives on " +
-                                          ch.calibration() + " (or start with --calibration FILE)");
+  UpdateCounters();
+}
+
+void CorrectorStage::ReportWaitingForCalibration() {
+  if (has_calibration()) return;
+  bus_.stats().Error("no calibration", "nothing is published until a calibration arrives on " +
+                                           config_.channels().calibration() +
+                                           " (or start with --calibration FILE)");
   UpdateCounters();
 }
 

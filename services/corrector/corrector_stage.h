@@ -39,6 +39,9 @@ class CorrectorStage {
   void UseCalibration(const calibration::Calibration& proto, int64_t version,
                       const std::string& sha256);
   bool has_calibration() const { return corrector_.has_calibration(); }
+  // Says in the status (last error, DEGRADED) why nothing is published yet. Called once the
+  // start-up calibration, if any, has been applied, so a --calibration start reports no error.
+  void ReportWaitingForCalibration();
 
  private:
   void OnFt(int leg, const ft_sample_t& msg);

@@ -36,6 +36,7 @@ int main(int argc, char** argv) {
         return 2;
       }
     }
+    stage.ReportWaitingForCalibration();
     return app.Run();
   } catch (const std::exception& e) {
     app.log().critical("{}", e.what());
