@@ -107,34 +107,12 @@ bool Aligner::AddFt(const FtInput& in) {
 }
 
 bool Aligner::AddServo(const ServoInput& in) {
-  ++counters_.servo_in;
-  for (double a : in.angle_rad) {
-    if (!std::isfinite(a)) {
-      ++counters_.non_finite;
-      return false;
-    }
-  }
-  if (!servo_.Add(in)) {
-    ++counters_.out_of_order;
-    return false;
-  }
+  if (!AcceptServo(in, &servo_, &counters_)) return false;
   Resolve(newest_ft_utime_);
   return true;
 }
 
-bool Aligner::AddMocap(const MocapInput& in) {
-  ++counters_.mocap_in;
-  if (in.tracked && !in.R_WC.allFinite()) {
-    ++counters_.non_finite;
-    return false;
-  }
-  if (mocap_ && in.utime <= mocap_->utime) {
-    ++counters_.out_of_order;
-    return false;
-  }
-  mocap_ = in;
-  return true;
-}
+bool Aligner::AddMocap(const MocapInput& in) { return AcceptMocap(in, &mocap_, &counters_); }
 
 void Aligner::Resolve(int64_t newest_ft_utime) {
   while (!pending_.empty()) {

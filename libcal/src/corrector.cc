@@ -57,33 +57,11 @@ void Corrector::SetCalibration(const RobotCalibration& cal, int64_t version) {
 }
 
 bool Corrector::AddServo(const ServoInput& in) {
-  ++counters_.servo_in;
-  for (double a : in.angle_rad) {
-    if (!std::isfinite(a)) {
-      ++counters_.non_finite;
-      return false;
-    }
-  }
-  if (!servo_.Add(in)) {
-    ++counters_.out_of_order;
-    return false;
-  }
+  if (!AcceptServo(in, &servo_, &counters_)) return false;
   return true;
 }
 
-bool Corrector::AddMocap(const MocapInput& in) {
-  ++counters_.mocap_in;
-  if (in.tracked && !in.R_WC.allFinite()) {
-    ++counters_.non_finite;
-    return false;
-  }
-  if (mocap_ && in.utime <= mocap_->utime) {
-    ++counters_.out_of_order;
-    return false;
-  }
-  mocap_ = in;
-  return true;
-}
+bool Corrector::AddMocap(const MocapInput& in) { return AcceptMocap(in, &mocap_, &counters_); }
 
 // Eq. 3 with the precomputed X_C_ft: f^C = R (f_m - f_o), tau^C = R (tau_m - tau_o) + p x f^C,
 // minus the leg's gravity wrench about the CoM, then both rotated by R_WC.

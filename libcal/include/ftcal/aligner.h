@@ -26,6 +26,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <cstdint>
 #include <deque>
 #include <functional>
@@ -90,6 +91,40 @@ struct AlignedSample {
   SyncSample sample;
   int32_t flags = 0;  // OR of the six readings' flags
 };
+
+// The input checks the aligner and the corrector share: count the input, refuse a non-finite
+// one and one that is not newer than the last of its stream, keep the newest. `Counters` has
+// servo_in / mocap_in / non_finite / out_of_order.
+template <class Counters>
+bool AcceptServo(const ServoInput& in, ServoHistory* history, Counters* counters) {
+  ++counters->servo_in;
+  for (double a : in.angle_rad) {
+    if (!std::isfinite(a)) {
+      ++counters->non_finite;
+      return false;
+    }
+  }
+  if (!history->Add(in)) {
+    ++counters->out_of_order;
+    return false;
+  }
+  return true;
+}
+
+template <class Counters>
+bool AcceptMocap(const MocapInput& in, std::optional<MocapInput>* latest, Counters* counters) {
+  ++counters->mocap_in;
+  if (in.tracked && !in.R_WC.allFinite()) {
+    ++counters->non_finite;
+    return false;
+  }
+  if (*latest && in.utime <= (*latest)->utime) {
+    ++counters->out_of_order;
+    return false;
+  }
+  *latest = in;
+  return true;
+}
 
 struct AlignerCounters {
   int64_t ft_in = 0, servo_in = 0, mocap_in = 0;
