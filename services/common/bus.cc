@@ -161,9 +161,7 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
 LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_path,
                            ServiceStats& stats)
     : Bus(stats),
-      in_path_(in_path),
-      out_path_(out_path),
-      tmp_path_(out_path + ".tmp." + std::to_string(::getpid())) {
+      in_path_(in_path) {
   struct stat st {};
   if (::stat(in_path.c_str(), &st) != 0) {
     throw std::runtime_error("replay input '" + in_path + "': " + std::strerror(errno));
@@ -176,33 +174,16 @@ LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_pa
     throw std::runtime_error("replay input '" + in_path + "': cannot open: " +
                              std::strerror(errno));
   }
-  out_ = std::make_unique<lcm::LogFile>(tmp_path_, "w");
-  if (!out_->good()) {
-    throw std::runtime_error("replay output '" + out_path + "': cannot create '" + tmp_path_ +
-                             "': " + std::strerror(errno));
-  }
+  out_ = std::make_unique<AtomicLogFile>(out_path, "replay output");
 }
 
-LogReplayBus::~LogReplayBus() {
-  if (!committed_) {
-    out_.reset();
-    ::unlink(tmp_path_.c_str());
-  }
-}
+// The output's temporary file goes with out_ unless Commit() ran.
+LogReplayBus::~LogReplayBus() = default;
 
 void LogReplayBus::TransportSubscribe(size_t /*subscription*/, const std::string& /*channel*/) {}
 
 void LogReplayBus::TransportPublish(const std::string& channel, const void* data, int size) {
-  if (!out_) throw std::logic_error("publish after the replay output was committed");
-  lcm::LogEvent event{};
-  event.timestamp = now_utime_;
-  event.channel = channel;
-  event.datalen = size;
-  event.data = const_cast<void*>(data);  // LogFile::writeEvent only reads it
-  if (out_->writeEvent(&event) != 0) {
-    throw std::runtime_error("replay output '" + tmp_path_ + "': write failed: " +
-                             std::strerror(errno));
-  }
+  out_->Write(now_utime_, channel, data, size);
 }
 
 void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
@@ -280,26 +261,6 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
   finished_ = true;
 }
 
-void LogReplayBus::Commit() {
-  if (committed_) return;
-  FILE* file = out_->getFilePtr();
-  if (std::fflush(file) != 0 || ::fsync(::fileno(file)) != 0) {
-    throw std::runtime_error("replay output '" + tmp_path_ + "': " + std::strerror(errno));
-  }
-  out_.reset();  // closes
-  if (std::rename(tmp_path_.c_str(), out_path_.c_str()) != 0) {
-    throw std::runtime_error("replay output: cannot rename '" + tmp_path_ + "' to '" +
-                             out_path_ + "': " + std::strerror(errno));
-  }
-  committed_ = true;
-  // The rename itself is durable only once the directory is synced.
-  const auto slash = out_path_.rfind('/');
-  const std::string dir = slash == std::string::npos ? "." : out_path_.substr(0, slash + 1);
-  const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (dir_fd >= 0) {
-    ::fsync(dir_fd);
-    ::close(dir_fd);
-  }
-}
+void LogReplayBus::Commit() { out_->Commit(); }
 
 }  // namespace ftcal

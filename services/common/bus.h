@@ -24,6 +24,7 @@
 
 #include <lcm/lcm-cpp.hpp>
 
+#include "common/atomic_log.h"
 #include "common/service_stats.h"
 
 namespace ftcal {
@@ -154,14 +155,11 @@ class LogReplayBus : public Bus {
 
  private:
   std::string in_path_;
-  std::string out_path_;
-  std::string tmp_path_;
   std::unique_ptr<lcm::LogFile> in_;
-  std::unique_ptr<lcm::LogFile> out_;
+  std::unique_ptr<AtomicLogFile> out_;
   int64_t now_utime_ = 0;
   int64_t events_read_ = 0;
   bool finished_ = false;
-  bool committed_ = false;
 };
 
 // ---- templates ----

@@ -50,9 +50,8 @@ int64_t SimLogCounts::Total() const {
 
 SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_path,
                            const SimLogOptions& options)
-    : out_path_(out_path),
-      tmp_path_(out_path + ".tmp." + std::to_string(::getpid())),
-      options_(options),
+    : options_(options),
+      log_(out_path, "sim log"),
       rng_(options.seed ^ 0x51D106ULL) {
   if (config.robot().leg_size() != kNumLegs) {
     throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
@@ -108,20 +107,10 @@ SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_
 
   marker_ = experiment_marker_t{};
   marker_.session_id = options_.session_id;
-
-  log_ = std::make_unique<lcm::LogFile>(tmp_path_, "w");
-  if (!log_->good()) {
-    throw std::runtime_error("sim log '" + out_path_ + "': cannot create '" + tmp_path_ +
-                             "': " + std::strerror(errno));
-  }
 }
 
-SimLogWriter::~SimLogWriter() {
-  if (!committed_) {
-    log_.reset();
-    ::unlink(tmp_path_.c_str());
-  }
-}
+// The temporary file goes with log_ unless Commit() ran.
+SimLogWriter::~SimLogWriter() = default;
 
 double SimLogWriter::Uniform() {
   return static_cast<double>(rng_() >> 11) * 0x1.0p-53;
@@ -144,20 +133,12 @@ int SimLogWriter::EncodeInto(const Msg& msg, std::vector<uint8_t>* buffer) {
 
 void SimLogWriter::Write(int64_t utime, const std::string& channel,
                          const std::vector<uint8_t>& bytes, int size) {
-  lcm::LogEvent ev;
-  ev.eventnum = event_number_++;
-  ev.timestamp = utime;
-  ev.channel = channel;
-  ev.datalen = size;
-  ev.data = const_cast<uint8_t*>(bytes.data());
-  if (log_->writeEvent(&ev) != 0) {
-    throw std::runtime_error("sim log '" + tmp_path_ + "': write failed: " + std::strerror(errno));
-  }
+  log_.Write(utime, channel, bytes.data(), size);
   last_utime_ = utime;
 }
 
 void SimLogWriter::WriteFrame(const TwinFrame& f) {
-  if (committed_) throw std::logic_error("sim log '" + out_path_ + "': frame after Commit()");
+  if (log_.committed()) throw std::logic_error("sim log '" + log_.path() + "': frame after Commit()");
   if (!std::isfinite(f.t_s)) {
     throw std::invalid_argument("sim log: frame time is not finite");
   }
@@ -252,7 +233,7 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
 
 void SimLogWriter::WriteMarker(int64_t utime, ExperimentPhase phase, bool start,
                                const Vec3& gravity_b, const std::string& note) {
-  if (committed_) throw std::logic_error("sim log '" + out_path_ + "': marker after Commit()");
+  if (log_.committed()) throw std::logic_error("sim log '" + log_.path() + "': marker after Commit()");
   if (utime < last_utime_) {
     throw std::invalid_argument("sim log: marker at utime " + std::to_string(utime) +
                                 " precedes the last event at " + std::to_string(last_utime_));
@@ -267,27 +248,7 @@ void SimLogWriter::WriteMarker(int64_t utime, ExperimentPhase phase, bool start,
   ++counts_.markers;
 }
 
-void SimLogWriter::Commit() {
-  if (committed_) return;
-  FILE* file = log_->getFilePtr();
-  if (std::fflush(file) != 0 || ::fsync(::fileno(file)) != 0) {
-    throw std::runtime_error("sim log '" + tmp_path_ + "': " + std::strerror(errno));
-  }
-  log_.reset();  // closes
-  if (std::rename(tmp_path_.c_str(), out_path_.c_str()) != 0) {
-    throw std::runtime_error("sim log: cannot rename '" + tmp_path_ + "' to '" + out_path_ +
-                             "': " + std::strerror(errno));
-  }
-  committed_ = true;
-  // The rename is durable only once the directory is synced.
-  const auto slash = out_path_.rfind('/');
-  const std::string dir = slash == std::string::npos ? "." : out_path_.substr(0, slash + 1);
-  const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (dir_fd >= 0) {
-    ::fsync(dir_fd);
-    ::close(dir_fd);
-  }
-}
+void SimLogWriter::Commit() { log_.Commit(); }
 
 double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLogWriter* writer) {
   if (plan.standing && plan.poses < 1) {

@@ -33,6 +33,7 @@
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
+#include "common/atomic_log.h"
 #include "proto/config.pb.h"
 #include "sim/twin.h"
 
@@ -97,11 +98,8 @@ class SimLogWriter {
   template <class Msg>
   int EncodeInto(const Msg& msg, std::vector<uint8_t>* buffer);
 
-  std::string out_path_;
-  std::string tmp_path_;
   SimLogOptions options_;
-  std::unique_ptr<lcm::LogFile> log_;
-  bool committed_ = false;
+  AtomicLogFile log_;
   std::mt19937_64 rng_;
 
   std::array<std::string, kNumLegs> ft_channel_;
@@ -127,7 +125,6 @@ class SimLogWriter {
   double previous_t_s_ = 0.0;
   std::array<double, kNumLegs> previous_angle_{};
   int64_t last_utime_ = std::numeric_limits<int64_t>::min();
-  int64_t event_number_ = 0;
   SimLogCounts counts_;
 };
 
