@@ -28,13 +28,23 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
   run.step1 = NominalRobot(config);
   ApplyHangingResult(hanging, &run.step1);
 
+  StandingOptions standing = standing_options;
+  if (config.calibrator().hanging_gravity_prior()) {
+    if (hanging.gravity_observations.empty()) {
+      throw CalibrationStageError(
+          "step 2 (standing): calibrator.hanging_gravity_prior needs motion capture attitude "
+          "during every hanging series, and at least one series has none");
+    }
+    standing.gravity_prior = hanging.gravity_observations;
+  }
+
   std::array<Vec6, kNumLegs> naive{};
   for (int k = 0; k < kNumLegs; ++k) naive[k] = hanging.leg[k].naive_offset;
   try {
-    run.standing = CalibrateStanding(run.step1, poses, naive, standing_options);
+    run.standing = CalibrateStanding(run.step1, poses, naive, standing);
     if (options.compare_alternating) {
       run.alternating = FitStandingAlternating(run.step1, poses, run.standing.selected,
-                                               standing_options);
+                                               standing);
       run.has_alternating = true;
     }
   } catch (const std::invalid_argument& e) {
@@ -53,6 +63,7 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
   FillStandingProto(run.standing, &out);
   // FillStandingProto rewrites the solver block; keep step 1's flag in it.
   out.mutable_solver()->set_exact_hanging_rotations(hanging.exact_rotations);
+  out.mutable_solver()->set_hanging_gravity_prior(!standing.gravity_prior.empty());
   return run;
 }
 

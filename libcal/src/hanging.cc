@@ -836,6 +836,55 @@ Vec3 SeriesGravity(const HangingRecording& rec, const HangingOptions& options) {
   return g_b;
 }
 
+// Unit mean of directions split into kGravityBlocks contiguous time blocks, and the standard
+// error (per axis across the mean direction) of that mean from the spread of the blocks.
+constexpr int kGravityBlocks = 10;
+
+template <typename DirectionOf>
+std::pair<Vec3, double> MeanDirection(size_t n, const DirectionOf& direction_of) {
+  std::array<Vec3, kGravityBlocks> block;
+  block.fill(Vec3::Zero());
+  Vec3 mean = Vec3::Zero();
+  for (size_t i = 0; i < n; ++i) {
+    const Vec3 d = direction_of(i);
+    block[std::min<size_t>(kGravityBlocks - 1, i * kGravityBlocks / n)] += d;
+    mean += d;
+  }
+  mean.normalize();
+  double ss = 0.0;
+  int used = 0;
+  for (const Vec3& b : block) {
+    if (b.norm() == 0.0) continue;
+    ss += (b.normalized() - mean).squaredNorm();
+    ++used;
+  }
+  // Two axes across the direction share the squared deviation.
+  const double sigma = used > 1 ? std::sqrt(ss / (2.0 * (used - 1)) / used) : 0.0;
+  return {mean, sigma};
+}
+
+HangingGravityObservation GravityObservation(const HangingRecording& rec, int leg,
+                                             const Pose3& X_B_ft, const Vec3Sigma& force_offset) {
+  const LegSamples& ls = rec.legs[leg];
+  HangingGravityObservation obs;
+  obs.leg = leg;
+  obs.series = rec.series;
+  Vec3 f_mean = Vec3::Zero();
+  for (const Vec6& w : ls.wrench) f_mean += w.head<3>() - force_offset.value;
+  f_mean /= static_cast<double>(ls.wrench.size());
+  const auto [u_ft, sigma_u] = MeanDirection(ls.wrench.size(), [&](size_t i) {
+    return Vec3(ls.wrench[i].head<3>() - force_offset.value);
+  });
+  const auto [v, sigma_v] = MeanDirection(rec.attitude.size(), [&](size_t i) {
+    return Vec3(rec.attitude[i].transpose() * Vec3(0, 0, -1));
+  });
+  obs.u_B = X_B_ft.R * u_ft;
+  obs.v_C = v;
+  const double sigma_offset = force_offset.sigma.norm() / std::sqrt(3.0) / f_mean.norm();
+  obs.sigma_rad = std::sqrt(sigma_u * sigma_u + sigma_v * sigma_v + sigma_offset * sigma_offset);
+  return obs;
+}
+
 // Which slot (x/z, down/up) a series is for leg k.
 int SeriesSlot(const HangingRecording& rec, const Vec3& g_b, const Pose3& X_B_ft, int leg,
                const HangingOptions& options) {
@@ -887,6 +936,9 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
   for (int s = 1; s < kNumHangSeries; ++s) {
     if (g_b[s].z() < g_b[upright].z()) upright = s;
   }
+
+  bool has_attitude = true;
+  for (const HangingRecording* rec : by_series) has_attitude = has_attitude && !rec->attitude.empty();
 
   const int bins = options.phase_bins;
   HangingResult result;
@@ -1127,6 +1179,13 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
         for (const Vec6& w : by_series[s]->legs[leg].wrench) residual.push_back(w - out.naive_offset);
       }
       out.naive_residual = Stats(std::string(kLegNames[leg]) + " naive tare", residual);
+    }
+
+    if (has_attitude) {
+      for (int s = 0; s < kNumHangSeries; ++s) {
+        result.gravity_observations.push_back(GravityObservation(
+            *by_series[s], leg, X_B_ft[leg], out.with_s.force_offset_n));
+      }
     }
   }
   return result;

@@ -8,6 +8,10 @@
 //   delta = 0 (report) or the pose's CoM shift sum_k (m_k / M) R~_k (r'_k(phi) - r'_k(0)).
 // Unknowns: R~_k (unit quaternions on ceres::EigenQuaternionManifold in the joint solve, Cayley
 //   vectors in the report's alternating scheme), p~'_k or p^C_B.
+// Hanging gravity prior (ftcal's extension, off by default): 24 more residuals
+//   w (R~_k u_B - v_C) per leg and hanging series (hanging.h), w = pose residual sigma / sigma,
+//   in the joint solve of the models with rotations. It pins the common yaw of the six R~,
+//   which the poses see only through the chassis tilt (sigma 0.08 deg from them alone).
 // Null spaces: none when the poses vary force directions and attitude; checked on the
 //   Jacobian (SVD of the column-normalised Jacobian) and refused by name when present.
 // Report: eq. 8 and 9, Table I (model selection), the 1e-3 alternating stop rule.
@@ -55,6 +59,10 @@ struct Prepared {
   double G = 0.0;
   Vec6 sqrt_k = Vec6::Ones();
   bool leg_aware = false;
+  // Hanging gravity directions (options.gravity_prior) and the pose residual sigma that puts
+  // them in the units of the pose residuals; 0 leaves them out of the problem.
+  std::vector<HangingGravityObservation> gravity_prior;
+  double prior_scale = 0.0;
 };
 
 void RequireFinite(double v, const std::string& what) {
@@ -115,6 +123,17 @@ Prepared Prepare(const RobotCalibration& step1, const std::vector<StandingPose>&
   out.G = step1.TotalWeightN();
   out.sqrt_k = options.k_weights.cwiseSqrt();
   out.leg_aware = options.leg_aware_com;
+  for (const HangingGravityObservation& o : options.gravity_prior) {
+    const std::string what = "gravity prior of leg " + std::to_string(o.leg) + " series " +
+                             HangSeriesName(o.series);
+    if (o.leg < 0 || o.leg >= kNumLegs) throw std::invalid_argument("standing step: " + what + ": no such leg");
+    if (!o.u_B.allFinite() || !o.v_C.allFinite() || std::abs(o.u_B.norm() - 1.0) > 1e-6 ||
+        std::abs(o.v_C.norm() - 1.0) > 1e-6) {
+      throw std::invalid_argument("standing step: " + what + ": directions are not unit vectors");
+    }
+    RequireFinite(o.sigma_rad, what + " sigma_rad");
+  }
+  out.gravity_prior = options.gravity_prior;
   out.poses.resize(poses.size());
   for (size_t p = 0; p < poses.size(); ++p) {
     const StandingPose& pose = poses[p];
@@ -273,6 +292,27 @@ class PoseCost final : public ceres::CostFunction {
   Vec3 G_C_;
 };
 
+// One hanging gravity direction (ftcal's extension): r = w (R~_k u_B - v_C), w = pose residual
+// sigma / sigma_rad. The component along v_C is second order; the two across it carry the
+// observation.
+struct GravityPriorResidual {
+  GravityPriorResidual(const HangingGravityObservation& o, double weight)
+      : leg(o.leg), u(o.u_B), v(o.v_C), w(weight) {}
+  template <typename T>
+  bool operator()(const T* quats, T* r) const {
+    const Eigen::Map<const Eigen::Quaternion<T>> q(quats + 4 * leg);
+    const Eigen::Matrix<T, 3, 1> d = q * u.cast<T>() - v.cast<T>();
+    for (int i = 0; i < 3; ++i) r[i] = T(w) * d[i];
+    return true;
+  }
+  int leg;
+  Vec3 u, v;
+  double w;
+};
+
+// Observations without a measurable spread (noise-free data) get this floor, not infinity.
+constexpr double kMinPriorSigmaRad = 1e-9;
+
 ceres::CostFunction* MakeCost(int trans_size, bool cayley, const PoseTerms* terms,
                               const Prepared& prep) {
   return new PoseCost(terms, prep, trans_size == 3, cayley);
@@ -381,6 +421,15 @@ Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingMode
   for (int id : pose_ids) {
     b.problem->AddResidualBlock(MakeCost(n_trans, cayley, &prep.poses[id], prep), b.loss.get(),
                                 b.rot, b.trans);
+  }
+  if (!cayley && HasRotations(model) && prep.prior_scale > 0.0) {
+    for (const HangingGravityObservation& o : prep.gravity_prior) {
+      const double w = prep.prior_scale / std::max(o.sigma_rad, kMinPriorSigmaRad);
+      b.problem->AddResidualBlock(
+          new ceres::AutoDiffCostFunction<GravityPriorResidual, 3, 24>(
+              new GravityPriorResidual(o, w)),
+          nullptr, b.rot);
+    }
   }
   if (!cayley) b.problem->SetManifold(b.rot, new SixQuaternions());
   if (rotations_free && HasRotations(model)) {
@@ -725,9 +774,18 @@ StandingFit FitStandingJoint(const RobotCalibration& step1, const std::vector<St
                              const StandingFit* start, bool compute_covariance) {
   ValidateOptions(options);
   CheckPoseCount(poses.size(), model, options);
-  const Prepared prep = Prepare(step1, poses, options);
+  Prepared prep = Prepare(step1, poses, options);
   const std::vector<int> ids = AllIds(poses.size());
   StandingFit fit = JointOnIds(prep, ids, model, options, start, true, kFullDataTolerance);
+  if (HasRotations(model) && !prep.gravity_prior.empty()) {
+    // The poses alone first, for the residual sigma that weights the hanging directions; then
+    // both, from there. The pose-only rank check above stands: the prior only adds rank.
+    prep.prior_scale = std::sqrt(fit.residual_variance);
+    if (prep.prior_scale > 0.0) {
+      const StandingFit poses_only = fit;
+      fit = JointOnIds(prep, ids, model, options, &poses_only, false, kFullDataTolerance);
+    }
+  }
   if (compute_covariance) AddCovariance(prep, ids, &fit, options);
   return fit;
 }
@@ -877,7 +935,8 @@ double WeightedRss(const std::vector<Vec6>& residuals, const Vec6& k_weights) {
 double CrossValidationMse(const RobotCalibration& step1, const std::vector<StandingPose>& poses,
                           const StandingFit& full_data_fit, const StandingOptions& options) {
   ValidateOptions(options);
-  const Prepared prep = Prepare(step1, poses, options);
+  Prepared prep = Prepare(step1, poses, options);
+  prep.prior_scale = std::sqrt(full_data_fit.residual_variance);
   const Vec6 k = options.k_weights;
   double sum = 0.0;
   for (int f = 0; f < options.cv_folds; ++f) {

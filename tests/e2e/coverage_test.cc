@@ -6,6 +6,8 @@
 // Step 1 runs with the exact hanging rotations exp([s]): with the report's first-order form the
 // low bias of m g (0.05-0.3 %) and the offsets it drags along are many cycle-spread sigmas
 // (measured: leg weight 0 %, offsets ~40 %, 71 % overall), a bias the sigmas cannot cover.
+// Step 2 uses the hanging gravity prior, as ftcal's method does (the rotations' sigmas are then
+// the ones a user sees).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -38,6 +40,7 @@ double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
 TEST(Coverage, TrueValuesWithinTwoReportedSigmas) {
   config::Config config = SimConfig();
   config.mutable_calibrator()->set_exact_hanging_rotations(true);
+  config.mutable_calibrator()->set_hanging_gravity_prior(true);
   std::map<std::string, Tally> by_class;
   for (int seed = 1; seed <= kSeeds; ++seed) {
     TwinOptions o;

@@ -266,6 +266,23 @@ TEST(Hanging, SensingModelTwinExactOption) {
       EXPECT_LT((pr.s_minus_rad.value - 0.5 * (s_of[0] - s_of[1])).norm(), 1e-9);
     }
   }
+  // What each transducer saw of gravity, beside motion capture: R~_k u_B = v_C exactly (the
+  // hanging gravity prior of step 2), one observation per leg and series, no spread.
+  ASSERT_EQ(res.gravity_observations.size(), static_cast<size_t>(kNumLegs * kNumHangSeries));
+  for (const HangingGravityObservation& obs : res.gravity_observations) {
+    SCOPED_TRACE(std::string(kLegNames[obs.leg]) + " " + HangSeriesName(obs.series));
+    const Vec3 v = R_WC[static_cast<int>(obs.series)].transpose() * Vec3(0, 0, -1);
+    EXPECT_LT((obs.v_C - v).norm(), 1e-12);
+    EXPECT_LT((cal.leg[obs.leg].R_tilde * obs.u_B - v).norm(), 1e-9);
+    EXPECT_LT(obs.sigma_rad, 1e-9);
+  }
+  // Without attitude samples there is nothing to observe.
+  {
+    std::vector<HangingRecording> blind = recs;
+    blind[2].attitude.clear();
+    EXPECT_TRUE(RunHanging(blind, X, o).gravity_observations.empty());
+  }
+
   // With the result in the sensing model, eq. 3 gives zero ground wrench while hanging.
   RobotCalibration estimated = cal;
   for (int k = 0; k < kNumLegs; ++k) estimated.leg[k] = LegCalibration{};

@@ -124,8 +124,26 @@ struct LegHangingResult {
   WrenchResidualStats naive_residual;
 };
 
+// What one transducer saw of gravity in one hanging series, beside what motion capture saw
+// (ftcal's extension, method.md "beyond the report"): with no ground contact the leg's whole
+// weight passes through the transducer, so f - f_o points along gravity in ft_k at every
+// phase, and R~_k u_B = v_C (f^C = R~ f', as in step 2). Four series per leg determine R~_k
+// fully, including the common yaw of all six that the standing poses see only through the
+// chassis tilt.
+struct HangingGravityObservation {
+  int leg = 0;
+  HangSeries series = HangSeries::kXPos;
+  Vec3 u_B = Vec3::UnitX();  // R_B_ft mean(f - f_o), unit: nominally transformed into B
+  Vec3 v_C = Vec3::UnitX();  // mean gravity direction in C from the attitude samples, unit
+  // 1-sigma per axis across the direction, rad: the spread of both directions over ten time
+  // blocks of the series (standard error) and the force offset's sigma over |f|.
+  double sigma_rad = 0.0;
+};
+
 struct HangingResult {
   std::array<LegHangingResult, kNumLegs> leg;
+  // Filled when every series has attitude samples; empty otherwise.
+  std::vector<HangingGravityObservation> gravity_observations;
   bool exact_rotations = false;
   int phase_bins = 0;
 };

@@ -27,6 +27,7 @@
 
 #include "ftcal/dataset.h"
 #include "ftcal/geometry.h"
+#include "ftcal/hanging.h"
 #include "ftcal/legs.h"
 #include "ftcal/sensing_model.h"
 #include "proto/calibration.pb.h"
@@ -65,6 +66,11 @@ struct StandingOptions {
   bool leg_aware_com = false;
   int min_poses = 30;
   int max_iterations = 200;  // Levenberg-Marquardt iterations per joint solve
+  // ftcal's extension (config calibrator.hanging_gravity_prior): the hanging series' gravity
+  // directions as observations R~_k u_B = v_C in the joint solve of the models with rotations,
+  // each weighted by (pose residual sigma) / sigma_rad so both kinds of residual are in the
+  // same units. Empty: the report's step 2. The alternating scheme ignores them.
+  std::vector<HangingGravityObservation> gravity_prior;
 };
 
 // From the config's calibrator section (k_weights via KWeights(), enums mapped).
