@@ -269,6 +269,10 @@ def main():
         f"<h1>Calibration of {html.escape(cal.robot_name)}</h1>",
         f"<p>Selected model <b>{calibration_pb2.StandingModel.Name(cal.model)}</b> from "
         f"{cal.standing_poses} steady poses.</p>",
+        "<p>Method: step-2 solver " + html.escape(cal.solver.solver) + "; hanging rotations "
+        + ("exact" if cal.solver.exact_hanging_rotations else "first-order (report)")
+        + "; hanging gravity prior " + ("on" if cal.solver.hanging_gravity_prior else "off (report)")
+        + "; leg-aware CoM " + ("on" if cal.solver.leg_aware_com else "off (report)") + ".</p>",
         "<h2>Residuals of the total wrench at the CoM (W)</h2>", img(imgs[0]),
         table(["variant", "poses"] + ["rms " + c for c in COMPONENTS], res_rows),
         "<h2>Model selection</h2>",

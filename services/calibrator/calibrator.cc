@@ -374,6 +374,12 @@ std::string SummaryTable(const CalibrationRun& run) {
   std::string o;
   o += fmt::format("Calibration of {} ({} standing poses, model {})\n", c.robot_name(),
                    c.standing_poses(), calibration::StandingModel_Name(c.model()));
+  const calibration::SolverInfo& m = c.solver();
+  o += fmt::format("Method: step-2 solver {}; hanging rotations {}; hanging gravity prior {}; "
+                   "leg-aware CoM {}\n",
+                   m.solver(), m.exact_hanging_rotations() ? "exact" : "first-order (report)",
+                   m.hanging_gravity_prior() ? "on" : "off (report)",
+                   m.leg_aware_com() ? "on" : "off (report)");
   o += fmt::format("{:<4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}\n",
                    "leg", "fo_x N", "fo_y N", "fo_z N", "to_x Nm", "to_y Nm", "to_z Nm", "mg N",
                    "+-", "rx deg", "ry deg", "rz deg", "p~'x mm", "p~'y mm");
