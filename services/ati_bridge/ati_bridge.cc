@@ -3,7 +3,10 @@
 #include <arpa/inet.h>
 #include <netinet/in.h>
 #include <poll.h>
+#include <sched.h>
+#include <sys/mman.h>
 #include <sys/socket.h>
+#include <sys/syscall.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -62,6 +65,87 @@ void LatencyHistogram::Merge(const LatencyHistogram& other) {
   count_ += other.count_;
 }
 
+// ---- scheduling ----
+
+namespace {
+
+// The kernel's struct sched_attr (SCHED_ATTR_SIZE_VER0): glibc 2.36 (Debian 12) has neither a
+// sched_setattr() wrapper nor the struct, and <linux/sched/types.h> clashes with <sched.h>.
+struct SchedAttr {
+  std::uint32_t size;
+  std::uint32_t sched_policy;
+  std::uint64_t sched_flags;
+  std::int32_t sched_nice;
+  std::uint32_t sched_priority;
+  std::uint64_t sched_runtime;  // for SCHED_OTHER since Linux 6.12: the requested slice
+  std::uint64_t sched_deadline;
+  std::uint64_t sched_period;
+};
+static_assert(sizeof(SchedAttr) == 48, "SCHED_ATTR_SIZE_VER0");
+
+bool GetSchedAttr(SchedAttr& a) {
+  a = {};
+  return ::syscall(SYS_sched_getattr, 0, &a, sizeof a, 0) == 0;
+}
+
+}  // namespace
+
+AtiSchedulingGranted ApplyScheduling(const AtiSchedulingOptions& options, spdlog::logger& log) {
+  if (options.realtime && (options.realtime_priority < 1 || options.realtime_priority > 99)) {
+    throw AtiBridgeError("realtime priority " + std::to_string(options.realtime_priority) +
+                         " is outside 1..99");
+  }
+  if (!(options.slice_us >= 0 && options.slice_us <= 100'000)) {
+    throw AtiBridgeError("scheduler slice " + std::to_string(options.slice_us) +
+                         " us is outside 0..100000");
+  }
+  AtiSchedulingGranted granted;
+  if (options.realtime) {
+    // Locked first: a page fault on the receive path would cost more than the whole publish.
+    if (::mlockall(MCL_CURRENT | MCL_FUTURE) == 0) {
+      granted.locked = true;
+    } else {
+      log.warn("--realtime: mlockall refused ({}): pages may fault on the receive path",
+               std::strerror(errno));
+    }
+    sched_param param{};
+    param.sched_priority = options.realtime_priority;
+    // Reset on fork: nothing this process starts should inherit a real-time policy.
+    if (::sched_setscheduler(0, SCHED_FIFO | SCHED_RESET_ON_FORK, &param) == 0) {
+      granted.fifo = true;
+      log.info("--realtime: SCHED_FIFO priority {}{}", options.realtime_priority,
+               granted.locked ? ", memory locked" : "");
+      return granted;
+    }
+    log.warn("--realtime: SCHED_FIFO refused ({}; needs root or CAP_SYS_NICE): running as an "
+             "ordinary process{}", std::strerror(errno),
+             options.slice_us > 0 ? " with a short slice" : "");
+  }
+  if (options.slice_us > 0) {
+    SchedAttr a;
+    if (!GetSchedAttr(a) || a.sched_policy != SCHED_OTHER) {
+      log.warn("scheduler slice: not asked (cannot read this thread's policy, or it is not "
+               "SCHED_OTHER)");
+      return granted;
+    }
+    // Only the slice changes: the nice value read back is passed on as it was.
+    a.size = sizeof a;
+    a.sched_flags = 0;
+    a.sched_runtime = static_cast<std::uint64_t>(options.slice_us * 1000.0);
+    SchedAttr back;
+    // The kernel clamps the request to 0.1..100 ms; an older kernel ignores it (reads back 0).
+    if (::syscall(SYS_sched_setattr, 0, &a, 0) == 0 && GetSchedAttr(back) &&
+        back.sched_runtime != 0) {
+      granted.slice = true;
+      log.debug("scheduler slice {} us", back.sched_runtime / 1000.0);
+    } else {
+      log.info("scheduler slice of {} us not taken (needs Linux >= 6.12): the kernel's default "
+               "applies", options.slice_us);
+    }
+  }
+  return granted;
+}
+
 // ---- one transducer ----
 
 struct AtiBridge::Transducer {
@@ -88,6 +172,9 @@ struct AtiBridge::Transducer {
   std::uint32_t last_ft = 0;
   std::int64_t pending_gap = 0;  // accepted but unpublished (no calibration) since the last sample
   bool restart_pending = false;  // the next published sample carries FLAG_RESTARTED
+  // A time at which the socket was known empty: just before a recvmmsg that drained it (took
+  // fewer than a batch), or the start of a poll() that did not find it readable.
+  std::int64_t drained_at_ns = 0;
 
   // Liveness.
   bool up = false;
@@ -328,10 +415,18 @@ int AtiBridge::Poll(int timeout_ms) {
   const auto wait_ms = std::chrono::ceil<std::chrono::milliseconds>(wake - now).count();
   std::array<pollfd, kNumLegs> fds{};
   for (std::size_t i = 0; i < transducers_.size(); ++i) fds[i] = {transducers_[i]->fd, POLLIN, 0};
+  const std::int64_t poll_ns = RealtimeNs();
   const int ready = ::poll(fds.data(), transducers_.size(),
                            static_cast<int>(std::clamp<std::int64_t>(wait_ms, 0, timeout_ms)));
   std::uint64_t before = 0, after = 0;
   for (const auto& t : transducers_) before += t->c.published;
+  for (std::size_t i = 0; i < transducers_.size(); ++i) {
+    // Not readable when poll() last looked, which was after poll_ns: empty then.
+    Transducer& t = *transducers_[i];
+    if (ready >= 0 && (fds[i].revents & POLLIN) == 0) {
+      t.drained_at_ns = std::max(t.drained_at_ns, poll_ns);
+    }
+  }
   if (ready > 0) {
     for (std::size_t i = 0; i < transducers_.size(); ++i) {
       if (fds[i].revents & (POLLIN | POLLERR)) HandleSocket(*transducers_[i]);
@@ -358,6 +453,7 @@ void AtiBridge::HandleSocket(Transducer& t) {
       h.msg_controllen = t.controls[i].size();
       h.msg_flags = 0;
     }
+    const std::int64_t asked_ns = RealtimeNs();
     const int n = ::recvmmsg(t.fd, t.headers.data(), kBatch, MSG_DONTWAIT, nullptr);
     if (n < 0) {
       if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR) {
@@ -369,6 +465,7 @@ void AtiBridge::HandleSocket(Transducer& t) {
         }
         continue;
       }
+      if (errno != EINTR) t.drained_at_ns = std::max(t.drained_at_ns, asked_ns);
       return;
     }
     const std::int64_t user_ns = RealtimeNs();
@@ -407,8 +504,11 @@ void AtiBridge::HandleSocket(Transducer& t) {
         continue;
       }
       const std::uint8_t* data = t.slots.data() + static_cast<std::size_t>(i) * kSlotBytes;
+      // A socket queue is first in, first out: a datagram stamped before the last look that
+      // emptied the queue was not in it then.
+      const bool held = kernel_ns < t.drained_at_ns;
       for (std::size_t off = 0; off < len; off += rdt::kRecordBytes) {
-        HandleRecord(t, data + off, kernel_ns, user_ns, kernel_ns / 1000);
+        HandleRecord(t, data + off, kernel_ns, user_ns, kernel_ns / 1000, held);
       }
     }
     if (t.tracker.accepted() != accepted_before) {
@@ -419,12 +519,15 @@ void AtiBridge::HandleSocket(Transducer& t) {
       t.silent = false;
       t.up = t.calibrated;
     }
-    if (n < kBatch) return;
+    if (n < kBatch) {
+      t.drained_at_ns = std::max(t.drained_at_ns, asked_ns);
+      return;
+    }
   }
 }
 
 void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
-                             std::int64_t user_ns, std::int64_t utime) {
+                             std::int64_t user_ns, std::int64_t utime, bool held) {
   const rdt::Record rec = rdt::DecodeRecord(bytes);
   ++t.c.received;
   using V = rdt::SequenceTracker::Verdict;
@@ -557,6 +660,10 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   const std::int64_t done_ns = RealtimeNs();
   kernel_latency_.Add(done_ns - kernel_ns);
   user_latency_.Add(done_ns - user_ns);
+  if (held) {
+    ++t.c.held_in_stack;
+    held_latency_.Add(done_ns - kernel_ns);
+  }
 }
 
 void AtiBridge::Service(Transducer& t, Clock::time_point now) {
@@ -609,7 +716,8 @@ std::vector<std::pair<std::string, std::int64_t>> AtiBridge::CounterTable() cons
         {"start_requests", c.start_requests}, {"restarts", c.restarts},
         {"silences", c.silences},         {"reboots", c.reboots},
         {"calibration_reads", c.calibration_reads}, {"recv_errors", c.recv_errors},
-        {"publish_errors", c.publish_errors}, {"up", t->up ? 1u : 0u},
+        {"publish_errors", c.publish_errors}, {"held_in_stack", c.held_in_stack},
+        {"up", t->up ? 1u : 0u},
     };
     for (const auto& [name, value] : rows) {
       out.emplace_back(t->leg + "." + name, static_cast<std::int64_t>(value));

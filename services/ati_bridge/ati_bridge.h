@@ -69,6 +69,10 @@ struct AtiTransducerCounters {
   std::uint64_t calibration_reads = 0;
   std::uint64_t recv_errors = 0;
   std::uint64_t publish_errors = 0;
+  // Records the kernel timestamped before this socket was last drained empty: they were still in
+  // the network stack (a deferred softirq) when the bridge looked, so their wait was not the
+  // bridge's. Diagnostic for the latency tail.
+  std::uint64_t held_in_stack = 0;
 };
 
 // Latency histogram, 1 us bins up to kMaxUs (the last bin holds everything beyond).
@@ -85,6 +89,31 @@ class LatencyHistogram {
   std::array<std::uint64_t, kMaxUs + 1> bins_{};
   std::uint64_t count_ = 0;
 };
+
+// How the bridge's thread asks to be scheduled. Its latency from receipt to publish is set by how
+// soon it runs once a datagram has landed, not by its own work: ~5 us per record, nearly all of
+// it the kernel's (LCM's multicast sendmsg, looped back and delivered in the sender's softirq,
+// then recvmmsg); see tests/bench/ati_bridge_bench.cc. On a shared machine a waking bridge
+// otherwise waits for the running task's slice to end, and a bridge starved below its ~22 % of a
+// core (six boxes at 7000 Hz) falls behind for good.
+struct AtiSchedulingOptions {
+  // SCHED_FIFO at realtime_priority and mlockall (a lab's robot computer; needs root or
+  // CAP_SYS_NICE and CAP_IPC_LOCK). Refused: a warning, and the slice below applies instead.
+  bool realtime = false;
+  int realtime_priority = 40;
+  // Under SCHED_OTHER, the EEVDF slice asked for (Linux >= 6.12: a shorter slice lets a waking
+  // task preempt the running one; unprivileged). 0: the kernel's default.
+  double slice_us = 100;
+};
+struct AtiSchedulingGranted {
+  bool fifo = false;    // SCHED_FIFO is in force
+  bool locked = false;  // mlockall succeeded
+  bool slice = false;   // the kernel took the slice request
+};
+// Applies `options` to the calling thread (refusals are logged as warnings, never thrown).
+// Throws AtiBridgeError for options out of range (priority outside 1..99, slice negative or over
+// 100 ms).
+AtiSchedulingGranted ApplyScheduling(const AtiSchedulingOptions& options, spdlog::logger& log);
 
 class AtiBridge {
  public:
@@ -119,6 +148,8 @@ class AtiBridge {
   // Receipt -> published, from the kernel's receive timestamp and from recvmmsg's return.
   const LatencyHistogram& kernel_latency() const { return kernel_latency_; }
   const LatencyHistogram& user_latency() const { return user_latency_; }
+  // Receipt -> published (kernel timestamp) of the records counted in held_in_stack only.
+  const LatencyHistogram& held_latency() const { return held_latency_; }
   // Names and values for the heartbeat: "<LEG>.<counter>" for every counter, plus
   // latency_p50_us/latency_p99_us (user-space) and kernel_latency_p99_us.
   std::vector<std::pair<std::string, std::int64_t>> CounterTable() const;
@@ -127,7 +158,7 @@ class AtiBridge {
   struct Transducer;
   void HandleSocket(Transducer& t);
   void HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
-                    std::int64_t user_ns, std::int64_t utime);
+                    std::int64_t user_ns, std::int64_t utime, bool held);
   void SendRequest(Transducer& t, rdt::Command command);
   void ReadCalibration(Transducer& t);
   void Service(Transducer& t, std::chrono::steady_clock::time_point now);
@@ -138,6 +169,7 @@ class AtiBridge {
   std::vector<std::unique_ptr<Transducer>> transducers_;
   LatencyHistogram kernel_latency_;
   LatencyHistogram user_latency_;
+  LatencyHistogram held_latency_;
   bool started_ = false;
 };
 

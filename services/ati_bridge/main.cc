@@ -35,6 +35,21 @@ int main(int argc, char** argv) {
                   "seconds without a record before the start command is sent again")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  ftcal::AtiSchedulingOptions scheduling;
+  app.cli().add_flag("--realtime", scheduling.realtime,
+                     "run SCHED_FIFO with memory locked (a robot computer; needs root or "
+                     "CAP_SYS_NICE/CAP_IPC_LOCK, else a warning and an ordinary process)");
+  app.cli()
+      .add_option("--realtime-priority", scheduling.realtime_priority,
+                  "SCHED_FIFO priority with --realtime")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 99));
+  app.cli()
+      .add_option("--slice-us", scheduling.slice_us,
+                  "without SCHED_FIFO, the scheduler slice to ask for (Linux >= 6.12 lets a "
+                  "waking task with a shorter slice preempt); 0: the kernel's default")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 100000.0));
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   auto log = spdlog::get("ftcal-ati-bridge");
@@ -48,6 +63,10 @@ int main(int argc, char** argv) {
         },
         log, options);
     bridge->Start();
+    const ftcal::AtiSchedulingGranted granted = ftcal::ApplyScheduling(scheduling, *log);
+    app.stats().Counter("sched_fifo") = granted.fifo ? 1 : 0;
+    app.stats().Counter("memory_locked") = granted.locked ? 1 : 0;
+    app.stats().Counter("sched_slice") = granted.slice ? 1 : 0;
   } catch (const std::exception& e) {
     log->critical("{}", e.what());
     app.SetState(ftcal::service_status_t::FAILED);
@@ -112,6 +131,14 @@ int main(int argc, char** argv) {
   log->info("latency receipt->published: p50 {} us p99 {} us (kernel timestamp: p50 {} us p99 {} us)",
             bridge->user_latency().QuantileUs(0.5), bridge->user_latency().QuantileUs(0.99),
             bridge->kernel_latency().QuantileUs(0.5), bridge->kernel_latency().QuantileUs(0.99));
+  std::uint64_t held = 0, published = 0;
+  for (std::size_t i = 0; i < bridge->size(); ++i) {
+    held += bridge->counters(i).held_in_stack;
+    published += bridge->counters(i).published;
+  }
+  log->info("held in the network stack: {} of {} records (kernel timestamp before the socket was "
+            "last found empty), their latency p50 {} us p99 {} us", held, published,
+            bridge->held_latency().QuantileUs(0.5), bridge->held_latency().QuantileUs(0.99));
   app.stats().LogSummary();
   return 0;
 }

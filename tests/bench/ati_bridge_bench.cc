@@ -5,7 +5,14 @@
 // kernel's receive timestamp (SO_TIMESTAMPNS) and from the clock when recvmmsg returned, as its
 // exit summary reports them. Must run inside scripts/netns-exec (ctest does).
 //
-//   scripts/netns-exec build/tests/bench/ati_bridge_bench --duration 5
+// The headline latency is the kernel's: from the datagram's arrival in the bridge's socket to
+// the return of lcm_publish, over every record. The part from recvmmsg's return is printed too:
+// their difference is the time the bridge took to run (wake-up, or a backlog when it is starved
+// of CPU); the rest is its queue within a wake (~5 us per record before it). --realtime and
+// --slice-us are handed to the bridge(s); --emulator-fifo runs the emulated boxes SCHED_FIFO so
+// they send at an even 7000 Hz as real boxes do, instead of in bursts when the machine is busy.
+//
+//   scripts/netns-exec build/tests/bench/ati_bridge_bench --duration 5 [--bridges 6] [--realtime]
 #include <signal.h>
 #include <fcntl.h>
 #include <spawn.h>
@@ -125,6 +132,14 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({1, 6}))
       ->capture_default_str();
   cli.add_option("--rate", rate_hz, "records/s per box")->capture_default_str();
+  bool realtime = false;
+  cli.add_flag("--realtime", realtime, "pass --realtime to the bridge(s): SCHED_FIFO, mlockall");
+  std::string slice_us;
+  cli.add_option("--slice-us", slice_us, "pass --slice-us to the bridge(s) (0: kernel default)");
+  bool emulator_fifo = false;
+  cli.add_flag("--emulator-fifo", emulator_fifo,
+               "run the emulator SCHED_FIFO (chrt -f 30; needs root) so that its boxes send on "
+               "schedule even on a busy machine");
   CLI11_PARSE(cli, argc, argv);
   const char* netns = std::getenv("FTCAL_NETNS");
   if (netns == nullptr || std::string(netns) != "1") {
@@ -137,9 +152,13 @@ int main(int argc, char** argv) {
   const std::string ready = dir + "/ready";
   // The boxes stop sending after --duration and the bridge is stopped a second later, so that
   // every record sent has had time to arrive: received/sent is then the real loss.
-  const pid_t emulator = Spawn({FTCAL_EMULATE_ATI, "--rate", std::to_string(rate_hz),
-                                "--duration", std::to_string(duration_s), "--ready", ready},
-                               dir + "/emulator.err");
+  std::vector<std::string> emulator_argv = {FTCAL_EMULATE_ATI, "--rate", std::to_string(rate_hz),
+                                            "--duration", std::to_string(duration_s), "--ready",
+                                            ready};
+  if (emulator_fifo) {
+    emulator_argv.insert(emulator_argv.begin(), {"/usr/bin/chrt", "-f", "30"});
+  }
+  const pid_t emulator = Spawn(emulator_argv, dir + "/emulator.err");
   for (int i = 0; i < 600 && ::access(ready.c_str(), F_OK) != 0; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
@@ -151,15 +170,18 @@ int main(int argc, char** argv) {
   if (listen) listener = std::make_unique<Listener>();
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
 
+  std::vector<std::string> bridge_argv = {FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level",
+                                          "info"};
+  if (realtime) bridge_argv.push_back("--realtime");
+  if (!slice_us.empty()) bridge_argv.insert(bridge_argv.end(), {"--slice-us", slice_us});
   std::vector<pid_t> bridge_pids;
   if (bridges == 1) {
-    bridge_pids.push_back(Spawn({FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level", "info"},
-                                dir + "/bridge.err"));
+    bridge_pids.push_back(Spawn(bridge_argv, dir + "/bridge.err"));
   } else {
     for (const auto& leg : kLegs) {
-      bridge_pids.push_back(Spawn(
-          {FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level", "info", "--legs", leg},
-          dir + "/bridge-" + leg + ".err"));
+      auto argv_leg = bridge_argv;
+      argv_leg.insert(argv_leg.end(), {"--legs", leg});
+      bridge_pids.push_back(Spawn(argv_leg, dir + "/bridge-" + leg + ".err"));
     }
   }
   std::this_thread::sleep_for(std::chrono::duration<double>(duration_s + 1.0));
@@ -188,6 +210,8 @@ int main(int argc, char** argv) {
   };
   std::map<std::string, Figures> figures;
   std::vector<std::string> latency(bridge_pids.size());
+  std::vector<std::string> held(bridge_pids.size());
+  std::vector<std::string> scheduling(bridge_pids.size(), "SCHED_OTHER");
   for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
     const std::string err =
         ReadFile(dir + (bridges == 1 ? std::string("/bridge.err") : "/bridge-" + kLegs[i] + ".err"));
@@ -204,11 +228,17 @@ int main(int argc, char** argv) {
       }
       const auto at = line.find("latency receipt->published: ");
       if (at != std::string::npos) latency[i] = line.substr(at + 28);
+      const auto held_at = line.find("held in the network stack: ");
+      if (held_at != std::string::npos) held[i] = line.substr(held_at + 27);
+      if (line.find("SCHED_FIFO priority") != std::string::npos) scheduling[i] = "SCHED_FIFO";
+      if (line.find("SCHED_FIFO refused") != std::string::npos) scheduling[i] = "FIFO refused";
     }
   }
 
   std::printf("ati_bridge_bench: %d boxes x %d records/s for %.1f s on loopback, %d bridge "
-              "process(es)\n", 6, rate_hz, duration_s, bridges);
+              "process(es)%s%s%s%s\n", 6, rate_hz, duration_s, bridges,
+              realtime ? ", --realtime" : "", slice_us.empty() ? "" : ", --slice-us ",
+              slice_us.c_str(), emulator_fifo ? ", emulator SCHED_FIFO" : "");
   std::printf("%-4s %10s %10s %10s %8s %10s %10s\n", "leg", "sent", "received", "published",
               "lost", "heard_lcm", "recv/sent");
   long long total_sent = 0, total_received = 0, total_published = 0, total_lost = 0;
@@ -226,9 +256,10 @@ int main(int argc, char** argv) {
   std::printf("total: sent %lld received %lld published %lld lost (by rdt_sequence) %lld\n",
               total_sent, total_received, total_published, total_lost);
   for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
-    std::printf("bridge %zu: CPU %.2f s = %.1f%% of one core; latency receipt->published %s\n", i,
-                ended[i].cpu_s, 100.0 * ended[i].cpu_s / duration_s,
+    std::printf("bridge %zu (%s): CPU %.2f s = %.1f%% of one core; latency %s\n", i,
+                scheduling[i].c_str(), ended[i].cpu_s, 100.0 * ended[i].cpu_s / duration_s,
                 latency[i].empty() ? "(no summary)" : latency[i].c_str());
+    if (!held[i].empty()) std::printf("  held in the network stack: %s\n", held[i].c_str());
   }
   double load[3] = {0, 0, 0};
   if (::getloadavg(load, 3) == 3) {
