@@ -4,7 +4,18 @@
 // writes a whole experiment (hanging series, standing poses, tripod stances, walk) straight
 // into an LCM log as the bridges would publish it (services/sim/log_writer.h), and the truth
 // it was made from as a calibration file. No network: nothing is published.
+//
+//   ftcal-sim live --pty-link PATH [--scenario walk] [--seed N] [--duration S] [faults...]
+// runs the twin's devices in real time on this machine (services/sim/live.h): six ATI Net F/T
+// boxes (RDT and calibration page) at the config's addresses, the Dynamixel bus on a
+// pseudo-terminal linked at PATH, the QTM RT server at the config's address; the bridges run
+// against it unchanged. At the end (SIGINT, SIGTERM or --duration) the truth series of every
+// device, with the faults injected, goes to --truth-dir.
+#include <signal.h>
+
 #include <chrono>
+#include <csignal>
+#include <thread>
 #include <cmath>
 #include <cstdio>
 #include <exception>
@@ -17,6 +28,9 @@
 
 #include "common/service.h"
 #include "ftcal/config.h"
+#include "ftcal/calibration_io.h"
+#include "ftcal/legs.h"
+#include "sim/live.h"
 #include "sim/log_writer.h"
 #include "sim/twin.h"
 
@@ -28,6 +42,249 @@ std::string DefaultTruthPath(const std::string& log_path) {
   const auto dot = log_path.rfind('.');
   const bool has_ext = dot != std::string::npos && (slash == std::string::npos || dot > slash + 1);
   return (has_ext ? log_path.substr(0, dot) : log_path) + ".truth.pbtxt";
+}
+
+volatile std::sig_atomic_t g_stop = 0;
+void OnSignal(int) { g_stop = 1; }
+
+// The flags of `ftcal-sim live`, as given.
+struct LiveFlags {
+  ftcal::sim::LiveOptions options;
+  std::string truth_dir, ready_path;
+  double duration_s = 0;
+  bool no_http = false;
+  double ati_drop = 0, ati_duplicate = 0, ati_reorder = 0, ati_corrupt = 0;
+  std::vector<std::string> ati_silence, ati_reboot;
+  std::vector<std::string> dxl_missing, dxl_silent, dxl_hw_error, dxl_disconnect;
+  std::vector<std::string> qtm_untracked, qtm_silent, qtm_no_more_data, qtm_disconnect;
+  std::vector<double> qtm_settings_changed;
+};
+
+void AddLiveFlags(CLI::App* live, LiveFlags* f) {
+  ftcal::sim::LiveOptions& o = f->options;
+  std::vector<std::string> scenarios(std::begin(ftcal::sim::kLiveScenarios),
+                                     std::end(ftcal::sim::kLiveScenarios));
+  live->add_option("--scenario", o.scenario, "twin scenario, looped")
+      ->check(CLI::IsMember(scenarios))
+      ->capture_default_str();
+  live->add_option("--seed", o.seed, "twin and fault seed")->capture_default_str();
+  live->add_option("--loop-s", o.loop_s, "scenario length before it repeats, s")
+      ->check(CLI::Range(1.0, 3600.0))
+      ->capture_default_str();
+  live->add_option("--duration", f->duration_s, "seconds to run (default: until SIGINT/SIGTERM)")
+      ->check(CLI::NonNegativeNumber);
+  live->add_option("--truth-dir", f->truth_dir,
+                   "directory for the truth series at exit: ati.csv, dynamixel.csv, qtm.csv")
+      ->check(CLI::ExistingDirectory);
+  live->add_option("--ready", f->ready_path, "file written once every device is up");
+  live->add_option("--pty-link", o.pty_link,
+                   "symlink to the Dynamixel bus' pseudo-terminal (the bridge's config device)")
+      ->required();
+  // ATI.
+  live->add_option("--ati-rate", o.ati_rate_hz, "RDT output rate of every box, records/s")
+      ->check(CLI::Range(1, 7000))
+      ->capture_default_str();
+  live->add_option("--ati-http-port", o.ati_http_port,
+                   "calibration page port of every box (default: the config's)")
+      ->check(CLI::Range(1, 65535));
+  live->add_flag("--ati-no-http", f->no_http, "serve no calibration page");
+  live->add_option("--ati-drop", f->ati_drop, "probability a record is not sent")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--ati-duplicate", f->ati_duplicate, "probability a record is sent twice")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--ati-reorder", f->ati_reorder,
+                   "probability a record is sent after the next one")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--ati-corrupt", f->ati_corrupt,
+                   "probability a record is sent with a wrong length")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--ati-silence", f->ati_silence,
+                   "LEG:AT_S:DURATION_S  LEG's network down a while (repeatable)");
+  live->add_option("--ati-reboot", f->ati_reboot, "LEG:AT_S  LEG's box reboots (repeatable)");
+  // Dynamixel.
+  live->add_option("--dxl-drop", o.dxl_rates.drop_reply, "probability a reply is dropped")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--dxl-corrupt", o.dxl_rates.corrupt_crc,
+                   "probability a reply's CRC is corrupted")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--dxl-noise", o.dxl_rates.noise, "probability of noise bytes before a reply")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--dxl-missing", f->dxl_missing, "ID:START_S:END_S  servo ID does not answer");
+  live->add_option("--dxl-silent", f->dxl_silent, "START_S:END_S  no servo answers");
+  live->add_option("--dxl-hw-error", f->dxl_hw_error,
+                   "ID:T_S[:BITS]  servo ID raises hardware error BITS (default 32, overload)");
+  live->add_option("--dxl-disconnect", f->dxl_disconnect,
+                   "START_S:END_S  the port vanishes and comes back as a new pty");
+  // QTM.
+  live->add_option("--qtm-port", o.qtm_port, "TCP port (default: the config's; 0: any)")
+      ->check(CLI::Range(0, 65535));
+  live->add_option("--qtm-gap", o.qtm_faults.gap_probability,
+                   "probability per frame of skipped frame numbers")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--qtm-corrupt", o.qtm_faults.corrupt_probability,
+                   "probability per frame of a corrupt data packet")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--qtm-marker-dropout", o.qtm_faults.marker_dropout_probability,
+                   "probability per frame and marker of an extra dropout")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--qtm-untracked", f->qtm_untracked, "START_S:DURATION_S  body not tracked");
+  live->add_option("--qtm-silent", f->qtm_silent, "START_S:DURATION_S  nothing sent");
+  live->add_option("--qtm-no-more-data", f->qtm_no_more_data,
+                   "START_S:DURATION_S  measurement stopped; frames restart at 1 after");
+  live->add_option("--qtm-disconnect", f->qtm_disconnect,
+                   "START_S:DURATION_S  QTM shuts down: clients closed, refused meanwhile");
+  live->add_option("--qtm-settings-changed", f->qtm_settings_changed,
+                   "T_S  Camera Settings Changed event");
+}
+
+// "START_S:DURATION_S" -> ticks at `rate_hz`.
+ftcal::sim::TickWindow TickWindowFlag(const std::string& text, double rate_hz,
+                                      const std::string& flag) {
+  const auto parts = ftcal::sim::SplitFlag(text, ':');
+  if (parts.size() != 2) throw std::invalid_argument(flag + " '" + text + "': want START_S:DURATION_S");
+  const double start = ftcal::sim::ParseFlagNumber(parts[0], flag);
+  const double duration = ftcal::sim::ParseFlagNumber(parts[1], flag);
+  if (start < 0 || duration <= 0) throw std::invalid_argument(flag + " '" + text + "': out of range");
+  return {std::llround(start * rate_hz), std::max<int64_t>(1, std::llround(duration * rate_hz))};
+}
+
+// Turns the flags' text into the emulators' fault options.
+void ResolveLiveFlags(LiveFlags* f) {
+  using ftcal::sim::ParseFlagNumber;
+  using ftcal::sim::SplitFlag;
+  ftcal::sim::LiveOptions& o = f->options;
+  if (f->no_http) o.ati_http_port = 0;
+  for (int k = 0; k < ftcal::kNumLegs; ++k) {
+    auto& a = o.ati_faults[k];
+    a.seed = o.seed * 1000 + static_cast<std::uint64_t>(k);
+    a.drop = f->ati_drop;
+    a.duplicate = f->ati_duplicate;
+    a.reorder = f->ati_reorder;
+    a.corrupt = f->ati_corrupt;
+  }
+  if (f->ati_drop + f->ati_duplicate + f->ati_reorder + f->ati_corrupt > 1.0) {
+    throw std::invalid_argument("--ati-drop + --ati-duplicate + --ati-reorder + --ati-corrupt > 1");
+  }
+  for (const std::string& s : f->ati_silence) {
+    const auto p = SplitFlag(s, ':');
+    const auto k = p.size() == 3 ? ftcal::LegIndex(p[0]) : std::nullopt;
+    if (!k) throw std::invalid_argument("--ati-silence '" + s + "': want LEG:AT_S:DURATION_S");
+    o.ati_faults[*k].events.push_back({ftcal::sim::AtiScheduledEvent::Kind::kSilence,
+                                       ParseFlagNumber(p[1], "--ati-silence"),
+                                       ParseFlagNumber(p[2], "--ati-silence")});
+  }
+  for (const std::string& s : f->ati_reboot) {
+    const auto p = SplitFlag(s, ':');
+    const auto k = p.size() == 2 ? ftcal::LegIndex(p[0]) : std::nullopt;
+    if (!k) throw std::invalid_argument("--ati-reboot '" + s + "': want LEG:AT_S");
+    o.ati_faults[*k].events.push_back({ftcal::sim::AtiScheduledEvent::Kind::kReboot,
+                                       ParseFlagNumber(p[1], "--ati-reboot"), 0});
+  }
+  o.dxl_rates.seed = o.seed;
+  auto servo_id = [](const std::string& text, const std::string& flag) {
+    const double id = ParseFlagNumber(text, flag);
+    if (id < 0 || id > 252 || id != std::floor(id)) {
+      throw std::invalid_argument(flag + ": servo id '" + text + "' is not 0-252");
+    }
+    return static_cast<std::uint8_t>(id);
+  };
+  for (const std::string& s : f->dxl_missing) {
+    const auto p = SplitFlag(s, ':');
+    if (p.size() != 3) throw std::invalid_argument("--dxl-missing '" + s + "': want ID:START_S:END_S");
+    o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kMissingServo,
+                            ParseFlagNumber(p[1], "--dxl-missing"),
+                            ParseFlagNumber(p[2], "--dxl-missing"), servo_id(p[0], "--dxl-missing"), 0});
+  }
+  for (const std::string& s : f->dxl_silent) {
+    const auto p = SplitFlag(s, ':');
+    if (p.size() != 2) throw std::invalid_argument("--dxl-silent '" + s + "': want START_S:END_S");
+    o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kSilent, ParseFlagNumber(p[0], "--dxl-silent"),
+                            ParseFlagNumber(p[1], "--dxl-silent"), 0, 0});
+  }
+  for (const std::string& s : f->dxl_hw_error) {
+    const auto p = SplitFlag(s, ':');
+    if (p.size() != 2 && p.size() != 3) {
+      throw std::invalid_argument("--dxl-hw-error '" + s + "': want ID:T_S[:BITS]");
+    }
+    const double bits = p.size() == 3 ? ParseFlagNumber(p[2], "--dxl-hw-error") : 32;
+    if (bits < 1 || bits > 255) throw std::invalid_argument("--dxl-hw-error '" + s + "': BITS 1-255");
+    o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kHardwareError,
+                            ParseFlagNumber(p[1], "--dxl-hw-error"), 0,
+                            servo_id(p[0], "--dxl-hw-error"), static_cast<std::uint8_t>(bits)});
+  }
+  for (const std::string& s : f->dxl_disconnect) {
+    const auto p = SplitFlag(s, ':');
+    if (p.size() != 2) throw std::invalid_argument("--dxl-disconnect '" + s + "': want START_S:END_S");
+    o.dxl_disconnects.push_back(
+        {ParseFlagNumber(p[0], "--dxl-disconnect"), ParseFlagNumber(p[1], "--dxl-disconnect")});
+  }
+  auto& q = o.qtm_faults;
+  q.seed = o.seed;
+  const double r = o.qtm_rate_hz;
+  for (const auto& w : f->qtm_untracked) q.untracked.push_back(TickWindowFlag(w, r, "--qtm-untracked"));
+  for (const auto& w : f->qtm_silent) q.silent.push_back(TickWindowFlag(w, r, "--qtm-silent"));
+  for (const auto& w : f->qtm_no_more_data) {
+    q.no_more_data.push_back(TickWindowFlag(w, r, "--qtm-no-more-data"));
+  }
+  for (const auto& w : f->qtm_disconnect) {
+    q.disconnected.push_back(TickWindowFlag(w, r, "--qtm-disconnect"));
+  }
+  for (double t : f->qtm_settings_changed) {
+    if (!(t >= 0)) throw std::invalid_argument("--qtm-settings-changed: negative time");
+    q.settings_changed.push_back(std::llround(t * r));
+  }
+}
+
+int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
+  ResolveLiveFlags(&flags);
+  struct sigaction sa {};
+  sa.sa_handler = OnSignal;
+  sigemptyset(&sa.sa_mask);
+  ::sigaction(SIGINT, &sa, nullptr);
+  ::sigaction(SIGTERM, &sa, nullptr);
+
+  ftcal::sim::LiveSim sim(config, flags.options);
+  if (!flags.ready_path.empty()) ftcal::WriteFileAtomic(flags.ready_path, "ready\n");
+  std::printf("ftcal-sim live: scenario %s (seed %llu): %d ATI boxes at %d records/s, "
+              "Dynamixel bus on %s (linked at %s), QTM on port %u\n",
+              flags.options.scenario.c_str(), static_cast<unsigned long long>(flags.options.seed),
+              sim.ati_boxes(), flags.options.ati_rate_hz, sim.pty_path().c_str(),
+              flags.options.pty_link.c_str(), sim.qtm_port());
+  std::fflush(stdout);
+  while (g_stop == 0 && !(flags.duration_s > 0 && sim.Now() >= flags.duration_s)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  const double ran_s = sim.Now();
+  sim.Stop();
+  if (!flags.truth_dir.empty()) sim.WriteTruth(flags.truth_dir);
+
+  const ftcal::sim::LiveCounts c = sim.Counts();
+  std::printf("ftcal-sim live: stopped after %.1f s\n", ran_s);
+  for (int k = 0; k < ftcal::kNumLegs; ++k) {
+    const auto& a = c.ati[k];
+    std::printf("  ati %s: records %llu datagrams %llu starts %llu drop %llu duplicate %llu "
+                "reorder %llu corrupt %llu silent %llu reboots %llu http %llu\n",
+                std::string(ftcal::kLegNames[k]).c_str(), (unsigned long long)a.records,
+                (unsigned long long)a.datagrams, (unsigned long long)a.starts,
+                (unsigned long long)a.faults[1], (unsigned long long)a.faults[2],
+                (unsigned long long)a.faults[3], (unsigned long long)a.faults[4],
+                (unsigned long long)a.faults[5], (unsigned long long)a.reboots,
+                (unsigned long long)a.http_requests);
+  }
+  std::printf("  dynamixel: replies %lld dropped %lld corrupted %lld noise bursts %lld missing "
+              "%lld silent %lld hardware errors %lld reopens %lld\n",
+              (long long)c.dxl_replies, (long long)c.dxl.dropped, (long long)c.dxl.corrupted,
+              (long long)c.dxl.noise_bursts, (long long)c.dxl.missing, (long long)c.dxl.silent,
+              (long long)c.dxl.hardware_errors, (long long)c.dxl_reopens);
+  std::printf("  qtm: ticks %lld frames_sent %lld corrupt %lld untracked %lld gaps %lld skipped "
+              "%lld connections %lld disconnects %lld events %lld\n",
+              (long long)c.qtm.ticks, (long long)c.qtm.frames_sent,
+              (long long)c.qtm.frames_corrupt, (long long)c.qtm.frames_untracked,
+              (long long)c.qtm.gaps, (long long)c.qtm.frames_skipped,
+              (long long)c.qtm.connections, (long long)c.qtm.disconnects,
+              (long long)c.qtm.events_sent);
+  std::fflush(stdout);
+  return 0;
 }
 
 }  // namespace
@@ -84,10 +341,28 @@ int main(int argc, char** argv) {
       ->capture_default_str()
       ->check(CLI::Range(0.05, 3600.0));
 
+  CLI::App* live = cli.add_subcommand(
+      "live",
+      "Run the twin's devices in real time on this machine: six ATI Net F/T boxes (RDT and "
+      "calibration page) at the config's addresses, the Dynamixel bus on a pseudo-terminal, the "
+      "QTM RT server; faults by flag. The truth series go to --truth-dir at exit.");
+  LiveFlags live_flags;
+  AddLiveFlags(live, &live_flags);
+
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return cli.exit(e);
+  }
+
+  if (live->parsed()) {
+    try {
+      if (config_path.empty()) config_path = ftcal::ServiceApp::DefaultConfigPath();
+      return RunLive(ftcal::LoadConfigFile(config_path), live_flags);
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "ftcal-sim live: %s\n", e.what());
+      return 1;
+    }
   }
 
   try {

@@ -1,0 +1,178 @@
+// The BigAnt twin driving the device emulators in real time: the common part of `ftcal-sim
+// live` (all three devices in one process) and of the standalone ftcal-emulate-* programs.
+//
+//   TwinSeries      a twin scenario as a 100 Hz series of frames, looped when a run outlasts it
+//   *From...        what each device reports at a twin frame (ATI counts, servo counts, QTM pose)
+//   *TruthCsv       the truth series each emulator produced, as the CSV files the tests read
+//   LiveSim         six ATI Net F/T boxes (RDT + calibration page), the Dynamixel bus on a pty
+//                   and the QTM RT server, each on its own thread, until Stop()
+//
+// Every device reads the same twin series on the same clock (seconds since LiveSim started), so
+// at any moment the wrenches, the shaft angles and the chassis attitude the bridges receive
+// belong to the same twin frame (to within the devices' own sampling).
+//
+// The legs do not follow commanded servo goals: positions are the scenario's shaft angles
+// (DynamixelBusEmulator's StateSource), so a Sync Write of goals from a bridge is accepted by
+// the servos' tables but does not move them. Closing that loop needs the twin to produce a frame
+// at arbitrary shaft angles, which it does not offer yet.
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "ati_emulator.h"
+#include "dynamixel_emulator.h"
+#include "proto/config.pb.h"
+#include "qtm_emulator.h"
+#include "sim/twin.h"
+
+namespace ftcal::sim {
+
+// The scenarios a live run can loop.
+inline constexpr const char* kLiveScenarios[] = {"walk",       "stand",      "tripod",
+                                                 "hang-x-pos", "hang-x-neg", "hang-z-pos",
+                                                 "hang-z-neg"};
+
+class TwinSeries {
+ public:
+  // At least `span_s` of `scenario` (one of kLiveScenarios). Throws std::invalid_argument for an
+  // unknown scenario and std::runtime_error when the twin produced no frame.
+  TwinSeries(const BigAntTwin& twin, const std::string& scenario, double span_s);
+
+  // The frame at `t_s` (>= 0; negative times give the first frame), the series repeating
+  // after its end.
+  const TwinFrame& At(double t_s) const;
+  // Shaft angle of leg k at `t_s`, linear between frames (a servo's encoder samples far faster
+  // than 100 Hz), and its rate. At the loop's seam the last frame is held, never interpolated
+  // into the first one.
+  double AngleAt(int k, double t_s, double* rate_rad_s = nullptr) const;
+  std::size_t size() const { return frames_.size(); }
+  double period_s() const { return period_s_; }
+  double length_s() const { return period_s_ * static_cast<double>(frames_.size()); }
+
+ private:
+  std::size_t Index(double t_s, double* frac) const;
+
+  std::vector<TwinFrame> frames_;
+  double period_s_ = 0.01;
+};
+
+// The Dynamixel driven state of a servo at shaft angle `angle_rad` turning at `rate_rad_s`:
+// counts = zero + direction * angle / (2 pi / 4096).
+DxlDrivenState DxlStateFromAngle(double angle_rad, double rate_rad_s, std::int32_t zero_count,
+                                 int direction);
+// The mocap's view of a twin frame.
+QtmPose QtmPoseFromFrame(const TwinFrame& frame, double residual_m);
+
+// Truth CSVs (the formats of ftcal-emulate-ati --truth, ftcal-emulate-dynamixel --truth and
+// ftcal-emulate-qtm --truth). `leg` indexes kLegNames.
+struct AtiTruthRow {
+  int leg = 0;
+  AtiEmitted e;
+};
+std::string AtiTruthCsv(const std::vector<AtiTruthRow>& rows);
+std::string DxlTruthCsv(const std::vector<DxlReplyRecord>& rows);
+std::string QtmTruthCsv(const std::vector<std::string>& labels,
+                        const std::vector<QtmSentFrame>& frames);
+
+// "A:B:C" -> {"A", "B", "C"}; a number in a flag's text, or std::invalid_argument naming the
+// flag.
+std::vector<std::string> SplitFlag(const std::string& text, char sep);
+double ParseFlagNumber(const std::string& text, const std::string& flag);
+
+struct LiveOptions {
+  std::string scenario = "walk";
+  std::uint64_t seed = 1;
+  // Length of the generated scenario before it repeats.
+  double loop_s = 120.0;
+
+  // ATI: the config's addresses and ports; the page's port replaced when http_port >= 0.
+  int ati_rate_hz = 7000;
+  int ati_http_port = -1;
+  double counts_per_force = 1e6;
+  double counts_per_torque = 1e6;
+  // Per leg (kLegNames order); the seed of each is derived from `seed` when left at 0.
+  std::array<AtiFaultOptions, 6> ati_faults{};
+
+  // Dynamixel: the pty's slave is symlinked here (the bridge's config names it).
+  std::string pty_link;
+  DxlFaultRates dxl_rates;
+  std::vector<DxlFaultEvent> dxl_events;
+  struct Window {
+    double start_s = 0, end_s = 0;
+  };
+  std::vector<Window> dxl_disconnects;  // the port vanishes, back as a new pty
+
+  // QTM: the config's address and port unless given (port 0: any free port).
+  int qtm_port = -1;
+  double qtm_rate_hz = 100.0;
+  QtmFaults qtm_faults;
+};
+
+struct LiveCounts {
+  std::array<AtiEmulatorCounters, 6> ati{};
+  DxlFaultCounts dxl;
+  std::int64_t dxl_replies = 0;
+  std::int64_t dxl_reopens = 0;
+  QtmEmulatorCounters qtm;
+};
+
+class LiveSim {
+ public:
+  // Binds every endpoint and opens the pty, then starts the device threads. Throws
+  // std::invalid_argument for a bad option and std::runtime_error (or AtiEmulatorError)
+  // naming the endpoint that could not be set up.
+  LiveSim(const config::Config& config, const LiveOptions& options);
+  ~LiveSim();
+  LiveSim(const LiveSim&) = delete;
+  LiveSim& operator=(const LiveSim&) = delete;
+
+  // Seconds since the devices started (the twin's clock).
+  double Now() const;
+  // Ends the device threads (idempotent); the truth and counts are complete afterwards.
+  void Stop();
+  // After Stop(): the truth series in `dir` (ati.csv, dynamixel.csv, qtm.csv), each atomically.
+  void WriteTruth(const std::string& dir) const;
+  LiveCounts Counts() const;  // after Stop()
+  const std::string& pty_path() const { return pty_slave_; }
+  std::uint16_t qtm_port() const;
+  int ati_boxes() const { return static_cast<int>(ati_.size()); }
+  std::size_t ati_truth_rows() const { return ati_truth_.size(); }
+
+ private:
+  void RunAti();
+  void RunDxl();
+
+  LiveOptions options_;
+  std::unique_ptr<BigAntTwin> twin_;
+  std::unique_ptr<TwinSeries> series_;
+  std::chrono::steady_clock::time_point t0_;
+  std::atomic<bool> stop_{false};
+  bool stopped_ = false;
+
+  // The truth vectors are declared before the emulators that fill them, so they outlive them.
+  std::vector<AtiTruthRow> ati_truth_;
+  std::vector<DxlReplyRecord> dxl_truth_;
+  std::vector<QtmSentFrame> qtm_truth_;
+
+  std::vector<std::unique_ptr<AtiEmulator>> ati_;
+  std::array<AtiEmulatorCounters, 6> ati_counts_{};
+
+  std::unique_ptr<DynamixelBusEmulator> dxl_;
+  std::unique_ptr<PtyBus> pty_;
+  std::string pty_slave_;
+  std::int64_t dxl_reopens_ = 0;
+
+  std::unique_ptr<QtmEmulator> qtm_;
+  std::vector<std::string> qtm_labels_;
+
+  std::thread ati_thread_, dxl_thread_, qtm_thread_;
+};
+
+}  // namespace ftcal::sim
