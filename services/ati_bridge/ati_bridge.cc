@@ -133,9 +133,11 @@ AtiSchedulingGranted ApplyScheduling(const AtiSchedulingOptions& options, spdlog
     a.sched_flags = 0;
     a.sched_runtime = static_cast<std::uint64_t>(options.slice_us * 1000.0);
     SchedAttr back;
-    // The kernel clamps the request to 0.1..100 ms; an older kernel ignores it (reads back 0).
+    // The kernel clamps the request to 0.1..100 ms; an older kernel ignores it.
+    const std::uint64_t expected =
+        std::clamp<std::uint64_t>(a.sched_runtime, 100'000, 100'000'000);
     if (::syscall(SYS_sched_setattr, 0, &a, 0) == 0 && GetSchedAttr(back) &&
-        back.sched_runtime != 0) {
+        back.sched_runtime == expected) {
       granted.slice = true;
       log.debug("scheduler slice {} us", back.sched_runtime / 1000.0);
     } else {

@@ -136,6 +136,12 @@ int main(int argc, char** argv) {
   cli.add_flag("--realtime", realtime, "pass --realtime to the bridge(s): SCHED_FIFO, mlockall");
   std::string slice_us;
   cli.add_option("--slice-us", slice_us, "pass --slice-us to the bridge(s) (0: kernel default)");
+  std::string bridge_binary = FTCAL_ATI_BRIDGE;
+  cli.add_option("--bridge-binary", bridge_binary,
+                 "the ftcal-ati-bridge to measure (e.g. an earlier build, for a before/after)")
+      ->capture_default_str();
+  std::string spin_us;
+  cli.add_option("--spin-us", spin_us, "pass --spin-us to the bridge(s) (busy-poll after a sample)");
   bool emulator_fifo = false;
   cli.add_flag("--emulator-fifo", emulator_fifo,
                "run the emulator SCHED_FIFO (chrt -f 30; needs root) so that its boxes send on "
@@ -170,10 +176,11 @@ int main(int argc, char** argv) {
   if (listen) listener = std::make_unique<Listener>();
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
 
-  std::vector<std::string> bridge_argv = {FTCAL_ATI_BRIDGE, "--lcm-url", kUrl, "--log-level",
+  std::vector<std::string> bridge_argv = {bridge_binary, "--lcm-url", kUrl, "--log-level",
                                           "info"};
   if (realtime) bridge_argv.push_back("--realtime");
   if (!slice_us.empty()) bridge_argv.insert(bridge_argv.end(), {"--slice-us", slice_us});
+  if (!spin_us.empty()) bridge_argv.insert(bridge_argv.end(), {"--spin-us", spin_us});
   std::vector<pid_t> bridge_pids;
   if (bridges == 1) {
     bridge_pids.push_back(Spawn(bridge_argv, dir + "/bridge.err"));
@@ -236,9 +243,10 @@ int main(int argc, char** argv) {
   }
 
   std::printf("ati_bridge_bench: %d boxes x %d records/s for %.1f s on loopback, %d bridge "
-              "process(es)%s%s%s%s\n", 6, rate_hz, duration_s, bridges,
+              "process(es)%s%s%s%s%s%s\n", 6, rate_hz, duration_s, bridges,
               realtime ? ", --realtime" : "", slice_us.empty() ? "" : ", --slice-us ",
-              slice_us.c_str(), emulator_fifo ? ", emulator SCHED_FIFO" : "");
+              slice_us.c_str(), spin_us.empty() ? "" : ", --spin-us ", spin_us.c_str(),
+              emulator_fifo ? ", emulator SCHED_FIFO" : "");
   std::printf("%-4s %10s %10s %10s %8s %10s %10s\n", "leg", "sent", "received", "published",
               "lost", "heard_lcm", "recv/sent");
   long long total_sent = 0, total_received = 0, total_published = 0, total_lost = 0;
