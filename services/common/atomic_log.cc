@@ -17,6 +17,10 @@ AtomicLogFile::AtomicLogFile(const std::string& path, const std::string& what)
     throw std::runtime_error(what_ + " '" + path_ + "': cannot create '" + tmp_path_ +
                              "': " + std::strerror(errno));
   }
+  // stdio's default buffer is one 4 KiB block: a write() every ten corrected wrenches. Nothing
+  // has been written yet, so the buffer can still be set; nothing is flushed per event.
+  buffer_.resize(kBufferBytes);
+  std::setvbuf(log_->getFilePtr(), buffer_.data(), _IOFBF, buffer_.size());
 }
 
 AtomicLogFile::~AtomicLogFile() {

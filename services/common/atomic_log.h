@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include <lcm/lcm-cpp.hpp>
 
@@ -34,6 +35,8 @@ class AtomicLogFile {
   std::string path_;
   std::string tmp_path_;
   std::string what_;
+  static constexpr size_t kBufferBytes = 1 << 20;
+  std::vector<char> buffer_;  // the stream's buffer: declared before log_, so it outlives it
   std::unique_ptr<lcm::LogFile> log_;
   int64_t event_number_ = 0;
   bool committed_ = false;

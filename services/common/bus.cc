@@ -21,44 +21,14 @@ int64_t WallClockUtime() {
       .count();
 }
 
-// Size of one event in LCM's log format: sync word, event number, timestamp, channel length,
-// data length, then the channel and the data.
-int64_t LoggedEventBytes(const lcm::LogEvent& event) {
-  return 4 + 8 + 8 + 4 + 4 + static_cast<int64_t>(event.channel.size()) + event.datalen;
-}
+constexpr uint32_t kSyncWord = 0xEDA1DA01;  // LCM log format, big-endian on disk
+constexpr int64_t kHeaderBytes = 28;        // sync, event number, timestamp, two lengths
+constexpr int64_t kChunkBytes = 1 << 20;
 
-// Reads the header of the event at `at` (its sync word already found there) and leaves `file`
-// positioned at `at` when the lengths it claims are possible for this file.
-bool PlausibleHeader(FILE* file, int64_t at, int64_t file_bytes) {
-  uint8_t header[28];
-  if (::fseeko(file, at, SEEK_SET) != 0 || std::fread(header, 1, 28, file) != 28) return false;
-  auto be32 = [&header](int offset) {
-    return static_cast<int32_t>(uint32_t{header[offset]} << 24 | uint32_t{header[offset + 1]} << 16 |
-                                uint32_t{header[offset + 2]} << 8 | uint32_t{header[offset + 3]});
-  };
-  const int64_t channel_bytes = be32(20);
-  const int64_t data_bytes = be32(24);
-  return channel_bytes > 0 && data_bytes >= 0 &&
-         at + 28 + channel_bytes + data_bytes <= file_bytes &&
-         ::fseeko(file, at, SEEK_SET) == 0;
+uint32_t Be32(const uint8_t* p) {
+  return uint32_t{p[0]} << 24 | uint32_t{p[1]} << 16 | uint32_t{p[2]} << 8 | uint32_t{p[3]};
 }
-
-// Positions `file` at the next sync word of LCM's log format at or after `from` and returns
-// its offset, or -1 when there is none before the end.
-int64_t FindSyncWord(FILE* file, int64_t from) {
-  constexpr uint32_t kSyncWord = 0xEDA1DA01;  // big-endian on disk
-  if (::fseeko(file, from, SEEK_SET) != 0) return -1;
-  uint32_t window = 0;
-  int64_t bytes = 0;
-  for (int c = std::fgetc(file); c != EOF; c = std::fgetc(file)) {
-    window = (window << 8) | static_cast<uint32_t>(c);
-    if (++bytes >= 4 && window == kSyncWord) {
-      const int64_t at = from + bytes - 4;
-      return ::fseeko(file, at, SEEK_SET) == 0 ? at : -1;
-    }
-  }
-  return -1;
-}
+uint64_t Be64(const uint8_t* p) { return uint64_t{Be32(p)} << 32 | Be32(p + 4); }
 
 }  // namespace
 
@@ -73,7 +43,19 @@ void Bus::SubscribeRaw(const std::string& channel, RawHandler handler) {
                                 "expression: " + e.what());
   }
   subscriptions_.push_back({channel, std::move(pattern), std::move(handler)});
+  handlers_by_channel_.clear();
+  ++subscription_generation_;
   TransportSubscribe(subscriptions_.size() - 1, channel);
+}
+
+const std::vector<size_t>& Bus::HandlersFor(const std::string& channel) {
+  const auto found = handlers_by_channel_.find(channel);
+  if (found != handlers_by_channel_.end()) return found->second;
+  std::vector<size_t>& list = handlers_by_channel_[channel];
+  for (size_t i = 0; i < subscriptions_.size(); ++i) {
+    if (std::regex_match(channel, subscriptions_[i].pattern)) list.push_back(i);
+  }
+  return list;
 }
 
 void Bus::PublishRaw(const std::string& channel, const void* data, int size, bool count) {
@@ -98,7 +80,16 @@ void Bus::Dispatch(size_t subscription, const std::string& channel, int64_t recv
   stats_.CountIn();
   const Subscription& sub = subscriptions_.at(subscription);
   const MessageInfo info{channel, recv_utime};
-  Guarded("handler for " + sub.channel, [&] { sub.handler(info, data, size); });
+  // Guarded()'s handling inline: its name argument would cost a string per event.
+  try {
+    sub.handler(info, data, size);
+  } catch (const BadInput& e) {
+    stats_.Drop(e.kind(), e.what());
+  } catch (const std::exception& e) {
+    stats_.Error("handler for " + sub.channel, e.what());
+  } catch (...) {
+    stats_.Error("handler for " + sub.channel, "unknown exception");
+  }
 }
 
 // ---- LcmBus ----
@@ -169,16 +160,52 @@ LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_pa
   if (!S_ISREG(st.st_mode)) {
     throw std::runtime_error("replay input '" + in_path + "' is not a regular file");
   }
-  in_ = std::make_unique<lcm::LogFile>(in_path, "r");
-  if (!in_->good()) {
+  in_fd_ = ::open(in_path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (in_fd_ < 0) {
     throw std::runtime_error("replay input '" + in_path + "': cannot open: " +
                              std::strerror(errno));
   }
-  out_ = std::make_unique<AtomicLogFile>(out_path, "replay output");
+  try {
+    out_ = std::make_unique<AtomicLogFile>(out_path, "replay output");
+  } catch (...) {
+    ::close(in_fd_);
+    throw;
+  }
 }
 
 // The output's temporary file goes with out_ unless Commit() ran.
-LogReplayBus::~LogReplayBus() = default;
+LogReplayBus::~LogReplayBus() { ::close(in_fd_); }
+
+const uint8_t* LogReplayBus::InputBytes(int64_t at, int64_t n) {
+  if (at < 0 || n < 0 || at + n > in_bytes_) return nullptr;
+  if (at >= chunk_at_ && at + n <= chunk_at_ + chunk_bytes_) return chunk_.data() + (at - chunk_at_);
+  // Refill from `at`: reading is sequential, so only the tail of one event is read twice.
+  const int64_t want = std::min(std::max(n, kChunkBytes), in_bytes_ - at);
+  if (static_cast<int64_t>(chunk_.size()) < want) chunk_.resize(static_cast<size_t>(want));
+  int64_t got = 0;
+  while (got < want) {
+    const ssize_t r = ::pread(in_fd_, chunk_.data() + got, static_cast<size_t>(want - got), at + got);
+    if (r < 0 && errno == EINTR) continue;
+    if (r <= 0) break;  // an error, or the file shrank since it was opened
+    got += r;
+  }
+  chunk_at_ = at;
+  chunk_bytes_ = got;
+  return got >= n ? chunk_.data() : nullptr;
+}
+
+int64_t LogReplayBus::FindSyncWord(int64_t from) {
+  for (int64_t at = from; at + 4 <= in_bytes_;) {
+    const uint8_t* p = InputBytes(at, 4);
+    if (p == nullptr) return -1;
+    const int64_t span = chunk_at_ + chunk_bytes_ - at;  // whatever the chunk holds from `at`
+    for (int64_t i = 0; i + 4 <= span; ++i) {
+      if (p[i] == 0xED && Be32(p + i) == kSyncWord) return at + i;
+    }
+    at += span - 3;
+  }
+  return -1;
+}
 
 void LogReplayBus::TransportSubscribe(size_t /*subscription*/, const std::string& /*channel*/) {}
 
@@ -187,16 +214,19 @@ void LogReplayBus::TransportPublish(const std::string& channel, const void* data
 }
 
 void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
-  FILE* file = in_->getFilePtr();
   struct stat st {};
-  if (::fstat(::fileno(file), &st) != 0) {
+  if (::fstat(in_fd_, &st) != 0) {
     throw std::runtime_error("replay input '" + in_path_ + "': " + std::strerror(errno));
   }
   const int64_t file_bytes = st.st_size;
-  // LCM's reader skips to the next sync word without saying so, refuses an event that is not
-  // followed by a sync word or the end, and allocates whatever length a damaged header claims.
-  // So each event's sync word and header are checked here first, and every byte not returned
-  // as an event is reported (as the span it covers) instead of silently lost.
+  in_bytes_ = file_bytes;
+  chunk_bytes_ = 0;
+  // The rules of LCM's reader (lcm_eventlog_read_next_event), kept so a log reads as it always
+  // did: an event starts at a sync word, and is followed by another sync word or by fewer
+  // than four bytes before the end. LCM's reader skips to the next sync word without saying
+  // so and allocates whatever length a damaged header claims; here each header's lengths are
+  // checked against the file first, and every byte not returned as an event is reported (as
+  // the span it covers) instead of silently lost.
   int64_t damage_from = -1;
   auto damaged = [&](int64_t at) {
     if (damage_from < 0) damage_from = at;
@@ -216,40 +246,60 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
       stats_.log().warn("replay interrupted after {} events; output not written", events_read_);
       return;
     }
-    const int64_t sync = FindSyncWord(file, pos);
+    const int64_t sync = FindSyncWord(pos);
     if (sync < 0) {
       if (pos < file_bytes) damaged(pos);
       break;
     }
     if (sync > pos) damaged(pos);
-    const lcm::LogEvent* event =
-        PlausibleHeader(file, sync, file_bytes) ? in_->readNextEvent() : nullptr;
+    const uint8_t* header = InputBytes(sync, kHeaderBytes);
+    const int64_t channel_bytes = header ? static_cast<int32_t>(Be32(header + 20)) : -1;
+    const int64_t data_bytes = header ? static_cast<int32_t>(Be32(header + 24)) : -1;
+    const int64_t end = sync + kHeaderBytes + channel_bytes + data_bytes;
+    bool good = header != nullptr && channel_bytes > 0 && data_bytes >= 0 && end <= file_bytes;
+    if (good && file_bytes - end >= 4) {
+      const uint8_t* next = InputBytes(end, 4);
+      good = next != nullptr && Be32(next) == kSyncWord;
+    }
+    const uint8_t* event = good ? InputBytes(sync, end - sync) : nullptr;
     if (event == nullptr) {
       damaged(sync);
       pos = sync + 1;
       continue;
     }
     report_damage(sync);
-    pos = sync + LoggedEventBytes(*event);
+    pos = end;
     ++events_read_;
+    const int64_t timestamp = static_cast<int64_t>(Be64(event + 12));
+    channel_.assign(reinterpret_cast<const char*>(event + kHeaderBytes),
+                    static_cast<size_t>(channel_bytes));
+    const uint8_t* data = event + kHeaderBytes + channel_bytes;
 
     // Periodic work on the log's clock, as it would have run live between these events; the
     // first tick is at the first event, as a live loop's is at its start.
     if (!ticking) {
       ticking = true;
-      next_tick = event->timestamp;
-    } else if (event->timestamp - next_tick > 1000 * tick_us) {
-      next_tick = event->timestamp - (event->timestamp - next_tick) % tick_us;  // a long gap
+      next_tick = timestamp;
+    } else if (timestamp - next_tick > 1000 * tick_us) {
+      next_tick = timestamp - (timestamp - next_tick) % tick_us;  // a long gap
     }
-    while (event->timestamp >= next_tick) {
+    while (timestamp >= next_tick) {
       now_utime_ = next_tick;
       Guarded("periodic work", tick);
       next_tick += tick_us;
     }
-    now_utime_ = event->timestamp;
-    for (size_t i = 0; i < subscriptions_.size(); ++i) {
-      if (std::regex_match(event->channel, subscriptions_[i].pattern)) {
-        Dispatch(i, event->channel, event->timestamp, event->data, event->datalen);
+    now_utime_ = timestamp;
+    // In subscription order, as a regex match per subscription would give; a handler that
+    // subscribes (the cached list goes stale) sees its new subscription from this event on.
+    const std::vector<size_t>* handlers = &HandlersFor(channel_);
+    for (size_t j = 0; j < handlers->size(); ++j) {
+      const size_t i = (*handlers)[j];
+      const uint64_t generation = subscription_generation();
+      Dispatch(i, channel_, timestamp, data, static_cast<int>(data_bytes));
+      if (subscription_generation() != generation) {
+        handlers = &HandlersFor(channel_);
+        j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -
+                                handlers->begin()) - 1;
       }
     }
   }

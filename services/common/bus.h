@@ -20,6 +20,7 @@
 #include <regex>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include <lcm/lcm-cpp.hpp>
@@ -87,6 +88,12 @@ class Bus {
                 const void* data, int size);
   // Runs `fn`, counting any exception it throws under `what` instead of propagating it.
   void Guarded(const std::string& what, const std::function<void()>& fn);
+  // The subscriptions whose pattern matches `channel`, in subscription order. Cached per
+  // channel name (a regex match per subscription per event was most of a replay's time); the
+  // cache is dropped by every SubscribeRaw(), which also bumps subscription_generation_ so a
+  // caller holding the returned list while calling handlers can tell it went stale.
+  const std::vector<size_t>& HandlersFor(const std::string& channel);
+  uint64_t subscription_generation() const { return subscription_generation_; }
   virtual void TransportSubscribe(size_t subscription, const std::string& channel) = 0;
   virtual void TransportPublish(const std::string& channel, const void* data, int size) = 0;
 
@@ -97,6 +104,10 @@ class Bus {
   };
   std::vector<Subscription> subscriptions_;
   ServiceStats& stats_;
+
+ private:
+  std::unordered_map<std::string, std::vector<size_t>> handlers_by_channel_;
+  uint64_t subscription_generation_ = 0;
 };
 
 // Live LCM. The loop wakes at least every 100 ms (handleTimeout) to check the shutdown flag and
@@ -154,8 +165,22 @@ class LogReplayBus : public Bus {
   void TransportPublish(const std::string& channel, const void* data, int size) override;
 
  private:
+  // The input, read in large chunks by pread(): LCM's reader allocates every event twice and
+  // the old sync-word checks cost two lseek()s per event. A chunk holds whole events; one
+  // larger than kChunkBytes grows it.
+  // Makes bytes [at, at + n) of the input contiguous in chunk_; nullptr when they are not all
+  // there (past the size the file had at the start, or a read error).
+  const uint8_t* InputBytes(int64_t at, int64_t n);
+  // Offset of the next sync word of LCM's log format at or after `from`, or -1.
+  int64_t FindSyncWord(int64_t from);
+
   std::string in_path_;
-  std::unique_ptr<lcm::LogFile> in_;
+  int in_fd_ = -1;
+  int64_t in_bytes_ = 0;              // the input's size when opened
+  std::vector<uint8_t> chunk_;
+  int64_t chunk_at_ = 0;              // input offset of chunk_[0]
+  int64_t chunk_bytes_ = 0;           // valid bytes in chunk_
+  std::string channel_;               // the current event's channel (reused: no allocation)
   std::unique_ptr<AtomicLogFile> out_;
   int64_t now_utime_ = 0;
   int64_t events_read_ = 0;
