@@ -1,0 +1,295 @@
+// Logs for the multi-process tests, written from the BigAnt twin as the bridges would publish
+// them (FT_<LEG>, SERVO_STATE, MOCAP_BODY per 100 Hz frame, EXPERIMENT markers), and read back
+// per channel. Header-only: shared by pipeline_live_test and bad_logs_test.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <map>
+#include <utility>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+
+#include "ftcal/config.h"
+#include "ftcal/contact_wrench_t.hpp"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/mocap_body_t.hpp"
+#include "ftcal/servo_state_t.hpp"
+#include "sim/twin.h"
+
+namespace ftcal::twin_log {
+
+constexpr int64_t kT0 = 1'700'000'000'000'000;  // us, the log's time origin
+
+inline int64_t Utime(double t_s) { return kT0 + std::llround(t_s * 1e6); }
+
+struct Event {
+  int64_t utime;
+  std::string channel;
+  std::vector<uint8_t> data;
+};
+
+template <class Msg>
+Event Encode(int64_t utime, const std::string& channel, const Msg& msg) {
+  Event e{utime, channel, std::vector<uint8_t>(static_cast<size_t>(msg.getEncodedSize()))};
+  msg.encode(e.data.data(), 0, static_cast<int>(e.data.size()));
+  return e;
+}
+
+inline void WriteLog(const std::string& path, const std::vector<Event>& events) {
+  lcm::LogFile log(path, "w");
+  ASSERT_TRUE(log.good()) << path;
+  int64_t n = 0;
+  for (const Event& e : events) {
+    lcm::LogEvent ev;
+    ev.eventnum = n++;
+    ev.timestamp = e.utime;
+    ev.channel = e.channel;
+    ev.datalen = static_cast<int32_t>(e.data.size());
+    ev.data = const_cast<uint8_t*>(e.data.data());
+    ASSERT_EQ(log.writeEvent(&ev), 0);
+  }
+}
+
+// Every event of a log, raw.
+inline std::vector<Event> ReadLog(const std::string& path) {
+  std::vector<Event> out;
+  lcm::LogFile log(path, "r");
+  EXPECT_TRUE(log.good()) << path;
+  if (!log.good()) return out;
+  while (const lcm::LogEvent* e = log.readNextEvent()) {
+    const auto* b = static_cast<const uint8_t*>(e->data);
+    out.push_back(Event{e->timestamp, e->channel, std::vector<uint8_t>(b, b + e->datalen)});
+  }
+  return out;
+}
+
+// Every event of `channel` in a log, decoded; a message that does not decode exactly fails
+// the test (a recorded output must never be garbage).
+template <class Msg>
+std::vector<Msg> ReadChannel(const std::string& path, const std::string& channel) {
+  std::vector<Msg> out;
+  for (const Event& e : ReadLog(path)) {
+    if (e.channel != channel) continue;
+    Msg m;
+    EXPECT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+              static_cast<int>(e.data.size()))
+        << channel << " at " << e.utime;
+    out.push_back(m);
+  }
+  return out;
+}
+
+inline experiment_marker_t Marker(int64_t utime, const std::string& session, int8_t phase,
+                                  bool start, const Vec3& gravity_b = Vec3::Zero()) {
+  experiment_marker_t m{};
+  m.utime = utime;
+  m.session_id = session;
+  m.phase = phase;
+  m.start = start;
+  for (int i = 0; i < 3; ++i) m.gravity_b[i] = gravity_b[i];
+  m.note = "twin_log";
+  return m;
+}
+
+// The twin's frame as the bridges would publish it: six FT_<LEG>, one SERVO_STATE, one
+// MOCAP_BODY, all stamped with the frame's time.
+inline void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vector<Event>* events) {
+  const int64_t t = Utime(f.t_s);
+  const auto& ch = cfg.channels();
+  for (int k = 0; k < kNumLegs; ++k) {
+    ft_sample_t m{};
+    m.utime = t;
+    m.leg = std::string(kLegNames[k]);
+    m.rdt_sequence = std::llround(f.t_s * 100) + 1;
+    m.ft_sequence = 70 * m.rdt_sequence;
+    for (int i = 0; i < 6; ++i) {
+      m.counts[i] = f.counts[k][i];
+      m.wrench[i] = f.reading[k][i];
+    }
+    events->push_back(Encode(t, ch.ft_prefix() + m.leg, m));
+  }
+  servo_state_t s{};
+  s.utime = t;
+  s.num_servos = kNumLegs;
+  for (int k = 0; k < kNumLegs; ++k) {
+    s.leg.push_back(std::string(kLegNames[k]));
+    s.id.push_back(static_cast<int32_t>(cfg.robot().leg(k).servo().id()));
+    s.angle_rad.push_back(f.angle_rad[k]);
+    s.velocity_rad_s.push_back(0.0);
+    s.current_a.push_back(0.0);
+    s.hardware_error.push_back(0);
+    s.device_tick_ms.push_back(std::llround(f.t_s * 1e3));
+    s.flags.push_back(0);
+  }
+  events->push_back(Encode(t, ch.servo_state(), s));
+  mocap_body_t b{};
+  b.utime = t;
+  b.frame_number = std::llround(f.t_s * 100);
+  b.device_utime = std::llround(f.t_s * 1e6);
+  b.body = cfg.mocap().body_name();
+  b.tracked = true;
+  const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(f.R_GC));
+  const Eigen::Vector4d q_gc = RotationToQuaternion(f.R_GC);
+  for (int i = 0; i < 4; ++i) {
+    b.q_wc[i] = q_wc[i];
+    b.q_gc[i] = q_gc[i];
+  }
+  for (int i = 0; i < 3; ++i) b.position_m[i] = f.p_GB_m[i];
+  b.yaw_rad = HeadingYaw(f.R_GC);
+  b.residual_m = 0.0005;
+  b.num_markers = kNumChassisMarkers;
+  for (int i = 0; i < kNumChassisMarkers; ++i) {
+    b.marker_m.push_back({f.marker_G_m[i].x(), f.marker_G_m[i].y(), f.marker_G_m[i].z()});
+    b.marker_tracked.push_back(f.marker_tracked[i]);
+  }
+  events->push_back(Encode(t, ch.mocap_body(), b));
+}
+
+// A whole calibration session: the four hanging series, then `poses` standing poses, each phase
+// between its EXPERIMENT start and stop markers, then `walk_s` of tripod walk outside any phase
+// (data for the corrector once a calibration is in use). Returns the STANDING stop marker's
+// index in `events`.
+inline size_t AppendSession(const BigAntTwin& twin, const config::Config& cfg,
+                            const std::string& session, int poses, double walk_s,
+                            std::vector<Event>* events) {
+  const auto& ch = cfg.channels();
+  const auto sink = [&](const TwinFrame& f) { AppendFrame(f, cfg, events); };
+  auto marker = [&](double t_s, int8_t phase, bool start, const Vec3& g) {
+    events->push_back(Encode(Utime(t_s), ch.experiment(), Marker(Utime(t_s), session, phase, start, g)));
+  };
+  double t = 0.0;
+  for (int s = 0; s < kNumHangSeries; ++s) {
+    const auto series = static_cast<HangSeries>(s);
+    const auto phase = static_cast<int8_t>(experiment_marker_t::HANG_X_POS + s);
+    const Vec3 g = twin.StatedGravityB(series);
+    marker(t, phase, true, g);
+    RunOptions run;
+    run.t0_s = t + 0.01;
+    t = twin.Hanging(series, run, sink);
+    marker(t + 0.005, phase, false, g);
+    t += 0.5;
+  }
+  marker(t, experiment_marker_t::STANDING, true, Vec3::Zero());
+  RunOptions run;
+  run.t0_s = t + 0.01;
+  t = twin.Standing(poses, run, sink);
+  marker(t + 0.005, experiment_marker_t::STANDING, false, Vec3::Zero());
+  const size_t stop = events->size() - 1;
+  if (walk_s > 0) {
+    run.t0_s = t + 0.01;
+    twin.TripodWalk(walk_s, run, sink);
+  }
+  return stop;
+}
+
+// ---- comparing CONTACT_WRENCH streams ----
+//
+// "Same inputs" is read off the messages themselves. An output's ages (ft_age_s per leg,
+// servo_age_s, mocap_age_s) are its utime minus the stamps of the inputs it used, so equal ages
+// mean the same samples. But each leg's wrench was corrected when that leg's own sample came,
+// with the servo state and attitude of that moment: those are the ages of the output that leg's
+// sample produced (at utime - ft_age_s[k]). So two outputs have the same inputs when their own
+// ages agree and so do those of the outputs that last updated each leg.
+
+inline bool SameOrBothNan(double a, double b) { return a == b || (std::isnan(a) && std::isnan(b)); }
+
+using WrenchKey = std::pair<int64_t, int32_t>;  // (utime, updated_leg)
+using WrenchIndex = std::map<WrenchKey, const contact_wrench_t*>;
+
+inline WrenchIndex IndexWrenches(const std::vector<contact_wrench_t>& v) {
+  WrenchIndex index;
+  for (const auto& m : v) index[{m.utime, m.updated_leg}] = &m;
+  return index;
+}
+
+inline bool SameOwnInputs(const contact_wrench_t& a, const contact_wrench_t& b) {
+  if (a.flags != b.flags || a.calibration_version != b.calibration_version ||
+      !SameOrBothNan(a.servo_age_s, b.servo_age_s) || !SameOrBothNan(a.mocap_age_s, b.mocap_age_s) ||
+      a.num_legs != b.num_legs) {
+    return false;
+  }
+  for (int k = 0; k < a.num_legs; ++k) {
+    if (!SameOrBothNan(a.ft_age_s[k], b.ft_age_s[k])) return false;
+  }
+  return true;
+}
+
+inline bool SameInputs(const contact_wrench_t& a, const WrenchIndex& a_index,
+                       const contact_wrench_t& b, const WrenchIndex& b_index) {
+  if (!SameOwnInputs(a, b)) return false;
+  for (int k = 0; k < a.num_legs; ++k) {
+    if (k == a.updated_leg || a.ft_age_s[k] < 0) continue;  // its own, or not seen yet
+    const WrenchKey key{a.utime - std::llround(a.ft_age_s[k] * 1e6), k};
+    const auto ia = a_index.find(key), ib = b_index.find(key);
+    if (ia == a_index.end() || ib == b_index.end()) return false;
+    if (!SameOrBothNan(ia->second->servo_age_s, ib->second->servo_age_s) ||
+        !SameOrBothNan(ia->second->mocap_age_s, ib->second->mocap_age_s) ||
+        ia->second->flags != ib->second->flags) {
+      return false;
+    }
+  }
+  return true;
+}
+
+// The largest difference between two outputs' wrenches (each leg's, the total, the residual);
+// infinite when one is NaN and the other not.
+inline double MaxWrenchDifference(const contact_wrench_t& a, const contact_wrench_t& b) {
+  double worst = 0.0;
+  auto diff = [&worst](double x, double y) {
+    if (std::isnan(x) != std::isnan(y)) {
+      worst = INFINITY;
+    } else if (!std::isnan(x)) {
+      worst = std::max(worst, std::abs(x - y));
+    }
+  };
+  for (int k = 0; k < a.num_legs; ++k) {
+    for (int i = 0; i < 6; ++i) diff(a.wrench_w[k][i], b.wrench_w[k][i]);
+  }
+  for (int i = 0; i < 6; ++i) {
+    diff(a.total_w[i], b.total_w[i]);
+    diff(a.residual_w[i], b.residual_w[i]);
+  }
+  return worst;
+}
+
+struct WrenchComparison {
+  size_t outputs = 0;        // in the stream under test
+  size_t missing_ref = 0;    // with no reference output for the same (utime, leg)
+  size_t duplicate = 0;      // a (utime, leg) published twice
+  size_t same_inputs = 0;    // compared number by number
+  size_t inputs_differ = 0;  // reordered, lost or unheard inputs: counted, not compared
+  double worst = 0.0;        // over same_inputs
+  std::vector<int64_t> differ_utimes;
+};
+
+inline WrenchComparison CompareWrenches(const std::vector<contact_wrench_t>& test,
+                                        const std::vector<contact_wrench_t>& ref) {
+  const WrenchIndex t_index = IndexWrenches(test), r_index = IndexWrenches(ref);
+  std::map<WrenchKey, int> seen;
+  WrenchComparison c;
+  for (const auto& m : test) {
+    ++c.outputs;
+    if (++seen[{m.utime, m.updated_leg}] > 1) ++c.duplicate;
+    const auto it = r_index.find({m.utime, m.updated_leg});
+    if (it == r_index.end()) {
+      ++c.missing_ref;
+      continue;
+    }
+    if (!SameInputs(m, t_index, *it->second, r_index)) {
+      ++c.inputs_differ;
+      c.differ_utimes.push_back(m.utime);
+      continue;
+    }
+    ++c.same_inputs;
+    c.worst = std::max(c.worst, MaxWrenchDifference(m, *it->second));
+  }
+  return c;
+}
+
+}  // namespace ftcal::twin_log
