@@ -208,6 +208,7 @@ void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
   pose.R_WC = QuaternionToRotation(Eigen::Vector4d(msg.q_wc[0], msg.q_wc[1], msg.q_wc[2], msg.q_wc[3]));
   pose.t_s = 0.5e-6 * static_cast<double>(msg.start_utime + msg.end_utime);
   logged_poses_.push_back(pose);
+  if (on_steady_pose_) on_steady_pose_();
 }
 
 void CalibrationCollector::OnAligned(const AlignedSample& a) {
@@ -295,9 +296,38 @@ LiveCalibrator::LiveCalibrator(const config::Config& config, Bus& bus, std::stri
       collector_(config) {
   collector_.Attach(bus);
   collector_.SetOnStandingStop([this] { OnStandingStop(); });
+  collector_.SetOnSteadyPose([this] {
+    if (waiting_since_utime_ >= 0 && collector_.logged_pose_count() >= collector_.segmented_pose_count()) {
+      waiting_since_utime_ = -1;
+      CalibrateNow();
+    }
+  });
 }
 
 void LiveCalibrator::OnStandingStop() {
+  const size_t logged = collector_.logged_pose_count(), found = collector_.segmented_pose_count();
+  if (logged > 0 && logged < found) {
+    spdlog::info("STANDING stopped: {} STEADY_POSE events, {} poses found here; waiting up to "
+                 "{} s for the segmenter's last",
+                 logged, found, kLatePoseWaitS);
+    waiting_since_utime_ = bus_.NowUtime();
+    return;
+  }
+  CalibrateNow();
+}
+
+void LiveCalibrator::Tick() {
+  if (waiting_since_utime_ < 0 ||
+      bus_.NowUtime() - waiting_since_utime_ < static_cast<int64_t>(kLatePoseWaitS * 1e6)) {
+    return;
+  }
+  waiting_since_utime_ = -1;
+  spdlog::warn("calibrating with {} STEADY_POSE events of the {} poses found here",
+               collector_.logged_pose_count(), collector_.segmented_pose_count());
+  CalibrateNow();
+}
+
+void LiveCalibrator::CalibrateNow() {
   CalibrationRun run;
   try {
     run = RunCalibration(collector_, config_, options_);

@@ -68,6 +68,12 @@ class CalibrationCollector {
 
   // Called when a STANDING phase stops (live mode calibrates then).
   void SetOnStandingStop(std::function<void()> fn) { on_standing_stop_ = std::move(fn); }
+  // Called after every STEADY_POSE event (live mode waits for the segmenter's last pose).
+  void SetOnSteadyPose(std::function<void()> fn) { on_steady_pose_ = std::move(fn); }
+  // Poses with every marker tracked: from STEADY_POSE events, and found by the collector's own
+  // segmenter over the completed STANDING phases (the same rule as ftcal-pose-segmenter).
+  size_t logged_pose_count() const { return logged_poses_.size(); }
+  size_t segmented_pose_count() const { return segmented_poses_.size(); }
 
   // What was collected. Throws CalibratorInputError naming what is missing or inconsistent.
   std::vector<HangingRecording> HangingRecordings() const;
@@ -106,6 +112,7 @@ class CalibrationCollector {
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
   std::function<void()> on_standing_stop_;
+  std::function<void()> on_steady_pose_;
   CollectorCounters counters_;
 };
 
@@ -124,17 +131,26 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
 // CALIBRATION (calibration_t: version counting up from 1, SHA-256 of the bytes, the binary
 // proto) and calls on_calibrated. A refused calibration is logged and counted; the collector
 // keeps listening (a later STANDING phase may complete it).
+//
+// The segmenter publishes the pose in progress when it hears the same stop marker, so its last
+// STEADY_POSE arrives after the stop. When STEADY_POSE events are being used and fewer have come
+// than the collector's own segmenter found, the calibration waits for them: it runs when the
+// count is reached, or at the first Tick() kLatePoseWaitS after the stop with what came.
 class LiveCalibrator {
  public:
   using Callback = std::function<void(const CalibrationRun&)>;
+  static constexpr double kLatePoseWaitS = 2.0;
   LiveCalibrator(const config::Config& config, Bus& bus, std::string out_path,
                  CalibratorOptions options, Callback on_calibrated);
+  // Call periodically (the bus loop's tick): ends a wait for late poses.
+  void Tick();
   int64_t version() const { return version_; }
   int64_t refused() const { return refused_; }
   const std::string& last_refusal() const { return last_refusal_; }
 
  private:
   void OnStandingStop();
+  void CalibrateNow();
 
   const config::Config& config_;
   Bus& bus_;
@@ -145,6 +161,7 @@ class LiveCalibrator {
   int64_t version_ = 0;
   int64_t refused_ = 0;
   std::string last_refusal_;
+  int64_t waiting_since_utime_ = -1;  // STANDING stopped, the segmenter's last poses not all in
 };
 
 // Writes the calibration file and <out>.residuals.csv beside it, both atomically.

@@ -158,7 +158,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
   ftcal::InstallShutdownHandlers();
   spdlog::info("listening on {} for EXPERIMENT markers", url);
-  bus.Run([] {}, 1'000'000);
+  bus.Run([&live] { live.Tick(); }, 100'000);
   return rc;
 }
 
