@@ -102,8 +102,10 @@ struct AtiSchedulingOptions {
   bool realtime = false;
   int realtime_priority = 40;
   // Under SCHED_OTHER, the EEVDF slice asked for (Linux >= 6.12: a shorter slice lets a waking
-  // task preempt the running one; unprivileged). 0: the kernel's default.
-  double slice_us = 100;
+  // task preempt the running one; unprivileged). 0: the kernel's default. Off by default: on a
+  // machine busy enough to starve the bridge it did not help (it changes when the bridge runs,
+  // not how much); figures in tests/bench/ati_bridge_bench.cc.
+  double slice_us = 0;
 };
 struct AtiSchedulingGranted {
   bool fifo = false;    // SCHED_FIFO is in force

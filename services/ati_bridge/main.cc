@@ -50,13 +50,6 @@ int main(int argc, char** argv) {
                   "waking task with a shorter slice preempt); 0: the kernel's default")
       ->capture_default_str()
       ->check(CLI::Range(0.0, 100000.0));
-  double spin_us = 0;
-  app.cli()
-      .add_option("--spin-us", spin_us,
-                  "after a sample, keep polling without sleeping for this long (costs CPU: "
-                  "at six boxes x 7000 Hz a core; for a dedicated robot computer); 0: off")
-      ->capture_default_str()
-      ->check(CLI::Range(0.0, 1e6));
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   auto log = spdlog::get("ftcal-ati-bridge");
@@ -102,15 +95,9 @@ int main(int argc, char** argv) {
   app.SetState(ftcal::service_status_t::RUNNING);
   publish_status();
   auto next_heartbeat = Clock::now() + std::chrono::seconds(1);
-  const auto spin = std::chrono::duration_cast<Clock::duration>(
-      std::chrono::duration<double, std::micro>(spin_us));
-  auto last_sample = Clock::now();
   while (!ftcal::ShutdownRequested()) {
     try {
-      // Spinning keeps this CPU out of idle: a halted CPU (a VM's vCPU above all) can take
-      // far longer to wake than the poll() wake-up itself.
-      const bool spinning = spin_us > 0 && Clock::now() - last_sample < spin;
-      if (bridge->Poll(spinning ? 0 : 100) > 0 && spin_us > 0) last_sample = Clock::now();
+      bridge->Poll(100);
     } catch (const std::exception& e) {
       app.stats().Error("poll", e.what());
     }
