@@ -33,6 +33,9 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <sched.h>
+
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -129,6 +132,38 @@ class Listener {
 };
 
 
+// The machine's floor: how late a thread that does nothing but sleep to a 7000 Hz tick wakes
+// (SCHED_FIFO when `fifo` and permitted). A bridge cannot beat its own wake-up.
+std::string WakeProbe(double seconds, bool fifo) {
+  std::string policy = "SCHED_OTHER";
+  std::vector<long long> late;
+  std::thread([&] {
+    if (fifo) {
+      sched_param p{};
+      p.sched_priority = 40;
+      if (::sched_setscheduler(0, SCHED_FIFO, &p) == 0) policy = "SCHED_FIFO";
+    }
+    const auto period = std::chrono::nanoseconds(142857);
+    auto next = std::chrono::steady_clock::now();
+    const auto end = next + std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                std::chrono::duration<double>(seconds));
+    while (next < end) {
+      next += period;
+      std::this_thread::sleep_until(next);
+      const auto now = std::chrono::steady_clock::now();
+      late.push_back(std::chrono::duration_cast<std::chrono::nanoseconds>(now - next).count());
+      if (now - next > std::chrono::milliseconds(5)) next = now;  // no catch-up burst
+    }
+  }).join();
+  if (late.empty()) return "no samples";
+  std::sort(late.begin(), late.end());
+  auto q = [&](double f) { return late[static_cast<std::size_t>(f * (late.size() - 1))] / 1000; };
+  char line[200];
+  std::snprintf(line, sizeof line, "%s thread's wake-up lateness at 7000 Hz over %.0f s: p50 %lld "
+                "us p99 %lld us p99.9 %lld us", policy.c_str(), seconds, q(0.5), q(0.99), q(0.999));
+  return line;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -154,6 +189,11 @@ int main(int argc, char** argv) {
   cli.add_option("--bridge-binary", bridge_binary,
                  "the ftcal-ati-bridge to measure (e.g. an earlier build, for a before/after)")
       ->capture_default_str();
+  double probe_s = 0;
+  cli.add_option("--wake-probe", probe_s,
+                 "first measure for this many seconds how late a bare thread (SCHED_FIFO with "
+                 "--realtime) wakes on this machine: the floor under the bridge's latency")
+      ->capture_default_str();
   bool emulator_fifo = false;
   cli.add_flag("--emulator-fifo", emulator_fifo,
                "run the emulator SCHED_FIFO (chrt -f 30; needs root) so that its boxes send on "
@@ -164,6 +204,8 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "run me through scripts/netns-exec: I send UDP multicast\n");
     return 2;
   }
+
+  const std::string probe = probe_s > 0 ? WakeProbe(probe_s, realtime) : "";
 
   char dir_template[] = "/tmp/ati-bench-XXXXXX";
   const std::string dir = ::mkdtemp(dir_template);
@@ -285,6 +327,7 @@ int main(int argc, char** argv) {
                 "the machine is quiet)\n", load[0], load[1], load[2], ::sysconf(_SC_NPROCESSORS_ONLN));
   }
   std::printf("emulator: CPU %.2f s\n", emu.cpu_s);
+  if (!probe.empty()) std::printf("machine floor (before the run): %s\n", probe.c_str());
   std::error_code ignored;
   std::filesystem::remove_all(dir, ignored);
   return 0;

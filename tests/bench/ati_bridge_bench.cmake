@@ -8,6 +8,6 @@ if(TARGET ftcal-emulate-ati AND TARGET ftcal-ati-bridge)
     FTCAL_ATI_BRIDGE="$<TARGET_FILE:ftcal-ati-bridge>")
   add_dependencies(ati_bridge_bench ftcal-emulate-ati ftcal-ati-bridge)
   add_test(NAME ati_bridge_bench
-    COMMAND "${PROJECT_SOURCE_DIR}/scripts/netns-exec" $<TARGET_FILE:ati_bridge_bench> --duration 60)
+    COMMAND "${PROJECT_SOURCE_DIR}/scripts/netns-exec" $<TARGET_FILE:ati_bridge_bench> --duration 60 --wake-probe 5)
   set_tests_properties(ati_bridge_bench PROPERTIES LABELS bench TIMEOUT 180)
 endif()
