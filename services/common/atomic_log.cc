@@ -32,16 +32,33 @@ AtomicLogFile::~AtomicLogFile() {
 
 void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void* data, int size) {
   if (committed_) throw std::logic_error(what_ + " '" + path_ + "': write after Commit()");
-  lcm::LogEvent event{};
-  event.eventnum = event_number_++;
-  event.timestamp = utime;
-  event.channel = channel;
-  event.datalen = size;
-  event.data = const_cast<void*>(data);  // LogFile::writeEvent only reads it
-  if (log_->writeEvent(&event) != 0) {
+  // LCM's log format, written here in two stdio calls instead of lcm_eventlog_write_event()'s
+  // seven (each takes the stream's lock; together they were a tenth of a corrector replay):
+  // sync word, event number, timestamp, channel length, data length (big-endian), channel, data.
+  // lcm::LogFile still opens and closes the file.
+  if (channel.size() > kMaxChannelBytes || size < 0) {
+    throw std::invalid_argument(what_ + " '" + path_ + "': event on '" + channel +
+                                "' with a channel of " + std::to_string(channel.size()) +
+                                " bytes or " + std::to_string(size) + " data bytes");
+  }
+  uint8_t head[28 + kMaxChannelBytes];
+  auto put = [&head](int at, uint64_t v, int bytes) {
+    for (int i = 0; i < bytes; ++i) head[at + i] = static_cast<uint8_t>(v >> (8 * (bytes - 1 - i)));
+  };
+  put(0, 0xEDA1DA01u, 4);
+  put(4, static_cast<uint64_t>(event_number_), 8);
+  put(12, static_cast<uint64_t>(utime), 8);
+  put(20, channel.size(), 4);
+  put(24, static_cast<uint32_t>(size), 4);
+  std::memcpy(head + 28, channel.data(), channel.size());
+  FILE* file = log_->getFilePtr();
+  const size_t head_bytes = 28 + channel.size();
+  if (::fwrite_unlocked(head, 1, head_bytes, file) != head_bytes ||
+      ::fwrite_unlocked(data, 1, static_cast<size_t>(size), file) != static_cast<size_t>(size)) {
     throw std::runtime_error(what_ + " '" + tmp_path_ + "': write failed: " +
                              std::strerror(errno));
   }
+  ++event_number_;
 }
 
 void AtomicLogFile::Commit() {

@@ -22,8 +22,9 @@ class AtomicLogFile {
   AtomicLogFile(const AtomicLogFile&) = delete;
   AtomicLogFile& operator=(const AtomicLogFile&) = delete;
 
-  // Appends one event (numbered in write order). Throws std::runtime_error on I/O failure and
-  // std::logic_error after Commit().
+  // Appends one event (numbered in write order). Throws std::runtime_error on I/O failure,
+  // std::invalid_argument for a channel longer than LCM allows (255 bytes here) or a negative
+  // size, and std::logic_error after Commit().
   void Write(int64_t utime, const std::string& channel, const void* data, int size);
   // Idempotent. Throws std::runtime_error on I/O failure (the temporary file then stays until
   // destruction removes it).
@@ -36,6 +37,7 @@ class AtomicLogFile {
   std::string tmp_path_;
   std::string what_;
   static constexpr size_t kBufferBytes = 1 << 20;
+  static constexpr size_t kMaxChannelBytes = 255;  // LCM's own limit is 63
   std::vector<char> buffer_;  // the stream's buffer: declared before log_, so it outlives it
   std::unique_ptr<lcm::LogFile> log_;
   int64_t event_number_ = 0;
