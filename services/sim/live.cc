@@ -58,7 +58,9 @@ TwinSeries::TwinSeries(const BigAntTwin& twin, const std::string& scenario, doub
 }
 
 std::size_t TwinSeries::Index(double t_s, double* frac) const {
-  const double x = std::max(0.0, t_s) / period_s_;
+  // The nudge keeps a time computed as i * period (or tick / rate) on frame i when the
+  // division lands a hair below it.
+  const double x = std::max(0.0, t_s) / period_s_ + 1e-9;
   const double whole = std::floor(x);
   if (frac != nullptr) *frac = x - whole;
   return static_cast<std::size_t>(std::fmod(whole, static_cast<double>(frames_.size())));

@@ -48,6 +48,8 @@ class TwinSeries {
   // The frame at `t_s` (>= 0; negative times give the first frame), the series repeating
   // after its end.
   const TwinFrame& At(double t_s) const;
+  // Frame i of the series, the series repeating after its end.
+  const TwinFrame& Frame(std::size_t i) const { return frames_[i % frames_.size()]; }
   // Shaft angle of leg k at `t_s`, linear between frames (a servo's encoder samples far faster
   // than 100 Hz), and its rate. At the loop's seam the last frame is held, never interpolated
   // into the first one.

@@ -466,7 +466,10 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
                                   << m.device_tick_ms[k];
         const auto& servo = config.robot().leg(leg_of_id.at(id)).servo();
         const double zero = servo.zero_count(), dir = servo.direction();
-        EXPECT_NEAR(m.angle_rad[k], dir * (it->second.position - zero) * kOneCountRad, 1e-12);
+        EXPECT_NEAR(m.angle_rad[k], dir * (it->second.position - zero) * kOneCountRad, 1e-12)
+            << "id " << id << " tick " << m.device_tick_ms[k] << ": published "
+            << m.angle_rad[k] / kOneCountRad / dir + zero << " counts, the reply of that tick carried "
+            << it->second.position << " (t " << it->second.t_s << ")";
         // Against the twin: the shaft angle at the reply's time, within one encoder count.
         const double twin_angle = series.AngleAt(leg_of_id.at(id), it->second.t_s);
         EXPECT_LE(std::abs(m.angle_rad[k] - twin_angle), kOneCountRad) << "id " << id;

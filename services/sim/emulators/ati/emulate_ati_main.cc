@@ -27,6 +27,7 @@
 #include "ati_emulator.h"
 #include "ftcal/config.h"
 #include "ftcal/legs.h"
+#include "sim/live.h"
 #include "sim/twin.h"
 
 #ifndef FTCAL_SOURCE_DIR
@@ -42,24 +43,8 @@ using ftcal::sim::AtiScheduledEvent;
 std::atomic<bool> g_stop{false};
 void OnSignal(int) { g_stop = true; }
 
-std::vector<std::string> Split(const std::string& s, char sep) {
-  std::vector<std::string> out;
-  std::stringstream ss(s);
-  std::string item;
-  while (std::getline(ss, item, sep)) out.push_back(item);
-  return out;
-}
-
-double ParseNumber(const std::string& text, const std::string& what) {
-  try {
-    std::size_t used = 0;
-    const double v = std::stod(text, &used);
-    if (used != text.size() || !std::isfinite(v)) throw std::invalid_argument(text);
-    return v;
-  } catch (const std::exception&) {
-    throw std::invalid_argument(what + ": '" + text + "' is not a number");
-  }
-}
+using ftcal::sim::ParseFlagNumber;
+using ftcal::sim::SplitFlag;
 
 // Writes `text` to `path` through a temporary file, fsync and rename.
 void WriteAtomically(const std::string& path, const std::string& text) {
@@ -84,11 +69,6 @@ void WriteAtomically(const std::string& path, const std::string& text) {
     throw std::runtime_error(path + ": " + err);
   }
 }
-
-struct TruthRow {
-  int leg;
-  AtiEmitted e;
-};
 
 }  // namespace
 
@@ -146,7 +126,7 @@ int main(int argc, char** argv) {
     if (legs_flag.empty()) {
       for (int k = 0; k < ftcal::kNumLegs; ++k) legs.push_back(k);
     } else {
-      for (const std::string& name : Split(legs_flag, ',')) {
+      for (const std::string& name : SplitFlag(legs_flag, ',')) {
         const auto k = ftcal::LegIndex(name);
         if (!k) throw std::invalid_argument("--legs: unknown leg '" + name + "'");
         legs.push_back(*k);
@@ -154,25 +134,17 @@ int main(int argc, char** argv) {
     }
 
     // The scenario's counts at 100 Hz, leg by leg; held between frames (the box's 7000 Hz
-    // samples of a 100 Hz twin) and repeated when the run outlasts them.
+    // samples of a 100 Hz twin) and repeated when the run outlasts them (services/sim/live.h).
     ftcal::TwinOptions twin_options;
     twin_options.seed = seed;
     twin_options.counts_per_force = cpf;
     twin_options.counts_per_torque = cpt;
     const ftcal::BigAntTwin twin(config, twin_options);
     const double span_s = duration_s > 0 ? duration_s + 1.0 : 60.0;
-    auto frames = std::make_shared<std::vector<std::array<std::array<std::int32_t, 6>, 6>>>();
-    const ftcal::FrameSink sink = [&](const ftcal::TwinFrame& f) { frames->push_back(f.counts); };
-    if (scenario == "walk") {
-      twin.TripodWalk(span_s, {}, sink);
-    } else {
-      const double per_pose = twin_options.pose_move_s + twin_options.pose_dwell_s;
-      twin.Standing(static_cast<int>(std::ceil(span_s / per_pose)) + 1, {}, sink);
-    }
-    if (frames->empty()) throw std::runtime_error("the twin produced no frames");
-    const double frame_rate_hz = twin_options.sample_rate_hz;
+    const auto series = std::make_shared<const ftcal::sim::TwinSeries>(
+        twin, scenario == "walk" ? "walk" : "stand", span_s);
 
-    std::vector<TruthRow> truth;
+    std::vector<ftcal::sim::AtiTruthRow> truth;
     if (!truth_path.empty()) truth.reserve(static_cast<std::size_t>(legs.size() * rate_hz * (span_s + 1)));
     std::vector<ftcal::sim::AtiFaultOptions> faults(ftcal::kNumLegs);
     for (int k = 0; k < ftcal::kNumLegs; ++k) {
@@ -183,19 +155,19 @@ int main(int argc, char** argv) {
       faults[k].corrupt = corrupt;
     }
     for (const std::string& s : silences) {
-      const auto parts = Split(s, ':');
+      const auto parts = SplitFlag(s, ':');
       const auto k = parts.size() == 3 ? ftcal::LegIndex(parts[0]) : std::nullopt;
       if (!k) throw std::invalid_argument("--silence '" + s + "': expected LEG:AT_S:DURATION_S");
       faults[*k].events.push_back({AtiScheduledEvent::Kind::kSilence,
-                                   ParseNumber(parts[1], "--silence " + s),
-                                   ParseNumber(parts[2], "--silence " + s)});
+                                   ParseFlagNumber(parts[1], "--silence " + s),
+                                   ParseFlagNumber(parts[2], "--silence " + s)});
     }
     for (const std::string& s : reboots) {
-      const auto parts = Split(s, ':');
+      const auto parts = SplitFlag(s, ':');
       const auto k = parts.size() == 2 ? ftcal::LegIndex(parts[0]) : std::nullopt;
       if (!k) throw std::invalid_argument("--reboot '" + s + "': expected LEG:AT_S");
       faults[*k].events.push_back(
-          {AtiScheduledEvent::Kind::kReboot, ParseNumber(parts[1], "--reboot " + s), 0});
+          {AtiScheduledEvent::Kind::kReboot, ParseFlagNumber(parts[1], "--reboot " + s), 0});
     }
 
     std::vector<std::unique_ptr<AtiEmulator>> boxes;
@@ -214,10 +186,9 @@ int main(int argc, char** argv) {
       }
       o.rdt_rate_hz = rate_hz;
       o.faults = faults[k];
-      auto source = [frames, k, frame_rate_hz](std::uint64_t, double t_s) {
-        const auto i = static_cast<std::size_t>(std::max(0.0, t_s) * frame_rate_hz) % frames->size();
+      auto source = [series, k](std::uint64_t, double t_s) {
         ftcal::sim::AtiDeviceSample s;
-        s.counts = (*frames)[i][k];
+        s.counts = series->At(t_s).counts[k];
         return s;
       };
       ftcal::sim::AtiEmitSink emit;
@@ -268,22 +239,7 @@ int main(int argc, char** argv) {
                    (unsigned long long)c.http_requests);
     }
     boxes.clear();  // no more sink calls after this
-    if (!truth_path.empty()) {
-      std::string text =
-          "leg,stream,t_s,rdt_sequence,ft_sequence,status,fx_counts,fy_counts,fz_counts,"
-          "tx_counts,ty_counts,tz_counts,fault\n";
-      text.reserve(truth.size() * 90);
-      char line[256];
-      for (const TruthRow& r : truth) {
-        const auto& c = r.e.record.counts;
-        std::snprintf(line, sizeof line, "%s,%u,%.6f,%u,%u,%u,%d,%d,%d,%d,%d,%d,%s\n",
-                      std::string(ftcal::kLegNames[r.leg]).c_str(), r.e.stream, r.e.t_s,
-                      r.e.record.rdt_sequence, r.e.record.ft_sequence, r.e.record.status, c[0],
-                      c[1], c[2], c[3], c[4], c[5], ftcal::sim::AtiFaultName(r.e.fault));
-        text += line;
-      }
-      WriteAtomically(truth_path, text);
-    }
+    if (!truth_path.empty()) WriteAtomically(truth_path, ftcal::sim::AtiTruthCsv(truth));
   } catch (const std::exception& e) {
     std::fprintf(stderr, "ftcal-emulate-ati: %s\n", e.what());
     return 1;

@@ -24,6 +24,7 @@
 #include "ftcal/config.h"
 #include "ftcal/legs.h"
 #ifdef FTCAL_EMULATOR_HAVE_TWIN
+#include "sim/live.h"
 #include "sim/twin.h"
 #endif
 
@@ -101,8 +102,8 @@ int main(int argc, char** argv) {
       ->capture_default_str()
       ->check(CLI::IsMember({"dynamics", "tripod-walk", "standing"}));
   cli.add_option("--duration", duration_s,
-                 "seconds to run; 0 = until SIGINT/SIGTERM (the twin's motion then lasts 120 s "
-                 "and holds its last pose)")
+                 "seconds to run; 0 = until SIGINT/SIGTERM (the twin's motion then repeats "
+                 "every 120 s)")
       ->check(CLI::NonNegativeNumber);
   cli.add_option("--truth", truth_path, "CSV of every reply produced (written at the end)");
   cli.add_option("--seed", rates.seed, "fault and twin seed")->capture_default_str();
@@ -180,48 +181,35 @@ int main(int argc, char** argv) {
     emulator.SetReplyObserver(
         [&records](const ftcal::sim::DxlReplyRecord& r) { records.push_back(r); });
 
-    // Twin-driven positions: the scenario's 100 Hz shaft angles, interpolated in time.
-    std::vector<std::array<double, ftcal::kNumLegs>> angles;
-    double frame_period_s = 0.01;
+    // Twin-driven positions: the scenario's 100 Hz shaft angles, interpolated in time, looped
+    // after its end (services/sim/live.h).
+#ifdef FTCAL_EMULATOR_HAVE_TWIN
+    std::unique_ptr<ftcal::sim::TwinSeries> series;
+#endif
     if (scenario != "dynamics") {
 #ifdef FTCAL_EMULATOR_HAVE_TWIN
       ftcal::TwinOptions twin_options;
       twin_options.seed = rates.seed;
       ftcal::BigAntTwin twin(config, twin_options);
-      frame_period_s = 1.0 / twin_options.sample_rate_hz;
-      auto sink = [&angles](const ftcal::TwinFrame& f) { angles.push_back(f.angle_rad); };
-      const double length_s = duration_s > 0 ? duration_s + 1.0 : 120.0;
-      if (scenario == "tripod-walk") {
-        twin.TripodWalk(length_s, ftcal::RunOptions{}, sink);
-      } else {
-        twin.Standing(std::max(1, static_cast<int>(length_s / 5.6) + 1), ftcal::RunOptions{},
-                      sink);
+      series = std::make_unique<ftcal::sim::TwinSeries>(
+          twin, scenario == "tripod-walk" ? "walk" : "stand",
+          duration_s > 0 ? duration_s + 1.0 : 120.0);
+      std::vector<int> leg_of_id(256, -1);
+      for (std::size_t k = 0; k < options.ids.size(); ++k) {
+        leg_of_id[options.ids[k]] = static_cast<int>(k);
       }
+      emulator.SetStateSource([&series, leg_of_id, zero, direction](std::uint8_t id, double now_s)
+                                  -> std::optional<ftcal::sim::DxlDrivenState> {
+        const int k = leg_of_id[id];
+        if (k < 0) return std::nullopt;
+        double rate = 0;
+        const double angle = series->AngleAt(k, now_s, &rate);
+        return ftcal::sim::DxlStateFromAngle(angle, rate, zero[k], direction[k]);
+      });
 #else
       throw std::invalid_argument("--scenario " + scenario +
                                   ": this build has no BigAnt twin (services/sim)");
 #endif
-    }
-    std::vector<int> leg_of_id(256, -1);
-    for (std::size_t k = 0; k < options.ids.size(); ++k) leg_of_id[options.ids[k]] = static_cast<int>(k);
-    if (angles.size() >= 2) {
-      constexpr double kCountsPerRad = ftcal::dxl::kCountsPerRev / (2.0 * M_PI);
-      emulator.SetStateSource([&, kCountsPerRad](std::uint8_t id, double now_s)
-                                  -> std::optional<ftcal::sim::DxlDrivenState> {
-        const int k = leg_of_id[id];
-        if (k < 0) return std::nullopt;
-        const double x = std::clamp(now_s / frame_period_s, 0.0,
-                                    static_cast<double>(angles.size() - 1));
-        const auto i = std::min(static_cast<std::size_t>(x), angles.size() - 2);
-        const double a = x - static_cast<double>(i);
-        const double theta = (1 - a) * angles[i][k] + a * angles[i + 1][k];
-        const double omega = (angles[i + 1][k] - angles[i][k]) / frame_period_s;
-        ftcal::sim::DxlDrivenState s;
-        s.position_counts = zero[k] + direction[k] * theta * kCountsPerRad;
-        s.velocity_counts_s = direction[k] * omega * kCountsPerRad;
-        s.current_a = 0.5 * std::tanh(s.velocity_counts_s / 100.0);
-        return s;
-      });
     }
 
     struct sigaction sa {};

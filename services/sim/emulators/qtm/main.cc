@@ -14,6 +14,7 @@
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 #include "qtm_emulator.h"
+#include "sim/live.h"
 #include "sim/twin.h"
 
 namespace {
@@ -31,16 +32,6 @@ ftcal::sim::TickWindow ParseWindow(const std::string& text, double rate_hz, cons
     throw CLI::ValidationError(flag, "'" + text + "' is not START_S:DURATION_S");
   }
   return {std::llround(t * rate_hz), std::max<int64_t>(1, std::llround(d * rate_hz))};
-}
-
-void WriteCsvValue(std::ostream& out, double v) {
-  if (std::isnan(v)) {
-    out << ",nan";
-    return;
-  }
-  char buf[32];
-  std::snprintf(buf, sizeof buf, ",%.9g", v);  // 9 digits round-trip an f32 exactly
-  out << buf;
 }
 
 }  // namespace
@@ -120,22 +111,18 @@ int main(int argc, char** argv) {
     twin_options.seed = seed;
     const ftcal::BigAntTwin twin(config, twin_options);
 
-    // The twin's frames up front (100 Hz); served cyclically when the rate differs.
+    // The twin's frames up front (100 Hz, services/sim/live.h); served one per tick,
+    // cyclically, whatever the rate.
     std::vector<ftcal::sim::QtmPose> poses;
-    const auto sink = [&poses](const ftcal::TwinFrame& f) {
-      ftcal::sim::QtmPose p;
-      p.R_GC = f.R_GC;
-      p.p_GoCo_G_m = f.p_GB_m;
-      for (int i = 0; i < ftcal::kNumChassisMarkers; ++i) p.markers_G_m.push_back(f.marker_G_m[i]);
-      poses.push_back(std::move(p));
-    };
-    const double twin_s = std::min(duration_s, 120.0);
-    if (scenario == "walk") {
-      twin.TripodWalk(twin_s, {}, sink);
-    } else {
-      twin.Standing(std::max(1, static_cast<int>(std::ceil(twin_s / 6.0))), {}, sink);
+    {
+      const double twin_s = std::min(duration_s, 120.0);
+      const ftcal::sim::TwinSeries series(twin, scenario == "walk" ? "walk" : "stand", twin_s);
+      for (std::size_t i = 0; i < series.size(); ++i) {
+        // The residual QtmPose always carried (its default), not the twin's marker noise.
+        poses.push_back(ftcal::sim::QtmPoseFromFrame(series.Frame(i),
+                                                     ftcal::sim::QtmPose{}.residual_m));
+      }
     }
-    if (poses.empty()) throw std::runtime_error("the twin produced no frames");
 
     ftcal::sim::QtmEmulatorOptions options;
     options.address = address.empty() ? config.mocap().server_address() : address;
@@ -155,26 +142,8 @@ int main(int argc, char** argv) {
       return poses[static_cast<size_t>(tick) % poses.size()];
     });
 
-    std::ostringstream truth;
-    truth << "tick,frame_number,timestamp_us,corrupt,tracked,px_mm,py_mm,pz_mm,"
-             "r11,r21,r31,r12,r22,r32,r13,r23,r33,residual_mm";
-    for (const auto& label : options.labels) {
-      truth << "," << label << "_x_mm," << label << "_y_mm," << label << "_z_mm";
-    }
-    truth << "\n";
-    emulator.SetObserver([&truth](const ftcal::sim::QtmSentFrame& s) {
-      truth << s.tick << "," << s.frame_number << "," << s.timestamp_us << "," << int(s.corrupt)
-            << "," << int(s.body.tracked());
-      for (int i = 0; i < 3; ++i) WriteCsvValue(truth, s.body.p_GoBo_G_mm(i));
-      for (int j = 0; j < 3; ++j) {
-        for (int i = 0; i < 3; ++i) WriteCsvValue(truth, s.body.R_GB(i, j));
-      }
-      WriteCsvValue(truth, s.body.residual_mm);
-      for (const auto& m : s.markers) {
-        for (int i = 0; i < 3; ++i) WriteCsvValue(truth, m.p_GoM_G_mm(i));
-      }
-      truth << "\n";
-    });
+    std::vector<ftcal::sim::QtmSentFrame> truth;
+    emulator.SetObserver([&truth](const ftcal::sim::QtmSentFrame& s) { truth.push_back(s); });
 
     struct sigaction sa {};
     sa.sa_handler = OnSignal;
@@ -199,7 +168,9 @@ int main(int argc, char** argv) {
         (long long)c.parameters_sent, (long long)c.events_sent, (long long)c.disconnects,
         (long long)c.no_more_data_sent);
     std::fflush(stdout);
-    if (!truth_path.empty()) ftcal::WriteFileAtomic(truth_path, truth.str());
+    if (!truth_path.empty()) {
+      ftcal::WriteFileAtomic(truth_path, ftcal::sim::QtmTruthCsv(options.labels, truth));
+    }
   } catch (const std::exception& e) {
     std::cerr << "ftcal-emulate-qtm: " << e.what() << "\n";
     return 2;
