@@ -380,6 +380,24 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
     throw CalibratorInputError(e.what());
   }
   spdlog::info("calibration done: model {}", StandingModelName(run.standing.selected));
+  // A config for another robot (another total mass) leaves the standing poses' total vertical
+  // force off by the difference after the full calibration: the hanging offsets are fixed and
+  // no standing parameter absorbs a uniform fz bias, so the fit completes with a wrong
+  // calibration unless this is checked. 5% of G is far above noise (mm-level poses: < 0.1 N)
+  // and far below a config for another robot; a mass wrong by less goes unnoticed.
+  if (!run.standing.residual_full.empty()) {
+    double mean_fz = 0.0;
+    for (const Vec6& r : run.standing.residual_full) mean_fz += r[2];
+    mean_fz /= static_cast<double>(run.standing.residual_full.size());
+    const double weight_n = config.robot().total_mass_kg() * config.robot().g0_m_s2();
+    if (std::abs(mean_fz) > 0.05 * weight_n) {
+      throw CalibratorInputError(fmt::format(
+          "the standing poses' total vertical force differs from the config's weight "
+          "(total_mass_kg {} kg * g0 = {:.2f} N) by {:.2f} N on average after calibration: "
+          "is the config (total_mass_kg) this robot's?",
+          config.robot().total_mass_kg(), weight_n, mean_fz));
+    }
+  }
 
   calibration::Provenance* p = run.proto.mutable_provenance();
   for (const std::string& path : options.log_paths) {
