@@ -447,5 +447,24 @@ TEST_F(BadLogsTest, CalibratorRefusesALogWithAnotherRobotsLegs) {
                            "config legs with no channel in the log: FT_HL"});
 }
 
+// The config of a heavier robot (total_mass_kg 10% up) for this robot's log: refused, naming the
+// mass, instead of a calibration that leaves every standing pose 8 N off.
+TEST_F(BadLogsTest, CalibratorRefusesAConfigWithAnotherTotalMass) {
+  std::string cfg = ReadFile(kConfig);
+  const std::string from = "total_mass_kg: 8.18";
+  ASSERT_NE(cfg.find(from), std::string::npos);
+  cfg.replace(cfg.find(from), from.size(), "total_mass_kg: 9.0");
+  const std::string heavy = Path("heavy.pbtxt");
+  std::ofstream(heavy) << cfg;
+  ExpectCalibratorRefuses(fx->session_log, "cal_heavy",
+                          {"differs from the config's weight", "total_mass_kg 9 kg"}, heavy);
+  // The right config calibrates the same log.
+  const std::string out = Path("cal_ok.pbtxt");
+  const Result r = Run({FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->session_log, "--out", out},
+                       "cal_ok");
+  EXPECT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_TRUE(std::filesystem::exists(out));
+}
+
 }  // namespace
 }  // namespace ftcal
