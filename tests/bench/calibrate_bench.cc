@@ -19,20 +19,6 @@ namespace ftcal {
 namespace {
 
 double CpuSeconds() {
-  {
-    // ftcal's method: exact hanging rotations, hanging gravity prior, leg-aware CoM.
-    config::Config ftcal = config;
-    ftcal.mutable_calibrator()->set_exact_hanging_rotations(true);
-    ftcal.mutable_calibrator()->set_hanging_gravity_prior(true);
-    ftcal.mutable_calibrator()->set_leg_aware_com(true);
-    const auto t1 = std::chrono::steady_clock::now();
-    const double c1 = CpuSeconds();
-    run = Calibrate(hanging, poses, ftcal);
-    std::printf("total, ftcal's options (exact rotations, gravity prior, leg-aware CoM): wall "
-                "%.3f s, cpu %.3f s; selected model %s\n",
-                std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(),
-                CpuSeconds() - c1, StandingModelName(run.standing.selected));
-  }
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
   return u.ru_utime.tv_sec + u.ru_stime.tv_sec + 1e-6 * (u.ru_utime.tv_usec + u.ru_stime.tv_usec);
