@@ -16,9 +16,10 @@
 //     TRUE parameters leave through the same corrector: reading, attitude and servo noise plus the
 //     corrector's hold of the last servo state) and the naive tare is clearly worse.
 // Twin: the default one (CoM fixed at C, the report's assumption) with ftcal's exact hanging
-// rotations switched on (config/sim.pbtxt otherwise): the report's first-order rotations bias
-// the leg weights by up to ~0.02 N (recovery_test), beyond the 0.015 N bound; leg-aware CoM is
-// off because this twin's CoM does not move.
+// rotations and hanging gravity prior switched on (config/sim.pbtxt otherwise): the report's
+// first-order rotations bias the leg weights by up to ~0.02 N (recovery_test), beyond the
+// 0.015 N bound, and without the prior the common yaw of the mounting rotations is loose by
+// ~0.17°; leg-aware CoM is off because this twin's CoM does not move.
 // The logs are large (~1 GB): everything goes to a temporary directory removed at the end
 // (FTCAL_TEST_KEEP=1 keeps it). All tests share one run of the pipeline, so the binary runs as
 // one ctest test (pipeline_e2e_test.cmake), not one process per TEST.
