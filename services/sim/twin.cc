@@ -43,6 +43,8 @@ enum ScenarioTag : uint64_t {
   kTagStanding = 20,
   kTagTripod = 21,
   kTagWalk = 22,
+  kTagDriven = 23,
+  kTagDrivenInternal = 24,
 };
 
 class Random {
@@ -692,6 +694,34 @@ double BigAntTwin::TripodWalk(double duration_s, const RunOptions& run, const Fr
              angle, st, Vec3(p.x(), p.y(), st.height_m), yaw);
   }
   return run.t0_s + n * dt;
+}
+
+BigAntTwin::Driven::Driven(const BigAntTwin& twin, const RunOptions& run)
+    : twin_(twin), run_(run), sink_([this](const TwinFrame& f) { frame_ = f; }) {
+  // The forces come from their own stream, so that they are the same whatever the noise
+  // options (a noise-free twin gives the expected readings of a noisy one).
+  Random rng(MixSeed(twin.options_.seed, kTagDrivenInternal));
+  internal_ = DrawInternal(&rng, twin.options_.internal_force_n);
+  gen_ = std::make_unique<Generator>(twin_, run_, sink_, kTagDriven);
+}
+
+BigAntTwin::Driven::~Driven() = default;
+
+const TwinFrame& BigAntTwin::Driven::Frame(double t_s, const std::array<double, kNumLegs>& angle_rad) {
+  Require(std::isfinite(t_s), "Driven::Frame: time must be finite");
+  for (int k = 0; k < kNumLegs; ++k) {
+    Require(std::isfinite(angle_rad[k]),
+            "Driven::Frame: shaft angle of leg " + std::to_string(k) + " is not finite");
+  }
+  const bool steady = first_ || angle_rad == last_angle_;
+  first_ = false;
+  last_angle_ = angle_rad;
+  std::array<bool, kNumLegs> all;
+  all.fill(true);
+  const StanceState st = twin_.Equilibrium(angle_rad, all, internal_);
+  gen_->Emit(t_s, ExperimentPhase::kStanding, -1, steady, angle_rad, st,
+             twin_.origin_G_m_ + Vec3(0.0, 0.0, st.height_m), twin_.yaw0_rad_);
+  return frame_;
 }
 
 HangingRecording BigAntTwin::MakeHangingRecording(HangSeries series) const {

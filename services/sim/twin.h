@@ -32,6 +32,7 @@
 #include <cstdint>
 #include <functional>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -205,6 +206,44 @@ class BigAntTwin {
   double TripodStances(int num_stances, const RunOptions& run, const FrameSink& sink) const;
   double TripodWalk(double duration_s, const RunOptions& run, const FrameSink& sink) const;
 
+ private:
+  class Generator;  // twin.cc: noise, quantization and motion capture for one random stream
+
+ public:
+  // Frames at shaft angles given from outside, e.g. the legs following commanded servos
+  // (`ftcal-sim live --scenario commanded`). The robot stands quasi-statically on all six feet
+  // (Equilibrium with every foot down and one set of self-balancing forces, drawn once from its
+  // own stream), the chassis over the twin's origin at its first heading; the readings and the
+  // motion capture are made as in every scenario (noise, quantization, marker dropouts, drift)
+  // from a random stream of their own. Deterministic for a seed and a sequence of calls; the
+  // internal forces do not depend on the noise options.
+  class Driven {
+   public:
+    // `twin` must outlive this object.
+    explicit Driven(const BigAntTwin& twin, const RunOptions& run = RunOptions{});
+    ~Driven();
+    Driven(const Driven&) = delete;
+    Driven& operator=(const Driven&) = delete;
+
+    // The frame at `t_s` (non-decreasing from call to call) with the shafts at `angle_rad`;
+    // `steady` when the angles are those of the previous call (and on the first call). The
+    // reference is valid until the next call. Throws std::invalid_argument for a non-finite
+    // angle or time.
+    const TwinFrame& Frame(double t_s, const std::array<double, kNumLegs>& angle_rad);
+    // The self-balancing horizontal forces (before projection) the feet carry.
+    const std::array<Vec3, kNumLegs>& InternalForces() const { return internal_; }
+
+   private:
+    const BigAntTwin& twin_;
+    RunOptions run_;
+    FrameSink sink_;
+    TwinFrame frame_;
+    std::array<Vec3, kNumLegs> internal_;
+    std::unique_ptr<Generator> gen_;
+    std::array<double, kNumLegs> last_angle_{};
+    bool first_ = true;
+  };
+
   // Convenience for the method's tests.
   HangingRecording MakeHangingRecording(HangSeries series) const;
   // Median of the steady part of each of the first `num_poses` poses (its readings, angles and
@@ -215,8 +254,6 @@ class BigAntTwin {
   std::vector<LoadSample> MakeTripodLoadSamples(int num_stances, bool drifted) const;
 
  private:
-  class Generator;
-
   TwinOptions options_;
   std::string robot_name_;
   RobotCalibration truth_;

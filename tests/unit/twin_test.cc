@@ -464,6 +464,114 @@ TEST(Twin, TripodWalkTurnsRightAtTheConfiguredRate) {
   }
 }
 
+// BigAntTwin::Driven: frames at shaft angles from outside, standing on all six feet.
+TEST(Twin, DrivenFramesStandInEquilibriumAndReadAsTheSensingModel) {
+  const config::Config config = SimConfig();
+  TwinOptions noisy;  // the default noise
+  noisy.seed = 7;
+  TwinOptions quiet = noisy;
+  quiet.force_noise_n = 0.0;
+  quiet.torque_noise_nm = 0.0;
+  const BigAntTwin a(config, noisy), b(config, quiet);
+  BigAntTwin::Driven da(a), db(b);
+  // The internal forces are the same with and without noise: a noise-free twin gives the
+  // expected readings of a noisy one.
+  for (int k = 0; k < kNumLegs; ++k) EXPECT_EQ(da.InternalForces()[k], db.InternalForces()[k]);
+  double largest_horizontal = 0.0;
+  std::array<bool, kNumLegs> all;
+  all.fill(true);
+  long samples = 0;
+  std::array<double, 6> sum_sq{};
+  for (int p = 0; p < 40; ++p) {
+    const std::array<double, kNumLegs> angle = a.StandingPoseAngles(p);
+    const double t = 0.01 * p;
+    const TwinFrame fa = da.Frame(t, angle);
+    const TwinFrame& fb = db.Frame(t, angle);
+    for (const TwinFrame* f : {&fa, &fb}) {
+      SCOPED_TRACE("pose " + std::to_string(p));
+      EXPECT_EQ(f->t_s, t);
+      EXPECT_EQ(f->angle_rad, angle);
+      EXPECT_EQ(f->phase, ExperimentPhase::kStanding);
+      for (int k = 0; k < kNumLegs; ++k) EXPECT_TRUE(f->in_contact[k]);
+      // Equilibrium: the ground wrenches sum to the weight (fixed CoM).
+      ASSERT_LT((SumInW(*f) - Target(a.Truth(), false, angle, f->R_WC)).cwiseAbs().maxCoeff(), 1e-9);
+      // The same state as Equilibrium on all six feet with the Driven's internal forces.
+      const StanceState st = a.Equilibrium(angle, all, da.InternalForces());
+      for (int k = 0; k < kNumLegs; ++k) {
+        ASSERT_LT((f->ground_w_C[k] - st.ground_w_C[k]).cwiseAbs().maxCoeff(), 1e-12);
+        ASSERT_GT(st.force_W[k].z(), 1.0);
+        largest_horizontal = std::max(largest_horizontal, st.force_W[k].head<2>().norm());
+      }
+      ASSERT_LT((f->R_WC - st.R_WC).cwiseAbs().maxCoeff(), 1e-15);
+    }
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Vec6 model = TransducerReading(a.Truth(), k, fb.ground_w_C[k], angle[k], fb.R_WC);
+      // Noise off: exactly the sensing model; counts are the readings at 1e6 counts per unit.
+      ASSERT_LT((fb.reading[k] - model).cwiseAbs().maxCoeff(), 1e-12) << kLegNames[k];
+      for (int i = 0; i < 6; ++i) EXPECT_EQ(fb.counts[k][i], std::lround(model[i] * 1e6));
+      // Noise on: the sensing model within 5 sigma, each component.
+      const Vec6 miss = fa.reading[k] - model;
+      for (int i = 0; i < 6; ++i) {
+        const double sigma = i < 3 ? noisy.force_noise_n : noisy.torque_noise_nm;
+        EXPECT_LT(std::abs(miss[i]), 5.0 * sigma) << kLegNames[k] << " axis " << i;
+        sum_sq[i] += miss[i] * miss[i] / (sigma * sigma);
+      }
+      ++samples;
+    }
+  }
+  // The noise is there, at its stated size (240 draws per axis: rms within 20%).
+  for (int i = 0; i < 6; ++i) EXPECT_NEAR(std::sqrt(sum_sq[i] / samples), 1.0, 0.2) << "axis " << i;
+  EXPECT_GT(largest_horizontal, 1.0);  // the self-balancing forces are there
+}
+
+TEST(Twin, DrivenChassisStaysPutAndFramesAreDeterministic) {
+  const config::Config config = SimConfig();
+  const BigAntTwin twin(config, NoiseFree(5));
+  BigAntTwin::Driven d(twin);
+  std::array<double, kNumLegs> zero{};
+  std::array<double, kNumLegs> bent = {0.3, -0.2, 0.5, -0.4, 0.1, -0.6};
+  const TwinFrame f0 = d.Frame(0.0, zero);
+  const TwinFrame f1 = d.Frame(0.01, zero);
+  const TwinFrame f2 = d.Frame(0.02, bent);
+  const TwinFrame f3 = d.Frame(0.03, bent);
+  EXPECT_TRUE(f0.steady);
+  EXPECT_TRUE(f1.steady);
+  EXPECT_FALSE(f2.steady);  // the legs moved since the last frame
+  EXPECT_TRUE(f3.steady);
+  // Same heading (no attitude noise: R_GC = Rz(yaw0) R_WC) and position over the origin.
+  EXPECT_NEAR(HeadingYaw(f0.R_GC * f0.R_WC.transpose()), HeadingYaw(f2.R_GC * f2.R_WC.transpose()), 1e-12);
+  const Vec3 c0 = f0.p_GB_m - f0.R_GC * twin.Truth().p_C_B;
+  const Vec3 c2 = f2.p_GB_m - f2.R_GC * twin.Truth().p_C_B;
+  EXPECT_LT((c0 - c2).head<2>().norm(), 1e-12);
+  EXPECT_GT(c0.z(), 0.05);  // standing on its feet
+  // Moving the legs moves load between the feet by far more than the noise.
+  double largest = 0.0;
+  for (int k = 0; k < kNumLegs; ++k) largest = std::max(largest, (f2.reading[k] - f0.reading[k]).head<3>().norm());
+  EXPECT_GT(largest, 1.0);
+
+  // The same seed and calls give the same frames, noise and dropouts included.
+  TwinOptions o;
+  o.seed = 9;
+  o.marker_dropout_rate_hz = 5.0;
+  const BigAntTwin p(config, o), q(config, o);
+  BigAntTwin::Driven dp(p), dq(q);
+  int untracked = 0;
+  for (int i = 0; i < 300; ++i) {
+    std::array<double, kNumLegs> angle;
+    for (int k = 0; k < kNumLegs; ++k) angle[k] = 0.5 * std::sin(0.01 * i + k);
+    const TwinFrame fp = dp.Frame(0.01 * i, angle);
+    const TwinFrame& fq = dq.Frame(0.01 * i, angle);
+    for (int k = 0; k < kNumLegs; ++k) ASSERT_EQ(fp.reading[k], fq.reading[k]);
+    ASSERT_EQ(fp.R_GC, fq.R_GC);
+    ASSERT_EQ(fp.marker_tracked, fq.marker_tracked);
+    for (bool tracked : fp.marker_tracked) untracked += !tracked;
+  }
+  EXPECT_GT(untracked, 0);  // dropouts as in every scenario
+  std::array<double, kNumLegs> bad = zero;
+  bad[2] = NAN;
+  EXPECT_THROW(d.Frame(1.0, bad), std::invalid_argument);
+}
+
 TEST(Twin, BadOptionsAreRefusedByName) {
   TwinOptions o;
   o.force_noise_n = -1.0;
