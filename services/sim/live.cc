@@ -91,6 +91,11 @@ DxlDrivenState DxlStateFromAngle(double angle_rad, double rate_rad_s, std::int32
   return s;
 }
 
+double DxlAngleFromCounts(double counts, std::int32_t zero_count, int direction) {
+  constexpr double kRadPerCount = 2.0 * M_PI / dxl::kCountsPerRev;
+  return direction * (counts - zero_count) * kRadPerCount;
+}
+
 QtmPose QtmPoseFromFrame(const TwinFrame& f, double residual_m) {
   QtmPose p;
   p.R_GC = f.R_GC;
@@ -204,7 +209,19 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   twin_options.hang_cycles =
       std::max(1, static_cast<int>(std::ceil(options_.loop_s / twin_options.hang_cycle_s)));
   twin_ = std::make_unique<BigAntTwin>(config, twin_options);
-  series_ = std::make_unique<TwinSeries>(*twin_, options_.scenario, options_.loop_s);
+  commanded_ = options_.scenario == kCommandedScenario;
+  if (commanded_) {
+    if (!(options_.servo_time_constant_s > 0) || !std::isfinite(options_.servo_time_constant_s)) {
+      throw std::invalid_argument("live: the servo time constant must be positive, not " +
+                                  std::to_string(options_.servo_time_constant_s));
+    }
+    for (double a : options_.commanded_start_rad) {
+      if (!std::isfinite(a)) throw std::invalid_argument("live: a start angle is not finite");
+    }
+    driven_ = std::make_unique<BigAntTwin::Driven>(*twin_);
+  } else {
+    series_ = std::make_unique<TwinSeries>(*twin_, options_.scenario, options_.loop_s);
+  }
   const TwinSeries* series = series_.get();
 
   // ATI: the counts of the frame at each internal sample (the box's 7000 Hz samples hold a
@@ -226,11 +243,20 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     o.rdt_rate_hz = options_.ati_rate_hz;
     o.faults = options_.ati_faults[k];
     if (o.faults.seed == 0) o.faults.seed = options_.seed * 1000 + static_cast<std::uint64_t>(k);
-    auto source = [series, k](std::uint64_t, double t_s) {
-      AtiDeviceSample s;
-      s.counts = series->At(t_s).counts[k];
-      return s;
-    };
+    AtiStateSource source;
+    if (commanded_) {
+      source = [this, k](std::uint64_t, double) {  // the latest frame of the twin thread
+        AtiDeviceSample s;
+        s.counts = LatestFrame()->counts[k];
+        return s;
+      };
+    } else {
+      source = [series, k](std::uint64_t, double t_s) {
+        AtiDeviceSample s;
+        s.counts = series->At(t_s).counts[k];
+        return s;
+      };
+    }
     // Called on the ATI thread only (Step), so the vector needs no lock.
     auto emit = [this, k](const AtiEmitted& e) { ati_truth_.push_back({k, e}); };
     ati_.push_back(std::make_unique<AtiEmulator>(o, source, emit));
@@ -256,16 +282,34 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   }
   dxl_options.rates = options_.dxl_rates;
   dxl_options.events = options_.dxl_events;
+  if (commanded_) {
+    dxl_options.time_constant_s = options_.servo_time_constant_s;
+    for (int k = 0; k < kNumLegs; ++k) {
+      dxl_options.initial_positions.push_back(static_cast<std::int32_t>(std::lround(
+          DxlStateFromAngle(options_.commanded_start_rad[k], 0, zero[k], direction[k])
+              .position_counts)));
+      dxl_id_[k] = dxl_options.ids[k];
+    }
+    dxl_zero_ = zero;
+    dxl_direction_ = direction;
+  }
   dxl_ = std::make_unique<DynamixelBusEmulator>(dxl_options);
   dxl_->SetReplyObserver([this](const DxlReplyRecord& r) { dxl_truth_.push_back(r); });
-  dxl_->SetStateSource([series, zero, direction, leg_of_id](
-                           std::uint8_t id, double now_s) -> std::optional<DxlDrivenState> {
-    const int k = leg_of_id[id];
-    if (k < 0) return std::nullopt;
-    double rate = 0;
-    const double angle = series->AngleAt(k, now_s, &rate);
-    return DxlStateFromAngle(angle, rate, zero[k], direction[k]);
-  });
+  if (!commanded_) {
+    dxl_->SetStateSource([series, zero, direction, leg_of_id](
+                             std::uint8_t id, double now_s) -> std::optional<DxlDrivenState> {
+      const int k = leg_of_id[id];
+      if (k < 0) return std::nullopt;
+      double rate = 0;
+      const double angle = series->AngleAt(k, now_s, &rate);
+      return DxlStateFromAngle(angle, rate, zero[k], direction[k]);
+    });
+  } else {
+    // No state source: the servos follow their goals. The twin's first frame stands at the
+    // start positions.
+    SnapshotServos();
+    latest_ = std::make_shared<const TwinFrame>(driven_->Frame(0.0, ServoAngles()));
+  }
   pty_ = std::make_unique<PtyBus>(*dxl_, options_.pty_link);
 
   // QTM.
@@ -282,16 +326,23 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   if (qo.faults.seed == 0) qo.faults.seed = options_.seed;
   const double qtm_rate = qo.rate_hz;
   const double residual_m = twin_options.marker_noise_m;
-  qtm_ = std::make_unique<QtmEmulator>(
-      qo, [series, qtm_rate, residual_m](int64_t tick) -> std::optional<QtmPose> {
-        return QtmPoseFromFrame(series->At(static_cast<double>(tick) / qtm_rate), residual_m);
-      });
+  if (commanded_) {
+    qtm_ = std::make_unique<QtmEmulator>(qo, [this, residual_m](int64_t) -> std::optional<QtmPose> {
+      return QtmPoseFromFrame(*LatestFrame(), residual_m);
+    });
+  } else {
+    qtm_ = std::make_unique<QtmEmulator>(
+        qo, [series, qtm_rate, residual_m](int64_t tick) -> std::optional<QtmPose> {
+          return QtmPoseFromFrame(series->At(static_cast<double>(tick) / qtm_rate), residual_m);
+        });
+  }
   qtm_->SetObserver([this](const QtmSentFrame& s) { qtm_truth_.push_back(s); });
 
   // Everything is bound: start the clock and the devices.
   pty_->Open();
   pty_slave_ = pty_->slave_path();
   t0_ = std::chrono::steady_clock::now();
+  if (commanded_) twin_thread_ = std::thread([this] { RunTwin(); });
   ati_thread_ = std::thread([this] { RunAti(); });
   dxl_thread_ = std::thread([this] { RunDxl(); });
   qtm_thread_ = std::thread([this] { qtm_->Run(-1, [this] { return !stop_.load(); }); });
@@ -339,6 +390,55 @@ void LiveSim::RunDxl() {
     } else {
       ::usleep(2000);
     }
+    if (commanded_) {
+      // The servos move whether or not they are asked (and with the port gone): advancing them
+      // here keeps the twin's legs on the exact first-order curve between requests.
+      dxl_->Advance(Now());
+      SnapshotServos();
+    }
+  }
+}
+
+void LiveSim::SnapshotServos() {
+  std::array<double, 6> counts{};
+  for (int k = 0; k < kNumLegs; ++k) counts[k] = dxl_->ExactPosition(dxl_id_[k]);
+  std::lock_guard<std::mutex> lock(servo_mutex_);
+  servo_counts_ = counts;
+}
+
+std::array<double, 6> LiveSim::ServoAngles() const {
+  std::array<double, 6> counts;
+  {
+    std::lock_guard<std::mutex> lock(servo_mutex_);
+    counts = servo_counts_;
+  }
+  std::array<double, 6> angle{};
+  for (int k = 0; k < kNumLegs; ++k) {
+    angle[k] = DxlAngleFromCounts(counts[k], dxl_zero_[k], dxl_direction_[k]);
+  }
+  return angle;
+}
+
+std::shared_ptr<const TwinFrame> LiveSim::LatestFrame() const {
+  std::lock_guard<std::mutex> lock(frame_mutex_);
+  return latest_;
+}
+
+void LiveSim::RunTwin() {
+  // Frame i at i / rate on the twin's clock; a thread that fell behind skips to the present.
+  const double period_s = 1.0 / twin_->Options().sample_rate_hz;
+  std::int64_t i = 1;
+  while (!stop_.load()) {
+    const double t_s = static_cast<double>(i) * period_s;
+    std::this_thread::sleep_until(t0_ + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                             std::chrono::duration<double>(t_s)));
+    if (stop_.load()) break;
+    auto frame = std::make_shared<const TwinFrame>(driven_->Frame(t_s, ServoAngles()));
+    {
+      std::lock_guard<std::mutex> lock(frame_mutex_);
+      latest_ = std::move(frame);
+    }
+    i = std::max(i + 1, static_cast<std::int64_t>(std::floor(Now() / period_s)));
   }
 }
 
@@ -347,7 +447,7 @@ void LiveSim::Stop() {
   stopped_ = true;
   stop_.store(true);
   qtm_->RequestStop();
-  for (std::thread* t : {&ati_thread_, &dxl_thread_, &qtm_thread_}) {
+  for (std::thread* t : {&ati_thread_, &dxl_thread_, &qtm_thread_, &twin_thread_}) {
     if (t->joinable()) t->join();
   }
   for (std::size_t k = 0; k < ati_.size(); ++k) ati_counts_[k] = ati_[k]->counters();

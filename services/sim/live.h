@@ -7,14 +7,21 @@
 //   LiveSim         six ATI Net F/T boxes (RDT + calibration page), the Dynamixel bus on a pty
 //                   and the QTM RT server, each on its own thread, until Stop()
 //
-// Every device reads the same twin series on the same clock (seconds since LiveSim started), so
-// at any moment the wrenches, the shaft angles and the chassis attitude the bridges receive
-// belong to the same twin frame (to within the devices' own sampling).
+// In the recorded scenarios (walk, stand, tripod, hang-*) every device reads the same twin
+// series on the same clock (seconds since LiveSim started), so at any moment the wrenches, the
+// shaft angles and the chassis attitude the bridges receive belong to the same twin frame (to
+// within the devices' own sampling). The servos' positions are the scenario's shaft angles
+// (DynamixelBusEmulator's StateSource): a Sync Write of goals is accepted by the servos' tables
+// but does not move them.
 //
-// The legs do not follow commanded servo goals: positions are the scenario's shaft angles
-// (DynamixelBusEmulator's StateSource), so a Sync Write of goals from a bridge is accepted by
-// the servos' tables but does not move them. Closing that loop needs the twin to produce a frame
-// at arbitrary shaft angles, which it does not offer yet.
+// In the "commanded" scenario the legs follow the servos instead. The Dynamixel emulator has no
+// StateSource: the servos start at `commanded_start_rad` (default: their zero counts, shaft
+// angle 0) with torque off and, once a bridge enables torque, move toward their Goal Position
+// with first-order dynamics (time constant `servo_time_constant_s`). The Dynamixel thread
+// advances them between requests too and publishes their exact positions; a twin thread makes a
+// frame every 1/100 s from those positions (counts -> rad as DxlAngleFromCounts) with
+// BigAntTwin::Driven (standing on all six feet), and the ATI and QTM threads report the latest
+// such frame. The truth CSVs record what each device sent, as in every scenario.
 #pragma once
 
 #include <array>
@@ -22,6 +29,7 @@
 #include <chrono>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <vector>
@@ -34,10 +42,12 @@
 
 namespace ftcal::sim {
 
-// The scenarios a live run can loop.
+// The scenarios a live run can play: the first seven loop a twin series (TwinSeries); in
+// "commanded" the legs follow the servos' goals (see the header comment).
 inline constexpr const char* kLiveScenarios[] = {"walk",       "stand",      "tripod",
                                                  "hang-x-pos", "hang-x-neg", "hang-z-pos",
-                                                 "hang-z-neg"};
+                                                 "hang-z-neg", "commanded"};
+inline constexpr const char kCommandedScenario[] = "commanded";
 
 class TwinSeries {
  public:
@@ -69,6 +79,9 @@ class TwinSeries {
 // counts = zero + direction * angle / (2 pi / 4096).
 DxlDrivenState DxlStateFromAngle(double angle_rad, double rate_rad_s, std::int32_t zero_count,
                                  int direction);
+// The inverse: the shaft angle at (continuous) encoder position `counts`,
+// direction * (counts - zero) * 2 pi / 4096.
+double DxlAngleFromCounts(double counts, std::int32_t zero_count, int direction);
 // The mocap's view of a twin frame.
 QtmPose QtmPoseFromFrame(const TwinFrame& frame, double residual_m);
 
@@ -110,6 +123,10 @@ struct LiveOptions {
     double start_s = 0, end_s = 0;
   };
   std::vector<Window> dxl_disconnects;  // the port vanishes, back as a new pty
+  // "commanded" only: the servos' first-order time constant toward Goal Position, and their
+  // shaft angles at the start (kLegNames order; rounded to whole encoder counts).
+  double servo_time_constant_s = 0.05;
+  std::array<double, 6> commanded_start_rad{};
 
   // QTM: the config's address and port unless given (port 0: any free port).
   int qtm_port = -1;
@@ -146,10 +163,17 @@ class LiveSim {
   std::uint16_t qtm_port() const;
   int ati_boxes() const { return static_cast<int>(ati_.size()); }
   std::size_t ati_truth_rows() const { return ati_truth_.size(); }
+  bool commanded() const { return commanded_; }
+  // "commanded": the latest twin frame the devices report (any thread); null otherwise.
+  std::shared_ptr<const TwinFrame> LatestFrame() const;
 
  private:
   void RunAti();
   void RunDxl();
+  void RunTwin();  // "commanded" only
+  // The servos' exact positions as shaft angles (any thread); "commanded" only.
+  std::array<double, 6> ServoAngles() const;
+  void SnapshotServos();  // on the Dynamixel thread
 
   LiveOptions options_;
   std::unique_ptr<BigAntTwin> twin_;
@@ -174,7 +198,20 @@ class LiveSim {
   std::unique_ptr<QtmEmulator> qtm_;
   std::vector<std::string> qtm_labels_;
 
-  std::thread ati_thread_, dxl_thread_, qtm_thread_;
+  // "commanded": the legs follow the servos. The Dynamixel thread alone touches dxl_; it
+  // copies the servos' positions into servo_counts_, which the twin thread reads to make the
+  // frame the ATI and QTM threads read.
+  bool commanded_ = false;
+  std::unique_ptr<BigAntTwin::Driven> driven_;
+  std::array<std::uint8_t, 6> dxl_id_{};
+  std::array<std::int32_t, 6> dxl_zero_{};
+  std::array<int, 6> dxl_direction_{};
+  mutable std::mutex servo_mutex_;
+  std::array<double, 6> servo_counts_{};
+  mutable std::mutex frame_mutex_;
+  std::shared_ptr<const TwinFrame> latest_;
+
+  std::thread ati_thread_, dxl_thread_, qtm_thread_, twin_thread_;
 };
 
 }  // namespace ftcal::sim

@@ -9,7 +9,8 @@
 // runs the twin's devices in real time on this machine (services/sim/live.h): six ATI Net F/T
 // boxes (RDT and calibration page) at the config's addresses, the Dynamixel bus on a
 // pseudo-terminal linked at PATH, the QTM RT server at the config's address; the bridges run
-// against it unchanged. At the end (SIGINT, SIGTERM or --duration) the truth series of every
+// against it unchanged. With --scenario commanded the servos follow the goals a bridge writes
+// (first-order, --servo-tau) and the twin's legs follow the servos. At the end (SIGINT, SIGTERM or --duration) the truth series of every
 // device, with the faults injected, goes to --truth-dir.
 #include <signal.h>
 
@@ -58,13 +59,16 @@ struct LiveFlags {
   std::vector<std::string> dxl_missing, dxl_silent, dxl_hw_error, dxl_disconnect;
   std::vector<std::string> qtm_untracked, qtm_silent, qtm_no_more_data, qtm_disconnect;
   std::vector<double> qtm_settings_changed;
+  std::string start_angles;
 };
 
 void AddLiveFlags(CLI::App* live, LiveFlags* f) {
   ftcal::sim::LiveOptions& o = f->options;
   std::vector<std::string> scenarios(std::begin(ftcal::sim::kLiveScenarios),
                                      std::end(ftcal::sim::kLiveScenarios));
-  live->add_option("--scenario", o.scenario, "twin scenario, looped")
+  live->add_option("--scenario", o.scenario,
+                   "twin scenario, looped; commanded: the legs follow the servos, which follow "
+                   "the goals a bridge writes")
       ->check(CLI::IsMember(scenarios))
       ->capture_default_str();
   live->add_option("--seed", o.seed, "twin and fault seed")->capture_default_str();
@@ -115,6 +119,13 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
                    "ID:T_S[:BITS]  servo ID raises hardware error BITS (default 32, overload)");
   live->add_option("--dxl-disconnect", f->dxl_disconnect,
                    "START_S:END_S  the port vanishes and comes back as a new pty");
+  live->add_option("--servo-tau", o.servo_time_constant_s,
+                   "commanded: the servos' first-order time constant toward their goal, s")
+      ->check(CLI::Range(0.001, 60.0))
+      ->capture_default_str();
+  live->add_option("--start-angles", f->start_angles,
+                   "commanded: A:B:C:D:E:F  shaft angles at the start (legs HL ML FL HR MR FR), "
+                   "rad (default: all 0)");
   // QTM.
   live->add_option("--qtm-port", o.qtm_port, "TCP port (default: the config's; 0: any)")
       ->check(CLI::Range(0, 65535));
@@ -217,6 +228,14 @@ void ResolveLiveFlags(LiveFlags* f) {
     if (p.size() != 2) throw std::invalid_argument("--dxl-disconnect '" + s + "': want START_S:END_S");
     o.dxl_disconnects.push_back(
         {ParseFlagNumber(p[0], "--dxl-disconnect"), ParseFlagNumber(p[1], "--dxl-disconnect")});
+  }
+  if (!f->start_angles.empty()) {
+    if (o.scenario != ftcal::sim::kCommandedScenario) {
+      throw std::invalid_argument("--start-angles needs --scenario commanded");
+    }
+    const auto p = SplitFlag(f->start_angles, ':');
+    if (p.size() != 6) throw std::invalid_argument("--start-angles '" + f->start_angles + "': want six angles A:B:C:D:E:F");
+    for (int k = 0; k < ftcal::kNumLegs; ++k) o.commanded_start_rad[k] = ParseFlagNumber(p[k], "--start-angles");
   }
   auto& q = o.qtm_faults;
   q.seed = o.seed;

@@ -105,7 +105,14 @@ DynamixelBusEmulator::DynamixelBusEmulator(DxlEmulatorOptions options)
   if (options_.rates.max_noise_bytes < 1) {
     throw std::invalid_argument("Dynamixel emulator: max_noise_bytes must be >= 1");
   }
-  for (std::uint8_t id : options_.ids) {
+  if (!options_.initial_positions.empty() &&
+      options_.initial_positions.size() != options_.ids.size()) {
+    throw std::invalid_argument("Dynamixel emulator: initial_positions must give one per id");
+  }
+  for (std::size_t i = 0; i < options_.ids.size(); ++i) {
+    const std::uint8_t id = options_.ids[i];
+    const std::int32_t initial = options_.initial_positions.empty() ? options_.initial_position
+                                                                    : options_.initial_positions[i];
     if (id > dxl::kMaxId) {
       throw std::invalid_argument("Dynamixel emulator: id " + std::to_string(id) +
                                   " outside 0-252");
@@ -136,14 +143,14 @@ DynamixelBusEmulator::DynamixelBusEmulator(DxlEmulatorOptions options)
     PutLe(t, kAddrMinPosition, 0, 4);
     t[kAddrShutdown] = 52;
     t[kAddrStatusReturnLevel] = 2;
-    PutLe(t, kAddrGoalPosition, static_cast<std::uint32_t>(options_.initial_position), 4);
+    PutLe(t, kAddrGoalPosition, static_cast<std::uint32_t>(initial), 4);
     PutLe(t, kAddrVoltage, 120, 2);
     t[kAddrTemperature] = 35;
     for (int n = 0; n < kIndirectCount; ++n) {
       PutLe(t, static_cast<std::uint16_t>(kAddrIndirectAddress1 + 2 * n),
             static_cast<std::uint32_t>(kAddrIndirectData1 + n), 2);
     }
-    s.position = options_.initial_position;
+    s.position = initial;
     s.tick_base_ms = options_.initial_tick_ms & 0x7FFF;
     servos_.push_back(std::move(s));
   }

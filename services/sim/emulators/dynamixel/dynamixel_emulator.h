@@ -60,6 +60,8 @@ struct DxlEmulatorOptions {
   double time_constant_s = 0.05;         // first-order response to Goal Position
   std::uint16_t initial_tick_ms = 0;     // Realtime Tick at t = 0 (wraps at 32768)
   std::int32_t initial_position = 2048;  // counts, for every servo
+  // When given, one per id (same order): each servo's own initial position, counts.
+  std::vector<std::int32_t> initial_positions;
   DxlFaultRates rates;
   std::vector<DxlFaultEvent> events;
 };
