@@ -1,0 +1,23 @@
+# ftcal-sim live --scenario commanded (the twin's legs follow its servos, which follow the goals
+# the bridge writes) with the real ATI and Dynamixel bridges and lcm-logger, SERVO_CMD published
+# by the test, inside its own network namespace (scripts/netns-exec as the
+# CROSSCOMPILING_EMULATOR).
+if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridge)
+  add_executable(sim_commanded_test "${CMAKE_CURRENT_LIST_DIR}/sim_commanded_test.cc")
+  target_link_libraries(sim_commanded_test PRIVATE
+    ftcal_sim_live ftcal_lcmtypes ftcal_child_process libcal
+    GTest::gtest GTest::gtest_main Threads::Threads)
+  target_compile_definitions(sim_commanded_test PRIVATE
+    FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
+    FTCAL_SIM="$<TARGET_FILE:ftcal-sim>"
+    FTCAL_ATI_BRIDGE="$<TARGET_FILE:ftcal-ati-bridge>"
+    FTCAL_DYNAMIXEL_BRIDGE="$<TARGET_FILE:ftcal-dynamixel-bridge>"
+    FTCAL_LCM_LOGGER="${LCM_LOGGER}")
+  add_dependencies(sim_commanded_test ftcal-sim ftcal-ati-bridge ftcal-dynamixel-bridge)
+  set_target_properties(sim_commanded_test PROPERTIES
+    CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
+  gtest_discover_tests(sim_commanded_test
+    PROPERTIES LABELS integration TIMEOUT 120
+    DISCOVERY_TIMEOUT 60
+    DISCOVERY_MODE PRE_TEST)
+endif()
