@@ -22,6 +22,8 @@
 #include <memory>
 #include <sstream>
 #include <stdexcept>
+#include <exception>
+#include <future>
 #include <utility>
 
 #include <Eigen/Cholesky>
@@ -965,15 +967,43 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
   result.options = options;
   result.poses = static_cast<int>(poses.size());
   const double P = static_cast<double>(poses.size());
-  double best_bic = 0.0;
+  // The four models (each a joint fit plus its 5-fold cross-validation) are independent Ceres
+  // problems on const inputs, so they run on their own threads: on a two-core machine this
+  // nearly halves step 2's wall time. Results are gathered in model order, so the outcome does
+  // not depend on scheduling; an exception in any model is rethrown here by future::get().
+  struct ModelRun {
+    StandingFit fit;
+    double cv_mse = 0.0;
+  };
+  std::vector<std::future<ModelRun>> runs;
   for (StandingModel model : kStandingModels) {
-    StandingFit fit = FitStandingJoint(step1, poses, model, options);
+    runs.push_back(std::async(std::launch::async, [&step1, &poses, &options, model] {
+      ModelRun run;
+      run.fit = FitStandingJoint(step1, poses, model, options);
+      run.cv_mse = CrossValidationMse(step1, poses, run.fit, options);
+      return run;
+    }));
+  }
+  std::vector<ModelRun> done;
+  std::exception_ptr first_error;
+  for (auto& r : runs) {  // every future is waited for before anything is rethrown
+    try {
+      done.push_back(r.get());
+    } catch (...) {
+      if (!first_error) first_error = std::current_exception();
+    }
+  }
+  if (first_error) std::rethrow_exception(first_error);
+  double best_bic = 0.0;
+  for (size_t m = 0; m < kStandingModels.size(); ++m) {
+    const StandingModel model = kStandingModels[m];
+    StandingFit& fit = done[m].fit;
     ModelSelectionRow row;
     row.model = model;
     row.dof = fit.dof;
     row.rss = fit.rss;
     row.bic = P * std::log(fit.rss / P) + fit.dof * std::log(P);
-    row.cv_mse = CrossValidationMse(step1, poses, fit, options);
+    row.cv_mse = done[m].cv_mse;
     if (result.model_selection.empty() || row.bic < best_bic) {
       best_bic = row.bic;
       result.selected = model;
