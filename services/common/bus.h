@@ -114,6 +114,9 @@ class Bus {
 // run the tick, so a quiet bus never delays shutdown.
 class LcmBus : public Bus {
  public:
+  // Messages LCM may hold per subscription before it drops (bus.cc says why not LCM's 30).
+  static constexpr int kSubscriptionQueueCapacity = 10000;
+
   // Throws std::runtime_error naming the URL when LCM cannot open it.
   LcmBus(const std::string& url, ServiceStats& stats);
   int64_t NowUtime() const override;
