@@ -72,6 +72,87 @@ def read_residuals(path):
     return out
 
 
+WALK_VARIANTS = ["naive tare", "full calibration", "truth"]
+WALK_STYLE = {"naive tare": dict(color="tab:red", lw=0.7, alpha=0.8),
+              "full calibration": dict(color="tab:blue", lw=0.9),
+              "truth": dict(color="black", lw=0.7, ls="--")}
+# "truth" is the same readings corrected with the true parameters: the error of a calibration
+# apart from the sensors' own noise.
+WALK_LABEL = {"truth": "true parameters"}
+
+
+def read_walking(path):
+    """(columns, {variant: array (samples x (1 + 42))}) from the calibrator's <cal>.walking.csv:
+    t_s, variant, then fx..tz for each leg and the total."""
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None or header[:2] != ["t_s", "variant"] or (len(header) - 2) % 6 != 0:
+                raise ReportError(f"{path}: header is not t_s,variant,<LEG>_fx_n,...")
+            out = {}
+            for line, row in enumerate(reader, start=2):
+                if len(row) != len(header):
+                    raise ReportError(f"{path}:{line}: {len(row)} fields, expected {len(header)}")
+                if row[1] not in WALK_VARIANTS:
+                    raise ReportError(f"{path}:{line}: unknown variant '{row[1]}'")
+                try:
+                    out.setdefault(row[1], []).append([float(row[0])] + [float(x) for x in row[2:]])
+                except ValueError:
+                    raise ReportError(f"{path}:{line}: a value is not a number")
+    except OSError as e:
+        raise ReportError(f"{path}: {e.strerror}")
+    for v in ("naive tare", "full calibration"):
+        if v not in out:
+            raise ReportError(f"{path}: no rows for '{v}'")
+    groups = [header[2 + 6 * g].rsplit("_", 2)[0] for g in range((len(header) - 2) // 6)]
+    return groups, {v: np.array(rows) for v, rows in out.items()}
+
+
+def plot_walking(groups, walk, outdir):
+    """The report's Fig. 9: every ground-contact wrench in W during the walk, naive tare against
+    the calibration (and the truth's correction when given)."""
+    n = len(groups)
+    fig, axes = plt.subplots(6, n, figsize=(2.3 * n, 11), sharex=True, sharey="row")
+    for g, name in enumerate(groups):
+        for i in range(6):
+            ax = axes[i, g]
+            for v in WALK_VARIANTS:
+                if v in walk:
+                    ax.plot(walk[v][:, 0], walk[v][:, 1 + 6 * g + i], label=WALK_LABEL.get(v, v),
+                            **WALK_STYLE[v])
+            if i == 0:
+                ax.set_title(name)
+            if g == 0:
+                ax.set_ylabel(COMPONENTS[i])
+            if i == 5:
+                ax.set_xlabel("t (s)")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    fig.suptitle("Ground-contact wrenches in W during the walk (about the CoM)")
+    fig.tight_layout()
+    return save(fig, outdir, "walking.png")
+
+
+def walking_rows(groups, walk, weight_n):
+    """rms per component: against the truth's correction when there is one, else the total's
+    residual against (0, 0, G, 0, 0, 0) (the walk is quasi-static)."""
+    rows = []
+    if "truth" in walk:
+        ref = walk["truth"]
+        for v in ("naive tare", "full calibration"):
+            d = walk[v][:, 1:] - ref[:, 1:]
+            legs = d[:, : 6 * (len(groups) - 1)].reshape(len(d), -1, 6)
+            rows.append([v, "legs - true parameters'"] + [fmt(x, 3) for x in np.sqrt((legs ** 2).mean(axis=(0, 1)))])
+            tot = d[:, 6 * (len(groups) - 1):]
+            rows.append([v, "total - true parameters'"] + [fmt(x, 3) for x in np.sqrt((tot ** 2).mean(axis=0))])
+    else:
+        target = np.array([0.0, 0.0, weight_n, 0.0, 0.0, 0.0])
+        for v in ("naive tare", "full calibration"):
+            tot = walk[v][:, 1 + 6 * (len(groups) - 1):] - target
+            rows.append([v, "total - (0,0,G,0,0,0)"] + [fmt(x, 3) for x in np.sqrt((tot ** 2).mean(axis=0))])
+    return rows
+
+
 def save(fig, outdir, name):
     """Atomic: a temporary file in DIR renamed onto the name."""
     fd, tmp = tempfile.mkstemp(dir=outdir, suffix=".png.tmp")
@@ -221,11 +302,13 @@ def main():
     p.add_argument("residuals")
     p.add_argument("outdir")
     p.add_argument("--truth")
+    p.add_argument("--walking", help="the calibrator's <cal>.walking.csv (Fig. 9)")
     a = p.parse_args()
     try:
         cal = read_calibration(a.calibration)
         res = read_residuals(a.residuals)
         truth = read_calibration(a.truth) if a.truth else None
+        walking = read_walking(a.walking) if a.walking else None
     except ReportError as e:
         print(f"report: {e}", file=sys.stderr)
         return 2
@@ -285,6 +368,12 @@ def main():
     parts += ["<h2>Hanging residuals per leg (with and without s)</h2>", img(imgs[1]),
               table(["series", "samples"] + ["rms " + c for c in COMPONENTS], hang_rows),
               "<h2>Leg CoM against phase (bins and fit)</h2>"] + [img(n) for n in com_imgs]
+    if walking is not None:
+        groups, walk = walking
+        parts += ["<h2>Walking: ground-contact wrenches, calibration against naive tare</h2>",
+                  img(plot_walking(groups, walk, a.outdir)),
+                  table(["variant", "rms of"] + COMPONENTS,
+                        walking_rows(groups, walk, cal.total_mass_kg * cal.g0_m_s2))]
     parts += ["<h2>Provenance</h2>", table(["", ""], prov_rows), "</body></html>"]
 
     fd, tmp = tempfile.mkstemp(dir=a.outdir, suffix=".html.tmp")

@@ -14,6 +14,7 @@
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"
 #include "ftcal/hanging.h"
+#include "ftcal/sensing_model.h"
 #include "ftcal/standing.h"
 #include "pose_segmenter/pose_segmenter_stage.h"
 
@@ -175,6 +176,13 @@ void CalibrationCollector::EndPhase(bool completed) {
       standing_session_ = phase_session_;
     }
     current_poses_.clear();
+  } else if (phase_ == experiment_marker_t::WALKING) {
+    if (completed && walking_.empty() && !current_walk_.empty()) {
+      spdlog::info("WALKING complete (session '{}'): {} aligned samples kept for the report",
+                   phase_session_, current_walk_.size());
+      walking_ = std::move(current_walk_);
+    }
+    current_walk_.clear();
   }
   phase_ = -1;
   phase_session_.clear();
@@ -227,6 +235,9 @@ void CalibrationCollector::OnAligned(const AlignedSample& a) {
   } else if (phase_ == experiment_marker_t::STANDING && segmenter_) {
     ++counters_.standing_samples;
     segmenter_->Add(s);
+  } else if (phase_ == experiment_marker_t::WALKING) {
+    ++counters_.walking_samples;
+    if (walking_.empty() && current_walk_.size() < kMaxWalkingSamples) current_walk_.push_back(s);
   }
 }
 
@@ -482,12 +493,65 @@ std::string ResidualsCsv(const StandingResult& standing) {
   return out.str();
 }
 
-std::string ResidualsPathFor(const std::string& calibration_path) {
+namespace {
+std::string PathBeside(const std::string& calibration_path, const std::string& suffix) {
   std::string base = calibration_path;
   const auto slash = base.rfind('/');
   const auto dot = base.rfind('.');
   if (dot != std::string::npos && (slash == std::string::npos || dot > slash)) base.resize(dot);
-  return base + ".residuals.csv";
+  return base + suffix;
+}
+}  // namespace
+
+std::string ResidualsPathFor(const std::string& calibration_path) {
+  return PathBeside(calibration_path, ".residuals.csv");
+}
+
+std::string WalkingPathFor(const std::string& calibration_path) {
+  return PathBeside(calibration_path, ".walking.csv");
+}
+
+std::string WalkingCsv(const std::vector<SyncSample>& samples, const CalibrationRun& run,
+                       const RobotCalibration* truth, double period_s) {
+  if (samples.empty()) throw std::invalid_argument("WalkingCsv: no walking samples");
+  // The naive-tare baseline as the corrector would apply it (standing.h's NaiveTareResiduals).
+  RobotCalibration naive = run.step1;
+  for (int k = 0; k < kNumLegs; ++k) {
+    naive.leg[k].offset = run.hanging.leg[k].naive_offset;
+    naive.leg[k].weight_n = 0.0;
+  }
+  naive.p_C_B = Vec3::Zero();
+  std::vector<std::pair<const char*, const RobotCalibration*>> variants = {
+      {"full calibration", &run.calibration}, {"naive tare", &naive}};
+  if (truth != nullptr) variants.emplace_back("truth", truth);
+
+  std::ostringstream out;
+  out.precision(7);
+  out << "t_s,variant";
+  const char* comp[] = {"fx_n", "fy_n", "fz_n", "tx_nm", "ty_nm", "tz_nm"};
+  for (int k = 0; k <= kNumLegs; ++k) {
+    for (const char* c : comp) out << ',' << (k < kNumLegs ? kLegNames[k] : "total") << '_' << c;
+  }
+  out << '\n';
+  const int64_t step_us = static_cast<int64_t>(std::llround(period_s * 1e6));
+  const int64_t t0 = samples.front().utime;
+  int64_t next = t0;
+  for (const SyncSample& s : samples) {
+    if (!s.attitude_ok || s.utime < next) continue;
+    next = s.utime + step_us;
+    for (const auto& [label, cal] : variants) {
+      out << 1e-6 * static_cast<double>(s.utime - t0) << ',' << label;
+      Vec6 total = Vec6::Zero();
+      for (int k = 0; k < kNumLegs; ++k) {
+        const Vec6 w = GroundWrenchW(*cal, k, s.wrench[k], s.angle_rad[k], s.R_WC);
+        total += w;
+        for (int i = 0; i < 6; ++i) out << ',' << w[i];
+      }
+      for (int i = 0; i < 6; ++i) out << ',' << total[i];
+      out << '\n';
+    }
+  }
+  return out.str();
 }
 
 }  // namespace ftcal

@@ -7,7 +7,9 @@
 //     HANG_* start and its stop marker goes into that series' HangingRecording (per leg: time,
 //     shaft angle, reading; gravity_b from the start marker; the attitude when tracked);
 //   - steady standing poses: the STEADY_POSE events of the log when it has any, else the
-//     PoseSegmenter run over the STANDING spans (as ftcal-pose-segmenter would have).
+//     PoseSegmenter run over the STANDING spans (as ftcal-pose-segmenter would have);
+//   - the aligned samples of the first WALKING phase (up to kMaxWalkingSamples), for the
+//     report's walking figure (the report's Fig. 9): corrected vs naive tare.
 // Nothing is guessed: a series without its start..stop pair is missing, not reconstructed.
 //
 // RunCalibration() checks what was collected (every series, markers present, the config's legs
@@ -53,6 +55,7 @@ struct CollectorCounters {
   int64_t logged_poses = 0;      // STEADY_POSE events seen
   int64_t segmented_poses = 0;   // poses the collector's own segmenter found
   int64_t poses_dropped_markers = 0;  // logged poses without every marker
+  int64_t walking_samples = 0;        // aligned samples inside WALKING phases (kept or not)
 };
 
 class CalibrationCollector {
@@ -81,6 +84,11 @@ class CalibrationCollector {
   // The FT_* channels seen against the config's legs: throws CalibratorInputError on mismatch.
   void CheckLegsMatchConfig() const;
 
+  // The aligned samples of the first completed WALKING phase (empty when there was none).
+  // Bounded: ten minutes at 100 Hz is more than a figure shows.
+  static constexpr size_t kMaxWalkingSamples = 60000;
+  const std::vector<SyncSample>& walking_samples() const { return walking_; }
+
   const CollectorCounters& counters() const { return counters_; }
   const std::string& standing_session() const { return standing_session_; }
 
@@ -104,6 +112,8 @@ class CalibrationCollector {
   std::string phase_session_;
   HangingRecording current_hang_;
   std::vector<StandingPose> current_poses_;
+  std::vector<SyncSample> current_walk_;
+  std::vector<SyncSample> walking_;
 
   std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
   std::vector<StandingPose> segmented_poses_;
@@ -181,5 +191,17 @@ std::string ResidualsCsv(const StandingResult& standing);
 
 // The path of the residuals file written beside a calibration file: cal.pbtxt -> cal.residuals.csv.
 std::string ResidualsPathFor(const std::string& calibration_path);
+
+// The walking session corrected (eq. 3 in W, about the CoM: GroundWrenchW, the corrector's
+// model) by each calibration: "t_s,variant,<LEG>_fx_n,...,<LEG>_tz_nm for the six legs,
+// total_fx_n,...,total_tz_nm". Variants: "full calibration" (run.calibration), "naive tare"
+// (the step-1 naive offsets, no leg gravity, nominal mounting) and "truth" when `truth` is
+// given. Samples without a tracked attitude are left out (the corrector would assume level and
+// flag them); one sample per `period_s` is kept (the figure's resolution, not the data's).
+// Throws std::invalid_argument when `samples` is empty.
+std::string WalkingCsv(const std::vector<SyncSample>& samples, const CalibrationRun& run,
+                       const RobotCalibration* truth, double period_s = 0.04);
+// cal.pbtxt -> cal.walking.csv.
+std::string WalkingPathFor(const std::string& calibration_path);
 
 }  // namespace ftcal

@@ -8,6 +8,7 @@
 #include <exception>
 #include <filesystem>
 #include <iostream>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -48,11 +49,16 @@ struct Args {
 };
 
 // Runs scripts/report; returns its exit status (its messages go to our stderr).
-int RunReport(const std::string& cal, const std::string& residuals, const Args& args) {
+int RunReport(const std::string& cal, const std::string& residuals, const std::string& walking,
+              const Args& args) {
   std::vector<std::string> argv = {FTCAL_REPORT_SCRIPT, cal, residuals, args.report_dir};
   if (!args.truth.empty()) {
     argv.push_back("--truth");
     argv.push_back(args.truth);
+  }
+  if (!walking.empty()) {
+    argv.push_back("--walking");
+    argv.push_back(walking);
   }
   std::vector<char*> cargv;
   for (auto& a : argv) cargv.push_back(a.data());
@@ -72,11 +78,11 @@ int RunReport(const std::string& cal, const std::string& residuals, const Args& 
 }
 
 // Prints the summary and runs the report (the files are written).
-int Report(const ftcal::CalibrationRun& run, const Args& args) {
+int Report(const ftcal::CalibrationRun& run, const Args& args, const std::string& walking = "") {
   std::cout << ftcal::SummaryTable(run) << std::flush;
   if (args.report_dir.empty()) return 0;
   spdlog::info("writing the report into {}", args.report_dir);
-  const int rc = RunReport(args.out, ftcal::ResidualsPathFor(args.out), args);
+  const int rc = RunReport(args.out, ftcal::ResidualsPathFor(args.out), walking, args);
   if (rc != 0) {
     spdlog::error("report failed (exit {}); the calibration file is written", rc);
     return 1;
@@ -90,7 +96,16 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
                                   .string();
-  // Every input before any work: a typo in the last of several logs is refused at once.
+  // Every input before any work: a typo in the last of several logs is refused at once, and
+  // so is an output directory that does not exist (found only after minutes of reading).
+  {
+    const std::filesystem::path parent = std::filesystem::path(args.out).parent_path();
+    std::error_code ec;
+    if (!parent.empty() && !std::filesystem::is_directory(parent, ec)) {
+      throw CalibratorInputError("--out '" + args.out + "': directory '" + parent.string() +
+                                 "' does not exist");
+    }
+  }
   for (const std::string& path : args.logs) {
     std::error_code ec;
     if (!std::filesystem::is_regular_file(path, ec)) {
@@ -142,7 +157,22 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   ftcal::WriteCalibrationOutputs(run, args.out);
   spdlog::info("wrote {} and {}", args.out, ftcal::ResidualsPathFor(args.out));
-  return Report(run, args);
+  std::string walking;
+  if (!collector.walking_samples().empty()) {
+    std::optional<ftcal::RobotCalibration> truth;
+    if (!args.truth.empty()) {
+      try {
+        truth = ftcal::CalibrationFromProto(ftcal::ReadCalibrationFile(args.truth), config.robot());
+      } catch (const std::exception& e) {
+        throw CalibratorInputError("--truth '" + args.truth + "': " + e.what());
+      }
+    }
+    walking = ftcal::WalkingPathFor(args.out);
+    ftcal::WriteFileAtomic(walking, ftcal::WalkingCsv(collector.walking_samples(), run,
+                                                      truth ? &*truth : nullptr));
+    spdlog::info("wrote {} (the walking session corrected, for the report)", walking);
+  }
+  return Report(run, args, walking);
 }
 
 // Live: collect by markers; calibrate when a STANDING phase stops (LiveCalibrator).

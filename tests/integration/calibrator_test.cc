@@ -11,6 +11,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <sstream>
 #include <memory>
 #include <regex>
 #include <set>
@@ -41,6 +43,8 @@ using testing::ReadFile;
 
 constexpr int64_t kT0 = 1'700'000'000'000'000;
 constexpr int kPoses = 60;
+// A short walk after the poses (1.6 gait cycles): the report's walking figure.
+constexpr double kWalkS = 20.0;
 const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
 
 struct Event {
@@ -196,6 +200,12 @@ class CalibratorTest : public ::testing::Test {
     run.t0_s = t + 0.01;
     t = fx->twin->Standing(kPoses, run, frames);
     marker(t + 0.005, experiment_marker_t::STANDING, false, Vec3::Zero(), true);
+    t += 1.0;
+    marker(t, experiment_marker_t::WALKING, true, Vec3::Zero(), true);
+    RunOptions walk;
+    walk.t0_s = t + 0.01;
+    t = fx->twin->TripodWalk(kWalkS, walk, frames);
+    marker(t + 0.005, experiment_marker_t::WALKING, false, Vec3::Zero(), true);
 
     fx->log = fx->dir + "/session.lcmlog";
     fx->log_no_markers = fx->dir + "/no_markers.lcmlog";
@@ -328,6 +338,62 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   // With --truth, the true values are beside the estimates.
   EXPECT_NE(html.find("truth"), std::string::npos);
 
+  // The walk corrected three ways, one sample per 0.04 s. Against the twin: with the true
+  // parameters the six ground wrenches sum to (0, 0, G, 0, 0, 0) about the CoM (the twin's
+  // quasi-static walk) within the reading and attitude noise; the calibration corrects like the
+  // true parameters up to its own small error, the naive tare many times worse.
+  EXPECT_NE(html.find("walking.png"), std::string::npos);
+  std::map<std::string, std::vector<std::vector<double>>> walk;
+  {
+    std::istringstream lines(ReadFile(WalkingPathFor(out)));
+    std::string line;
+    ASSERT_TRUE(std::getline(lines, line));
+    EXPECT_EQ(line.rfind("t_s,variant,HL_fx_n,", 0), 0u) << line;
+    while (std::getline(lines, line)) {
+      std::istringstream fields(line);
+      std::string t, variant, v;
+      std::getline(fields, t, ',');
+      std::getline(fields, variant, ',');
+      std::vector<double> row;
+      while (std::getline(fields, v, ',')) row.push_back(std::stod(v));
+      ASSERT_EQ(row.size(), 42u) << line;
+      walk[variant].push_back(row);
+    }
+  }
+  ASSERT_EQ(walk.size(), 3u);
+  const auto& full = walk["full calibration"];
+  const auto& naive = walk["naive tare"];
+  const auto& true_params = walk["truth"];
+  EXPECT_NEAR(static_cast<double>(full.size()), kWalkS / 0.04, 3.0);
+  ASSERT_EQ(naive.size(), full.size());
+  ASSERT_EQ(true_params.size(), full.size());
+  const double G = fx->config.robot().total_mass_kg() * fx->config.robot().g0_m_s2();
+  double total_f2 = 0.0, total_t2 = 0.0, full_f2 = 0.0, naive_f2 = 0.0;
+  for (size_t i = 0; i < full.size(); ++i) {
+    for (int c = 0; c < 3; ++c) {
+      const double target = c == 2 ? G : 0.0;
+      total_f2 += std::pow(true_params[i][36 + c] - target, 2);
+      total_t2 += std::pow(true_params[i][39 + c], 2);
+    }
+    for (int k = 0; k < kNumLegs; ++k) {
+      for (int c = 0; c < 3; ++c) {
+        full_f2 += std::pow(full[i][6 * k + c] - true_params[i][6 * k + c], 2);
+        naive_f2 += std::pow(naive[i][6 * k + c] - true_params[i][6 * k + c], 2);
+      }
+    }
+  }
+  const double n = static_cast<double>(full.size());
+  const double total_f = std::sqrt(total_f2 / (3 * n)), total_t = std::sqrt(total_t2 / (3 * n));
+  const double full_f = std::sqrt(full_f2 / (18 * n)), naive_f = std::sqrt(naive_f2 / (18 * n));
+  std::printf("walk (%zu samples): true parameters' total vs (0,0,G,0,0,0) rms %.4f N / %.5f N m; "
+              "leg force rms vs the true parameters' correction: calibration %.5f N, naive %.4f N\n",
+              full.size(), total_f, total_t, full_f, naive_f);
+  // Noise: 6 readings x 0.05 N, and 0.2 deg of mocap attitude tilting G = 80 N (0.28 N).
+  EXPECT_LT(total_f, 0.3);
+  EXPECT_LT(total_t, 0.05);
+  EXPECT_LT(full_f, 0.05);
+  EXPECT_GT(naive_f, 5.0 * full_f);
+
   // scripts/report on its own refuses a residuals file that is not the calibrator's, naming
   // the line, and writes nothing.
   const std::string bad_csv = fx->dir + "/bad.csv";
@@ -356,6 +422,18 @@ TEST_F(CalibratorTest, RefusesALogMissingASeries) {
 TEST_F(CalibratorTest, RefusesAMissingLog) {
   ExpectRefused({"--log", fx->log, "--log", fx->dir + "/absent.lcmlog"}, "absent",
                 "input log '" + fx->dir + "/absent.lcmlog' does not exist");
+}
+
+TEST_F(CalibratorTest, RefusesAnOutputDirectoryThatDoesNotExistBeforeReading) {
+  const std::string out = fx->dir + "/no-such-dir/cal.pbtxt";
+  const Result r = Run({"--log", fx->log, "--config", kConfig, "--out", out}, "no_out_dir");
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_NE(r.err.find("directory '" + fx->dir + "/no-such-dir' does not exist"),
+            std::string::npos)
+      << r.err;
+  // Refused before the log was read: no progress line.
+  EXPECT_EQ(r.err.find("events"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(fx->dir + "/no-such-dir"));
 }
 
 TEST_F(CalibratorTest, RefusesATruncatedLog) {
