@@ -533,15 +533,9 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   const rdt::Record rec = rdt::DecodeRecord(bytes);
   ++t.c.received;
   using V = rdt::SequenceTracker::Verdict;
-  rdt::SequenceTracker::Result r = t.tracker.Update(rec.rdt_sequence);
-  if (r.verdict == V::kLate && rec.rdt_sequence == 1) {
-    // Record 1 after a later one: a newer stream has begun. With two start commands in flight
-    // (a re-send while the box was slow to answer the first), the tracker locked onto the
-    // stream of the first; the box serves the last one, so follow it.
-    t.tracker.Reset();
-    r = t.tracker.Update(rec.rdt_sequence);
-    t.restart_pending = true;
-  }
+  // kRestart: two start commands were in flight (a re-send while the box was slow to answer the
+  // first) and the tracker had locked onto the stream of the first; the box serves the last.
+  const rdt::SequenceTracker::Result r = t.tracker.Update(rec.rdt_sequence, rec.ft_sequence);
   if (!r.accept()) {
     switch (r.verdict) {
       case V::kDuplicate:
@@ -574,7 +568,8 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
     return;
   }
   t.c.lost += r.lost;
-  if (r.verdict == V::kStart) ++t.c.restarts;
+  if (r.verdict == V::kStart || r.verdict == V::kRestart) ++t.c.restarts;
+  if (r.verdict == V::kRestart) t.restart_pending = true;
 
   // A box that rebooted restarts ft_sequence near 0 (§1.7): its configuration may have changed.
   if (t.have_ft && static_cast<std::int32_t>(rec.ft_sequence - t.last_ft) < 0) {
@@ -596,6 +591,7 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   t.last_ft = rec.ft_sequence;
 
   if (!t.calibrated) {
+    ++t.c.uncalibrated;
     t.pending_gap += 1 + r.lost;
     return;
   }
@@ -713,7 +709,7 @@ std::vector<std::pair<std::string, std::int64_t>> AtiBridge::CounterTable() cons
         {"published", c.published},       {"lost", c.lost},
         {"duplicates", c.duplicates},     {"late", c.late},
         {"stale", c.stale},               {"wrong_length", c.wrong_length},
-        {"foreign", c.foreign},
+        {"foreign", c.foreign},           {"uncalibrated", c.uncalibrated},
         {"status_nonzero", c.status_nonzero}, {"saturated", c.saturated},
         {"start_requests", c.start_requests}, {"restarts", c.restarts},
         {"silences", c.silences},         {"reboots", c.reboots},

@@ -52,7 +52,9 @@ struct AtiBridgeOptions {
 // Per transducer. All but the latency are also published in the heartbeat.
 struct AtiTransducerCounters {
   std::uint64_t datagrams = 0;      // received on the socket
-  std::uint64_t received = 0;       // well-formed records
+  // Well-formed records. Each is published or counted in exactly one of duplicates, late,
+  // stale, uncalibrated or publish_errors.
+  std::uint64_t received = 0;
   std::uint64_t published = 0;
   std::uint64_t lost = 0;           // by rdt_sequence (a reordered record counts here first)
   std::uint64_t duplicates = 0;
@@ -60,6 +62,8 @@ struct AtiTransducerCounters {
   std::uint64_t stale = 0;          // leftovers of a previous stream: dropped
   std::uint64_t wrong_length = 0;   // datagrams not a multiple of 36 bytes: dropped
   std::uint64_t foreign = 0;        // datagrams from another address than the box: dropped
+  // Accepted records not published because the calibration page could not be read (yet).
+  std::uint64_t uncalibrated = 0;
   std::uint64_t status_nonzero = 0; // published with FLAG_STATUS_ERROR
   std::uint64_t saturated = 0;      // published with FLAG_SATURATED
   std::uint64_t start_requests = 0;

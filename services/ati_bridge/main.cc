@@ -124,9 +124,11 @@ int main(int argc, char** argv) {
   }
   for (std::size_t i = 0; i < bridge->size(); ++i) {
     const auto& c = bridge->counters(i);
-    log->info("{}: received {} published {} lost {} duplicates {} late {} wrong_length {} "
-              "restarts {} reboots {}", bridge->leg(i), c.received, c.published, c.lost,
-              c.duplicates, c.late, c.wrong_length, c.restarts, c.reboots);
+    // received = published + duplicates + late + stale + uncalibrated + publish_errors.
+    log->info("{}: received {} published {} lost {} duplicates {} late {} stale {} uncalibrated {} "
+              "publish_errors {} wrong_length {} restarts {} reboots {}", bridge->leg(i),
+              c.received, c.published, c.lost, c.duplicates, c.late, c.stale, c.uncalibrated,
+              c.publish_errors, c.wrong_length, c.restarts, c.reboots);
   }
   log->info("latency receipt->published: p50 {} us p99 {} us (kernel timestamp: p50 {} us p99 {} us)",
             bridge->user_latency().QuantileUs(0.5), bridge->user_latency().QuantileUs(0.99),

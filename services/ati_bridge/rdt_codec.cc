@@ -146,15 +146,21 @@ std::vector<std::uint8_t> EncodeDatagram(const std::vector<Record>& records) {
   return out;
 }
 
-SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence) {
+SequenceTracker::Result SequenceTracker::Begin(Verdict verdict, std::uint32_t rdt_sequence,
+                                               std::uint32_t ft_sequence) {
+  started_ = true;
+  last_ = rdt_sequence;
+  last_ft_ = ft_sequence;
+  ++accepted_;
+  lost_ += rdt_sequence - 1;
+  return {verdict, rdt_sequence - 1};
+}
+
+SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence,
+                                                std::uint32_t ft_sequence) {
+  const bool in_start_window = rdt_sequence >= 1 && rdt_sequence <= kStartWindow;
   if (!started_) {
-    if (rdt_sequence >= 1 && rdt_sequence <= kStartWindow) {
-      started_ = true;
-      last_ = rdt_sequence;
-      ++accepted_;
-      lost_ += rdt_sequence - 1;
-      return {Verdict::kStart, rdt_sequence - 1};
-    }
+    if (in_start_window) return Begin(Verdict::kStart, rdt_sequence, ft_sequence);
     ++stale_;
     return {Verdict::kStale, 0};
   }
@@ -166,10 +172,21 @@ SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence) {
     return {Verdict::kDuplicate, 0};
   }
   if (delta < 0) {
+    if (in_start_window && static_cast<std::int32_t>(ft_sequence - last_ft_) > 0) {
+      ++restarts_;
+      return Begin(Verdict::kRestart, rdt_sequence, ft_sequence);
+    }
+    ++late_;
+    return {Verdict::kLate, 0};
+  }
+  // Ahead by sequence but sampled before the newest accepted: a straggler of the stream that a
+  // kRestart left behind.
+  if (static_cast<std::int32_t>(ft_sequence - last_ft_) < 0) {
     ++late_;
     return {Verdict::kLate, 0};
   }
   last_ = rdt_sequence;
+  last_ft_ = ft_sequence;
   ++accepted_;
   if (delta == 1) return {Verdict::kNext, 0};
   const auto missing = static_cast<std::uint32_t>(delta - 1);
@@ -180,6 +197,7 @@ SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence) {
 void SequenceTracker::Reset() {
   started_ = false;
   last_ = 0;
+  last_ft_ = 0;
 }
 
 Vector6d CountsToWrench(const std::array<std::int32_t, 6>& counts, double counts_per_force,

@@ -82,6 +82,16 @@ std::vector<std::uint8_t> EncodeDatagram(const std::vector<Record>& records);
 // stream: a record whose sequence is in [1, kStartWindow] is taken as its start (leading loss
 // = sequence - 1); anything else is a leftover of the previous stream still in flight and is
 // dropped, since locking onto it would make the new stream look "late" for a long time.
+//
+// A record behind the newest accepted one is either late (reordered) or the start of a newer
+// stream (two start commands were in flight and the box served the second after the tracker had
+// locked onto the first). rdt_sequence alone cannot tell them apart: "2, 1" is the first two
+// records swapped or record 1 of a new stream. ft_sequence can: the box's sample counter does not
+// go back between streams, and a reordered record was sampled before the one that overtook it.
+// So a backward record is a restart only when its sequence is in the start window and its
+// ft_sequence is newer than the newest accepted record's; otherwise it is late and never
+// accepted after a newer one. For the same reason a record ahead by sequence but behind by
+// ft_sequence (a straggler of the previous stream after a restart) is late.
 class SequenceTracker {
  public:
   static constexpr std::uint32_t kStartWindow = 1024;
@@ -90,20 +100,22 @@ class SequenceTracker {
     kStart,      // first record of the stream: accept
     kNext,       // sequence advanced by exactly 1: accept
     kGap,        // advanced by more than 1: accept, `lost` records are missing before it
+    kRestart,    // a newer stream began without a Reset(): accept as its first record
     kDuplicate,  // same sequence as the last accepted one: drop
     kLate,       // older than the last accepted one (reordered): drop
     kStale,      // before a start was seen, outside the start window: drop
   };
   struct Result {
     Verdict verdict;
-    std::uint32_t lost;  // records missing just before this one (kStart/kGap), else 0
+    std::uint32_t lost;  // records missing just before this one (kStart/kGap/kRestart), else 0
     bool accept() const {
-      return verdict == Verdict::kStart || verdict == Verdict::kNext || verdict == Verdict::kGap;
+      return verdict == Verdict::kStart || verdict == Verdict::kNext ||
+             verdict == Verdict::kGap || verdict == Verdict::kRestart;
     }
   };
 
   SequenceTracker() = default;
-  Result Update(std::uint32_t rdt_sequence);
+  Result Update(std::uint32_t rdt_sequence, std::uint32_t ft_sequence);
   void Reset();
 
   std::uint64_t accepted() const { return accepted_; }
@@ -111,13 +123,17 @@ class SequenceTracker {
   std::uint64_t duplicates() const { return duplicates_; }
   std::uint64_t late() const { return late_; }
   std::uint64_t stale() const { return stale_; }
+  std::uint64_t restarts() const { return restarts_; }  // kRestart verdicts
   bool started() const { return started_; }
   std::uint32_t last_sequence() const { return last_; }
 
  private:
+  Result Begin(Verdict verdict, std::uint32_t rdt_sequence, std::uint32_t ft_sequence);
+
   bool started_ = false;
   std::uint32_t last_ = 0;
-  std::uint64_t accepted_ = 0, lost_ = 0, duplicates_ = 0, late_ = 0, stale_ = 0;
+  std::uint32_t last_ft_ = 0;  // ft_sequence of the newest accepted record
+  std::uint64_t accepted_ = 0, lost_ = 0, duplicates_ = 0, late_ = 0, stale_ = 0, restarts_ = 0;
 };
 
 // counts -> [f (N); tau (N*m)] = sign * [counts_f / cpf; counts_t / cpt] (§1.4). sign is the

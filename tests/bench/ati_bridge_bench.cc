@@ -267,6 +267,7 @@ int main(int argc, char** argv) {
   // "latency receipt->published: p50 A us p99 B us (kernel timestamp: p50 C us p99 D us)".
   struct Figures {
     long long received = -1, published = -1, lost = -1;
+    long long dropped = 0;  // received, not published, counted under a name
   };
   std::map<std::string, Figures> figures;
   std::vector<std::string> latency(bridge_pids.size());
@@ -284,6 +285,14 @@ int main(int argc, char** argv) {
         std::string k1, k2, k3;
         Figures f;
         words >> k1 >> f.received >> k2 >> f.published >> k3 >> f.lost;
+        std::string name;
+        long long value = 0;
+        while (words >> name >> value) {
+          if (name == "duplicates" || name == "late" || name == "stale" ||
+              name == "uncalibrated" || name == "publish_errors") {
+            f.dropped += value;
+          }
+        }
         figures[leg] = f;
       }
       const auto at = line.find("latency receipt->published: ");
@@ -299,9 +308,11 @@ int main(int argc, char** argv) {
               "process(es)%s%s%s%s\n", 6, rate_hz, duration_s, bridges,
               realtime ? ", --realtime" : "", slice_us.empty() ? "" : ", --slice-us ",
               slice_us.c_str(), emulator_fifo ? ", emulator SCHED_FIFO" : "");
-  std::printf("%-4s %10s %10s %10s %8s %10s %10s\n", "leg", "sent", "received", "published",
-              "lost", "heard_lcm", "recv/sent");
+  // unaccounted: received records neither published nor counted as dropped; must be 0.
+  std::printf("%-4s %10s %10s %10s %8s %8s %11s %10s %10s\n", "leg", "sent", "received",
+              "published", "lost", "dropped", "unaccounted", "heard_lcm", "recv/sent");
   long long total_sent = 0, total_received = 0, total_published = 0, total_lost = 0;
+  long long total_dropped = 0, total_unaccounted = 0;
   for (const auto& leg : kLegs) {
     const Figures f = figures.count(leg) ? figures.at(leg) : Figures{};
     const long long s = sent.count(leg) ? sent.at(leg) : -1;
@@ -310,11 +321,16 @@ int main(int argc, char** argv) {
     total_received += f.received;
     total_published += f.published;
     total_lost += f.lost;
-    std::printf("%-4s %10lld %10lld %10lld %8lld %10lld %10.6f\n", leg.c_str(), s, f.received,
-                f.published, f.lost, h, s > 0 ? double(f.received) / double(s) : 0.0);
+    total_dropped += f.dropped;
+    const long long unaccounted = f.received - f.published - f.dropped;
+    total_unaccounted += unaccounted;
+    std::printf("%-4s %10lld %10lld %10lld %8lld %8lld %11lld %10lld %10.6f\n", leg.c_str(), s,
+                f.received, f.published, f.lost, f.dropped, unaccounted, h,
+                s > 0 ? double(f.received) / double(s) : 0.0);
   }
-  std::printf("total: sent %lld received %lld published %lld lost (by rdt_sequence) %lld\n",
-              total_sent, total_received, total_published, total_lost);
+  std::printf("total: sent %lld received %lld published %lld lost (by rdt_sequence) %lld "
+              "dropped (counted) %lld unaccounted %lld\n", total_sent, total_received,
+              total_published, total_lost, total_dropped, total_unaccounted);
   for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
     std::printf("bridge %zu (%s): CPU %.2f s = %.1f%% of one core; latency %s\n", i,
                 scheduling[i].c_str(), ended[i].cpu_s, 100.0 * ended[i].cpu_s / duration_s,

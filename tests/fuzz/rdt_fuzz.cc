@@ -21,7 +21,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   SequenceTracker tracker;
   std::uint64_t fed = 0;
   for (const Record& r : records) {
-    tracker.Update(r.rdt_sequence);
+    tracker.Update(r.rdt_sequence, r.ft_sequence);
     ++fed;
     StatusSaturated(r.status);
     DescribeStatus(r.status);

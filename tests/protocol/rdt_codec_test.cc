@@ -120,46 +120,50 @@ TEST(RdtRecord, WrongLengthsRejectedWithReason) {
 
 using V = SequenceTracker::Verdict;
 
+// The box's ft_sequence for a record of the first stream these tests follow: RDT at the full
+// 7000 Hz, one internal sample per record, modular like the real counter.
+std::uint32_t Ft(std::uint32_t rdt_sequence) { return rdt_sequence + 1000u; }
+
 TEST(RdtSequence, InOrderStream) {
   SequenceTracker t;
-  EXPECT_EQ(t.Update(1).verdict, V::kStart);
-  for (std::uint32_t s = 2; s <= 10; ++s) EXPECT_EQ(t.Update(s).verdict, V::kNext);
+  EXPECT_EQ(t.Update(1, Ft(1)).verdict, V::kStart);
+  for (std::uint32_t s = 2; s <= 10; ++s) EXPECT_EQ(t.Update(s, Ft(s)).verdict, V::kNext);
   EXPECT_EQ(t.accepted(), 10u);
   EXPECT_EQ(t.lost(), 0u);
 }
 
 TEST(RdtSequence, LossOfThree) {
   SequenceTracker t;
-  t.Update(1);
-  t.Update(2);
-  const auto r = t.Update(6);  // 3, 4, 5 lost
+  t.Update(1, Ft(1));
+  t.Update(2, Ft(2));
+  const auto r = t.Update(6, Ft(6));  // 3, 4, 5 lost
   EXPECT_EQ(r.verdict, V::kGap);
   EXPECT_EQ(r.lost, 3u);
   EXPECT_TRUE(r.accept());
   EXPECT_EQ(t.lost(), 3u);
-  EXPECT_EQ(t.Update(7).verdict, V::kNext);
+  EXPECT_EQ(t.Update(7, Ft(7)).verdict, V::kNext);
 }
 
 TEST(RdtSequence, DuplicateDropped) {
   SequenceTracker t;
-  t.Update(1);
-  t.Update(2);
-  const auto r = t.Update(2);
+  t.Update(1, Ft(1));
+  t.Update(2, Ft(2));
+  const auto r = t.Update(2, Ft(2));
   EXPECT_EQ(r.verdict, V::kDuplicate);
   EXPECT_FALSE(r.accept());
   EXPECT_EQ(t.duplicates(), 1u);
-  EXPECT_EQ(t.Update(3).verdict, V::kNext);
+  EXPECT_EQ(t.Update(3, Ft(3)).verdict, V::kNext);
 }
 
 TEST(RdtSequence, ReorderedDroppedAndLossNotUndone) {
   SequenceTracker t;
-  t.Update(1);
-  EXPECT_EQ(t.Update(3).lost, 1u);  // 2 looks lost
-  const auto r = t.Update(2);       // ... then arrives late
+  t.Update(1, Ft(1));
+  EXPECT_EQ(t.Update(3, Ft(3)).lost, 1u);  // 2 looks lost
+  const auto r = t.Update(2, Ft(2));        // ... then arrives late
   EXPECT_EQ(r.verdict, V::kLate);
   EXPECT_FALSE(r.accept());
   EXPECT_EQ(t.late(), 1u);
-  EXPECT_EQ(t.Update(4).verdict, V::kNext);
+  EXPECT_EQ(t.Update(4, Ft(4)).verdict, V::kNext);
   EXPECT_EQ(t.last_sequence(), 4u);
 }
 
@@ -167,29 +171,105 @@ TEST(RdtSequence, WrapAround) {
   SequenceTracker t;
   // Reach the top of the range legitimately: a start then one large forward jump is
   // impossible (> 2^31), so walk in three jumps of < 2^31.
-  t.Update(1);
-  t.Update(0x70000000u);
-  t.Update(0xE0000000u);
-  ASSERT_EQ(t.Update(0xFFFFFFFEu).verdict, V::kGap);
-  EXPECT_EQ(t.Update(0xFFFFFFFFu).verdict, V::kNext);
-  EXPECT_EQ(t.Update(0u).verdict, V::kNext);
-  const auto r = t.Update(3u);  // 1 and 2 lost across the wrap
+  t.Update(1, Ft(1));
+  t.Update(0x70000000u, Ft(0x70000000u));
+  t.Update(0xE0000000u, Ft(0xE0000000u));
+  ASSERT_EQ(t.Update(0xFFFFFFFEu, Ft(0xFFFFFFFEu)).verdict, V::kGap);
+  EXPECT_EQ(t.Update(0xFFFFFFFFu, Ft(0xFFFFFFFFu)).verdict, V::kNext);
+  EXPECT_EQ(t.Update(0u, Ft(0u)).verdict, V::kNext);
+  const auto r = t.Update(3u, Ft(3u));  // 1 and 2 lost across the wrap
   EXPECT_EQ(r.verdict, V::kGap);
   EXPECT_EQ(r.lost, 2u);
-  EXPECT_EQ(t.Update(0xFFFFFFFFu).verdict, V::kLate);
+  EXPECT_EQ(t.Update(0xFFFFFFFFu, Ft(0xFFFFFFFFu)).verdict, V::kLate);
 }
 
 TEST(RdtSequence, ResetOnStartIgnoresPreviousStreamLeftovers) {
   SequenceTracker t;
-  t.Update(1);
-  t.Update(5000);
-  t.Reset();                                   // a start command was sent
-  EXPECT_EQ(t.Update(5001).verdict, V::kStale);  // in flight from the old stream
-  const auto r = t.Update(3);                  // the new stream, records 1 and 2 lost
+  t.Update(1, Ft(1));
+  t.Update(5000, Ft(5000));
+  t.Reset();                                                // a start command was sent
+  EXPECT_EQ(t.Update(5001, Ft(5001)).verdict, V::kStale);  // in flight from the old stream
+  const auto r = t.Update(3, Ft(5010));  // the new stream, records 1 and 2 lost
   EXPECT_EQ(r.verdict, V::kStart);
   EXPECT_EQ(r.lost, 2u);
-  EXPECT_EQ(t.Update(4).verdict, V::kNext);
+  EXPECT_EQ(t.Update(4, Ft(5011)).verdict, V::kNext);
   EXPECT_EQ(t.stale(), 1u);
+}
+
+// The emulator's reorder fault on a stream's first record: 2 arrives before 1. Record 1 is
+// late, not a new stream (its ft_sequence is older than 2's): never accepted after 2, and 3
+// follows 2 without a gap or a restart.
+TEST(RdtSequence, FirstTwoRecordsSwappedAreAStartAndALateRecord) {
+  SequenceTracker t;
+  const auto first = t.Update(2, Ft(2));
+  EXPECT_EQ(first.verdict, V::kStart);
+  EXPECT_EQ(first.lost, 1u);  // 1 looks lost ...
+  EXPECT_EQ(t.Update(1, Ft(1)).verdict, V::kLate);  // ... then arrives late
+  EXPECT_EQ(t.Update(3, Ft(3)).verdict, V::kNext);
+  EXPECT_EQ(t.Update(5, Ft(5)).verdict, V::kGap);
+  EXPECT_EQ(t.Update(4, Ft(4)).verdict, V::kLate);  // and the same later in the stream
+  EXPECT_EQ(t.Update(6, Ft(6)).verdict, V::kNext);
+  EXPECT_EQ(t.accepted(), 4u);
+  EXPECT_EQ(t.late(), 2u);
+  EXPECT_EQ(t.lost(), 2u);
+  EXPECT_EQ(t.restarts(), 0u);
+
+  // The same after a Reset (the bridge re-sent its start): the new stream's 1 and 2 swapped.
+  t.Reset();
+  EXPECT_EQ(t.Update(2, Ft(9002)).verdict, V::kStart);
+  EXPECT_EQ(t.Update(1, Ft(9001)).verdict, V::kLate);
+  EXPECT_EQ(t.Update(3, Ft(9003)).verdict, V::kNext);
+  EXPECT_EQ(t.restarts(), 0u);
+}
+
+// Two start commands in flight: the tracker locked onto the stream of the first, then the box
+// serves the second from 1 with later samples. That is a restart, accepted at once, and the
+// first stream's records still in flight are never accepted after it.
+TEST(RdtSequence, NewStreamWithoutResetIsARestart) {
+  SequenceTracker t;
+  for (std::uint32_t s = 1; s <= 50; ++s) t.Update(s, Ft(s));
+  const std::uint32_t ft0 = Ft(50) + 100;  // the box's counter went on between the streams
+  const auto r = t.Update(1, ft0);
+  EXPECT_EQ(r.verdict, V::kRestart);
+  EXPECT_TRUE(r.accept());
+  EXPECT_EQ(r.lost, 0u);
+  EXPECT_EQ(t.Update(2, ft0 + 1).verdict, V::kNext);
+  EXPECT_EQ(t.Update(51, Ft(51)).verdict, V::kLate);  // a straggler of the first stream
+  EXPECT_EQ(t.Update(3, ft0 + 2).verdict, V::kNext);
+  // The new stream's first record lost: it begins at 2.
+  const std::uint32_t ft1 = ft0 + 1000;
+  const auto r2 = t.Update(2, ft1);
+  EXPECT_EQ(r2.verdict, V::kRestart);
+  EXPECT_EQ(r2.lost, 1u);
+  EXPECT_EQ(t.Update(1, ft1 - 1).verdict, V::kLate);  // ... and swapped with 2
+  EXPECT_EQ(t.Update(3, ft1 + 1).verdict, V::kNext);
+  EXPECT_EQ(t.restarts(), 2u);
+  // Behind by sequence but beyond the start window: late whatever its ft_sequence.
+  for (std::uint32_t s = 4; s <= 2000; ++s) t.Update(s, ft1 + s);
+  EXPECT_EQ(t.Update(SequenceTracker::kStartWindow + 1, ft1 + 5000).verdict, V::kLate);
+  EXPECT_EQ(t.restarts(), 2u);
+}
+
+// A duplicated record and a duplicate of a late one, across the 2^32 wrap of rdt_sequence
+// (ft_sequence wrapping too).
+TEST(RdtSequence, DuplicatesAndReorderingAcrossTheWrap) {
+  SequenceTracker t;
+  t.Update(1, 5);
+  t.Update(0x70000000u, 0x70000004u);
+  t.Update(0xE0000000u, 0xE0000004u);
+  ASSERT_EQ(t.Update(0xFFFFFFFEu, 0x00000002u).verdict, V::kGap);
+  EXPECT_EQ(t.Update(0xFFFFFFFEu, 0x00000002u).verdict, V::kDuplicate);
+  EXPECT_EQ(t.Update(0u, 0x00000004u).verdict, V::kGap);         // 0xFFFFFFFF overtaken
+  EXPECT_EQ(t.Update(0xFFFFFFFFu, 0x00000003u).verdict, V::kLate);  // ... arrives late
+  EXPECT_EQ(t.Update(0xFFFFFFFFu, 0x00000003u).verdict, V::kLate);  // ... twice
+  EXPECT_EQ(t.Update(0u, 0x00000004u).verdict, V::kDuplicate);
+  // 1 and 2 just after the wrap are in the start window but sampled after 0: the stream goes on.
+  EXPECT_EQ(t.Update(1u, 0x00000005u).verdict, V::kNext);
+  EXPECT_EQ(t.Update(2u, 0x00000006u).verdict, V::kNext);
+  EXPECT_EQ(t.duplicates(), 2u);
+  EXPECT_EQ(t.late(), 2u);
+  EXPECT_EQ(t.restarts(), 0u);
+  EXPECT_EQ(t.last_sequence(), 2u);
 }
 
 TEST(RdtConversion, CountsToNewtonsAndSign) {
