@@ -12,38 +12,104 @@ namespace ftcal {
 
 AtomicLogFile::AtomicLogFile(const std::string& path, const std::string& what)
     : path_(path), tmp_path_(path + ".tmp." + std::to_string(::getpid())), what_(what) {
-  log_ = std::make_unique<lcm::LogFile>(tmp_path_, "w");
-  if (!log_->good()) {
+  fd_ = ::open(tmp_path_.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd_ < 0) {
     throw std::runtime_error(what_ + " '" + path_ + "': cannot create '" + tmp_path_ +
                              "': " + std::strerror(errno));
   }
-  // stdio's default buffer is one 4 KiB block: a write() every ten corrected wrenches. Nothing
-  // has been written yet, so the buffer can still be set; nothing is flushed per event.
-  buffer_.resize(kBufferBytes);
-  std::setvbuf(log_->getFilePtr(), buffer_.data(), _IOFBF, buffer_.size());
+  fill_.reserve(kBufferBytes + 4096);
+  pending_.reserve(kBufferBytes + 4096);
+  try {
+    writer_ = std::thread([this] { WriterLoop(); });
+  } catch (...) {
+    ::close(fd_);
+    ::unlink(tmp_path_.c_str());
+    throw;
+  }
 }
 
 AtomicLogFile::~AtomicLogFile() {
-  if (!committed_) {
-    log_.reset();
-    ::unlink(tmp_path_.c_str());
+  StopWriter();
+  if (fd_ >= 0) ::close(fd_);
+  if (!committed_) ::unlink(tmp_path_.c_str());
+}
+
+void AtomicLogFile::StopWriter() {
+  if (!writer_.joinable()) return;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stop_ = true;
   }
+  cv_.notify_all();
+  writer_.join();
+}
+
+void AtomicLogFile::WriterLoop() {
+  std::unique_lock<std::mutex> lock(mutex_);
+  for (;;) {
+    cv_.wait(lock, [this] { return has_pending_ || stop_; });
+    if (!has_pending_) return;  // stopped with nothing left
+    // pending_ is the writer's until has_pending_ is cleared: write it without the lock.
+    lock.unlock();
+    std::string error;
+    const char* p = pending_.data();
+    size_t left = pending_.size();
+    while (left > 0) {
+      const ssize_t n = ::write(fd_, p, left);
+      if (n < 0) {
+        if (errno == EINTR) continue;
+        error = std::strerror(errno);
+        break;
+      }
+      p += n;
+      left -= static_cast<size_t>(n);
+    }
+    pending_.clear();
+    lock.lock();
+    if (!error.empty() && error_.empty()) error_ = error;
+    has_pending_ = false;
+    cv_.notify_all();
+  }
+}
+
+void AtomicLogFile::ThrowWriteError(const std::string& error) const {
+  throw std::runtime_error(what_ + " '" + tmp_path_ + "': write failed: " + error);
+}
+
+void AtomicLogFile::HandOff() {
+  std::unique_lock<std::mutex> lock(mutex_);
+  cv_.wait(lock, [this] { return !has_pending_; });
+  if (!error_.empty()) ThrowWriteError(error_);
+  fill_.swap(pending_);  // pending_ was cleared by the writer: fill_ starts empty
+  has_pending_ = true;
+  cv_.notify_all();
+}
+
+void AtomicLogFile::Drain() {
+  if (!fill_.empty()) HandOff();
+  std::unique_lock<std::mutex> lock(mutex_);
+  cv_.wait(lock, [this] { return !has_pending_; });
+  if (!error_.empty()) ThrowWriteError(error_);
 }
 
 void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void* data, int size) {
   if (committed_) throw std::logic_error(what_ + " '" + path_ + "': write after Commit()");
-  // LCM's log format, written here in two stdio calls instead of lcm_eventlog_write_event()'s
-  // seven (each takes the stream's lock; together they were a tenth of a corrector replay):
-  // sync word, event number, timestamp, channel length, data length (big-endian), channel, data.
-  // lcm::LogFile still opens and closes the file.
+  // LCM's log format: sync word, event number, timestamp, channel length, data length
+  // (big-endian), channel, data. Written here rather than with lcm_eventlog_write_event(),
+  // which makes seven locked stdio calls per event and cannot overlap the disk.
   if (channel.size() > kMaxChannelBytes || size < 0) {
     throw std::invalid_argument(what_ + " '" + path_ + "': event on '" + channel +
                                 "' with a channel of " + std::to_string(channel.size()) +
                                 " bytes or " + std::to_string(size) + " data bytes");
   }
-  uint8_t head[28 + kMaxChannelBytes];
-  auto put = [&head](int at, uint64_t v, int bytes) {
-    for (int i = 0; i < bytes; ++i) head[at + i] = static_cast<uint8_t>(v >> (8 * (bytes - 1 - i)));
+  const size_t head_bytes = 28 + channel.size();
+  const size_t at = fill_.size();
+  fill_.resize(at + head_bytes + static_cast<size_t>(size));
+  char* head = fill_.data() + at;
+  auto put = [head](int offset, uint64_t v, int bytes) {
+    for (int i = 0; i < bytes; ++i) {
+      head[offset + i] = static_cast<char>(static_cast<uint8_t>(v >> (8 * (bytes - 1 - i))));
+    }
   };
   put(0, 0xEDA1DA01u, 4);
   put(4, static_cast<uint64_t>(event_number_), 8);
@@ -51,23 +117,22 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
   put(20, channel.size(), 4);
   put(24, static_cast<uint32_t>(size), 4);
   std::memcpy(head + 28, channel.data(), channel.size());
-  FILE* file = log_->getFilePtr();
-  const size_t head_bytes = 28 + channel.size();
-  if (::fwrite_unlocked(head, 1, head_bytes, file) != head_bytes ||
-      ::fwrite_unlocked(data, 1, static_cast<size_t>(size), file) != static_cast<size_t>(size)) {
-    throw std::runtime_error(what_ + " '" + tmp_path_ + "': write failed: " +
-                             std::strerror(errno));
-  }
+  if (size > 0) std::memcpy(head + head_bytes, data, static_cast<size_t>(size));
   ++event_number_;
+  if (fill_.size() >= kBufferBytes) HandOff();
 }
 
 void AtomicLogFile::Commit() {
   if (committed_) return;
-  FILE* file = log_->getFilePtr();
-  if (std::fflush(file) != 0 || ::fsync(::fileno(file)) != 0) {
-    throw std::runtime_error(what_ + " '" + tmp_path_ + "': " + std::strerror(errno));
+  Drain();
+  StopWriter();
+  const int synced = ::fsync(fd_) == 0 ? 0 : errno;
+  const int closed = ::close(fd_) == 0 ? 0 : errno;
+  fd_ = -1;
+  if (synced != 0 || closed != 0) {
+    throw std::runtime_error(what_ + " '" + tmp_path_ + "': " +
+                             std::strerror(synced != 0 ? synced : closed));
   }
-  log_.reset();  // closes
   if (std::rename(tmp_path_.c_str(), path_.c_str()) != 0) {
     throw std::runtime_error(what_ + ": cannot rename '" + tmp_path_ + "' to '" + path_ +
                              "': " + std::strerror(errno));
