@@ -34,101 +34,24 @@
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "sim/twin.h"
+#include "twin_log.h"
 
 namespace ftcal {
 namespace {
 
 using testing::Child;
 using testing::ReadFile;
+// The log writers the multi-process tests share.
+using twin_log::AppendFrame;
+using twin_log::Encode;
+using twin_log::Event;
+using twin_log::Utime;
+using twin_log::WriteLog;
 
-constexpr int64_t kT0 = 1'700'000'000'000'000;
 constexpr int kPoses = 60;
 // A short walk after the poses (1.6 gait cycles): the report's walking figure.
 constexpr double kWalkS = 20.0;
 const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
-
-struct Event {
-  int64_t utime;
-  std::string channel;
-  std::vector<uint8_t> data;
-};
-
-template <class Msg>
-Event Encode(int64_t utime, const std::string& channel, const Msg& msg) {
-  Event e{utime, channel, std::vector<uint8_t>(static_cast<size_t>(msg.getEncodedSize()))};
-  msg.encode(e.data.data(), 0, static_cast<int>(e.data.size()));
-  return e;
-}
-
-void WriteLog(const std::string& path, const std::vector<Event>& events) {
-  lcm::LogFile log(path, "w");
-  ASSERT_TRUE(log.good()) << path;
-  int64_t n = 0;
-  for (const Event& e : events) {
-    lcm::LogEvent ev;
-    ev.eventnum = n++;
-    ev.timestamp = e.utime;
-    ev.channel = e.channel;
-    ev.datalen = static_cast<int32_t>(e.data.size());
-    ev.data = const_cast<uint8_t*>(e.data.data());
-    ASSERT_EQ(log.writeEvent(&ev), 0);
-  }
-}
-
-int64_t Utime(double t_s) { return kT0 + std::llround(t_s * 1e6); }
-
-// The twin's frames as the bridges would publish them.
-void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vector<Event>* events) {
-  const int64_t t = Utime(f.t_s);
-  const auto& ch = cfg.channels();
-  for (int k = 0; k < kNumLegs; ++k) {
-    ft_sample_t m{};
-    m.utime = t;
-    m.leg = std::string(kLegNames[k]);
-    m.rdt_sequence = std::llround(f.t_s * 100) + 1;
-    m.ft_sequence = 70 * m.rdt_sequence;
-    for (int i = 0; i < 6; ++i) {
-      m.counts[i] = f.counts[k][i];
-      m.wrench[i] = f.reading[k][i];
-    }
-    events->push_back(Encode(t, ch.ft_prefix() + m.leg, m));
-  }
-  servo_state_t s{};
-  s.utime = t;
-  s.num_servos = kNumLegs;
-  for (int k = 0; k < kNumLegs; ++k) {
-    s.leg.push_back(std::string(kLegNames[k]));
-    s.id.push_back(static_cast<int32_t>(cfg.robot().leg(k).servo().id()));
-    s.angle_rad.push_back(f.angle_rad[k]);
-    s.velocity_rad_s.push_back(0.0);
-    s.current_a.push_back(0.0);
-    s.hardware_error.push_back(0);
-    s.device_tick_ms.push_back(std::llround(f.t_s * 1e3));
-    s.flags.push_back(0);
-  }
-  events->push_back(Encode(t, ch.servo_state(), s));
-  mocap_body_t b{};
-  b.utime = t;
-  b.frame_number = std::llround(f.t_s * 100);
-  b.device_utime = std::llround(f.t_s * 1e6);
-  b.body = cfg.mocap().body_name();
-  b.tracked = true;
-  const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(f.R_GC));
-  const Eigen::Vector4d q_gc = RotationToQuaternion(f.R_GC);
-  for (int i = 0; i < 4; ++i) {
-    b.q_wc[i] = q_wc[i];
-    b.q_gc[i] = q_gc[i];
-  }
-  for (int i = 0; i < 3; ++i) b.position_m[i] = f.p_GB_m[i];
-  b.yaw_rad = HeadingYaw(f.R_GC);
-  b.residual_m = 0.0005;
-  b.num_markers = kNumChassisMarkers;
-  for (int i = 0; i < kNumChassisMarkers; ++i) {
-    b.marker_m.push_back({f.marker_G_m[i].x(), f.marker_G_m[i].y(), f.marker_G_m[i].z()});
-    b.marker_tracked.push_back(f.marker_tracked[i]);
-  }
-  events->push_back(Encode(t, ch.mocap_body(), b));
-}
 
 experiment_marker_t Marker(int64_t utime, int8_t phase, bool start, const Vec3& gravity_b) {
   experiment_marker_t m{};

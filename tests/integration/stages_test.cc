@@ -30,6 +30,7 @@
 #include "ftcal/steady_pose_t.hpp"
 #include "ftcal/sync_sample_t.hpp"
 #include "sim/twin.h"
+#include "twin_log.h"
 
 namespace ftcal {
 namespace {
@@ -37,60 +38,21 @@ namespace {
 using testing::Child;
 using testing::DescribeWaitStatus;
 using testing::ReadFile;
+// The log writers and readers the multi-process tests share.
+using twin_log::AppendFrame;
+using twin_log::Encode;
+using twin_log::Event;
+using twin_log::kT0;
+using twin_log::ReadChannel;
+using twin_log::Utime;
+using twin_log::WriteLog;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
-constexpr int64_t kT0 = 1'700'000'000'000'000;  // us, the log's first frame
 constexpr int kPoses = 3;
 const std::string kSession = "stages-test";
 constexpr size_t kBadEvents = 6;
 
 const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
-
-struct Event {
-  int64_t utime;
-  std::string channel;
-  std::vector<uint8_t> data;
-};
-
-template <class Msg>
-Event Encode(int64_t utime, const std::string& channel, const Msg& msg) {
-  Event e{utime, channel, std::vector<uint8_t>(static_cast<size_t>(msg.getEncodedSize()))};
-  msg.encode(e.data.data(), 0, static_cast<int>(e.data.size()));
-  return e;
-}
-
-void WriteLog(const std::string& path, const std::vector<Event>& events) {
-  lcm::LogFile log(path, "w");
-  ASSERT_TRUE(log.good()) << path;
-  int64_t n = 0;
-  for (const Event& e : events) {
-    lcm::LogEvent ev;
-    ev.eventnum = n++;
-    ev.timestamp = e.utime;
-    ev.channel = e.channel;
-    ev.datalen = static_cast<int32_t>(e.data.size());
-    ev.data = const_cast<uint8_t*>(e.data.data());
-    ASSERT_EQ(log.writeEvent(&ev), 0);
-  }
-}
-
-// Every event of `channel` in a log, decoded.
-template <class Msg>
-std::vector<Msg> ReadChannel(const std::string& path, const std::string& channel) {
-  std::vector<Msg> out;
-  lcm::LogFile log(path, "r");
-  EXPECT_TRUE(log.good()) << path;
-  if (!log.good()) return out;
-  while (const lcm::LogEvent* e = log.readNextEvent()) {
-    if (e->channel != channel) continue;
-    Msg m;
-    EXPECT_EQ(m.decode(e->data, 0, e->datalen), e->datalen);
-    out.push_back(m);
-  }
-  return out;
-}
-
-int64_t Utime(double t_s) { return kT0 + std::llround(t_s * 1e6); }
 
 experiment_marker_t Marker(int64_t utime, bool start) {
   experiment_marker_t m{};
@@ -114,59 +76,6 @@ calibration_t CalibrationMessage(const calibration::Calibration& proto, int64_t 
   m.content_sha256 = Sha256Hex(bytes);
   if (corrupt_hash) m.content_sha256[0] = m.content_sha256[0] == '0' ? '1' : '0';
   return m;
-}
-
-// The twin's frames as the bridges would publish them.
-void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vector<Event>* events) {
-  const int64_t t = Utime(f.t_s);
-  const auto& ch = cfg.channels();
-  for (int k = 0; k < kNumLegs; ++k) {
-    ft_sample_t m{};
-    m.utime = t;
-    m.leg = std::string(kLegNames[k]);
-    m.rdt_sequence = std::llround(f.t_s * 100) + 1;
-    m.ft_sequence = 70 * m.rdt_sequence;
-    for (int i = 0; i < 6; ++i) {
-      m.counts[i] = f.counts[k][i];
-      m.wrench[i] = f.reading[k][i];
-    }
-    events->push_back(Encode(t, ch.ft_prefix() + m.leg, m));
-  }
-  servo_state_t s{};
-  s.utime = t;
-  s.num_servos = kNumLegs;
-  for (int k = 0; k < kNumLegs; ++k) {
-    s.leg.push_back(std::string(kLegNames[k]));
-    s.id.push_back(static_cast<int32_t>(cfg.robot().leg(k).servo().id()));
-    s.angle_rad.push_back(f.angle_rad[k]);
-    s.velocity_rad_s.push_back(0.0);
-    s.current_a.push_back(0.0);
-    s.hardware_error.push_back(0);
-    s.device_tick_ms.push_back(std::llround(f.t_s * 1e3));
-    s.flags.push_back(0);
-  }
-  events->push_back(Encode(t, ch.servo_state(), s));
-  mocap_body_t b{};
-  b.utime = t;
-  b.frame_number = std::llround(f.t_s * 100);
-  b.device_utime = std::llround(f.t_s * 1e6);
-  b.body = cfg.mocap().body_name();
-  b.tracked = true;
-  const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(f.R_GC));
-  const Eigen::Vector4d q_gc = RotationToQuaternion(f.R_GC);
-  for (int i = 0; i < 4; ++i) {
-    b.q_wc[i] = q_wc[i];
-    b.q_gc[i] = q_gc[i];
-  }
-  for (int i = 0; i < 3; ++i) b.position_m[i] = f.p_GB_m[i];
-  b.yaw_rad = HeadingYaw(f.R_GC);
-  b.residual_m = 0.0005;
-  b.num_markers = kNumChassisMarkers;
-  for (int i = 0; i < kNumChassisMarkers; ++i) {
-    b.marker_m.push_back({f.marker_G_m[i].x(), f.marker_G_m[i].y(), f.marker_G_m[i].z()});
-    b.marker_tracked.push_back(f.marker_tracked[i]);
-  }
-  events->push_back(Encode(t, ch.mocap_body(), b));
 }
 
 // Written once for the whole suite: the twin takes a moment, the logs are reused.

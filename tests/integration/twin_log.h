@@ -1,6 +1,7 @@
 // Logs for the multi-process tests, written from the BigAnt twin as the bridges would publish
 // them (FT_<LEG>, SERVO_STATE, MOCAP_BODY per 100 Hz frame, EXPERIMENT markers), and read back
-// per channel. Header-only: shared by pipeline_live_test and bad_logs_test.
+// per channel. Header-only: shared by the multi-process tests (pipeline_live, bad_logs,
+// calibrator, stages).
 #pragma once
 
 #include <algorithm>
