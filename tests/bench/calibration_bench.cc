@@ -1,75 +1,104 @@
-// Step 2 at the report's scale: 729 standing poses ({-36, 0, 36} deg)^6 with the report's noise
-// (0.05 N, 0.002 N*m per sample, 0.2 deg attitude, medians of 150 samples), generated from
-// known parameters by the unit tests' generator. The target for the whole of step 2 (four
-// models, 5-fold cross-validation each, the selected model's covariance) is < 0.5 s on the
-// 2-core development machine.
-//
+// The whole method at the report's scale on the twin (default seed and noise): four hanging
+// series of ten 20 s leg cycles and all 729 standing poses (those without a marker dropout),
+// config/sim.pbtxt. Prints each stage's wall and CPU time, a `total` line (Calibrate() as one
+// call) and the peak resident memory (getrusage). Run by hand:
 //   <build>/tests/bench/calibration_bench
-#include <benchmark/benchmark.h>
+#include <sys/resource.h>
 
-#include "ftcal/offset_reestimation.h"
-#include "ftcal/standing.h"
-#include "standing_test_data.h"
+#include <chrono>
+#include <cstdio>
+#include <ctime>
+#include <functional>
+#include <string>
+
+#include "ftcal/calibrate.h"
+#include "ftcal/config.h"
+#include "sim/twin.h"
 
 namespace ftcal {
 namespace {
 
-using namespace testdata;  // NOLINT
+double CpuSeconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return u.ru_utime.tv_sec + u.ru_stime.tv_sec + 1e-6 * (u.ru_utime.tv_usec + u.ru_stime.tv_usec);
+}
 
-struct Data {
-  RobotCalibration truth = MakeTruth(21, Mounting::kFull);
-  RobotCalibration step1 = Step1Of(truth);
-  std::vector<StandingPose> poses = MakePoses(truth, Grid(), kReportNoise, false, 22);
+// Runs `stage` and prints "<name>: wall <s> s, cpu <s> s"; returns wall seconds.
+double Timed(const std::string& name, const std::function<void()>& stage) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const double c0 = CpuSeconds();
+  stage();
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  std::printf("%-44s wall %8.3f s  cpu %8.3f s\n", name.c_str(), wall, CpuSeconds() - c0);
+  std::fflush(stdout);
+  return wall;
+}
+
+int Run() {
+  const config::Config config = LoadConfigFile(FTCAL_SOURCE_DIR "/config/sim.pbtxt");
+  const BigAntTwin twin(config, TwinOptions());
+  std::vector<HangingRecording> hanging;
+  std::vector<StandingPose> poses;
+  Timed("twin: hanging series (not the method)", [&] {
+    for (int s = 0; s < kNumHangSeries; ++s)
+      hanging.push_back(twin.MakeHangingRecording(static_cast<HangSeries>(s)));
+  });
+  Timed("twin: 729 standing poses (not the method)", [&] { poses = twin.MakeSteadyPoses(729); });
+  std::printf("input: %zu hanging series, %zu steady poses\n", hanging.size(), poses.size());
+
+  HangingResult step1;
+  RobotCalibration step1_cal = NominalRobot(config);
+  const StandingOptions standing_options = StandingOptionsFromConfig(config.calibrator());
+  StandingResult standing;
+  double sum = 0.0;
+  sum += Timed("step 1: hanging (RunHanging)", [&] {
+    step1 = RunHanging(hanging, NominalTransducerPoses(config.robot()),
+                       HangingOptionsFromConfig(config.calibrator(), config.mocap()));
+    ApplyHangingResult(step1, &step1_cal);
+  });
   std::array<Vec6, kNumLegs> naive{};
-};
-
-const Data& TheData() {
-  static const Data data;
-  return data;
-}
-
-void BM_CalibrateStanding(benchmark::State& state) {
-  const Data& d = TheData();
-  StandingOptions options;
-  for (auto _ : state) {
-    StandingResult r = CalibrateStanding(d.step1, d.poses, d.naive, options);
-    benchmark::DoNotOptimize(r);
+  for (int k = 0; k < kNumLegs; ++k) naive[k] = step1.leg[k].naive_offset;
+  sum += Timed("step 2: 4 models, 5-fold CV, BIC, covariance", [&] {
+    standing = CalibrateStanding(step1_cal, poses, naive, standing_options);
+  });
+  sum += Timed("calibration file (proto)", [&] {
+    calibration::Calibration out;
+    WriteHangingToCalibration(step1, &out);
+    FillStandingProto(standing, &out);
+  });
+  std::printf("%-44s wall %8.3f s\n", "sum of the method's stages", sum);
+  Timed("comparison: report's alternating scheme (FULL)", [&] {
+    (void)FitStandingAlternating(step1_cal, poses, StandingModel::kFull, standing_options);
+  });
+  CalibrationRun run;
+  const auto t0 = std::chrono::steady_clock::now();
+  const double c0 = CpuSeconds();
+  run = Calibrate(hanging, poses, config);
+  std::printf("total (Calibrate(), one call): wall %.3f s, cpu %.3f s; selected model %s\n",
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(),
+              CpuSeconds() - c0, StandingModelName(run.standing.selected));
+  {
+    // ftcal's method: exact hanging rotations, hanging gravity prior, leg-aware CoM.
+    config::Config ftcal = config;
+    ftcal.mutable_calibrator()->set_exact_hanging_rotations(true);
+    ftcal.mutable_calibrator()->set_hanging_gravity_prior(true);
+    ftcal.mutable_calibrator()->set_leg_aware_com(true);
+    const auto t1 = std::chrono::steady_clock::now();
+    const double c1 = CpuSeconds();
+    run = Calibrate(hanging, poses, ftcal);
+    std::printf("total, ftcal's options (exact rotations, gravity prior, leg-aware CoM): wall "
+                "%.3f s, cpu %.3f s; selected model %s\n",
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(),
+                CpuSeconds() - c1, StandingModelName(run.standing.selected));
   }
-  state.SetLabel("729 poses, 4 models, 5-fold CV");
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  std::printf("peak memory (max RSS, getrusage): %.1f MiB\n", u.ru_maxrss / 1024.0);
+  return 0;
 }
-BENCHMARK(BM_CalibrateStanding)->Unit(benchmark::kMillisecond);
-
-void BM_FitFullJoint(benchmark::State& state) {
-  const Data& d = TheData();
-  for (auto _ : state) {
-    StandingFit f = FitStandingJoint(d.step1, d.poses, StandingModel::kFull, StandingOptions());
-    benchmark::DoNotOptimize(f);
-  }
-}
-BENCHMARK(BM_FitFullJoint)->Unit(benchmark::kMillisecond);
-
-void BM_FitFullAlternating(benchmark::State& state) {
-  const Data& d = TheData();
-  for (auto _ : state) {
-    StandingFit f =
-        FitStandingAlternating(d.step1, d.poses, StandingModel::kFull, StandingOptions());
-    benchmark::DoNotOptimize(f);
-  }
-}
-BENCHMARK(BM_FitFullAlternating)->Unit(benchmark::kMillisecond);
-
-void BM_ReestimateOffsetsFromStanding(benchmark::State& state) {
-  const Data& d = TheData();
-  OffsetReestimationOptions options;
-  options.require_all = false;
-  for (auto _ : state) {
-    OffsetReestimate r = ReestimateOffsets(d.truth, d.poses, {}, options);
-    benchmark::DoNotOptimize(r);
-  }
-}
-BENCHMARK(BM_ReestimateOffsetsFromStanding)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace ftcal
 
-BENCHMARK_MAIN();
+int main() { return ftcal::Run(); }
