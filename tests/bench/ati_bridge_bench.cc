@@ -21,6 +21,12 @@
 //   one bridge, --realtime: 47 % of a core, zero loss, p50 16 us, p99 612 us;
 //   six bridges, SCHED_OTHER: p50 60-340 us, p99 7-20 ms (9199 lost in one run);
 //   six bridges, --realtime: 5-9 % of a core each, zero loss, p50 15-107 us, p99 78-663 us.
+// Measured 2026-12-01, 60 s runs, same kind of VM with nothing else running (load average ~1:
+// the emulator alone takes 27 % of a core), 2.51 M records each run, zero loss in all three:
+//   six bridges, SCHED_OTHER: 4-5 % of a core each, p50 9-39 us, p99 160-283 us;
+//   six bridges, --realtime: 4.5-5 % of a core each, p50 7-15 us, p99 51-131 us;
+//   one bridge, --realtime: 18 % of a core, p50 39 us, p99 220 us.
+// The machine's floor at the same time (--wake-probe): p99 699 us for a SCHED_OTHER thread.
 // Where the tail comes from: the part from recvmmsg's return (the bridge's own work and queue)
 // stays under ~300 us at p99; the rest is the wait before the bridge runs. Records found still
 // in the network stack ("held", a deferred softirq) are under 0.1 %: not the tail. Busy-polling
