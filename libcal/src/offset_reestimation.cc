@@ -98,7 +98,10 @@ OffsetReestimate ReestimateOffsets(const RobotCalibration& cal,
   // condition and blur an exact null space into rounding noise). JacobiSVD with its QR
   // preconditioner, not BDCSVD: Debian's Eigen 3.4.0 BDCSVD returned solutions off by 1e-7..1e-3
   // on these tall, consistent systems (offset_reestimation_test's noise-free case caught it).
-  Eigen::JacobiSVD<Eigen::MatrixXd> svd(A, Eigen::ComputeThinU | Eigen::ComputeThinV);
+  // The full V (36 x 36): with fewer rows than unknowns a thin V has only as many columns as
+  // rows and leaves out most of the null space, which would make undetermined components look
+  // determined.
+  Eigen::JacobiSVD<Eigen::MatrixXd> svd(A, Eigen::ComputeThinU | Eigen::ComputeFullV);
   const Eigen::VectorXd& sv = svd.singularValues();
   OffsetReestimate out;
   out.singular_values = sv;
@@ -115,7 +118,15 @@ OffsetReestimate ReestimateOffsets(const RobotCalibration& cal,
   const Eigen::VectorXd x = V_r * inv_s.asDiagonal() * (svd.matrixU().leftCols(rank).transpose() * b);
   const Eigen::VectorXd e = A * x - b;
   const int redundancy = n_rows - rank;
-  const double s2 = redundancy > 0 ? e.squaredNorm() / redundancy : 0.0;
+  if (redundancy == 0) {
+    // An exact fit: the residual is zero whatever the noise, so no sigma can be given.
+    throw std::invalid_argument(
+        "offset re-estimation: the data (" + std::to_string(standing.size()) + " standing poses, " +
+        std::to_string(unloaded_legs) + " unloaded-leg samples) has no redundancy (" +
+        std::to_string(n_rows) + " equations, rank " + std::to_string(rank) +
+        "): the offsets would fit it exactly with no uncertainty; add standing poses or stances");
+  }
+  const double s2 = e.squaredNorm() / redundancy;
   out.residual_rms = std::sqrt(e.squaredNorm() / n_rows);
   const Eigen::MatrixXd W = V_r * inv_s.asDiagonal();  // cov = s2 W W^T
 

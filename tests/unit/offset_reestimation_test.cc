@@ -159,6 +159,45 @@ TEST(OffsetReestimation, StandingAloneDeterminesNoSingleOffset) {
   EXPECT_EQ(r.undetermined.size(), 36u);
 }
 
+// Fewer equations than the 36 unknowns: the null space is still all that the rows leave open
+// (a thin SVD's V has only as many columns as rows, and lost most of it).
+TEST(OffsetReestimation, FewerEquationsThanUnknownsLeaveTheRestUndetermined) {
+  const RobotCalibration before = MakeTruth(131, Mounting::kFull);
+  const RobotCalibration now = Drifted(before, 132);
+  constexpr std::array<bool, kNumLegs> kOnlyHL = {true, false, false, false, false, false};
+  const auto samples = TripodSamples(now, kOnlyHL, 3, 0, 0, 133);  // 18 equations
+  OffsetReestimationOptions options;
+  options.require_all = false;
+  const OffsetReestimate r = ReestimateOffsets(before, {}, samples, options);
+  EXPECT_EQ(r.rank, 6);
+  EXPECT_EQ(r.undetermined.size(), 30u);
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int i = 0; i < 6; ++i) {
+      EXPECT_EQ(r.determined[k][i], k == 0) << kLegNames[k] << i;
+      if (k == 0) {
+        EXPECT_NEAR(r.offset[k][i], now.leg[k].offset[i], 1e-9);
+      } else {
+        EXPECT_EQ(r.offset[k][i], before.leg[k].offset[i]);
+      }
+    }
+  }
+}
+
+// As many independent equations as determined unknowns: an exact fit, whose residual says
+// nothing of the noise, so no uncertainty can be given. Refused rather than sigma = 0.
+TEST(OffsetReestimation, RefusesDataWithoutRedundancy) {
+  const RobotCalibration before = MakeTruth(141, Mounting::kFull);
+  const auto samples = TripodSamples(Drifted(before, 142), kTripodA, 1, 0.05, 0.002, 143);
+  OffsetReestimationOptions options;
+  options.require_all = false;
+  try {
+    ReestimateOffsets(before, {}, samples, options);
+    FAIL() << "accepted an exact fit";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("no redundancy"), std::string::npos) << e.what();
+  }
+}
+
 TEST(OffsetReestimation, RefusesNonFiniteSamplesAndNoData) {
   const RobotCalibration cal = MakeTruth(121, Mounting::kFull);
   auto samples = TripodSamples(cal, kTripodA, 3, 0, 0, 122);
