@@ -446,6 +446,11 @@ void ValidateCalibrator(const Node& node, const config::Calibrator& c) {
   if (c.min_poses() < 1) {
     node.Error("min_poses", "must be >= 1, got " + std::to_string(c.min_poses()));
   }
+  if (node.Finite("unloaded_leg_min_angle_deg", c.unloaded_leg_min_angle_deg()) &&
+      !(c.unloaded_leg_min_angle_deg() > 0.0 && c.unloaded_leg_min_angle_deg() < 180.0)) {
+    node.Error("unloaded_leg_min_angle_deg",
+               "must be in (0, 180), got " + FormatNumber(c.unloaded_leg_min_angle_deg()));
+  }
 }
 
 void ValidateCorrector(const Node& node, const config::Corrector& c) {

@@ -54,6 +54,12 @@ std::string UtcNowIso8601() {
   return buf;
 }
 
+void SetInputFile(const std::string& path, calibration::InputFile* in) {
+  in->set_path(std::filesystem::absolute(path).string());
+  in->set_sha256(Sha256File(path));
+  in->set_bytes(std::filesystem::file_size(path));
+}
+
 std::string HostName() {
   char buf[256] = {};
   if (::gethostname(buf, sizeof buf - 1) != 0) return "unknown";
@@ -137,6 +143,10 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
             current_poses_.push_back(p.pose);
             ++counters_.segmented_poses;
           });
+    } else if (phase_ == experiment_marker_t::TRIPOD) {
+      current_unloaded_.clear();
+      segmenter_ = std::make_unique<PoseSegmenter>(
+          segmenter_options_, [this](const SteadyPoseOut& p) { OnTripodStance(p); });
     }
     spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase_), phase_session_);
     return;
@@ -176,6 +186,15 @@ void CalibrationCollector::EndPhase(bool completed) {
       standing_session_ = phase_session_;
     }
     current_poses_.clear();
+  } else if (phase_ == experiment_marker_t::TRIPOD) {
+    if (segmenter_) segmenter_->Flush();
+    segmenter_.reset();
+    if (completed) {
+      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg unloaded",
+                   phase_session_, current_unloaded_.size());
+      unloaded_.insert(unloaded_.end(), current_unloaded_.begin(), current_unloaded_.end());
+    }
+    current_unloaded_.clear();
   } else if (phase_ == experiment_marker_t::WALKING) {
     if (completed && walking_.empty() && !current_walk_.empty()) {
       spdlog::info("WALKING complete (session '{}'): {} aligned samples kept for the report",
@@ -235,10 +254,34 @@ void CalibrationCollector::OnAligned(const AlignedSample& a) {
   } else if (phase_ == experiment_marker_t::STANDING && segmenter_) {
     ++counters_.standing_samples;
     segmenter_->Add(s);
+  } else if (phase_ == experiment_marker_t::TRIPOD && segmenter_) {
+    ++counters_.tripod_samples;
+    segmenter_->Add(s);
   } else if (phase_ == experiment_marker_t::WALKING) {
     ++counters_.walking_samples;
     if (walking_.empty() && current_walk_.size() < kMaxWalkingSamples) current_walk_.push_back(s);
   }
+}
+
+// The shaft angle, not the reading, says which legs are off the ground: the reading is what
+// the offsets are being re-estimated from, and a drifted offset can be as large as a light load.
+void CalibrationCollector::OnTripodStance(const SteadyPoseOut& p) {
+  const double min_rad = config_.calibrator().unloaded_leg_min_angle_deg() * M_PI / 180.0;
+  LoadSample sample;
+  sample.wrench = p.pose.wrench;
+  sample.angle_rad = p.pose.angle_rad;
+  sample.R_WC = p.pose.R_WC;
+  bool any = false;
+  for (int k = 0; k < kNumLegs; ++k) {
+    sample.unloaded[k] = std::abs(std::remainder(p.pose.angle_rad[k], 2.0 * M_PI)) > min_rad;
+    any = any || sample.unloaded[k];
+  }
+  if (!p.markers_ok || !any) {
+    ++counters_.tripod_stances_dropped;
+    return;
+  }
+  ++counters_.tripod_stances;
+  current_unloaded_.push_back(sample);
 }
 
 std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
@@ -411,12 +454,7 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
   }
 
   calibration::Provenance* p = run.proto.mutable_provenance();
-  for (const std::string& path : options.log_paths) {
-    calibration::InputFile* in = p->add_input();
-    in->set_path(std::filesystem::absolute(path).string());
-    in->set_sha256(Sha256File(path));
-    in->set_bytes(std::filesystem::file_size(path));
-  }
+  for (const std::string& path : options.log_paths) SetInputFile(path, p->add_input());
   if (!options.config_path.empty()) {
     p->set_config_path(std::filesystem::absolute(options.config_path).string());
     p->set_config_sha256(Sha256File(options.config_path));
@@ -426,6 +464,126 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
   p->set_host(HostName());
   p->set_command_line(options.command_line);
   return run;
+}
+
+namespace {
+
+constexpr const char* kComponents[6] = {"fx N", "fy N", "fz N", "tx Nm", "ty Nm", "tz Nm"};
+
+// Component i (0..5 = [f; tau]) of a leg's offset in the calibration file.
+void SetOffsetComponent(int i, double value, double sigma, calibration::LegCalibration* leg) {
+  calibration::Vec3Estimate* v =
+      i < 3 ? leg->mutable_force_offset_n() : leg->mutable_torque_offset_nm();
+  switch (i % 3) {
+    case 0: v->set_x(value); v->set_sigma_x(sigma); break;
+    case 1: v->set_y(value); v->set_sigma_y(sigma); break;
+    default: v->set_z(value); v->set_sigma_z(sigma); break;
+  }
+}
+
+}  // namespace
+
+OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collector,
+                                            const config::Config& config,
+                                            const std::string& base_path, bool allow_partial,
+                                            const CalibratorOptions& options) {
+  if (collector.counters().markers == 0) {
+    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config.channels().experiment() +
+                               "') in the input: cannot tell standing poses or tripod stances");
+  }
+  collector.CheckLegsMatchConfig();
+  OffsetReestimationRun run;
+  try {
+    run.proto = ReadCalibrationFile(base_path);
+    run.before = CalibrationFromProto(run.proto, config.robot());
+  } catch (const std::exception& e) {
+    throw CalibratorInputError("--reestimate-offsets '" + base_path + "': " + e.what());
+  }
+  if (run.proto.robot_name() != config.robot().name()) {
+    throw CalibratorInputError("--reestimate-offsets '" + base_path + "' is a calibration of '" +
+                               run.proto.robot_name() + "', the config's robot is '" +
+                               config.robot().name() + "'");
+  }
+  const std::vector<StandingPose> poses = collector.StandingPoses();
+  const std::vector<LoadSample>& unloaded = collector.unloaded_samples();
+  if (poses.empty() && unloaded.empty()) {
+    throw CalibratorInputError(
+        "no steady standing poses and no steady tripod stances with a leg lifted (completed "
+        "STANDING or TRIPOD phases): nothing to re-estimate the offsets from");
+  }
+  OffsetReestimationOptions o;
+  o.k_weights = KWeights(config.calibrator());
+  // The same target as the base calibration's step 2 was fitted to.
+  o.leg_aware_com = run.proto.solver().leg_aware_com();
+  o.require_all = !allow_partial;
+  spdlog::info("re-estimating the offsets: {} standing poses, {} tripod stances with a leg lifted",
+               poses.size(), unloaded.size());
+  try {
+    run.estimate = ReestimateOffsets(run.before, poses, unloaded, o);
+  } catch (const std::invalid_argument& e) {
+    throw CalibratorInputError(std::string(e.what()) +
+                               (allow_partial ? "" : " (or --partial to keep their old values)"));
+  }
+  run.after = ApplyOffsetReestimate(run.before, run.estimate);
+
+  calibration::OffsetReestimation* r = run.proto.mutable_offset_reestimation();
+  r->Clear();
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int i = 0; i < 6; ++i) {
+      r->add_previous_offset(run.before.leg[k].offset[i]);
+      if (run.estimate.determined[k][i]) {
+        SetOffsetComponent(i, run.estimate.offset[k][i], run.estimate.sigma[k][i],
+                           run.proto.mutable_leg(k));
+      }
+    }
+  }
+  SetInputFile(base_path, r->mutable_base_calibration());
+  r->set_base_version(run.proto.version());
+  for (const std::string& path : options.log_paths) SetInputFile(path, r->add_input());
+  r->set_created_utc(UtcNowIso8601());
+  r->set_command_line(options.command_line);
+  r->set_standing_poses(static_cast<uint32_t>(poses.size()));
+  r->set_unloaded_leg_samples(static_cast<uint32_t>(run.estimate.unloaded_rows / 6));
+  r->set_rank(static_cast<uint32_t>(run.estimate.rank));
+  for (const std::string& u : run.estimate.undetermined) r->add_undetermined(u);
+  r->set_residual_rms(run.estimate.residual_rms);
+  run.proto.set_version(run.proto.version() + 1);
+  return run;
+}
+
+std::string OffsetSummaryTable(const OffsetReestimationRun& run) {
+  const calibration::OffsetReestimation& r = run.proto.offset_reestimation();
+  std::string o = fmt::format(
+      "Offsets of {} re-estimated (method.md \"Offset drift\"): {} standing poses, {} "
+      "unloaded-leg samples; rank {} of 36; K-weighted rms residual {:.4f}\n",
+      run.proto.robot_name(), r.standing_poses(), r.unloaded_leg_samples(), r.rank(),
+      r.residual_rms());
+  o += fmt::format("{:<10}", "leg");
+  for (const char* c : kComponents) o += fmt::format(" {:>9}", c);
+  o += "\n";
+  for (int k = 0; k < kNumLegs; ++k) {
+    const char* rows[3] = {"new", "drift", "+-"};
+    for (int row = 0; row < 3; ++row) {
+      o += fmt::format("{:<4}{:<6}", row == 0 ? kLegNames[k] : "", rows[row]);
+      for (int i = 0; i < 6; ++i) {
+        if (!run.estimate.determined[k][i]) {
+          o += fmt::format(" {:>9}", row == 0 ? "kept" : "-");
+          continue;
+        }
+        const double v = row == 0   ? run.after.leg[k].offset[i]
+                         : row == 1 ? run.after.leg[k].offset[i] - run.before.leg[k].offset[i]
+                                    : run.estimate.sigma[k][i];
+        o += fmt::format(" {:>9.4f}", v);
+      }
+      o += "\n";
+    }
+  }
+  if (r.undetermined_size() > 0) {
+    std::string list;
+    for (const std::string& u : r.undetermined()) list += (list.empty() ? "" : ", ") + u;
+    o += "not determined by this session, base values kept: " + list + "\n";
+  }
+  return o;
 }
 
 std::string SummaryTable(const CalibrationRun& run) {

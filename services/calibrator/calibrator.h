@@ -9,7 +9,10 @@
 //   - steady standing poses: the STEADY_POSE events of the log when it has any, else the
 //     PoseSegmenter run over the STANDING spans (as ftcal-pose-segmenter would have);
 //   - the aligned samples of the first WALKING phase (up to kMaxWalkingSamples), for the
-//     report's walking figure (the report's Fig. 9): corrected vs naive tare.
+//     report's walking figure (the report's Fig. 9): corrected vs naive tare;
+//   - steady tripod stances (the same segmenter over the TRIPOD spans), with the legs turned
+//     past calibrator.unloaded_leg_min_angle_deg marked unloaded: the per-leg equations of the
+//     offset re-estimation (method.md "Offset drift").
 // Nothing is guessed: a series without its start..stop pair is missing, not reconstructed.
 //
 // RunCalibration() checks what was collected (every series, markers present, the config's legs
@@ -32,6 +35,7 @@
 #include "ftcal/calibrate.h"
 #include "ftcal/dataset.h"
 #include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/offset_reestimation.h"
 #include "ftcal/segmenter.h"
 #include "ftcal/steady_pose_t.hpp"
 #include "pose_segmenter/stage_inputs.h"
@@ -56,6 +60,9 @@ struct CollectorCounters {
   int64_t segmented_poses = 0;   // poses the collector's own segmenter found
   int64_t poses_dropped_markers = 0;  // logged poses without every marker
   int64_t walking_samples = 0;        // aligned samples inside WALKING phases (kept or not)
+  int64_t tripod_samples = 0;         // aligned samples inside TRIPOD phases
+  int64_t tripod_stances = 0;         // steady tripod stances with a leg unloaded, kept
+  int64_t tripod_stances_dropped = 0; // steady, but no leg unloaded or a marker untracked
 };
 
 class CalibrationCollector {
@@ -89,6 +96,9 @@ class CalibrationCollector {
   static constexpr size_t kMaxWalkingSamples = 60000;
   const std::vector<SyncSample>& walking_samples() const { return walking_; }
 
+  // Steady tripod stances of the completed TRIPOD phases, with their unloaded legs.
+  const std::vector<LoadSample>& unloaded_samples() const { return unloaded_; }
+
   const CollectorCounters& counters() const { return counters_; }
   const std::string& standing_session() const { return standing_session_; }
 
@@ -99,6 +109,7 @@ class CalibrationCollector {
   void OnExperiment(const experiment_marker_t& msg);
   void OnSteadyPose(const steady_pose_t& msg);
   void OnAligned(const AlignedSample& a);
+  void OnTripodStance(const SteadyPoseOut& p);
   void EndPhase(bool completed);
 
   const config::Config& config_;
@@ -114,6 +125,8 @@ class CalibrationCollector {
   std::vector<StandingPose> current_poses_;
   std::vector<SyncSample> current_walk_;
   std::vector<SyncSample> walking_;
+  std::vector<LoadSample> current_unloaded_;
+  std::vector<LoadSample> unloaded_;
 
   std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
   std::vector<StandingPose> segmented_poses_;
@@ -173,6 +186,24 @@ class LiveCalibrator {
   std::string last_refusal_;
   int64_t waiting_since_utime_ = -1;  // STANDING stopped, the segmenter's last poses not all in
 };
+
+// Offset drift (method.md "Offset drift"): the offsets of `base` re-estimated from the
+// collected standing poses and steady tripod stances, everything else kept. Refuses
+// (CalibratorInputError) a base calibration for another robot, missing markers or data, and,
+// unless `allow_partial`, data that leaves any offset component undetermined (naming them); with
+// `allow_partial` those keep the base value and are listed in the result.
+struct OffsetReestimationRun {
+  calibration::Calibration proto;  // base with the new offsets and offset_reestimation filled
+  OffsetReestimate estimate;
+  RobotCalibration before, after;
+};
+OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collector,
+                                            const config::Config& config,
+                                            const std::string& base_path, bool allow_partial,
+                                            const CalibratorOptions& options);
+// Per leg: the offsets before and after, their difference (the drift) and the sigma of the new
+// ones; the undetermined components and the data used.
+std::string OffsetSummaryTable(const OffsetReestimationRun& run);
 
 // Writes the calibration file and <out>.residuals.csv beside it, both atomically.
 void WriteCalibrationOutputs(const CalibrationRun& run, const std::string& out_path);

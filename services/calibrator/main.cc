@@ -42,6 +42,8 @@ struct Args {
   std::string out;
   std::string report_dir;
   std::string truth;
+  std::string reestimate_base;
+  bool partial = false;
   std::string config_path;
   std::string lcm_url;
   std::string log_level;
@@ -90,8 +92,9 @@ int Report(const ftcal::CalibrationRun& run, const Args& args, const std::string
   return 0;
 }
 
-int Offline(const ftcal::config::Config& config, const Args& args) {
-  ftcal::CalibrationCollector collector(config);
+// Reads every --log into the collector, in order. Returns false when reading was interrupted
+// (a signal); throws CalibratorInputError for a missing, damaged or truncated log.
+bool ReadLogs(ftcal::CalibrationCollector& collector, const Args& args) {
   auto log = spdlog::default_logger();
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
@@ -127,7 +130,7 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
         60'000'000);
     if (!bus.finished()) {
       spdlog::error("{}: reading interrupted; no calibration written", path);
-      return 1;
+      return false;
     }
     // A damaged log may have lost any part of a series: refuse rather than calibrate on the
     // rest. Each kind names the byte span or the message skipped.
@@ -150,11 +153,21 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
     spdlog::info("{}: {} events", path, bus.events_read());
   }
   collector.Flush();
+  return true;
+}
+
+ftcal::CalibratorOptions OptionsOf(const Args& args) {
   ftcal::CalibratorOptions options;
   options.log_paths = args.logs;
   options.config_path = args.config_path;
   options.command_line = args.command_line;
-  const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
+  return options;
+}
+
+int Offline(const ftcal::config::Config& config, const Args& args) {
+  ftcal::CalibrationCollector collector(config);
+  if (!ReadLogs(collector, args)) return 1;
+  const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, OptionsOf(args));
   ftcal::WriteCalibrationOutputs(run, args.out);
   spdlog::info("wrote {} and {}", args.out, ftcal::ResidualsPathFor(args.out));
   std::string walking;
@@ -173,6 +186,18 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
     spdlog::info("wrote {} (the walking session corrected, for the report)", walking);
   }
   return Report(run, args, walking);
+}
+
+// Offset drift: the base calibration's offsets re-estimated from the logs, all else kept.
+int ReestimateOffsets(const ftcal::config::Config& config, const Args& args) {
+  ftcal::CalibrationCollector collector(config);
+  if (!ReadLogs(collector, args)) return 1;
+  const ftcal::OffsetReestimationRun run = ftcal::RunOffsetReestimation(
+      collector, config, args.reestimate_base, args.partial, OptionsOf(args));
+  ftcal::WriteCalibrationFile(run.proto, args.out);
+  spdlog::info("wrote {} (version {})", args.out, run.proto.version());
+  std::cout << ftcal::OffsetSummaryTable(run) << std::flush;
+  return 0;
 }
 
 // Live: collect by markers; calibrate when a STANDING phase stops (LiveCalibrator).
@@ -210,6 +235,14 @@ int main(int argc, char** argv) {
   cli.add_option("--report", args.report_dir, "also write the HTML report into this directory");
   cli.add_option("--truth", args.truth, "a truth calibration file (the twin's) for the report")
       ->check(CLI::ExistingFile);
+  cli.add_option("--reestimate-offsets", args.reestimate_base,
+                 "offset drift (method.md): re-estimate only the offsets of this calibration "
+                 "from --log (standing poses and tripod stances), everything else kept; refused "
+                 "when the data leaves an offset component undetermined")
+      ->check(CLI::ExistingFile);
+  cli.add_flag("--partial", args.partial,
+               "with --reestimate-offsets: keep the old value of the components the data does "
+               "not determine (listed) instead of refusing");
   cli.add_option("--config", args.config_path, "configuration file; default: the embedded " +
                                                    ftcal::ServiceApp::DefaultConfigPath());
   cli.add_option("--lcm-url", args.lcm_url, "live: LCM URL; overrides the config's lcm_url");
@@ -228,7 +261,16 @@ int main(int argc, char** argv) {
     spdlog::critical("{}", e.what());
     return 2;
   }
+  if (!args.reestimate_base.empty() && (args.logs.empty() || !args.report_dir.empty())) {
+    spdlog::critical("--reestimate-offsets needs --log (the drift session) and takes no --report");
+    return 2;
+  }
+  if (args.partial && args.reestimate_base.empty()) {
+    spdlog::critical("--partial goes with --reestimate-offsets");
+    return 2;
+  }
   try {
+    if (!args.reestimate_base.empty()) return ReestimateOffsets(config, args);
     return args.logs.empty() ? Live(config, args) : Offline(config, args);
   } catch (const CalibratorInputError& e) {
     spdlog::critical("refused: {}", e.what());

@@ -225,6 +225,7 @@ TEST(Config, RangeChecks) {
       {"\n}\n", "\n}\ncalibrator { k_weights: [1, 1, 1, 10, 0, 10] }\n", "calibrator.k_weights[4]: must be > 0"},
       {"\n}\n", "\n}\ncalibrator { cv_folds: 1 }\n", "calibrator.cv_folds: must be >= 2"},
       {"\n}\n", "\n}\ncalibrator { phase_bins: 7 }\n", "calibrator.phase_bins: must be >= 8"},
+      {"\n}\n", "\n}\ncalibrator { unloaded_leg_min_angle_deg: 180 }\n", "calibrator.unloaded_leg_min_angle_deg: must be in (0, 180), got 180"},
       {"\n}\n", "\n}\ncorrector { max_ft_age_s: -1 }\n", "corrector.max_ft_age_s: must be > 0"},
       {"\n}\n", "\n}\nmocap { server_address: \"127.0.0.1\" port: 0 }\n", "mocap.port: port must be in 1..65535"},
       {"\n}\n", "\n}\nmocap { port: 22223 }\n", "mocap.server_address: required field is missing"},
