@@ -322,7 +322,7 @@ int main(int argc, char** argv) {
       "Write a whole experiment into an LCM log as the bridges would publish it: FT_<LEG>, "
       "SERVO_STATE, MOCAP_BODY at 100 Hz with per-device timestamp jitter, EXPERIMENT markers "
       "around each scenario (hanging ones with the stated gravity_b); and the truth file.");
-  std::string out_path, truth_path, session_id;
+  std::string out_path, truth_path, drifted_truth_path, session_id;
   uint64_t seed = 1;
   ftcal::ExperimentPlan plan;
   double noise_scale = 1.0;
@@ -351,6 +351,9 @@ int main(int argc, char** argv) {
       ->delimiter(',')
       ->check(CLI::IsMember({"hang", "stand", "tripod", "walk"}))
       ->capture_default_str();
+  log->add_option("--drifted-truth", drifted_truth_path,
+                  "with --drift-at-s: the truth with the drifted offsets (default: next to the "
+                  "truth file, <truth stem>.drifted.pbtxt)");
   log->add_option("--drift-at-s", plan.drift_at_s,
                   "twin time (s from the first frame) from which the transducer offsets drift");
   log->add_option("--walk-s", plan.walk_s, "walking duration, s")
@@ -410,11 +413,24 @@ int main(int argc, char** argv) {
     log_options.session_id = session_id.empty() ? "sim-" + std::to_string(seed) : session_id;
     log_options.mocap_residual_m = twin_options.marker_noise_m;
     if (truth_path.empty()) truth_path = DefaultTruthPath(out_path);
+    if (!drifted_truth_path.empty() && !std::isfinite(plan.drift_at_s)) {
+      throw std::invalid_argument("--drifted-truth needs --drift-at-s (no drift, no drifted truth)");
+    }
 
     const auto started = std::chrono::steady_clock::now();
     ftcal::SimLogWriter writer(config, out_path, log_options);
     const double end_s = ftcal::WriteExperiment(twin, plan, &writer);
     twin.WriteTruthFile(truth_path);
+    const bool drift = std::isfinite(plan.drift_at_s);
+    if (drift) {
+      if (drifted_truth_path.empty()) {
+        const std::string stem = truth_path.size() > 6 && truth_path.substr(truth_path.size() - 6) == ".pbtxt"
+                                     ? truth_path.substr(0, truth_path.size() - 6)
+                                     : truth_path;
+        drifted_truth_path = stem + ".drifted.pbtxt";
+      }
+      twin.WriteTruthFile(drifted_truth_path, /*drifted=*/true);
+    }
     writer.Commit();
     const double wall_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
@@ -426,6 +442,8 @@ int main(int argc, char** argv) {
         static_cast<long long>(c.Total()), static_cast<long long>(c.ft[0]),
         static_cast<long long>(c.servo), static_cast<long long>(c.mocap),
         static_cast<long long>(c.markers), wall_s, truth_path.c_str());
+    if (drift) std::printf("ftcal-sim log: offsets drift from %.1f s; drifted truth %s\n",
+                           plan.drift_at_s, drifted_truth_path.c_str());
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "ftcal-sim log: %s\n", e.what());

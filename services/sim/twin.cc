@@ -343,9 +343,9 @@ BigAntTwin::BigAntTwin(const config::Config& config, const TwinOptions& options)
   std::shuffle(pose_order_.begin(), pose_order_.end(), order_rng.Engine());
 }
 
-calibration::Calibration BigAntTwin::TruthProto() const {
+calibration::Calibration BigAntTwin::TruthProto(bool drifted) const {
   calibration::Calibration proto;
-  FillCalibrationValues(truth_, &proto);
+  FillCalibrationValues(drifted ? drifted_ : truth_, &proto);
   proto.set_robot_name(robot_name_);
   proto.set_g0_m_s2(truth_.g0);
   proto.set_total_mass_kg(truth_.total_mass_kg);
@@ -354,14 +354,15 @@ calibration::Calibration BigAntTwin::TruthProto() const {
   proto.set_standing_uncertainty(calibration::TRUTH);
   std::ostringstream what;
   what << "BigAntTwin truth: seed=" << options_.seed << " physical_com=" << options_.physical_com
-       << " mounting_errors=" << options_.mounting_errors;
+       << " mounting_errors=" << options_.mounting_errors
+       << (drifted ? " offsets=drifted" : "");
   proto.mutable_provenance()->set_software_version("ftcal-twin");
   proto.mutable_provenance()->set_command_line(what.str());
   return proto;
 }
 
-void BigAntTwin::WriteTruthFile(const std::string& path) const {
-  WriteCalibrationFile(TruthProto(), path);
+void BigAntTwin::WriteTruthFile(const std::string& path, bool drifted) const {
+  WriteCalibrationFile(TruthProto(drifted), path);
 }
 
 Vec3 BigAntTwin::StatedGravityB(HangSeries series) const {

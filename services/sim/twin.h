@@ -181,8 +181,9 @@ class BigAntTwin {
   const RobotCalibration& DriftedTruth() const { return drifted_; }
   // The truth as a calibration file (uncertainty source TRUTH); WriteTruthFile writes it
   // atomically as text.
-  calibration::Calibration TruthProto() const;
-  void WriteTruthFile(const std::string& path) const;
+  // `drifted`: with the drifted offsets (DriftedTruth()), the truth of a drift session.
+  calibration::Calibration TruthProto(bool drifted = false) const;
+  void WriteTruthFile(const std::string& path, bool drifted = false) const;
 
   // The operator's stated gravity direction in B for a hanging series (a body axis), and the
   // actual attitude R_WC of that series (stated axis tilted by 1-3 deg).

@@ -147,6 +147,14 @@ TEST_F(OffsetDriftTest, StandingPosesAndTripodStancesRecoverEveryDriftedOffset) 
   EXPECT_LT(torque, kTorqueBoundNm);
   EXPECT_LT(worst_sigmas, 5.0);
 
+  // ftcal-sim's drifted truth file is the twin's drifted truth, offsets and all else.
+  const RobotCalibration drifted_file = CalibrationFromProto(
+      ReadCalibrationFile(*dir_ + "/full.truth.drifted.pbtxt"), config.robot());
+  for (int k = 0; k < kNumLegs; ++k) {
+    EXPECT_EQ(drifted_file.leg[k].offset, twin_->DriftedTruth().leg[k].offset) << k;
+    EXPECT_EQ(drifted_file.leg[k].weight_n, twin_->Truth().leg[k].weight_n) << k;
+  }
+
   const calibration::OffsetReestimation& re = out.offset_reestimation();
   EXPECT_EQ(re.rank(), 36u);
   EXPECT_EQ(re.undetermined_size(), 0);
