@@ -162,6 +162,11 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
 }
 
 void CalibrationCollector::EndPhase(bool completed) {
+  // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
+  if (segmenter_) {
+    segmenter_->Flush();
+    segmenter_.reset();
+  }
   if (IsHangPhase(phase_)) {
     if (completed) {
       const int s = static_cast<int>(current_hang_.series);
@@ -176,8 +181,6 @@ void CalibrationCollector::EndPhase(bool completed) {
     }
     current_hang_ = HangingRecording();
   } else if (phase_ == experiment_marker_t::STANDING) {
-    if (segmenter_) segmenter_->Flush();
-    segmenter_.reset();
     if (completed) {
       spdlog::info("STANDING complete (session '{}'): {} steady poses segmented",
                    phase_session_, current_poses_.size());
@@ -187,8 +190,6 @@ void CalibrationCollector::EndPhase(bool completed) {
     }
     current_poses_.clear();
   } else if (phase_ == experiment_marker_t::TRIPOD) {
-    if (segmenter_) segmenter_->Flush();
-    segmenter_.reset();
     if (completed) {
       spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg unloaded",
                    phase_session_, current_unloaded_.size());
