@@ -191,8 +191,9 @@ void CalibrationCollector::EndPhase(bool completed) {
     current_poses_.clear();
   } else if (phase_ == experiment_marker_t::TRIPOD) {
     if (completed) {
-      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg unloaded",
-                   phase_session_, current_unloaded_.size());
+      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg unloaded ({} "
+                   "steady stances so far left out: no leg lifted or a marker untracked)",
+                   phase_session_, current_unloaded_.size(), counters_.tripod_stances_dropped);
       unloaded_.insert(unloaded_.end(), current_unloaded_.begin(), current_unloaded_.end());
     }
     current_unloaded_.clear();
