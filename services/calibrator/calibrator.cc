@@ -163,8 +163,10 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
 
 void CalibrationCollector::EndPhase(bool completed) {
   // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
+  SegmenterCounters segmented;
   if (segmenter_) {
     segmenter_->Flush();
+    segmented = segmenter_->counters();
     segmenter_.reset();
   }
   if (IsHangPhase(phase_)) {
@@ -191,9 +193,12 @@ void CalibrationCollector::EndPhase(bool completed) {
     current_poses_.clear();
   } else if (phase_ == experiment_marker_t::TRIPOD) {
     if (completed) {
-      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg unloaded ({} "
-                   "steady stances so far left out: no leg lifted or a marker untracked)",
-                   phase_session_, current_unloaded_.size(), counters_.tripod_stances_dropped);
+      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
+                   "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "
+                   "with no leg lifted",
+                   phase_session_, current_unloaded_.size(), segmented.dropped_short,
+                   segmenter_options_.min_steady_s, segmented.dropped_markers,
+                   counters_.tripod_stances_dropped);
       unloaded_.insert(unloaded_.end(), current_unloaded_.begin(), current_unloaded_.end());
     }
     current_unloaded_.clear();

@@ -62,7 +62,7 @@ struct CollectorCounters {
   int64_t walking_samples = 0;        // aligned samples inside WALKING phases (kept or not)
   int64_t tripod_samples = 0;         // aligned samples inside TRIPOD phases
   int64_t tripod_stances = 0;         // steady tripod stances with a leg unloaded, kept
-  int64_t tripod_stances_dropped = 0; // steady, but no leg unloaded or a marker untracked
+  int64_t tripod_stances_dropped = 0; // steady, but no leg lifted
 };
 
 class CalibrationCollector {
