@@ -4,6 +4,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cstdio>
 #include <exception>
 #include <filesystem>
@@ -19,6 +20,7 @@
 
 #include "calibrator/calibrator.h"
 #include "common/bus.h"
+#include "common/heartbeat.h"
 #include "common/service.h"
 #include "common/service_stats.h"
 #include "common/shutdown.h"
@@ -213,7 +215,34 @@ int Live(const ftcal::config::Config& config, const Args& args) {
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
   ftcal::InstallShutdownHandlers();
   spdlog::info("listening on {} for EXPERIMENT markers", url);
-  bus.Run([&live] { live.Tick(); }, 100'000);
+  // The 1 Hz FTCAL_STATUS every process publishes (ServiceApp's, which this mode does not use:
+  // its --out is required and it has no --replay). A refused calibration is its last error.
+  const ftcal::ProcessIdentity identity = ftcal::ThisProcess("ftcal-calibrator");
+  const auto started = std::chrono::steady_clock::now();
+  int64_t next_status_utime = 0, refusals_reported = 0;
+  auto publish_status = [&](int8_t state) {
+    if (live.refused() > refusals_reported) {
+      refusals_reported = live.refused();
+      stats.Error("calibration refused", live.last_refusal());
+    }
+    stats.Counter("calibrations") = live.version();
+    stats.Counter("refused") = live.refused();
+    const double uptime_s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+    bus.Publish(config.channels().status(),
+                ftcal::MakeServiceStatus(identity, state, uptime_s, stats, bus.NowUtime()),
+                /*count=*/false);
+  };
+  bus.Run(
+      [&] {
+        live.Tick();
+        if (bus.NowUtime() >= next_status_utime) {
+          publish_status(ftcal::service_status_t::RUNNING);
+          next_status_utime = bus.NowUtime() + 1'000'000;
+        }
+      },
+      100'000);
+  publish_status(ftcal::service_status_t::STOPPING);
   return rc;
 }
 

@@ -276,6 +276,22 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   ASSERT_TRUE(from_bus.ParseFromString(bytes));
   const calibration::Calibration from_file = ReadCalibrationFile(live_cal);
   EXPECT_EQ(from_file.SerializeAsString(), bytes);
+  // The live calibrator's heartbeat: about 1 Hz while it ran, then STOPPING with its counters.
+  {
+    std::vector<service_status_t> beats;
+    for (const auto& m : ReadChannel<service_status_t>(recorded, ch.status())) {
+      if (m.name == "ftcal-calibrator") beats.push_back(m);
+    }
+    ASSERT_GE(beats.size(), static_cast<size_t>(play_s) - 1) << "played " << play_s << " s";
+    EXPECT_EQ(int{beats.front().state}, int{service_status_t::RUNNING});
+    const service_status_t& last = beats.back();
+    EXPECT_EQ(int{last.state}, int{service_status_t::STOPPING});
+    std::map<std::string, int64_t> counters;
+    for (int i = 0; i < last.num_counters; ++i) counters[last.counter_name[i]] = last.counter_value[i];
+    EXPECT_EQ(counters["calibrations"], 1);
+    EXPECT_EQ(counters["refused"], 0);
+    EXPECT_GT(last.msgs_out, 0);  // CALIBRATION
+  }
   const calibration::Calibration reference = ReadCalibrationFile(ref_cal);
   EXPECT_EQ(reference.standing_poses(), ref_poses.size());
   // The same inputs (the same poses, every hanging sample): the same numbers.
