@@ -256,7 +256,8 @@ DataFrame DecodeData(const Packet& packet) {
       frame.bodies.resize(items);
       for (Body& b : frame.bodies) {
         b.p_GoBo_G_mm = {GetF32(q), GetF32(q + 4), GetF32(q + 8)};
-        // Column-major: R(i, j) = m[3 j + i] (§3.6, [S]).
+        // Column-major: R(i, j) = m[3 j + i], R rotating body into global (§3.6, [S]; Qualisys's
+        // own Unity plugin reads the nine floats the same way and takes positions in mm).
         for (int j = 0; j < 3; ++j) {
           for (int i = 0; i < 3; ++i) b.R_GB(i, j) = GetF32(q + 12 + 4 * (3 * j + i));
         }
