@@ -37,12 +37,17 @@
 
 namespace {
 
-// SESSION.lcmlog -> SESSION.truth.pbtxt, in the same directory.
-std::string DefaultTruthPath(const std::string& log_path) {
-  const auto slash = log_path.rfind('/');
-  const auto dot = log_path.rfind('.');
+// DIR/NAME.EXT -> DIR/NAME<suffix>: a file that goes with `path`, in the same directory.
+std::string BesidePath(const std::string& path, const std::string& suffix) {
+  const auto slash = path.rfind('/');
+  const auto dot = path.rfind('.');
   const bool has_ext = dot != std::string::npos && (slash == std::string::npos || dot > slash + 1);
-  return (has_ext ? log_path.substr(0, dot) : log_path) + ".truth.pbtxt";
+  return (has_ext ? path.substr(0, dot) : path) + suffix;
+}
+
+// SESSION.lcmlog -> SESSION.truth.pbtxt.
+std::string DefaultTruthPath(const std::string& log_path) {
+  return BesidePath(log_path, ".truth.pbtxt");
 }
 
 volatile std::sig_atomic_t g_stop = 0;
@@ -413,24 +418,20 @@ int main(int argc, char** argv) {
     log_options.session_id = session_id.empty() ? "sim-" + std::to_string(seed) : session_id;
     log_options.mocap_residual_m = twin_options.marker_noise_m;
     if (truth_path.empty()) truth_path = DefaultTruthPath(out_path);
-    if (!drifted_truth_path.empty() && !std::isfinite(plan.drift_at_s)) {
+    const bool drift = std::isfinite(plan.drift_at_s);
+    if (!drifted_truth_path.empty() && !drift) {
       throw std::invalid_argument("--drifted-truth needs --drift-at-s (no drift, no drifted truth)");
+    }
+    // TRUTH.pbtxt -> TRUTH.drifted.pbtxt.
+    if (drift && drifted_truth_path.empty()) {
+      drifted_truth_path = BesidePath(truth_path, ".drifted.pbtxt");
     }
 
     const auto started = std::chrono::steady_clock::now();
     ftcal::SimLogWriter writer(config, out_path, log_options);
     const double end_s = ftcal::WriteExperiment(twin, plan, &writer);
     twin.WriteTruthFile(truth_path);
-    const bool drift = std::isfinite(plan.drift_at_s);
-    if (drift) {
-      if (drifted_truth_path.empty()) {
-        const std::string stem = truth_path.size() > 6 && truth_path.substr(truth_path.size() - 6) == ".pbtxt"
-                                     ? truth_path.substr(0, truth_path.size() - 6)
-                                     : truth_path;
-        drifted_truth_path = stem + ".drifted.pbtxt";
-      }
-      twin.WriteTruthFile(drifted_truth_path, /*drifted=*/true);
-    }
+    if (drift) twin.WriteTruthFile(drifted_truth_path, /*drifted=*/true);
     writer.Commit();
     const double wall_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
