@@ -321,7 +321,11 @@ std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
   return logged_poses_.empty() ? segmented_poses_ : logged_poses_;
 }
 
-void CalibrationCollector::CheckLegsMatchConfig() const {
+void CalibrationCollector::CheckMarkersAndLegs(const std::string& phases) const {
+  if (counters_.markers == 0) {
+    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config_.channels().experiment() +
+                               "') in the input: cannot tell " + phases);
+  }
   std::string unknown, silent;
   std::set<std::string> expected;
   for (int k = 0; k < kNumLegs; ++k) expected.insert(inputs_.FtChannel(k));
@@ -419,11 +423,7 @@ std::string SoftwareVersion() { return FTCAL_SOFTWARE_VERSION; }
 
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
                               const CalibratorOptions& options) {
-  if (collector.counters().markers == 0) {
-    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config.channels().experiment() +
-                               "') in the input: cannot tell hanging series from standing");
-  }
-  collector.CheckLegsMatchConfig();
+  collector.CheckMarkersAndLegs("hanging series from standing");
   const std::vector<HangingRecording> hanging = collector.HangingRecordings();
   const std::vector<StandingPose> poses = collector.StandingPoses();
   if (poses.empty()) {
@@ -494,11 +494,7 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
                                             const config::Config& config,
                                             const std::string& base_path, bool allow_partial,
                                             const CalibratorOptions& options) {
-  if (collector.counters().markers == 0) {
-    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config.channels().experiment() +
-                               "') in the input: cannot tell standing poses or tripod stances");
-  }
-  collector.CheckLegsMatchConfig();
+  collector.CheckMarkersAndLegs("standing poses or tripod stances");
   OffsetReestimationRun run;
   try {
     run.proto = ReadCalibrationFile(base_path);

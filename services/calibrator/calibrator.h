@@ -88,8 +88,9 @@ class CalibrationCollector {
   // What was collected. Throws CalibratorInputError naming what is missing or inconsistent.
   std::vector<HangingRecording> HangingRecordings() const;
   std::vector<StandingPose> StandingPoses() const;
-  // The FT_* channels seen against the config's legs: throws CalibratorInputError on mismatch.
-  void CheckLegsMatchConfig() const;
+  // Throws CalibratorInputError when there were no EXPERIMENT markers (`phases`: what cannot be
+  // told apart without them) or the FT_* channels seen are not the config's legs.
+  void CheckMarkersAndLegs(const std::string& phases) const;
 
   // The aligned samples of the first completed WALKING phase (empty when there was none).
   // Bounded: ten minutes at 100 Hz is more than a figure shows.
