@@ -598,7 +598,7 @@ std::array<Pose3, kNumLegs> NominalTransducerPoses(const config::Robot& robot) {
 Vec6 KWeights(const config::Calibrator& calibrator) {
   if (calibrator.k_weights_size() == 0) {
     Vec6 k;
-    k << 1, 1, 1, 10, 10, 10;  // method.md eq. 8: torques weighted 10x (N vs N*m scales)
+    k << 1, 1, 1, 10, 10, 10;  // docs/method.md eq. 8: torques weighted 10x (N vs N*m scales)
     return k;
   }
   if (calibrator.k_weights_size() != 6) {

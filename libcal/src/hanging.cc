@@ -1,4 +1,4 @@
-// Step 1 — hanging: offsets, leg weight, leg CoM (method.md "Step 1", report section III-A).
+// Step 1 — hanging: offsets, leg weight, leg CoM (docs/method.md "Step 1", report section III-A).
 //
 // Model (eq. 4-7), for the pair whose transducer axis a (e_x or e_z) is along gravity:
 //   f_down = R(s_down) m g a + f_o,      tau_down = [r(phi)] R(s_down) m g a + tau_o,

@@ -1,4 +1,4 @@
-// Offset drift re-estimation (method.md "Offset drift"); the model is in the header.
+// Offset drift re-estimation (docs/method.md "Offset drift"); the model is in the header.
 #include "ftcal/offset_reestimation.h"
 
 #include <cmath>

@@ -1,4 +1,4 @@
-// Step 2 (method.md "Step 2", report section III-B). All Ceres templates of step 2 live in this
+// Step 2 (docs/method.md "Step 2", report section III-B). All Ceres templates of step 2 live in this
 // one translation unit: they compile slowly.
 //
 // Model: eq. 9 with p~'_k = R~_k^T (p~_k + p^C_B) (bilinear form, see standing.h):
@@ -41,7 +41,7 @@ namespace {
 
 constexpr double kRadToDeg = 180.0 / M_PI;
 
-// The nominally transformed quantities of one leg in one pose (primes of method.md): step 1 is
+// The nominally transformed quantities of one leg in one pose (primes of docs/method.md): step 1 is
 // fixed during step 2, so these are computed once and the cost functor only rotates/shifts them.
 struct LegTerms {
   Vec3 f = Vec3::Zero();     // f' = R_B_ft (w_m - w_o).f

@@ -557,7 +557,7 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
 std::string OffsetSummaryTable(const OffsetReestimationRun& run) {
   const calibration::OffsetReestimation& r = run.proto.offset_reestimation();
   std::string o = fmt::format(
-      "Offsets of {} re-estimated (method.md \"Offset drift\"): {} standing poses, {} "
+      "Offsets of {} re-estimated (docs/method.md \"Offset drift\"): {} standing poses, {} "
       "unloaded-leg samples; rank {} of 36; K-weighted rms residual {:.4f}\n",
       run.proto.robot_name(), r.standing_poses(), r.unloaded_leg_samples(), r.rank(),
       r.residual_rms());

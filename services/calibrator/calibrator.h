@@ -12,7 +12,7 @@
 //     report's walking figure (the report's Fig. 9): corrected vs naive tare;
 //   - steady tripod stances (the same segmenter over the TRIPOD spans), with the legs turned
 //     past calibrator.unloaded_leg_min_angle_deg marked unloaded: the per-leg equations of the
-//     offset re-estimation (method.md "Offset drift").
+//     offset re-estimation (docs/method.md "Offset drift").
 // Nothing is guessed: a series without its start..stop pair is missing, not reconstructed.
 //
 // RunCalibration() checks what was collected (every series, markers present, the config's legs
@@ -188,7 +188,7 @@ class LiveCalibrator {
   int64_t waiting_since_utime_ = -1;  // STANDING stopped, the segmenter's last poses not all in
 };
 
-// Offset drift (method.md "Offset drift"): the offsets of `base` re-estimated from the
+// Offset drift (docs/method.md "Offset drift"): the offsets of `base` re-estimated from the
 // collected standing poses and steady tripod stances, everything else kept. Refuses
 // (CalibratorInputError) a base calibration for another robot, missing markers or data, and,
 // unless `allow_partial`, data that leaves any offset component undetermined (naming them); with

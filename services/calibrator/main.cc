@@ -252,7 +252,7 @@ int main(int argc, char** argv) {
   Args args;
   for (int i = 0; i < argc; ++i) args.command_line += (i ? " " : "") + std::string(argv[i]);
   CLI::App cli(
-      "Calibrates the six transducers (method.md steps 1 and 2). Offline (--log): reads the "
+      "Calibrates the six transducers (docs/method.md steps 1 and 2). Offline (--log): reads the "
       "logs in order, collects the four hanging series (EXPERIMENT HANG_* start..stop) and the "
       "steady standing poses (STEADY_POSE events, else segmented over STANDING), runs the "
       "method and writes --out atomically with provenance, plus <out>.residuals.csv. Live (no "
@@ -265,7 +265,7 @@ int main(int argc, char** argv) {
   cli.add_option("--truth", args.truth, "a truth calibration file (the twin's) for the report")
       ->check(CLI::ExistingFile);
   cli.add_option("--reestimate-offsets", args.reestimate_base,
-                 "offset drift (method.md): re-estimate only the offsets of this calibration "
+                 "offset drift (docs/method.md): re-estimate only the offsets of this calibration "
                  "from --log (standing poses and tripod stances), everything else kept; refused "
                  "when the data leaves an offset component undetermined")
       ->check(CLI::ExistingFile);

@@ -1,4 +1,4 @@
-// ftcal-corrector's work, transport-agnostic through the Bus (method.md, "Correction"):
+// ftcal-corrector's work, transport-agnostic through the Bus (docs/method.md, "Correction"):
 // every FT_<LEG> sample becomes one CONTACT_WRENCH with all six legs' ground-contact wrenches
 // in W about the CoM (libcal's Corrector), using SERVO_STATE for the leg phase and MOCAP_BODY
 // for R_WC.

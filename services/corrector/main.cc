@@ -11,7 +11,7 @@ int main(int argc, char** argv) {
       {"ftcal-corrector",
        "Reads FT_<LEG> (ft_sample_t), SERVO_STATE, MOCAP_BODY and CALIBRATION (calibration_t). "
        "Publishes CONTACT_WRENCH (contact_wrench_t) for every transducer sample: each leg's "
-       "ground-contact wrench in W about the CoM (method.md eq. 3, the leg's latest sample), "
+       "ground-contact wrench in W about the CoM (docs/method.md eq. 3, the leg's latest sample), "
        "their sum, its residual against (0,0,G,0,0,0), the calibration version, input ages and "
        "stale/saturated flags (inputs older than corrector.max_*_age_s). A new CALIBRATION is "
        "validated against the config and used without a restart; a bad one is refused and "

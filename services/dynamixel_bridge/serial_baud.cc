@@ -11,7 +11,7 @@
 namespace ftcal::dxl {
 namespace {
 
-// The Dynamixel rates (device-protocols.md §2.1) that have a Bxxx constant.
+// The Dynamixel rates (docs/device-protocols.md §2.1) that have a Bxxx constant.
 speed_t StandardSpeed(std::uint32_t baud) {
   switch (baud) {
     case 9600: return B9600;

@@ -297,7 +297,7 @@ BigAntTwin::BigAntTwin(const config::Config& config, const TwinOptions& options)
     leg.com.z.c = -0.5 * M_PI + rng.Uniform(-0.3, 0.3);
     leg.com.z.d = -0.05 + rng.Uniform(-0.005, 0.005);
     // Mounting error: tilt about the transducer's own origin plus a shift d; T~ acts about the
-    // body origin, so p~ = d + (I - R~) p^B_ft (method.md).
+    // body origin, so p~ = d + (I - R~) p^B_ft (docs/method.md).
     const Vec3 tilt_axis = rng.UnitVector();
     const double tilt = rng.Uniform(o.tilt_min_deg, o.tilt_max_deg) * kDeg;
     const Vec3 shift = rng.UnitVector() * rng.Uniform(o.shift_min_m, o.shift_max_m);

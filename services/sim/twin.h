@@ -3,7 +3,7 @@
 // the report, with known calibration parameters, so every stage of the method can be checked
 // against the parameters that made the data.
 //
-// The readings follow the agreed sensing model exactly (ftcal/sensing_model.h, method.md
+// The readings follow the agreed sensing model exactly (ftcal/sensing_model.h, docs/method.md
 // eq. 1-3): w_m,k = X(X_C_ft,k)^-1 (w_gc,k + w_leg,k) + w_o,k + n, with the true RobotCalibration.
 //
 // Geometry. The nominal transducer poses, the total mass and g0 come from the config

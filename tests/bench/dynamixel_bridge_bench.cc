@@ -3,7 +3,7 @@
 // READ of addresses 64-70, one cycle per 1.05 ms (the servos' tick is 1 ms) over a
 // pseudo-terminal with the twin's MX-106 emulator answering in a second thread. Prints cycles/s and the per-cycle latency p50/p99/max.
 // On real hardware the wire time dominates (about 2.5 ms per cycle at 1 Mbit/s, see
-// device-protocols.md §2.1); this measures the software path: codec, pty, emulator, bridge.
+// docs/device-protocols.md §2.1); this measures the software path: codec, pty, emulator, bridge.
 #include <algorithm>
 #include <atomic>
 #include <chrono>

@@ -77,7 +77,7 @@ TEST(DynamixelEmulator, PingAnswersModel321AndFirmware) {
   sim::DynamixelBusEmulator emu({});
   const auto bytes = dxl::BuildPing(3);
   const auto reply = emu.Receive(bytes.data(), bytes.size(), 0.0);
-  // Model 321 = 0x0141 LSB first, firmware 45 = 0x2D (device-protocols.md §2.6, §2.7); the CRC
+  // Model 321 = 0x0141 LSB first, firmware 45 = 0x2D (docs/device-protocols.md §2.6, §2.7); the CRC
   // is checked by the parser.
   const auto statuses = ParseAll(reply);
   ASSERT_EQ(statuses.size(), 1u);

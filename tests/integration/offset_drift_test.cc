@@ -1,4 +1,4 @@
-// Offset drift (method.md "Offset drift", issue #5's --reestimate-offsets) as a lab runs it:
+// Offset drift (docs/method.md "Offset drift", issue #5's --reestimate-offsets) as a lab runs it:
 // ftcal-sim log writes a short drift session (the twin's offsets drifted from its first frame),
 // and ftcal-calibrator --reestimate-offsets re-estimates the offsets of the twin's own truth
 // file from it. Both are real processes. The truth to meet is independent of both: the twin

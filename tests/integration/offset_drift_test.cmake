@@ -1,4 +1,4 @@
-# Offset drift (method.md): ftcal-sim log writes a drift session, ftcal-calibrator
+# Offset drift (docs/method.md): ftcal-sim log writes a drift session, ftcal-calibrator
 # --reestimate-offsets re-estimates the offsets (both real processes; logs only, no network);
 # checked against the twin's drifted truth rebuilt in the test.
 ftcal_add_gtest(offset_drift_test integration TIMEOUT 300

@@ -155,7 +155,7 @@ TEST(OffsetReestimation, StandingAloneDeterminesNoSingleOffset) {
   OffsetReestimationOptions options;
   options.require_all = false;
   const OffsetReestimate r = ReestimateOffsets(before, standing, {}, options);
-  EXPECT_EQ(r.rank, 6);  // the sum over legs, 6 numbers (method.md)
+  EXPECT_EQ(r.rank, 6);  // the sum over legs, 6 numbers (docs/method.md)
   EXPECT_EQ(r.undetermined.size(), 36u);
 }
 

@@ -109,7 +109,7 @@ void ExpectRotationsWithinBoundButCommonYaw(const StandingFit& fit, const RobotC
 }
 
 // Step 1 as the report writes it (first-order rotations I + [s], config/sim.pbtxt) and with
-// the exact rotations exp([s]) (method.md, beyond the report). The first-order form
+// the exact rotations exp([s]) (docs/method.md, beyond the report). The first-order form
 // underestimates m g by |s|^2 / 2 (the tilt of gravity off the transducer axis, here hanging
 // tilt plus mounting tilt, 2-5 deg): 0.05-0.4 %, i.e. up to ~0.02 N on a 6 N leg, more than
 // the 0.015 N bound and far more than the cycle-spread sigma. So the weight bound is asserted
@@ -306,7 +306,7 @@ void CheckExactHangingRotationsRemoveTheWeightBias() {
 
 // With the physical CoM (the legs carry nearly half the mass, so the robot's CoM moves with the
 // shaft angles) the report's fixed-CoM target is wrong by delta x (0, 0, G), a moment of up to
-// ~0.1 N*m that the plain model absorbs into p~'. The leg-aware target (method.md) removes it.
+// ~0.1 N*m that the plain model absorbs into p~'. The leg-aware target (docs/method.md) removes it.
 // Step 1 with exact rotations and the hanging gravity prior (ftcal's method), to isolate this
 // effect.
 void CheckLegAwareComRemovesTheBiasOfAMovingCoM() {

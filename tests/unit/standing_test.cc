@@ -216,7 +216,7 @@ TEST_F(NoisyGrid, AlternatingSchemeStopsShortOfTheJointOptimum) {
   EXPECT_TRUE(alt.converged);  // its own 1e-3 rule fired
   EXPECT_GE(alt.iterations, 1);
   EXPECT_GE(alt.rss, joint.rss * (1.0 - 1e-9));  // the joint solution is the optimum
-  // method.md's warning, measured: the 1e-3 rule (mixed Cayley and metre units) fires while
+  // docs/method.md's warning, measured: the 1e-3 rule (mixed Cayley and metre units) fires while
   // the strongly coupled yaw / horizontal p~' are still far from the optimum.
   EXPECT_GT(rot_gap, 0.1);
   EXPECT_GT(p_gap, 0.5e-3);

@@ -49,7 +49,7 @@ inline RobotCalibration MakeTruth(uint64_t seed, Mounting mounting) {
       p_tilde = (Mat3::Identity() - R_tilde) * cal.X_B_ft[k].p;
     }
     if (mounting == Mounting::kFull || mounting == Mounting::kTranslationsOnly) {
-      // ... plus a shift of 2-8 mm (p~ acts about the body origin, method.md).
+      // ... plus a shift of 2-8 mm (p~ acts about the body origin, docs/method.md).
       const Vec3 d = Vec3(u(rng), u(rng), u(rng)).normalized() * (0.005 + 0.003 * u(rng));
       p_tilde += d;
     }

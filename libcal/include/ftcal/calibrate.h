@@ -1,4 +1,4 @@
-// The whole method in one call (method.md, steps 1 and 2): hanging recordings and steady
+// The whole method in one call (docs/method.md, steps 1 and 2): hanging recordings and steady
 // standing poses in, a complete calibration file and the parameters of eq. 3 out.
 //
 // Order: step 1 (RunHanging) on the four hanging series gives offsets, leg weights and CoM

@@ -1,4 +1,4 @@
-// The corrector: every transducer sample into ground-contact wrenches (method.md,
+// The corrector: every transducer sample into ground-contact wrenches (docs/method.md,
 // "Correction"; pipeline item 4).
 //
 // Model: eq. 3 rotated to W (the same as GroundWrenchW in sensing_model.h),

@@ -1,6 +1,6 @@
-// Geometry core: SO(3)/SE(3) and the wrench transform of method.md.
+// Geometry core: SO(3)/SE(3) and the wrench transform of docs/method.md.
 //
-// Conventions (method.md, "Conventions"):
+// Conventions (docs/method.md, "Conventions"):
 //  - Skew(v) u = v x u.
 //  - A pose X_AB = (R_AB, p_AB) maps a point from frame B to frame A: x_A = R x_B + p
 //    (the report's T^A_B).

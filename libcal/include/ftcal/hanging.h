@@ -1,4 +1,4 @@
-// Step 1 of the method (method.md "Step 1", report section III-A): from four hanging series,
+// Step 1 of the method (docs/method.md "Step 1", report section III-A): from four hanging series,
 // per leg the transducer offsets w_o = [f_o; tau_o], the leg weight m g and the leg CoM r(phi),
 // each with a 1-sigma uncertainty, plus the baselines the report compares against (naive tare,
 // the step without the misalignments s) and the hanging residual statistics (report Fig. 5).
@@ -27,7 +27,7 @@ struct HangingOptions {
   // RTS smoother of the leg CoM (random-walk state r): variances on the diagonal.
   double smoother_transition_var_m2 = 0.01;
   double smoother_observation_var_nm2 = 0.01;
-  // exp([s]) instead of I + [s] (method.md, beyond the report): removes the low bias of m g.
+  // exp([s]) instead of I + [s] (docs/method.md, beyond the report): removes the low bias of m g.
   bool exact_rotations = false;
   // A series whose gravity (stated, or measured by motion capture) is farther than this from
   // a transducer axis is refused.
@@ -125,7 +125,7 @@ struct LegHangingResult {
 };
 
 // What one transducer saw of gravity in one hanging series, beside what motion capture saw
-// (ftcal's extension, method.md "beyond the report"): with no ground contact the leg's whole
+// (ftcal's extension, docs/method.md "beyond the report"): with no ground contact the leg's whole
 // weight passes through the transducer, so f - f_o points along gravity in ft_k at every
 // phase, and R~_k u_B = v_C (f^C = R~ f', as in step 2). Four series per leg determine R~_k
 // fully, including the common yaw of all six that the standing poses see only through the

@@ -1,4 +1,4 @@
-// Leg names and their order (method.md: HL ML FL HR MR FR everywhere).
+// Leg names and their order (docs/method.md: HL ML FL HR MR FR everywhere).
 #pragma once
 
 #include <array>

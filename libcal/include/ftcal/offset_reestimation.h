@@ -1,4 +1,4 @@
-// Offset drift (method.md "Offset drift", report section V): re-estimate only the transducer
+// Offset drift (docs/method.md "Offset drift", report section V): re-estimate only the transducer
 // offsets w_o,k with everything else (leg weights, CoM curves, mounting, p^C_B) fixed.
 //
 // Model: eq. 3 is affine in w_o.

@@ -1,4 +1,4 @@
-// Steady standing poses from aligned samples (method.md, step 2; report section I-B).
+// Steady standing poses from aligned samples (docs/method.md, step 2; report section I-B).
 //
 // A pose is steady while the L2 norm over all legs of the force derivative is below a
 // threshold (default 1 N/s); a steady run longer than min_steady_s (1.5 s) becomes one pose,

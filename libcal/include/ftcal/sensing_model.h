@@ -1,10 +1,10 @@
-// The sensing model of method.md (eq. 1-3) and the calibration parameters it is written in.
+// The sensing model of docs/method.md (eq. 1-3) and the calibration parameters it is written in.
 //
 // Model: a transducer reading w_m,k (the wrench leg k exerts on the chassis, in ft_k, about
 // its origin) is w_m = w_a + w_o + n, and quasi-statically the applied wrench is the leg's
 // gravity plus the ground's wrench on the foot: w_a = w_leg + w_gc. The chain to the CoM frame
 // is X_C_ft = (I, p^C_B) * T~_k * X_B_ft. Parameterised with p~' = R~^T (p~ + p^C_B)
-// (method.md, step 2) this is X_C_ft = (R~, R~ p~') * X_B_ft = R~ * (R_B_ft, p_B_ft + p~'):
+// (docs/method.md, step 2) this is X_C_ft = (R~, R~ p~') * X_B_ft = R~ * (R_B_ft, p_B_ft + p~'):
 // the nominally transformed wrench and CoM get shifted by p~' and rotated by R~.
 // p~ acts about the BODY origin (T~ multiplies on the left): a transducer tilted by R~ about
 // its own origin and shifted by d has p~ = d + (I - R~) p^B_ft.
@@ -18,7 +18,7 @@
 
 namespace ftcal {
 
-// Leg phase phi = wrap(theta / 2 pi) in [0, 1) (method.md).
+// Leg phase phi = wrap(theta / 2 pi) in [0, 1) (docs/method.md).
 double LegPhase(double angle_rad);
 
 // r(phi) = a sin(2 pi phi + c) + d.
@@ -79,7 +79,7 @@ Vec6 TransducerReading(const RobotCalibration& cal, int k, const Vec6& w_gc_C, d
 
 // Whole-robot CoM shift (in C, m) of a pose relative to the reference shape (all shaft angles
 // 0), from the legs' masses and CoM curves: delta = sum_k m_k (r_k^C(phi) - r_k^C(0)) / M.
-// Used by the leg-aware step 2 (method.md, "beyond the report").
+// Used by the leg-aware step 2 (docs/method.md, "beyond the report").
 Vec3 ComShiftC(const RobotCalibration& cal, const std::array<double, kNumLegs>& angle_rad);
 
 }  // namespace ftcal

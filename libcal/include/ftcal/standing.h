@@ -1,4 +1,4 @@
-// Step 2 of the method (method.md "Step 2", report section III-B): standing poses give the
+// Step 2 of the method (docs/method.md "Step 2", report section III-B): standing poses give the
 // mounting errors T~_k = (R~_k, p~_k) and the body-to-CoM offset p^C_B.
 //
 // Model (eq. 9, with p~'_k = R~_k^T (p~_k + p^C_B), see sensing_model.h): per pose p and leg k,
@@ -113,7 +113,7 @@ StandingFit FitStandingJoint(const RobotCalibration& step1, const std::vector<St
 // fixed, rotations (Cayley parameters) by a nonlinear solve with the translations fixed
 // (cost tolerance 1e-3, as the report's scipy call), until successive solutions differ by less
 // than options.alternating_tolerance (max norm). Stops where that rule says, which can be far
-// from the optimum (method.md). iterations = sweeps.
+// from the optimum (docs/method.md). iterations = sweeps.
 StandingFit FitStandingAlternating(const RobotCalibration& step1,
                                    const std::vector<StandingPose>& poses, StandingModel model,
                                    const StandingOptions& options, bool compute_covariance = true);

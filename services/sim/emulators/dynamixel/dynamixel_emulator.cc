@@ -15,7 +15,7 @@
 namespace ftcal::sim {
 namespace {
 
-// MX-106(2.0) control-table addresses (device-protocols.md §2.7) the emulator gives meaning to.
+// MX-106(2.0) control-table addresses (docs/device-protocols.md §2.7) the emulator gives meaning to.
 constexpr std::uint16_t kAddrModelNumber = 0;
 constexpr std::uint16_t kAddrFirmware = 6;
 constexpr std::uint16_t kAddrId = 7;
