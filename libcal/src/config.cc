@@ -471,6 +471,111 @@ void ValidateChannels(const Node& node, const config::Channels& c) {
   }
 }
 
+// A number that must lie in [lo, hi] (inclusive), with both named in the message.
+void InRange(const Node& node, std::string_view name, double v, double lo, double hi,
+             std::string_view unit = "") {
+  if (node.Finite(name, v) && !(v >= lo && v <= hi)) {
+    node.Error(name, "must be in [" + FormatNumber(lo) + ", " + FormatNumber(hi) + "]" +
+                         std::string(unit) + ", got " + FormatNumber(v));
+  }
+}
+
+void ValidatePlanPhase(const Node& node, const config::PlanPhase& p) {
+  switch (p.kind()) {
+    case config::PHASE_TARE:
+      InRange(node, "tare_s", p.tare_s(), 0.1, 600.0, " s");
+      break;
+    case config::PHASE_HANG:
+      if (p.orientation() == config::HANG_ORIENTATION_UNSPECIFIED) {
+        node.Error("orientation", "a hanging phase needs HANG_X_POS, HANG_X_NEG, HANG_Z_POS or "
+                                  "HANG_Z_NEG");
+      }
+      if (p.cycles() < 1 || p.cycles() > 1000) {
+        node.Error("cycles", "must be in [1, 1000], got " + std::to_string(p.cycles()));
+      }
+      InRange(node, "cycle_s", p.cycle_s(), 1.0, 3600.0, " s");
+      break;
+    case config::PHASE_STANDING_GRID:
+      if (p.grid_angles_deg_size() > 5) {
+        node.Error("grid_angles_deg", "at most 5 angles (5^6 poses), got " +
+                                          std::to_string(p.grid_angles_deg_size()));
+      }
+      for (int i = 0; i < p.grid_angles_deg_size(); ++i) {
+        if (node.Finite("grid_angles_deg", p.grid_angles_deg(i), i) &&
+            std::abs(p.grid_angles_deg(i)) > 90.0) {
+          node.Error("grid_angles_deg",
+                     "a standing angle must be within +-90 deg of straight down, got " +
+                         FormatNumber(p.grid_angles_deg(i)),
+                     i);
+        }
+      }
+      if (p.pose_stride() < 1) node.Error("pose_stride", "must be >= 1");
+      InRange(node, "dwell_s", p.dwell_s(), 0.5, 600.0, " s");
+      break;
+    case config::PHASE_TRIPOD_STANCES:
+      if (p.stances() < 1 || p.stances() > 1000) {
+        node.Error("stances", "must be in [1, 1000], got " + std::to_string(p.stances()));
+      }
+      InRange(node, "lift_angle_deg", p.lift_angle_deg(), 90.0, 180.0, " deg");
+      InRange(node, "dwell_s", p.dwell_s(), 0.5, 600.0, " s");
+      break;
+    case config::PHASE_TRIPOD_WALK:
+      InRange(node, "clock_hz", p.clock_hz(), 0.001, 2.0, " Hz");
+      if (node.Finite("duty", p.duty()) && !(p.duty() > 0.0 && p.duty() < 1.0)) {
+        node.Error("duty", "must be in (0, 1), got " + FormatNumber(p.duty()));
+      }
+      InRange(node, "sweep_deg", p.sweep_deg(), 1.0, 180.0, " deg");
+      InRange(node, "turn_sweep_delta_deg", p.turn_sweep_delta_deg(), -90.0, 90.0, " deg");
+      InRange(node, "walk_s", p.walk_s(), 1.0, 36000.0, " s");
+      break;
+    default:
+      node.Error("kind", "must be PHASE_TARE, PHASE_HANG, PHASE_STANDING_GRID, "
+                         "PHASE_TRIPOD_STANCES or PHASE_TRIPOD_WALK");
+  }
+}
+
+void ValidatePlans(const Node& root, const config::Config& config) {
+  for (int i = 0; i < config.plan_size(); ++i) {
+    const config::ExperimentPlan& plan = config.plan(i);
+    const Node node = root.Child("plan", i, plan);
+    if (plan.name().empty()) node.Missing("name");
+    for (int j = 0; j < i; ++j) {
+      if (config.plan(j).name() == plan.name() && !plan.name().empty()) {
+        node.Error("name", "duplicate plan name '" + plan.name() + "' (already " +
+                               root.FieldPath("plan", j) + ")");
+      }
+    }
+    if (plan.phase_size() == 0) node.SelfError("a plan needs at least one phase");
+    for (int k = 0; k < plan.phase_size(); ++k) {
+      ValidatePlanPhase(node.Child("phase", k, plan.phase(k)), plan.phase(k));
+    }
+  }
+}
+
+void ValidateSequencer(const Node& node, const config::Sequencer& s) {
+  InRange(node, "command_rate_hz", s.command_rate_hz(), 1.0, 1000.0, " Hz");
+  InRange(node, "max_velocity_rad_s", s.max_velocity_rad_s(), 0.01, 20.0, " rad/s");
+  InRange(node, "joint_limit_margin_rad", s.joint_limit_margin_rad(), 0.0, 1.0, " rad");
+  InRange(node, "max_input_age_s", s.max_input_age_s(), 0.01, 10.0, " s");
+  InRange(node, "airborne_max_support_n", s.airborne_max_support_n(), 0.1, 1000.0, " N");
+  InRange(node, "standing_min_weight_share", s.standing_min_weight_share(), 0.0, 2.0);
+  InRange(node, "standing_max_weight_share", s.standing_max_weight_share(), 0.0, 5.0);
+  if (std::isfinite(s.standing_min_weight_share()) &&
+      std::isfinite(s.standing_max_weight_share()) &&
+      !(s.standing_min_weight_share() < s.standing_max_weight_share())) {
+    node.Error("standing_max_weight_share",
+               "must be greater than standing_min_weight_share (" +
+                   FormatNumber(s.standing_min_weight_share()) + "), got " +
+                   FormatNumber(s.standing_max_weight_share()));
+  }
+  InRange(node, "max_tilt_deg", s.max_tilt_deg(), 0.1, 90.0, " deg");
+  InRange(node, "arrival_tolerance_rad", s.arrival_tolerance_rad(), 0.001, 1.0, " rad");
+  InRange(node, "arrival_timeout_s", s.arrival_timeout_s(), 0.1, 600.0, " s");
+  if (s.safe_action() == config::SAFE_ACTION_UNSPECIFIED) {
+    node.Error("safe_action", "must be SAFE_HOLD or SAFE_TORQUE_OFF");
+  }
+}
+
 void Validate(const config::Config& config, const ParseInfoTree* tree, const std::string& source,
               std::vector<std::string>* errors) {
   const Node root(config, tree, "", Location{1, 1}, &source, errors);
@@ -489,6 +594,8 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
   ValidateCorrector(root.Child("corrector", config.corrector()), config.corrector());
   ValidateChannels(root.Child("channels", config.channels()), config.channels());
   if (config.lcm_url().empty()) root.Error("lcm_url", "must not be empty");
+  ValidatePlans(root, config);
+  ValidateSequencer(root.Child("sequencer", config.sequencer()), config.sequencer());
 }
 
 std::string ReadWholeFile(const std::string& path, const char* what) {

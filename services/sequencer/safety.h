@@ -1,0 +1,72 @@
+// The sequencer's safety rules, transport-free: what the robot must look like before a phase
+// starts and while it runs. Each check returns the first violation as a sentence that names the
+// measured number and the limit (config section `sequencer`), or nothing.
+//
+//   before hanging / tare:  the transducers' summed force opposes gravity by at most
+//                           airborne_max_support_n (the robot is in the air, its legs hanging
+//                           from it), and, when motion capture is present, gravity within
+//                           mocap.hang_axis_tolerance_deg of the stated body axis;
+//   before standing:        motion capture shows the body tilted less than max_tilt_deg, and
+//                           the summed vertical force (nominal transducer rotations) is within
+//                           [standing_min_weight_share, standing_max_weight_share] of m g;
+//   always, while moving:   every input fresher than max_input_age_s (six transducers, the
+//                           servos, and motion capture where the phase needs it), every bridge's
+//                           FTCAL_STATUS RUNNING, no transducer beyond its rated range or
+//                           flagged saturated, and (standing phases) the tilt below max_tilt_deg.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <string>
+
+#include "ftcal/aligner.h"
+#include "ftcal/geometry.h"
+#include "ftcal/legs.h"
+#include "proto/config.pb.h"
+
+namespace ftcal::sequencer {
+
+struct StatusReading {
+  int64_t utime = 0;
+  int8_t state = 0;  // service_status_t state
+  std::string last_error;
+};
+
+// The latest of every input, as the sequencer last saw it.
+struct Inputs {
+  std::array<std::optional<FtInput>, kNumLegs> ft;
+  std::optional<ServoInput> servo;
+  std::optional<MocapInput> mocap;
+  // Bridges' heartbeats by process name (ftcal-ati-bridge, ...): every one heard must be
+  // RUNNING; a bridge that has gone quiet is caught by its data's age.
+  std::map<std::string, StatusReading> status;
+};
+
+class Safety {
+ public:
+  explicit Safety(const config::Config& config);
+
+  // Inputs missing or older than max_input_age_s at `now_utime`, or a bridge not RUNNING.
+  std::optional<std::string> Stale(const Inputs& in, int64_t now_utime, bool need_mocap) const;
+  // A transducer beyond its rated range or flagged saturated.
+  std::optional<std::string> OverRange(const Inputs& in) const;
+  // The body tilted further than max_tilt_deg (needs a tracked motion-capture frame).
+  std::optional<std::string> Tilted(const Inputs& in) const;
+  // Pre-checks of a hanging (or tare) phase; `stated_gravity_b` is zero for the tare (upright).
+  std::optional<std::string> Airborne(const Inputs& in, const Vec3& stated_gravity_b) const;
+  // Pre-checks of a standing phase.
+  std::optional<std::string> Standing(const Inputs& in) const;
+
+  static double TiltDeg(const Mat3& R_WC);
+
+ private:
+  const config::Config& config_;
+  const config::Sequencer& seq_;
+  std::array<Mat3, kNumLegs> R_B_ft_;
+  std::array<Vec6, kNumLegs> rated_;  // per axis; +inf where the config gives none
+  double weight_n_;
+};
+
+}  // namespace ftcal::sequencer

@@ -1,0 +1,483 @@
+#include "sequencer/sequencer.h"
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <sstream>
+#include <stdexcept>
+
+#include "ftcal/calibration_io.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/servo_command_t.hpp"
+
+namespace ftcal::sequencer {
+namespace {
+
+std::string Clock(double s) {
+  const long total = std::lround(std::max(0.0, s));
+  std::ostringstream o;
+  o << total / 60 << ":" << (total % 60 < 10 ? "0" : "") << total % 60;
+  return o.str();
+}
+
+// How long a pre-check waits for every input to be fresh before it fails.
+constexpr double kInputWaitS = 5.0;
+
+bool Timed(StepKind k) {
+  return k == StepKind::kMove || k == StepKind::kHold || k == StepKind::kTurn ||
+         k == StepKind::kWalk;
+}
+
+}  // namespace
+
+std::optional<Progress> LoadProgress(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) return std::nullopt;
+  Progress p;
+  std::string line;
+  int n = 0;
+  bool have_step = false;
+  while (std::getline(in, line)) {
+    ++n;
+    if (line.empty()) continue;
+    const size_t sp = line.find(' ');
+    const std::string key = line.substr(0, sp);
+    const std::string value = sp == std::string::npos ? "" : line.substr(sp + 1);
+    if (key == "plan") {
+      p.plan = value;
+    } else if (key == "next_step") {
+      try {
+        size_t used = 0;
+        p.next_step = std::stoi(value, &used);
+        if (used != value.size() || p.next_step < 0) throw std::invalid_argument(value);
+      } catch (const std::exception&) {
+        throw std::runtime_error(path + ":" + std::to_string(n) + ": next_step '" + value +
+                                 "' is not a step number");
+      }
+      have_step = true;
+    } else if (key == "session") {
+      p.session_id = value;
+    } else {
+      throw std::runtime_error(path + ":" + std::to_string(n) + ": unknown key '" + key + "'");
+    }
+  }
+  if (p.plan.empty() || !have_step) {
+    throw std::runtime_error(path + ": a progress file needs 'plan' and 'next_step' lines");
+  }
+  return p;
+}
+
+void SaveProgress(const std::string& path, const Progress& p) {
+  WriteFileAtomic(path, "plan " + p.plan + "\nnext_step " + std::to_string(p.next_step) +
+                            "\nsession " + p.session_id + "\n");
+}
+
+Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
+    : config_(config),
+      bus_(bus),
+      options_(std::move(options)),
+      inputs_conv_(config),
+      safety_(config),
+      schedule_(Expand(config, options_.plan_name)) {
+  if (options_.progress_file.empty()) options_.progress_file = config.sequencer().progress_file();
+  for (int k = 0; k < kNumLegs; ++k) servo_ids_[k] = config.robot().leg(k).servo().id();
+
+  int resume = 0;
+  std::optional<Progress> saved;
+  if (!options_.progress_file.empty()) saved = LoadProgress(options_.progress_file);
+  if (saved) {
+    if (saved->plan != schedule_.plan_name) {
+      throw std::invalid_argument("progress file " + options_.progress_file + " is for plan '" +
+                                  saved->plan + "', not '" + schedule_.plan_name +
+                                  "': remove it to start afresh");
+    }
+    if (saved->next_step < 0 || saved->next_step > static_cast<int>(schedule_.steps.size())) {
+      throw std::invalid_argument("progress file " + options_.progress_file + ": next_step " +
+                                  std::to_string(saved->next_step) + " is outside the plan's " +
+                                  std::to_string(schedule_.steps.size()) + " steps");
+    }
+    resume = saved->next_step;
+    session_id_ = saved->session_id;
+  }
+  if (!options_.session_id.empty()) session_id_ = options_.session_id;
+  if (session_id_.empty()) session_id_ = "seq-" + std::to_string(bus_.NowUtime() / 1000000);
+
+  // On resume inside a phase, its preparation runs again (the operator confirms, the checks
+  // pass, the legs go to the resumed step's start) and its marker opens again.
+  const auto& all = schedule_.steps;
+  if (resume > 0 && resume < static_cast<int>(all.size()) &&
+      all[resume].kind != StepKind::kConfirm && all[resume].kind != StepKind::kPrecheck) {
+    const int phase = all[resume].phase;
+    bool marker_open = false;
+    for (int i = 0; i < resume; ++i) {
+      if (all[i].phase != phase) continue;
+      if (all[i].kind == StepKind::kConfirm || all[i].kind == StepKind::kPrecheck) {
+        steps_.push_back(all[i]);
+        step_of_.push_back(i);
+      }
+      if (all[i].kind == StepKind::kMarkerStart) marker_open = true;
+      if (all[i].kind == StepKind::kMarkerStop) marker_open = false;
+    }
+    Step move = all[resume];
+    move.kind = StepKind::kMove;
+    // Straight to where the resumed step goes (a pose), or where it starts (a turn, a walk).
+    move.to = all[resume].kind == StepKind::kMove ? all[resume].to : all[resume].from;
+    move.duration_s = 0.0;  // timed from the measured angles when it begins
+    move.resume_point = false;
+    steps_.push_back(move);
+    step_of_.push_back(-1);
+    if (marker_open) {
+      Step open = all[resume];
+      open.kind = StepKind::kMarkerStart;
+      steps_.push_back(open);
+      step_of_.push_back(-1);
+    }
+  }
+  for (int i = resume; i < static_cast<int>(all.size()); ++i) {
+    steps_.push_back(all[i]);
+    step_of_.push_back(i);
+  }
+  if (resume > 0) {
+    bus_.stats().log().info("resuming plan '{}' at step {} of {} (session {})",
+                             schedule_.plan_name, resume, all.size(), session_id_);
+  }
+
+  const config::Channels& ch = config.channels();
+  for (int k = 0; k < kNumLegs; ++k) {
+    bus_.Subscribe<ft_sample_t>(inputs_conv_.FtChannel(k),
+                                [this, k](const MessageInfo& i, const ft_sample_t& m) { OnFt(k, i, m); });
+  }
+  bus_.Subscribe<servo_state_t>(ch.servo_state(), [this](const MessageInfo& i, const servo_state_t& m) {
+    OnServo(i, m);
+  });
+  bus_.Subscribe<mocap_body_t>(ch.mocap_body(), [this](const MessageInfo& i, const mocap_body_t& m) {
+    OnMocap(i, m);
+  });
+  bus_.Subscribe<service_status_t>(ch.status(), [this](const MessageInfo& i, const service_status_t& m) {
+    OnStatus(i, m);
+  });
+  bus_.Subscribe<sequencer_control_t>(
+      ch.sequencer_control(),
+      [this](const MessageInfo& i, const sequencer_control_t& m) { OnControl(i, m); });
+  if (steps_.empty()) state_ = State::kDone;
+}
+
+void Sequencer::OnFt(int leg, const MessageInfo&, const ft_sample_t& msg) {
+  inputs_.ft[leg] = inputs_conv_.FromFt(leg, msg);
+}
+
+void Sequencer::OnServo(const MessageInfo&, const servo_state_t& msg) {
+  inputs_.servo = inputs_conv_.FromServo(msg);
+  Tick();
+}
+
+void Sequencer::OnMocap(const MessageInfo&, const mocap_body_t& msg) {
+  if (auto m = inputs_conv_.FromMocap(msg)) inputs_.mocap = *m;
+}
+
+void Sequencer::OnStatus(const MessageInfo&, const service_status_t& msg) {
+  // Only the bridges gate the motion: the sequencer cannot move safely without their data.
+  if (msg.name.find("bridge") == std::string::npos) return;
+  inputs_.status[msg.name] = StatusReading{msg.utime, msg.state, msg.last_error};
+}
+
+void Sequencer::OnControl(const MessageInfo&, const sequencer_control_t& msg) {
+  if (msg.action == sequencer_control_t::STOP) {
+    Stop("operator STOP on " + config_.channels().sequencer_control() +
+         (msg.note.empty() ? std::string() : " (" + msg.note + ")"));
+  } else if (msg.action == sequencer_control_t::CONFIRM) {
+    Confirm(msg.step);
+  } else {
+    throw BadInput("unknown sequencer_control_t action",
+                   "action " + std::to_string(msg.action));
+  }
+}
+
+void Sequencer::Confirm(int step) {
+  if (state_ != State::kWaitingForOperator) return;
+  const int waiting = step_of_[index_];
+  if (step >= 0 && step != waiting) {
+    bus_.stats().log().warn("confirmation for step {} ignored: step {} is waiting", step, waiting);
+    return;
+  }
+  confirmed_ = true;
+  Tick();
+}
+
+bool Sequencer::PhaseNeedsMocap(int phase) const {
+  // Hanging and the tare work without motion capture (the report had none); on the ground the
+  // tilt rule needs it.
+  const int8_t m = schedule_.phase_marker[phase];
+  return m == experiment_marker_t::STANDING || m == experiment_marker_t::TRIPOD ||
+         m == experiment_marker_t::WALKING;
+}
+
+std::optional<std::string> Sequencer::SafetyViolation() const {
+  const int phase = Current().phase;
+  if (auto e = safety_.Stale(inputs_, bus_.NowUtime(), PhaseNeedsMocap(phase))) return e;
+  if (auto e = safety_.OverRange(inputs_)) return e;
+  if (PhaseNeedsMocap(phase)) {
+    if (auto e = safety_.Tilted(inputs_)) return e;
+  }
+  return std::nullopt;
+}
+
+bool Sequencer::Arrived(const Angles& goals) const {
+  if (!inputs_.servo) return false;
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (std::abs(inputs_.servo->angle_rad[k] - goals[k]) > config_.sequencer().arrival_tolerance_rad()) {
+      return false;
+    }
+  }
+  return true;
+}
+
+void Sequencer::Publish(const Angles& goals, bool torque) {
+  servo_command_t cmd;
+  cmd.utime = bus_.NowUtime();
+  cmd.num_servos = kNumLegs;
+  cmd.id.assign(servo_ids_.begin(), servo_ids_.end());
+  cmd.goal_angle_rad.assign(goals.begin(), goals.end());
+  cmd.torque_enable = torque;
+  bus_.Publish(config_.channels().servo_cmd(), cmd);
+  goals_ = goals;
+  have_goals_ = true;
+  last_command_utime_ = cmd.utime;
+}
+
+void Sequencer::PublishMarker(int phase, bool start) {
+  experiment_marker_t m;
+  m.utime = bus_.NowUtime();
+  m.session_id = session_id_;
+  m.phase = schedule_.phase_marker[phase];
+  m.start = start;
+  for (int i = 0; i < 3; ++i) m.gravity_b[i] = schedule_.phase_gravity_b[phase][i];
+  m.note = "ftcal-sequencer plan " + schedule_.plan_name + ": " + schedule_.phase_names[phase];
+  bus_.Publish(config_.channels().experiment(), m);
+  open_marker_phase_ = start ? phase : -1;
+  bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
+}
+
+void Sequencer::Save() {
+  if (options_.progress_file.empty()) return;
+  // The resume point of the step under way (or the next one, when this one is finished).
+  int next = static_cast<int>(schedule_.steps.size());
+  for (size_t i = index_; i < steps_.size(); ++i) {
+    if (step_of_[i] < 0) continue;
+    next = step_of_[i];
+    break;
+  }
+  // Back to the last resume point at or before it: a partly done unit is done again.
+  if (next < static_cast<int>(schedule_.steps.size())) {
+    const int phase = schedule_.steps[next].phase;
+    for (int i = next; i >= 0 && schedule_.steps[i].phase == phase; --i) {
+      if (schedule_.steps[i].resume_point) {
+        next = i;
+        break;
+      }
+      if (schedule_.steps[i].kind == StepKind::kConfirm ||
+          schedule_.steps[i].kind == StepKind::kPrecheck) {
+        next = i;
+        break;
+      }
+    }
+  }
+  SaveProgress(options_.progress_file, Progress{schedule_.plan_name, next, session_id_});
+}
+
+void Sequencer::Begin(int index) {
+  index_ = index;
+  step_started_ = false;
+  confirmed_ = false;
+  waiting_reason_.clear();
+  if (index < static_cast<int>(step_of_.size())) {
+    bus_.stats().Counter("step") = std::max(0, step_of_[index]);
+  }
+}
+
+void Sequencer::Advance() {
+  const Step& done = Current();
+  // A finished unit (its last step) is saved so that a restart does not repeat it.
+  const bool unit_done = done.unit >= 0 &&
+                         (index_ + 1 >= static_cast<int>(steps_.size()) ||
+                          steps_[index_ + 1].unit != done.unit ||
+                          steps_[index_ + 1].phase != done.phase);
+  Begin(index_ + 1);
+  if (index_ >= static_cast<int>(steps_.size())) {
+    state_ = State::kDone;
+    if (!options_.progress_file.empty()) {
+      SaveProgress(options_.progress_file,
+                   Progress{schedule_.plan_name, static_cast<int>(schedule_.steps.size()), session_id_});
+    }
+    bus_.stats().log().info("plan '{}' done", schedule_.plan_name);
+    return;
+  }
+  if (unit_done) {
+    ++bus_.stats().Counter("units_done");
+    Save();
+  }
+}
+
+void Sequencer::Tick() {
+  // Several steps can finish at the same instant (markers, checks): run them in one call.
+  for (int guard = 0; guard < 64 && state_ != State::kDone && state_ != State::kStopped; ++guard) {
+    const int64_t now = bus_.NowUtime();
+    Step& s = Current();
+    if (!step_started_) {
+      step_started_ = true;
+      step_start_utime_ = now;
+      if (s.kind == StepKind::kMove || s.kind == StepKind::kTurn || s.kind == StepKind::kWalk ||
+          s.kind == StepKind::kHold) {
+        // Moves start where the servos were last sent (or are, before the first command), so
+        // that a resumed or re-timed move never jumps.
+        if (s.kind == StepKind::kMove) {
+          if (have_goals_) {
+            s.from = goals_;
+          } else if (inputs_.servo) {
+            s.from = inputs_.servo->angle_rad;
+          } else {
+            step_started_ = false;  // no servo state yet: wait for one
+            return;
+          }
+          double longest = 0.0;
+          for (int k = 0; k < kNumLegs; ++k) longest = std::max(longest, std::abs(s.to[k] - s.from[k]));
+          s.duration_s = std::max(s.duration_s, 0.5 * M_PI * longest /
+                                                    config_.sequencer().max_velocity_rad_s());
+        }
+      }
+    }
+    const double t = (now - step_start_utime_) * 1e-6;
+    switch (s.kind) {
+      case StepKind::kConfirm:
+        if (options_.yes || confirmed_) {
+          Advance();
+          continue;
+        }
+        if (state_ != State::kWaitingForOperator) {
+          state_ = State::kWaitingForOperator;
+          const std::string prompt = s.prompt + (waiting_reason_.empty() ? "" : " (" + waiting_reason_ + ")");
+          bus_.stats().log().info("waiting for the operator: {}", prompt);
+          if (on_prompt_) on_prompt_(prompt);
+        }
+        if (have_goals_ && (now - last_command_utime_) * 1e-6 >= 1.0 / config_.sequencer().command_rate_hz()) {
+          Publish(goals_, true);
+        }
+        return;
+      case StepKind::kPrecheck: {
+        state_ = State::kRunning;
+        std::optional<std::string> why;
+        if (auto e = safety_.Stale(inputs_, now, PhaseNeedsMocap(s.phase))) {
+          // The bridges may still be starting (or the operator plugging a cable): wait a while
+          // for fresh inputs before calling it a failure.
+          if (t < kInputWaitS) return;
+          why = e;
+        } else if (s.precheck == Precheck::kAirborne) {
+          const auto& g = schedule_.phase_gravity_b[s.phase];
+          why = safety_.Airborne(inputs_, Vec3(g[0], g[1], g[2]));
+        } else if (s.precheck == Precheck::kStanding) {
+          why = safety_.Standing(inputs_);
+        }
+        if (!why) {
+          Advance();
+          continue;
+        }
+        ++bus_.stats().Counter("prechecks_failed");
+        const std::string reason = schedule_.phase_names[s.phase] + " cannot start: " + *why;
+        // With an operator at hand, ask again (they may fix it); unattended, stop.
+        if (!options_.yes && index_ > 0 && steps_[index_ - 1].kind == StepKind::kConfirm) {
+          bus_.stats().log().warn("{}", reason);
+          Begin(index_ - 1);
+          waiting_reason_ = *why;
+          state_ = State::kRunning;
+          continue;
+        }
+        Stop(reason);
+        return;
+      }
+      case StepKind::kMarkerStart:
+        PublishMarker(s.phase, true);
+        Advance();
+        continue;
+      case StepKind::kMarkerStop:
+        PublishMarker(s.phase, false);
+        Advance();
+        continue;
+      default:
+        break;
+    }
+    // Timed steps: the robot moves (or holds) under the safety rules.
+    state_ = State::kRunning;
+    if (auto e = SafetyViolation()) {
+      Stop(*e);
+      return;
+    }
+    if (!have_goals_ ||
+        (now - last_command_utime_) * 1e-6 >= 1.0 / config_.sequencer().command_rate_hz()) {
+      Publish(GoalAt(s, t), true);
+    }
+    if (t < s.duration_s) return;
+    if (s.kind == StepKind::kMove && !Arrived(s.to)) {
+      if (t > s.duration_s + config_.sequencer().arrival_timeout_s()) {
+        std::string where;
+        for (int k = 0; k < kNumLegs && inputs_.servo; ++k) {
+          const double off = inputs_.servo->angle_rad[k] - s.to[k];
+          if (std::abs(off) > config_.sequencer().arrival_tolerance_rad()) {
+            where += (where.empty() ? "" : ", ") + std::string(kLegNames[k]) + " " +
+                     std::to_string(off) + " rad";
+          }
+        }
+        Stop("the servos did not reach their goals " +
+             std::to_string(config_.sequencer().arrival_timeout_s()) +
+             " s after the move's end (sequencer.arrival_timeout_s): off by " + where);
+      }
+      return;
+    }
+    Advance();
+  }
+}
+
+void Sequencer::Stop(const std::string& reason) {
+  if (state_ == State::kDone || state_ == State::kStopped) return;
+  state_ = State::kStopped;
+  stop_reason_ = reason;
+  ++bus_.stats().Counter("stops");
+  bus_.stats().Error("sequencer stopped", reason);
+  bus_.stats().log().error("stopping the motion: {}", reason);
+  // Hold where the legs are, not where they were going.
+  if (inputs_.servo) {
+    Publish(inputs_.servo->angle_rad, true);
+    if (config_.sequencer().safe_action() == config::SAFE_TORQUE_OFF) Publish(goals_, false);
+  } else if (have_goals_) {
+    Publish(goals_, config_.sequencer().safe_action() != config::SAFE_TORQUE_OFF);
+  }
+  if (open_marker_phase_ >= 0) PublishMarker(open_marker_phase_, false);
+  try {
+    Save();
+  } catch (const std::exception& e) {
+    bus_.stats().Error("progress not saved", e.what());
+  }
+}
+
+std::string Sequencer::ProgressLine() const {
+  if (state_ == State::kDone) return "plan '" + schedule_.plan_name + "' done";
+  if (index_ >= static_cast<int>(steps_.size())) return "";
+  const Step& s = Current();
+  std::string line = schedule_.phase_names[s.phase];
+  if (s.unit >= 0) {
+    int units = 0;
+    for (const auto& x : schedule_.steps) {
+      if (x.phase == s.phase) units = std::max(units, x.unit + 1);
+    }
+    line += " " + std::to_string(s.unit + 1) + "/" + std::to_string(units);
+  }
+  double left = 0.0;
+  for (size_t i = index_; i < steps_.size(); ++i) {
+    if (Timed(steps_[i].kind)) left += steps_[i].duration_s;
+  }
+  if (step_started_ && Timed(s.kind)) left -= std::min(s.duration_s, (bus_.NowUtime() - step_start_utime_) * 1e-6);
+  line += ", " + Clock(left) + " left";
+  if (state_ == State::kWaitingForOperator) line += " (waiting for the operator)";
+  return line;
+}
+
+}  // namespace ftcal::sequencer

@@ -1,0 +1,122 @@
+// ftcal-sequencer's work, transport-agnostic through the Bus: it runs an experiment plan's
+// schedule (plan.h) against the robot, publishing SERVO_CMD and EXPERIMENT and watching
+// FT_<LEG>, SERVO_STATE, MOCAP_BODY, FTCAL_STATUS and SEQUENCER_CONTROL.
+//
+// Each step runs to completion before the next: confirmations wait for the operator (the
+// terminal, SEQUENCER_CONTROL, or --yes); pre-checks must pass (safety.h) before the phase
+// moves; moves end when every servo is within arrival_tolerance_rad of the goal (or the
+// sequencer stops when they are stuck); holds, turns and walks are timed from their start.
+// While anything moves, the safety rules are checked on every input: a violation, an operator
+// STOP or SIGINT/SIGTERM stops the motion (hold the measured angles, then the configured safe
+// action), closes the open marker and saves the progress, so that the next run of the same plan
+// with the same progress file continues at the first unfinished standing pose or tripod stance
+// (plan.h, "Resuming").
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <string>
+
+#include "common/bus.h"
+#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/mocap_body_t.hpp"
+#include "ftcal/sequencer_control_t.hpp"
+#include "ftcal/service_status_t.hpp"
+#include "ftcal/servo_state_t.hpp"
+#include "pose_segmenter/stage_inputs.h"
+#include "proto/config.pb.h"
+#include "sequencer/plan.h"
+#include "sequencer/safety.h"
+
+namespace ftcal::sequencer {
+
+// Where the run stands, saved atomically after every finished unit of work.
+struct Progress {
+  std::string plan;
+  int next_step = 0;  // the resume point to start from
+  std::string session_id;
+};
+// nullopt when the file does not exist; throws std::runtime_error naming the file and line
+// when it exists but cannot be read.
+std::optional<Progress> LoadProgress(const std::string& path);
+void SaveProgress(const std::string& path, const Progress& progress);
+
+class Sequencer {
+ public:
+  enum class State { kRunning, kWaitingForOperator, kDone, kStopped };
+
+  struct Options {
+    std::string plan_name;      // "" = the config's first plan
+    bool yes = false;           // confirm every step that asks (unattended plans)
+    std::string progress_file;  // "" = the config's sequencer.progress_file
+    std::string session_id;     // "" = from the progress file, else made from the start time
+  };
+
+  // Throws std::invalid_argument for a plan that cannot run (plan.h) or a progress file of
+  // another plan.
+  Sequencer(const config::Config& config, Bus& bus, Options options);
+
+  // Advances the schedule to the bus's now: call from the loop's tick; SERVO_STATE calls it too.
+  void Tick();
+  // The operator said yes (terminal line); -1: whatever step is waiting.
+  void Confirm(int step = -1);
+  // Stops the motion with `reason` (SIGINT/SIGTERM, STOP): hold, safe action, marker, progress.
+  void Stop(const std::string& reason);
+
+  State state() const { return state_; }
+  const std::string& stop_reason() const { return stop_reason_; }
+  const Schedule& schedule() const { return schedule_; }
+  int step_index() const { return index_; }
+  // One line for the operator: phase, pose k/N, time left.
+  std::string ProgressLine() const;
+  // Called with the prompt whenever a step starts waiting for the operator.
+  void OnPrompt(std::function<void(const std::string&)> fn) { on_prompt_ = std::move(fn); }
+
+ private:
+  void OnFt(int leg, const MessageInfo& info, const ft_sample_t& msg);
+  void OnServo(const MessageInfo& info, const servo_state_t& msg);
+  void OnMocap(const MessageInfo& info, const mocap_body_t& msg);
+  void OnStatus(const MessageInfo& info, const service_status_t& msg);
+  void OnControl(const MessageInfo& info, const sequencer_control_t& msg);
+
+  void Begin(int index);
+  void Advance();
+  void Publish(const Angles& goals, bool torque);
+  void PublishMarker(int phase, bool start);
+  bool Arrived(const Angles& goals) const;
+  std::optional<std::string> SafetyViolation() const;
+  bool PhaseNeedsMocap(int phase) const;
+  void Save();
+  const Step& Current() const { return steps_[index_]; }
+  Step& Current() { return steps_[index_]; }
+
+  const config::Config& config_;
+  Bus& bus_;
+  Options options_;
+  StageInputs inputs_conv_;
+  Safety safety_;
+  Schedule schedule_;
+  // The steps this run executes: the schedule, or on resume the prelude of the resumed phase
+  // followed by the schedule from the resume point. step_of_[i] is the schedule index of
+  // steps_[i] (-1 for the prelude's own move).
+  std::vector<Step> steps_;
+  std::vector<int> step_of_;
+  int index_ = 0;
+  int64_t step_start_utime_ = 0;
+  bool step_started_ = false;
+  Angles goals_{};
+  bool have_goals_ = false;
+  int64_t last_command_utime_ = 0;
+  int open_marker_phase_ = -1;
+  std::string session_id_;
+  Inputs inputs_;
+  State state_ = State::kRunning;
+  std::string stop_reason_;
+  std::string waiting_reason_;
+  bool confirmed_ = false;
+  std::function<void(const std::string&)> on_prompt_;
+  std::array<int32_t, kNumLegs> servo_ids_{};
+};
+
+}  // namespace ftcal::sequencer

@@ -1,0 +1,683 @@
+// The sequencer: plan -> schedule (Gray order, limits, timing), the safety rules against the
+// twin's own readings, and whole runs in simulated time with the BigAnt twin as the robot: the
+// servos follow the commands (first-order), the transducers and motion capture are the twin's
+// standing frames (BigAntTwin::Driven). The bus here is a manual clock: publications loop back
+// to the subscribers, and the test decides what time it is (holds of seconds in microseconds of
+// test time, and the abort rules at exact times).
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <set>
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+#include <spdlog/sinks/null_sink.h>
+#include <spdlog/spdlog.h>
+
+#include "ftcal/config.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/servo_command_t.hpp"
+#include "sequencer/plan.h"
+#include "sequencer/safety.h"
+#include "sequencer/sequencer.h"
+#include "sim/twin.h"
+
+namespace ftcal::sequencer {
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+config::Config SimConfig(const std::string& extra = "") {
+  std::string text;
+  {
+    FILE* f = std::fopen(FTCAL_SOURCE_DIR "/config/sim.pbtxt", "rb");
+    EXPECT_NE(f, nullptr);
+    char buf[4096];
+    size_t n;
+    while ((n = std::fread(buf, 1, sizeof buf, f)) > 0) text.append(buf, n);
+    std::fclose(f);
+  }
+  return LoadConfigText(text + extra, "sim.pbtxt+test");
+}
+
+// ---- plan -> schedule ----
+
+TEST(GrayGrid, EveryPoseOnceAndOneLegOneStepApart) {
+  const std::vector<double> grid = {-36 * kDeg, 0.0, 36 * kDeg};
+  const auto poses = GrayGrid(grid);
+  ASSERT_EQ(poses.size(), 729u);
+  std::set<Angles> unique(poses.begin(), poses.end());
+  EXPECT_EQ(unique.size(), 729u);
+  for (size_t i = 1; i < poses.size(); ++i) {
+    int changed = 0;
+    for (int k = 0; k < kNumLegs; ++k) {
+      const double d = std::abs(poses[i][k] - poses[i - 1][k]);
+      if (d > 1e-12) {
+        ++changed;
+        EXPECT_NEAR(d, 36 * kDeg, 1e-12) << "pose " << i << " leg " << k;
+      }
+    }
+    EXPECT_EQ(changed, 1) << "pose " << i;
+  }
+}
+
+TEST(Expand, ShortStandingPlanTimesEveryMoveUnderTheSpeedLimit) {
+  config::Config c = SimConfig(R"(
+plan { name: "grid" phase { kind: PHASE_STANDING_GRID pose_stride: 81 dwell_s: 2 } }
+)");
+  c.mutable_sequencer()->set_max_velocity_rad_s(0.5);
+  const Schedule s = Expand(c, "grid");
+  int holds = 0, starts = 0, stops = 0;
+  std::vector<Angles> poses;
+  for (const Step& st : s.steps) {
+    if (st.kind == StepKind::kHold) {
+      ++holds;
+      EXPECT_DOUBLE_EQ(st.duration_s, 2.0);
+      poses.push_back(st.to);
+    }
+    if (st.kind == StepKind::kMarkerStart) ++starts;
+    if (st.kind == StepKind::kMarkerStop) ++stops;
+    if (st.kind == StepKind::kMove) {
+      // Peak speed of the smooth blend: pi/2 * distance / duration, sampled too.
+      for (double u = 0.0; u < st.duration_s; u += 0.01) {
+        const Angles a = GoalAt(st, u), b = GoalAt(st, u + 0.01);
+        for (int k = 0; k < kNumLegs; ++k) EXPECT_LE(std::abs(b[k] - a[k]) / 0.01, 0.5 + 1e-6);
+      }
+    }
+  }
+  EXPECT_EQ(holds, 9);  // 729 / 81
+  EXPECT_EQ(starts, 1);
+  EXPECT_EQ(stops, 1);
+  const auto all = GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
+  for (size_t j = 0; j < poses.size(); ++j) EXPECT_EQ(poses[j], all[j * 81]);
+  EXPECT_EQ(s.steps.back().kind, StepKind::kMove);  // back to 0 at the end
+  EXPECT_EQ(s.steps.back().to, Angles{});
+}
+
+TEST(Expand, RefusesGoalsBeyondTheServoLimitsNamingThem) {
+  // The sim config's servos stay within +-pi: ten full hanging cycles do not fit.
+  const config::Config c = SimConfig(R"(
+plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_X_POS cycles: 10 } }
+)");
+  try {
+    Expand(c, "hang");
+    FAIL() << "expected a refusal";
+  } catch (const std::invalid_argument& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("phase 0 (PHASE_HANG HANG_X_POS)"), std::string::npos) << what;
+    EXPECT_NE(what.find("62.83"), std::string::npos) << what;
+    EXPECT_NE(what.find("max_angle_rad"), std::string::npos) << what;
+  }
+}
+
+TEST(Expand, HangingTurnsAtTheCycleRateAndStatesTheBodyAxis) {
+  config::Config c = SimConfig(R"(
+plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_Z_NEG cycles: 2 cycle_s: 10 } }
+)");
+  // Servos in multi-turn mode: limits wide enough for two turns.
+  for (auto& leg : *c.mutable_robot()->mutable_leg()) leg.mutable_servo()->set_max_angle_rad(20.0);
+  const Schedule s = Expand(c, "hang");
+  ASSERT_GE(s.steps.size(), 5u);
+  EXPECT_EQ(s.steps[0].kind, StepKind::kConfirm);  // the operator re-hangs the robot
+  EXPECT_EQ(s.steps[1].kind, StepKind::kPrecheck);
+  EXPECT_EQ(s.steps[1].precheck, Precheck::kAirborne);
+  const Step* turn = nullptr;
+  for (const Step& st : s.steps) {
+    if (st.kind == StepKind::kTurn) turn = &st;
+  }
+  ASSERT_NE(turn, nullptr);
+  EXPECT_EQ(turn->marker, +experiment_marker_t::HANG_Z_NEG);
+  EXPECT_DOUBLE_EQ(turn->duration_s, 20.0);
+  for (int k = 0; k < kNumLegs; ++k) {
+    EXPECT_NEAR(GoalAt(*turn, 2.5)[k], M_PI / 2, 1e-12);
+    EXPECT_NEAR(GoalAt(*turn, 20.0)[k], 4 * M_PI, 1e-12);
+  }
+  // The sim config's leg 0 transducer is aligned with B: -z of the transducer is -z of B.
+  EXPECT_EQ(s.phase_gravity_b[0], (std::array<double, 3>{0.0, 0.0, -1.0}));
+  // The unwind to straight down happens after the marker closed.
+  EXPECT_EQ(s.steps.back().kind, StepKind::kMove);
+  EXPECT_EQ(s.steps.back().to, Angles{});
+  EXPECT_EQ(s.steps[s.steps.size() - 2].kind, StepKind::kMarkerStop);
+}
+
+TEST(Expand, BigAntsReportPlanIsTheReportsExperiment) {
+  std::string text;
+  {
+    FILE* f = std::fopen(FTCAL_SOURCE_DIR "/config/bigant.pbtxt", "rb");
+    ASSERT_NE(f, nullptr);
+    char buf[4096];
+    size_t n;
+    while ((n = std::fread(buf, 1, sizeof buf, f)) > 0) text.append(buf, n);
+    std::fclose(f);
+  }
+  config::Config c = LoadConfigText(text, "bigant.pbtxt");
+  // As shipped (single-turn position mode), the full cycles do not fit the servo limits.
+  EXPECT_THROW(Expand(c, ""), std::invalid_argument);
+  for (auto& leg : *c.mutable_robot()->mutable_leg()) {
+    leg.mutable_servo()->set_min_angle_rad(-100.0);
+    leg.mutable_servo()->set_max_angle_rad(100.0);
+  }
+  const Schedule s = Expand(c, "");
+  EXPECT_EQ(s.plan_name, "report");
+  std::vector<int8_t> phases;
+  int standing_holds = 0, turns = 0, tripod_lifts = 0, walks = 0;
+  for (const Step& st : s.steps) {
+    if (st.kind == StepKind::kMarkerStart) phases.push_back(st.marker);
+    if (st.kind == StepKind::kHold && st.marker == experiment_marker_t::STANDING) {
+      ++standing_holds;
+      EXPECT_DOUBLE_EQ(st.duration_s, 5.0);
+    }
+    if (st.kind == StepKind::kTurn) {
+      ++turns;
+      EXPECT_DOUBLE_EQ(st.duration_s, 200.0);  // ten cycles of 20 s
+    }
+    if (st.kind == StepKind::kHold && st.marker == experiment_marker_t::TRIPOD &&
+        st.duration_s == 5.0) {
+      ++tripod_lifts;
+      for (int k = 0; k < kNumLegs; ++k) {
+        // The lifted tripod alternates; its legs are past the calibrator's 90 deg.
+        const bool lifted = kTripodOf[k] == (st.unit % 2);
+        EXPECT_NEAR(st.to[k], lifted ? 150.0 * kDeg : 0.0, 1e-12);
+      }
+    }
+    if (st.kind == StepKind::kWalk) {
+      ++walks;
+      EXPECT_DOUBLE_EQ(st.duration_s, 120.0);
+    }
+  }
+  EXPECT_EQ(phases, (std::vector<int8_t>{experiment_marker_t::TARE, +experiment_marker_t::HANG_X_POS,
+                                         experiment_marker_t::HANG_X_NEG, experiment_marker_t::HANG_Z_POS,
+                                         experiment_marker_t::HANG_Z_NEG, experiment_marker_t::STANDING,
+                                         experiment_marker_t::TRIPOD, experiment_marker_t::WALKING}));
+  EXPECT_EQ(standing_holds, 729);
+  EXPECT_EQ(turns, 4);
+  EXPECT_EQ(tripod_lifts, 20);
+  EXPECT_EQ(walks, 1);
+  // 729 poses of 5 s, four 200 s series, 20 stances of 6 s, the walk and the tare, plus moves.
+  const double holds = 2.0 + 729 * 5.0 + 4 * 200.0 + 20 * 6.0 + 120.0;
+  EXPECT_GT(s.duration_s, holds);
+  EXPECT_LT(s.duration_s, holds + 729 * 1.0 + 4 * 60.0 + 300.0);
+}
+
+TEST(Expand, UnknownPlanNamesTheOnesThereAre) {
+  const config::Config c = SimConfig(R"(
+plan { name: "a" phase { kind: PHASE_TARE } }
+plan { name: "b" phase { kind: PHASE_TARE } }
+)");
+  try {
+    Expand(c, "c");
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("a, b"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Expand, WalkFasterThanTheSpeedLimitIsRefused) {
+  const config::Config c = SimConfig(R"(
+plan { name: "w" phase { kind: PHASE_TRIPOD_WALK clock_hz: 1.0 walk_s: 2 } }
+)");
+  try {
+    Expand(c, "w");
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("max_velocity_rad_s"), std::string::npos) << e.what();
+  }
+}
+
+TEST(PlanConfig, BadPhasesAndLimitsAreRefusedWithTheFieldNamed) {
+  auto error_of = [](const std::string& extra) -> std::string {
+    try {
+      SimConfig(extra);
+    } catch (const ConfigError& e) {
+      return e.what();
+    }
+    return "";
+  };
+  std::string e = error_of("plan { name: \"x\" phase { kind: PHASE_HANG } }");
+  EXPECT_NE(e.find("plan[1].phase[0].orientation: a hanging phase needs"), std::string::npos) << e;
+  e = error_of("plan { name: \"short\" phase { kind: PHASE_TARE } }");
+  EXPECT_NE(e.find("plan[1].name: duplicate plan name 'short'"), std::string::npos) << e;
+  e = error_of("plan { name: \"g\" phase { kind: PHASE_STANDING_GRID grid_angles_deg: [0, 120] } }");
+  EXPECT_NE(e.find("plan[1].phase[0].grid_angles_deg[1]: a standing angle must be within +-90 deg"),
+            std::string::npos)
+      << e;
+  e = error_of("plan { name: \"w\" phase { kind: PHASE_TRIPOD_WALK duty: 1.5 } }");
+  EXPECT_NE(e.find("plan[1].phase[0].duty: must be in (0, 1), got 1.5"), std::string::npos) << e;
+  e = error_of("plan { name: \"empty\" }");
+  EXPECT_NE(e.find("plan[1]: a plan needs at least one phase"), std::string::npos) << e;
+}
+
+// ---- safety rules against the twin's own readings ----
+
+Inputs FromFrame(const TwinFrame& f, int64_t utime) {
+  Inputs in;
+  for (int k = 0; k < kNumLegs; ++k) {
+    FtInput ft;
+    ft.utime = utime;
+    ft.leg = k;
+    ft.wrench = f.reading[k];
+    in.ft[k] = ft;
+  }
+  ServoInput sv;
+  sv.utime = utime;
+  sv.angle_rad = f.angle_rad;
+  in.servo = sv;
+  MocapInput m;
+  m.utime = utime;
+  m.tracked = true;
+  m.R_WC = f.R_WC;
+  in.mocap = m;
+  return in;
+}
+
+class SafetyTest : public ::testing::Test {
+ protected:
+  config::Config config_ = SimConfig();
+  BigAntTwin twin_{config_, TwinOptions{}};
+};
+
+TEST_F(SafetyTest, StandingTwinPassesTheStandingCheckAndFailsTheAirborneOne) {
+  BigAntTwin::Driven driven(twin_);
+  const TwinFrame& f = driven.Frame(0.0, Angles{});
+  const Inputs in = FromFrame(f, 1'000'000);
+  const Safety safety(config_);
+  EXPECT_EQ(safety.Standing(in), std::nullopt);
+  const auto airborne = safety.Airborne(in, Vec3::Zero());
+  ASSERT_TRUE(airborne.has_value());
+  EXPECT_NE(airborne->find("not in the air"), std::string::npos) << *airborne;
+  EXPECT_NE(airborne->find("airborne_max_support_n 25"), std::string::npos) << *airborne;
+  EXPECT_EQ(safety.Stale(in, 1'000'000, true), std::nullopt);
+  EXPECT_EQ(safety.OverRange(in), std::nullopt);
+}
+
+TEST_F(SafetyTest, HangingTwinPassesTheAirborneCheckOnlyForItsOwnAxis) {
+  std::optional<TwinFrame> first;
+  twin_.Hanging(HangSeries::kXPos, RunOptions{}, [&](const TwinFrame& f) {
+    if (!first) first = f;
+  });
+  ASSERT_TRUE(first.has_value());
+  const Inputs in = FromFrame(*first, 5'000'000);
+  const Safety safety(config_);
+  const Vec3 stated = twin_.StatedGravityB(HangSeries::kXPos);
+  EXPECT_EQ(safety.Airborne(in, stated), std::nullopt);
+  // Stated the other way round, the legs' weight looks like support.
+  const auto reversed = safety.Airborne(in, -stated);
+  ASSERT_TRUE(reversed.has_value());
+  EXPECT_NE(reversed->find("not in the air"), std::string::npos) << *reversed;
+  // The twin hangs 1-3 deg off the stated axis; motion capture 30 deg further off is refused.
+  Inputs tilted = in;
+  const Vec3 g_C = in.mocap->R_WC.transpose() * Vec3(0.0, 0.0, -1.0);
+  tilted.mocap->R_WC =
+      in.mocap->R_WC * Eigen::AngleAxisd(30.0 * kDeg, g_C.unitOrthogonal()).toRotationMatrix();
+  const auto wrong = safety.Airborne(tilted, stated);
+  ASSERT_TRUE(wrong.has_value());
+  EXPECT_NE(wrong->find("hang_axis_tolerance_deg 10"), std::string::npos) << *wrong;
+  EXPECT_TRUE(safety.Standing(in).has_value());
+}
+
+TEST_F(SafetyTest, StaleOverRangeSaturatedAndFailedBridgeAreNamed) {
+  BigAntTwin::Driven driven(twin_);
+  Inputs in = FromFrame(driven.Frame(0.0, Angles{}), 10'000'000);
+  const Safety safety(config_);
+  in.ft[1]->utime = 10'000'000 - 600'000;
+  auto stale = safety.Stale(in, 10'000'000, false);
+  ASSERT_TRUE(stale.has_value());
+  EXPECT_NE(stale->find("FT_ML is 0.6 s old, above sequencer.max_input_age_s 0.5"),
+            std::string::npos)
+      << *stale;
+  in.ft[1]->utime = 10'000'000;
+  in.mocap.reset();
+  EXPECT_EQ(safety.Stale(in, 10'000'000, false), std::nullopt);
+  EXPECT_TRUE(safety.Stale(in, 10'000'000, true).has_value());
+
+  in.ft[4]->wrench[2] = 401.0;  // sim.pbtxt rates Fz to 400 N
+  auto over = safety.OverRange(in);
+  ASSERT_TRUE(over.has_value());
+  EXPECT_NE(over->find("FT_MR Fz = 401 is beyond the rated range 400"), std::string::npos) << *over;
+  in.ft[4]->wrench[2] = 10.0;
+  in.ft[4]->flags = ft_sample_t::FLAG_SATURATED;
+  over = safety.OverRange(in);
+  ASSERT_TRUE(over.has_value());
+  EXPECT_NE(over->find("FT_MR is flagged saturated"), std::string::npos) << *over;
+  in.ft[4]->flags = 0;
+
+  in.status["ftcal-ati-bridge"] = StatusReading{10'000'000, service_status_t::DEGRADED, "box 3 refuses"};
+  auto failed = safety.Stale(in, 10'000'000, false);
+  ASSERT_TRUE(failed.has_value());
+  EXPECT_NE(failed->find("ftcal-ati-bridge reports state 2 (box 3 refuses)"), std::string::npos)
+      << *failed;
+}
+
+TEST_F(SafetyTest, TiltBeyondTheLimitIsRefused) {
+  BigAntTwin::Driven driven(twin_);
+  Inputs in = FromFrame(driven.Frame(0.0, Angles{}), 1);
+  in.mocap->R_WC = Eigen::AngleAxisd(20.0 * kDeg, Vec3::UnitX()).toRotationMatrix();
+  const auto tilted = Safety(config_).Tilted(in);
+  ASSERT_TRUE(tilted.has_value());
+  EXPECT_NE(tilted->find("tilted 20 deg, above sequencer.max_tilt_deg 15"), std::string::npos)
+      << *tilted;
+}
+
+// ---- whole runs in simulated time, the twin as the robot ----
+
+// A bus on a manual clock: publications are recorded and looped back to the subscribers.
+class ManualBus : public Bus {
+ public:
+  explicit ManualBus(ServiceStats& stats) : Bus(stats) {}
+  int64_t NowUtime() const override { return now_; }
+  void Run(const std::function<void()>&, int64_t) override {}
+  bool IsReplay() const override { return false; }
+  void SetNow(int64_t utime) { now_ = utime; }
+
+  template <class Msg>
+  void Deliver(const std::string& channel, const Msg& msg) {
+    std::vector<uint8_t> bytes(msg.getEncodedSize());
+    msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+    DeliverRaw(channel, bytes);
+  }
+  struct Publication {
+    int64_t utime;
+    std::string channel;
+    std::vector<uint8_t> bytes;
+  };
+  std::vector<Publication> published;
+
+ protected:
+  void TransportSubscribe(size_t, const std::string&) override {}
+  void TransportPublish(const std::string& channel, const void* data, int size) override {
+    const auto* p = static_cast<const uint8_t*>(data);
+    published.push_back({now_, channel, std::vector<uint8_t>(p, p + size)});
+    DeliverRaw(channel, published.back().bytes);
+  }
+
+ private:
+  void DeliverRaw(const std::string& channel, const std::vector<uint8_t>& bytes) {
+    const std::vector<size_t> subs = HandlersFor(channel);
+    for (size_t s : subs) Dispatch(s, channel, now_, bytes.data(), static_cast<int>(bytes.size()));
+  }
+  int64_t now_ = 1'700'000'000'000'000;
+};
+
+template <class Msg>
+Msg Decode(const ManualBus::Publication& p) {
+  Msg m;
+  EXPECT_EQ(m.decode(p.bytes.data(), 0, static_cast<int>(p.bytes.size())),
+            static_cast<int>(p.bytes.size()));
+  return m;
+}
+
+// The robot: servos that follow the last command as a first-order lag, and the twin's standing
+// frames at those angles, every 10 ms.
+class Robot {
+ public:
+  Robot(const config::Config& config, ManualBus& bus)
+      : config_(config), bus_(bus), twin_(config, TwinOptions{}), driven_(twin_) {}
+
+  // Runs `seconds` of robot time; `sequencer` ticks every 20 ms as the loop would.
+  void Run(Sequencer& sequencer, double seconds, const std::function<void(double)>& each = {}) {
+    const int n = static_cast<int>(std::lround(seconds / kDt));
+    for (int i = 0; i < n; ++i) {
+      t_ += kDt;
+      bus_.SetNow(t0_ + std::llround(t_ * 1e6));
+      if (each) each(t_);
+      // Servos follow the latest command.
+      for (size_t j = seen_; j < bus_.published.size(); ++j) {
+        if (bus_.published[j].channel != "SERVO_CMD") continue;
+        const auto cmd = Decode<servo_command_t>(bus_.published[j]);
+        for (int k = 0; k < kNumLegs; ++k) goal_[k] = cmd.goal_angle_rad[k];
+      }
+      seen_ = bus_.published.size();
+      for (int k = 0; k < kNumLegs; ++k) angle_[k] += (goal_[k] - angle_[k]) * (kDt / kTau);
+      const TwinFrame& f = driven_.Frame(t_, angle_);
+      for (int k = 0; k < kNumLegs; ++k) {
+        if (silent_leg_ == k) continue;
+        ft_sample_t ft{};
+        ft.utime = bus_.NowUtime();
+        ft.leg = std::string(kLegNames[k]);
+        for (int a = 0; a < 6; ++a) ft.wrench[a] = f.reading[k][a];
+        bus_.Deliver("FT_" + std::string(kLegNames[k]), ft);
+      }
+      mocap_body_t m{};
+      m.utime = bus_.NowUtime();
+      m.body = config_.mocap().body_name();
+      m.tracked = true;
+      const Eigen::Vector4d q = RotationToQuaternion(f.R_WC);
+      for (int a = 0; a < 4; ++a) m.q_wc[a] = q[a];
+      m.num_markers = 0;
+      bus_.Deliver("MOCAP_BODY", m);
+      servo_state_t s{};
+      s.utime = bus_.NowUtime();
+      s.num_servos = kNumLegs;
+      for (int k = 0; k < kNumLegs; ++k) {
+        s.leg.push_back(std::string(kLegNames[k]));
+        s.id.push_back(k + 1);
+        s.angle_rad.push_back(angle_[k]);
+        s.velocity_rad_s.push_back(0.0);
+        s.current_a.push_back(0.0);
+        s.hardware_error.push_back(0);
+        s.device_tick_ms.push_back(0);
+        s.flags.push_back(0);
+      }
+      bus_.Deliver("SERVO_STATE", s);
+      if (i % 2 == 0) sequencer.Tick();
+      if (sequencer.state() == Sequencer::State::kDone ||
+          sequencer.state() == Sequencer::State::kStopped) {
+        return;
+      }
+    }
+  }
+  void Silence(int leg) { silent_leg_ = leg; }
+  const Angles& angles() const { return angle_; }
+  double t() const { return t_; }
+
+ private:
+  static constexpr double kDt = 0.01, kTau = 0.05;
+  const config::Config& config_;
+  ManualBus& bus_;
+  BigAntTwin twin_;
+  BigAntTwin::Driven driven_;
+  Angles angle_{}, goal_{};
+  size_t seen_ = 0;
+  int silent_leg_ = -1;
+  double t_ = 0.0;
+  const int64_t t0_ = 1'700'000'000'000'000;
+};
+
+std::shared_ptr<spdlog::logger> QuietLog() {
+  static auto log = std::make_shared<spdlog::logger>("sequencer_test",
+                                                     std::make_shared<spdlog::sinks::null_sink_mt>());
+  return log;
+}
+
+struct Markers {
+  std::vector<experiment_marker_t> all;
+};
+Markers MarkersOf(const ManualBus& bus) {
+  Markers m;
+  for (const auto& p : bus.published) {
+    if (p.channel == "EXPERIMENT") m.all.push_back(Decode<experiment_marker_t>(p));
+  }
+  return m;
+}
+
+// The goals held in each hold of the run: the last command published before each STANDING
+// hold ended, grouped by value.
+std::vector<Angles> HeldPoses(const ManualBus& bus) {
+  std::vector<Angles> poses;
+  for (const auto& p : bus.published) {
+    if (p.channel != "SERVO_CMD") continue;
+    const auto cmd = Decode<servo_command_t>(p);
+    Angles a;
+    for (int k = 0; k < kNumLegs; ++k) a[k] = cmd.goal_angle_rad[k];
+    if (poses.empty() || poses.back() != a) poses.push_back(a);
+  }
+  return poses;
+}
+
+constexpr char kGridPlan[] = R"(
+plan { name: "grid" phase { kind: PHASE_STANDING_GRID pose_stride: 100 dwell_s: 1.5 } }
+)";
+
+std::string TempPath(const std::string& name) {
+  return (std::filesystem::temp_directory_path() /
+          (name + "." + std::to_string(::getpid()))).string();
+}
+
+TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, Sequencer::Options{"grid", /*yes=*/true, "", "s1"});
+  robot.Run(seq, 120.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kDone) << seq.stop_reason();
+  const Markers m = MarkersOf(bus);
+  ASSERT_EQ(m.all.size(), 2u);
+  EXPECT_EQ(m.all[0].phase, +experiment_marker_t::STANDING);
+  EXPECT_TRUE(m.all[0].start);
+  EXPECT_FALSE(m.all[1].start);
+  EXPECT_EQ(m.all[0].session_id, "s1");
+  // Every 100th pose of the Gray order, each held: the commands dwell on exactly those goals.
+  const auto all = GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
+  const auto held = HeldPoses(bus);
+  for (size_t j = 0; j * 100 < all.size(); ++j) {
+    EXPECT_NE(std::find(held.begin(), held.end(), all[j * 100]), held.end()) << "pose " << j;
+  }
+  // Every move kept under the speed limit: consecutive commands 20 ms apart.
+  double fastest = 0.0;
+  std::optional<std::pair<int64_t, Angles>> last;
+  for (const auto& p : bus.published) {
+    if (p.channel != "SERVO_CMD") continue;
+    const auto cmd = Decode<servo_command_t>(p);
+    Angles a;
+    for (int k = 0; k < kNumLegs; ++k) a[k] = cmd.goal_angle_rad[k];
+    if (last && p.utime > last->first) {
+      for (int k = 0; k < kNumLegs; ++k) {
+        fastest = std::max(fastest, std::abs(a[k] - last->second[k]) / ((p.utime - last->first) * 1e-6));
+      }
+    }
+    last = {p.utime, a};
+  }
+  EXPECT_LE(fastest, c.sequencer().max_velocity_rad_s() * 1.01);
+  EXPECT_GT(fastest, 0.1);
+}
+
+TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThatPose) {
+  const std::string progress = TempPath("sequencer_progress");
+  std::filesystem::remove(progress);
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  int interrupted_pose = -1;
+  double silenced_at = -1.0;
+  {
+    Sequencer seq(c, bus, Sequencer::Options{"grid", true, progress, "s2"});
+    robot.Run(seq, 120.0, [&](double t) {
+      // Silence the ATI of ML in the middle of the fourth pose's dwell.
+      if (silenced_at < 0 && seq.ProgressLine().find("STANDING_GRID 4/") != std::string::npos &&
+          seq.schedule().steps[seq.step_index()].kind == StepKind::kHold) {
+        silenced_at = t;
+        robot.Silence(1);
+        interrupted_pose = 3;
+      }
+    });
+    ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+    EXPECT_NE(seq.stop_reason().find("FT_ML is"), std::string::npos) << seq.stop_reason();
+    EXPECT_NE(seq.stop_reason().find("above sequencer.max_input_age_s 0.5"), std::string::npos);
+    // Stopped within the age limit and one loop tick of the silence.
+    EXPECT_LE(robot.t() - silenced_at, 0.5 + 0.03);
+    EXPECT_GE(robot.t() - silenced_at, 0.49);
+  }
+  // The last command holds the measured angles; the marker is closed.
+  const auto last_cmd = [&] {
+    for (auto it = bus.published.rbegin(); it != bus.published.rend(); ++it) {
+      if (it->channel == "SERVO_CMD") return Decode<servo_command_t>(*it);
+    }
+    return servo_command_t{};
+  }();
+  for (int k = 0; k < kNumLegs; ++k) EXPECT_DOUBLE_EQ(last_cmd.goal_angle_rad[k], robot.angles()[k]);
+  EXPECT_TRUE(last_cmd.torque_enable);
+  const Markers m = MarkersOf(bus);
+  ASSERT_EQ(m.all.size(), 2u);
+  EXPECT_FALSE(m.all.back().start);
+
+  // A restart resumes at the interrupted pose: the first pose held is pose 3, not pose 0, and
+  // the marker opens again in the same session.
+  const auto progress_saved = LoadProgress(progress);
+  ASSERT_TRUE(progress_saved.has_value());
+  EXPECT_EQ(progress_saved->plan, "grid");
+  EXPECT_EQ(progress_saved->session_id, "s2");
+  ServiceStats stats2(QuietLog());
+  ManualBus bus2(stats2);
+  Robot robot2(c, bus2);
+  Sequencer again(c, bus2, Sequencer::Options{"grid", true, progress, ""});
+  robot2.Run(again, 120.0);
+  ASSERT_EQ(again.state(), Sequencer::State::kDone) << again.stop_reason();
+  const Markers m2 = MarkersOf(bus2);
+  ASSERT_EQ(m2.all.size(), 2u);
+  EXPECT_TRUE(m2.all[0].start);
+  EXPECT_EQ(m2.all[0].session_id, "s2");
+  const auto all = GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
+  const auto held = HeldPoses(bus2);
+  EXPECT_EQ(std::find(held.begin(), held.end(), all[0]), held.end()) << "pose 0 repeated";
+  EXPECT_EQ(std::find(held.begin(), held.end(), all[100]), held.end()) << "pose 1 repeated";
+  EXPECT_NE(std::find(held.begin(), held.end(), all[interrupted_pose * 100]), held.end());
+  EXPECT_NE(std::find(held.begin(), held.end(), all[700]), held.end());
+  std::filesystem::remove(progress);
+}
+
+TEST(SequencerRun, HangingIsRefusedWhileTheFeetCarryTheRobot) {
+  config::Config c = SimConfig(R"(
+plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_X_POS cycles: 1 cycle_s: 10 } }
+)");
+  for (auto& leg : *c.mutable_robot()->mutable_leg()) leg.mutable_servo()->set_max_angle_rad(20.0);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);  // the twin stands on its six feet
+  Sequencer seq(c, bus, Sequencer::Options{"hang", true, "", "s3"});
+  robot.Run(seq, 5.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("PHASE_HANG HANG_X_POS cannot start: the robot is not in the air"),
+            std::string::npos)
+      << seq.stop_reason();
+  EXPECT_TRUE(MarkersOf(bus).all.empty());
+  for (int k = 0; k < kNumLegs; ++k) EXPECT_NEAR(robot.angles()[k], 0.0, 1e-9);
+}
+
+TEST(SequencerRun, OperatorStopOverLcmAndConfirmation) {
+  const config::Config c = SimConfig(R"(
+plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride: 100 dwell_s: 1.5 } }
+)");
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  std::vector<std::string> prompts;
+  Sequencer seq(c, bus, Sequencer::Options{"grid", /*yes=*/false, "", "s4"});
+  seq.OnPrompt([&](const std::string& p) { prompts.push_back(p); });
+  robot.Run(seq, 3.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  ASSERT_EQ(prompts.size(), 1u);
+  EXPECT_TRUE(MarkersOf(bus).all.empty());
+  sequencer_control_t confirm{};
+  confirm.action = sequencer_control_t::CONFIRM;
+  confirm.step = 0;
+  bus.Deliver("SEQUENCER_CONTROL", confirm);
+  robot.Run(seq, 5.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kRunning);
+  ASSERT_EQ(MarkersOf(bus).all.size(), 1u);
+  sequencer_control_t stop{};
+  stop.action = sequencer_control_t::STOP;
+  stop.step = -1;
+  stop.note = "hand on the e-stop";
+  bus.Deliver("SEQUENCER_CONTROL", stop);
+  EXPECT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("operator STOP"), std::string::npos);
+  EXPECT_NE(seq.stop_reason().find("hand on the e-stop"), std::string::npos);
+  ASSERT_EQ(MarkersOf(bus).all.size(), 2u);
+  EXPECT_FALSE(MarkersOf(bus).all.back().start);
+}
+
+}  // namespace
+}  // namespace ftcal::sequencer
