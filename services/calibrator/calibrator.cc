@@ -16,7 +16,6 @@
 #include "ftcal/hanging.h"
 #include "ftcal/sensing_model.h"
 #include "ftcal/standing.h"
-#include "pose_segmenter/pose_segmenter_stage.h"
 
 #ifndef FTCAL_SOFTWARE_VERSION
 #define FTCAL_SOFTWARE_VERSION "unknown"
@@ -26,24 +25,9 @@ namespace ftcal {
 
 namespace {
 
-bool IsHangPhase(int phase) {
-  return phase >= experiment_marker_t::HANG_X_POS && phase <= experiment_marker_t::HANG_Z_NEG;
-}
+bool IsHangPhase(int phase) { return HangSeriesOfPhase(phase).has_value(); }
 
-HangSeries SeriesOfPhase(int phase) {
-  return static_cast<HangSeries>(phase - experiment_marker_t::HANG_X_POS);
-}
-
-std::string PhaseName(int phase) {
-  if (IsHangPhase(phase)) return HangSeriesName(SeriesOfPhase(phase));
-  switch (phase) {
-    case experiment_marker_t::IDLE: return "IDLE";
-    case experiment_marker_t::STANDING: return "STANDING";
-    case experiment_marker_t::WALKING: return "WALKING";
-    case experiment_marker_t::TRIPOD: return "TRIPOD";
-    default: return "phase " + std::to_string(phase);
-  }
-}
+HangSeries SeriesOfPhase(int phase) { return *HangSeriesOfPhase(phase); }
 
 std::string UtcNowIso8601() {
   const std::time_t now = std::time(nullptr);
@@ -85,10 +69,8 @@ void CalibrationCollector::Attach(Bus& bus) {
   // apart from one whose legs are silent.
   bus.SubscribeRaw(ch.ft_prefix() + ".*", [this](const MessageInfo& info, const void* data,
                                                  int size) { OnFtRaw(info, data, size); });
-  bus.Subscribe<servo_state_t>(ch.servo_state(),
-                               [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
-  bus.Subscribe<mocap_body_t>(ch.mocap_body(),
-                              [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
+  inputs_.Subscribe(bus, {nullptr, [this](const ServoInput& in) { aligner_.AddServo(in); },
+                          [this](const MocapInput& in) { aligner_.AddMocap(in); }});
   bus.Subscribe<experiment_marker_t>(
       ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   bus.Subscribe<steady_pose_t>(ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) {
@@ -109,14 +91,6 @@ void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, in
     aligner_.AddFt(inputs_.FromFt(k, msg));
     return;
   }
-}
-
-void CalibrationCollector::OnServo(const servo_state_t& msg) {
-  aligner_.AddServo(inputs_.FromServo(msg));
-}
-
-void CalibrationCollector::OnMocap(const mocap_body_t& msg) {
-  if (const auto in = inputs_.FromMocap(msg)) aligner_.AddMocap(*in);
 }
 
 void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
@@ -224,24 +198,12 @@ void CalibrationCollector::Flush() {
 
 void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
   ++counters_.logged_poses;
-  if (msg.num_legs != kNumLegs) {
-    throw BadInput("STEADY_POSE leg count", std::to_string(msg.num_legs) + " legs, expected " +
-                                                std::to_string(kNumLegs));
-  }
-  if (!msg.markers_ok) {
+  const SteadyPoseOut p = FromLcm(msg);
+  if (!p.markers_ok) {
     ++counters_.poses_dropped_markers;
     return;
   }
-  StandingPose pose;
-  for (int i = 0; i < kNumLegs; ++i) {
-    const auto k = LegIndex(msg.leg[i]);
-    if (!k) throw BadInput("STEADY_POSE unknown leg", "leg '" + msg.leg[i] + "'");
-    for (int c = 0; c < 6; ++c) pose.wrench[*k][c] = msg.wrench[i][c];
-    pose.angle_rad[*k] = msg.angle_rad[i];
-  }
-  pose.R_WC = QuaternionToRotation(Eigen::Vector4d(msg.q_wc[0], msg.q_wc[1], msg.q_wc[2], msg.q_wc[3]));
-  pose.t_s = 0.5e-6 * static_cast<double>(msg.start_utime + msg.end_utime);
-  logged_poses_.push_back(pose);
+  logged_poses_.push_back(p.pose);
   if (on_steady_pose_) on_steady_pose_();
 }
 
@@ -405,15 +367,7 @@ void LiveCalibrator::CalibrateNow() {
   run.proto.set_version(static_cast<uint64_t>(version_ + 1));
   WriteCalibrationOutputs(run, out_path_);  // the file first: a published version exists on disk
   ++version_;
-  std::string bytes;
-  run.proto.SerializeToString(&bytes);
-  calibration_t msg{};
-  msg.utime = bus_.NowUtime();
-  msg.version = version_;
-  msg.content_sha256 = Sha256Hex(bytes);
-  msg.data.assign(bytes.begin(), bytes.end());
-  msg.size = static_cast<int32_t>(msg.data.size());
-  bus_.Publish(config_.channels().calibration(), msg);
+  bus_.Publish(config_.channels().calibration(), ToLcm(run.proto, version_, bus_.NowUtime()));
   spdlog::info("wrote {}; published calibration version {} on {}", out_path_, version_,
                config_.channels().calibration());
   if (on_calibrated_) on_calibrated_(run);

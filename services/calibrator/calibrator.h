@@ -31,6 +31,7 @@
 #include <vector>
 
 #include "common/bus.h"
+#include "common/messages.h"
 #include "ftcal/aligner.h"
 #include "ftcal/calibrate.h"
 #include "ftcal/dataset.h"
@@ -38,7 +39,6 @@
 #include "ftcal/offset_reestimation.h"
 #include "ftcal/segmenter.h"
 #include "ftcal/steady_pose_t.hpp"
-#include "pose_segmenter/stage_inputs.h"
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
 
@@ -105,8 +105,6 @@ class CalibrationCollector {
 
  private:
   void OnFtRaw(const MessageInfo& info, const void* data, int size);
-  void OnServo(const servo_state_t& msg);
-  void OnMocap(const mocap_body_t& msg);
   void OnExperiment(const experiment_marker_t& msg);
   void OnSteadyPose(const steady_pose_t& msg);
   void OnAligned(const AlignedSample& a);
@@ -114,7 +112,7 @@ class CalibrationCollector {
   void EndPhase(bool completed);
 
   const config::Config& config_;
-  StageInputs inputs_;
+  DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;
   Aligner aligner_;
   std::unique_ptr<PoseSegmenter> segmenter_;

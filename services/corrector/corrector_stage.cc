@@ -26,20 +26,10 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
                &st.Counter("calibrations"),      &st.Counter("calibrations_refused"),
                &st.Counter("drop_out_of_order"), &st.Counter("drop_non_finite"),
                &st.Counter("stale_outputs")};
-  msg_.num_legs = kNumLegs;
-  msg_.leg.assign(kLegNames.begin(), kLegNames.end());
-  msg_.wrench_w.assign(kNumLegs, std::vector<double>(6));
-  msg_.ft_age_s.assign(kNumLegs, 0.0);
-
   const auto& ch = config.channels();
-  for (int k = 0; k < kNumLegs; ++k) {
-    bus.Subscribe<ft_sample_t>(inputs_.FtChannel(k),
-                               [this, k](const MessageInfo&, const ft_sample_t& m) { OnFt(k, m); });
-  }
-  bus.Subscribe<servo_state_t>(ch.servo_state(),
-                               [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
-  bus.Subscribe<mocap_body_t>(ch.mocap_body(),
-                              [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
+  inputs_.Subscribe(bus, {[this](const FtInput& in) { OnFt(in); },
+                          [this](const ServoInput& in) { OnServo(in); },
+                          [this](const MocapInput& in) { OnMocap(in); }});
   bus.Subscribe<calibration_t>(ch.calibration(),
                                [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
   set_state_(service_status_t::DEGRADED);
@@ -68,21 +58,8 @@ void CorrectorStage::UseCalibration(const calibration::Calibration& proto, int64
 
 void CorrectorStage::OnCalibration(const calibration_t& msg) {
   try {
-    if (msg.size != static_cast<int32_t>(msg.data.size())) {
-      throw std::runtime_error("size field " + std::to_string(msg.size) + " but " +
-                               std::to_string(msg.data.size()) + " bytes");
-    }
-    const std::string bytes(msg.data.begin(), msg.data.end());
-    const std::string sha = Sha256Hex(bytes);
-    if (sha != msg.content_sha256) {
-      throw std::runtime_error("content_sha256 " + msg.content_sha256 +
-                               " does not match the data's " + sha);
-    }
-    calibration::Calibration proto;
-    if (!proto.ParseFromString(bytes)) {
-      throw std::runtime_error("data is not a binary ftcal.calibration.Calibration");
-    }
-    UseCalibration(proto, msg.version, sha);
+    const CalibrationMessage cal = FromLcm(msg);
+    UseCalibration(cal.proto, cal.version, cal.sha256);
   } catch (const std::exception& e) {
     ++refused_;
     UpdateCounters();
@@ -96,58 +73,43 @@ void CorrectorStage::OnCalibration(const calibration_t& msg) {
   }
 }
 
-void CorrectorStage::OnServo(const servo_state_t& msg) {
+void CorrectorStage::OnServo(const ServoInput& in) {
   const CorrectorCounters before = corrector_.counters();
-  if (!corrector_.AddServo(inputs_.FromServo(msg))) {
+  if (!corrector_.AddServo(in)) {
     bus_.stats().Drop(corrector_.counters().non_finite > before.non_finite
                           ? "non-finite servo state"
                           : "out-of-order servo state",
-                      "utime " + std::to_string(msg.utime));
+                      "utime " + std::to_string(in.utime));
   }
   UpdateCounters();
 }
 
-void CorrectorStage::OnMocap(const mocap_body_t& msg) {
-  const auto in = inputs_.FromMocap(msg);
-  if (!in) return;
+void CorrectorStage::OnMocap(const MocapInput& in) {
   const CorrectorCounters before = corrector_.counters();
-  if (!corrector_.AddMocap(*in)) {
+  if (!corrector_.AddMocap(in)) {
     bus_.stats().Drop(corrector_.counters().non_finite > before.non_finite
                           ? "non-finite mocap frame"
                           : "out-of-order mocap frame",
-                      "utime " + std::to_string(msg.utime));
+                      "utime " + std::to_string(in.utime));
   }
   UpdateCounters();
 }
 
-void CorrectorStage::OnFt(int leg, const ft_sample_t& msg) {
-  const FtInput in = inputs_.FromFt(leg, msg);
+void CorrectorStage::OnFt(const FtInput& in) {
+  const int leg = in.leg;
   const CorrectorCounters before = corrector_.counters();
-  const bool saturated = (msg.flags & ft_sample_t::FLAG_SATURATED) != 0;
+  const bool saturated = (in.flags & ft_sample_t::FLAG_SATURATED) != 0;
   if (!corrector_.AddFt(in, saturated, &out_)) {
     const CorrectorCounters& now = corrector_.counters();
     if (now.non_finite > before.non_finite) {
-      bus_.stats().Drop("non-finite " + inputs_.FtChannel(leg), "utime " + std::to_string(msg.utime));
+      bus_.stats().Drop("non-finite " + inputs_.FtChannel(leg), "utime " + std::to_string(in.utime));
     } else if (now.out_of_order > before.out_of_order) {
-      bus_.stats().Drop("out-of-order " + inputs_.FtChannel(leg), "utime " + std::to_string(msg.utime));
+      bus_.stats().Drop("out-of-order " + inputs_.FtChannel(leg), "utime " + std::to_string(in.utime));
     }
     UpdateCounters();
     return;
   }
-  msg_.utime = out_.utime;
-  msg_.updated_leg = out_.updated_leg;
-  for (int k = 0; k < kNumLegs; ++k) {
-    for (int i = 0; i < 6; ++i) msg_.wrench_w[k][i] = out_.wrench_W[k][i];
-    msg_.ft_age_s[k] = out_.ft_age_s[k];
-  }
-  for (int i = 0; i < 6; ++i) {
-    msg_.total_w[i] = out_.total_W[i];
-    msg_.residual_w[i] = out_.residual_W[i];
-  }
-  msg_.calibration_version = out_.calibration_version;
-  msg_.servo_age_s = out_.servo_age_s;
-  msg_.mocap_age_s = out_.mocap_age_s;
-  msg_.flags = out_.flags;
+  ToLcm(out_, &msg_);
   if (out_.flags & (kFlagStaleFt | kFlagStaleServo | kFlagStaleMocap)) ++stale_;
   // Encode into a reused buffer (Bus::Publish would allocate one per message).
   const int size = msg_.getEncodedSize();

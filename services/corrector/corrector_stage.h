@@ -16,11 +16,11 @@
 #include <string>
 
 #include "common/bus.h"
+#include "common/messages.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/corrector.h"
 #include "ftcal/service_status_t.hpp"
-#include "pose_segmenter/stage_inputs.h"
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
 
@@ -44,16 +44,16 @@ class CorrectorStage {
   void ReportWaitingForCalibration();
 
  private:
-  void OnFt(int leg, const ft_sample_t& msg);
-  void OnServo(const servo_state_t& msg);
-  void OnMocap(const mocap_body_t& msg);
+  void OnFt(const FtInput& in);
+  void OnServo(const ServoInput& in);
+  void OnMocap(const MocapInput& in);
   void OnCalibration(const calibration_t& msg);
   void UpdateCounters();
 
   const config::Config& config_;
   Bus& bus_;
   StateSink set_state_;
-  StageInputs inputs_;
+  DeviceInputs inputs_;
   Corrector corrector_;
   std::string calibration_sha256_;
   ContactWrenches out_;

@@ -4,24 +4,6 @@
 
 namespace ftcal {
 
-SegmenterOptions SegmenterOptionsFromConfig(const config::Segmenter& s) {
-  SegmenterOptions o;
-  o.sample_rate_hz = s.sample_rate_hz();
-  o.savgol_window = static_cast<int>(s.savgol_window());
-  o.savgol_order = static_cast<int>(s.savgol_order());
-  o.max_force_rate_n_s = s.max_force_rate_n_s();
-  o.min_steady_s = s.min_steady_s();
-  o.require_all_markers = s.require_all_markers();
-  return o;
-}
-
-AlignerOptions AlignerOptionsFromConfig(const config::Config& config) {
-  AlignerOptions o;
-  o.max_servo_age_s = config.corrector().max_servo_age_s();
-  o.max_mocap_age_s = config.corrector().max_mocap_age_s();
-  return o;
-}
-
 PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
     : config_(config),
       bus_(bus),
@@ -39,20 +21,10 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
   // Fail at start, not at the first STANDING marker, on options the segmenter refuses.
   PoseSegmenter check(segmenter_options_, nullptr);
 
-  sync_msg_.num_legs = kNumLegs;
-  sync_msg_.leg.assign(kLegNames.begin(), kLegNames.end());
-  sync_msg_.wrench.assign(kNumLegs, std::vector<double>(6));
-  sync_msg_.angle_rad.assign(kNumLegs, 0.0);
-
   const auto& ch = config.channels();
-  for (int k = 0; k < kNumLegs; ++k) {
-    bus.Subscribe<ft_sample_t>(inputs_.FtChannel(k),
-                               [this, k](const MessageInfo&, const ft_sample_t& m) { OnFt(k, m); });
-  }
-  bus.Subscribe<servo_state_t>(ch.servo_state(),
-                               [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
-  bus.Subscribe<mocap_body_t>(ch.mocap_body(),
-                              [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
+  inputs_.Subscribe(bus, {[this](const FtInput& in) { OnFt(in); },
+                          [this](const ServoInput& in) { OnServo(in); },
+                          [this](const MocapInput& in) { OnMocap(in); }});
   bus.Subscribe<experiment_marker_t>(
       ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   PublishCounters();
@@ -67,23 +39,21 @@ void PoseSegmenterStage::CountAlignerDrop(const std::string& stream, const Align
   }
 }
 
-void PoseSegmenterStage::OnFt(int leg, const ft_sample_t& msg) {
+void PoseSegmenterStage::OnFt(const FtInput& in) {
   const AlignerCounters before = aligner_.counters();
-  if (!aligner_.AddFt(inputs_.FromFt(leg, msg))) CountAlignerDrop(inputs_.FtChannel(leg), before);
+  if (!aligner_.AddFt(in)) CountAlignerDrop(inputs_.FtChannel(in.leg), before);
   PublishCounters();
 }
 
-void PoseSegmenterStage::OnServo(const servo_state_t& msg) {
+void PoseSegmenterStage::OnServo(const ServoInput& in) {
   const AlignerCounters before = aligner_.counters();
-  if (!aligner_.AddServo(inputs_.FromServo(msg))) CountAlignerDrop(config_.channels().servo_state(), before);
+  if (!aligner_.AddServo(in)) CountAlignerDrop(config_.channels().servo_state(), before);
   PublishCounters();
 }
 
-void PoseSegmenterStage::OnMocap(const mocap_body_t& msg) {
-  const auto in = inputs_.FromMocap(msg);
-  if (!in) return;  // another rigid body
+void PoseSegmenterStage::OnMocap(const MocapInput& in) {
   const AlignerCounters before = aligner_.counters();
-  if (!aligner_.AddMocap(*in)) CountAlignerDrop(config_.channels().mocap_body(), before);
+  if (!aligner_.AddMocap(in)) CountAlignerDrop(config_.channels().mocap_body(), before);
   PublishCounters();
 }
 
@@ -109,40 +79,15 @@ void PoseSegmenterStage::OnExperiment(const experiment_marker_t& msg) {
 }
 
 void PoseSegmenterStage::OnAligned(const AlignedSample& a) {
-  const SyncSample& s = a.sample;
-  sync_msg_.utime = s.utime;
-  for (int k = 0; k < kNumLegs; ++k) {
-    for (int i = 0; i < 6; ++i) sync_msg_.wrench[k][i] = s.wrench[k][i];
-    sync_msg_.angle_rad[k] = s.angle_rad[k];
-  }
-  RotationToQuaternionArray(s.R_WC, sync_msg_.q_wc);
-  sync_msg_.attitude_ok = s.attitude_ok;
-  sync_msg_.markers_ok = s.markers_ok;
-  sync_msg_.flags = a.flags;
+  ToLcm(a, &sync_msg_);
   bus_.Publish(config_.channels().sync_sample(), sync_msg_);
   ++sync_published_;
-  if (segmenter_) segmenter_->Add(s);
+  if (segmenter_) segmenter_->Add(a.sample);
 }
 
 void PoseSegmenterStage::OnPose(const SteadyPoseOut& p) {
-  steady_pose_t msg;
-  msg.utime = bus_.NowUtime();
-  msg.session_id = session_id_;
-  msg.pose_index = pose_index_++;
-  msg.start_utime = p.start_utime;
-  msg.end_utime = p.end_utime;
-  msg.num_samples = p.num_samples;
-  msg.num_legs = kNumLegs;
-  msg.leg.assign(kLegNames.begin(), kLegNames.end());
-  msg.wrench.assign(kNumLegs, std::vector<double>(6));
-  msg.angle_rad.assign(kNumLegs, 0.0);
-  for (int k = 0; k < kNumLegs; ++k) {
-    for (int i = 0; i < 6; ++i) msg.wrench[k][i] = p.pose.wrench[k][i];
-    msg.angle_rad[k] = p.pose.angle_rad[k];
-  }
-  RotationToQuaternionArray(p.pose.R_WC, msg.q_wc);
-  msg.markers_ok = p.markers_ok;
-  bus_.Publish(config_.channels().steady_pose(), msg);
+  bus_.Publish(config_.channels().steady_pose(),
+               ToLcm(p, {bus_.NowUtime(), session_id_, pose_index_++}));
   ++poses_published_;
 }
 

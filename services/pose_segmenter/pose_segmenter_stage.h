@@ -14,21 +14,15 @@
 #include <string>
 
 #include "common/bus.h"
+#include "common/messages.h"
 #include "ftcal/aligner.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/segmenter.h"
 #include "ftcal/steady_pose_t.hpp"
 #include "ftcal/sync_sample_t.hpp"
-#include "pose_segmenter/stage_inputs.h"
 #include "proto/config.pb.h"
 
 namespace ftcal {
-
-// The segmenter's options from the config (segmenter section).
-SegmenterOptions SegmenterOptionsFromConfig(const config::Segmenter& segmenter);
-// The aligner's freshness limits: the corrector's (corrector.max_servo_age_s,
-// max_mocap_age_s), so both stages call the same input stale.
-AlignerOptions AlignerOptionsFromConfig(const config::Config& config);
 
 class PoseSegmenterStage {
  public:
@@ -39,9 +33,9 @@ class PoseSegmenterStage {
   const AlignerCounters& aligner_counters() const { return aligner_.counters(); }
 
  private:
-  void OnFt(int leg, const ft_sample_t& msg);
-  void OnServo(const servo_state_t& msg);
-  void OnMocap(const mocap_body_t& msg);
+  void OnFt(const FtInput& in);
+  void OnServo(const ServoInput& in);
+  void OnMocap(const MocapInput& in);
   void OnExperiment(const experiment_marker_t& msg);
   void OnAligned(const AlignedSample& s);
   void OnPose(const SteadyPoseOut& pose);
@@ -51,7 +45,7 @@ class PoseSegmenterStage {
 
   const config::Config& config_;
   Bus& bus_;
-  StageInputs inputs_;
+  DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;
   Aligner aligner_;
   std::unique_ptr<PoseSegmenter> segmenter_;  // while standing

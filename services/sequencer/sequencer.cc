@@ -76,7 +76,7 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
     : config_(config),
       bus_(bus),
       options_(std::move(options)),
-      inputs_conv_(config),
+      device_inputs_(config),
       safety_(config),
       schedule_(Expand(config, options_.plan_name)) {
   if (options_.progress_file.empty()) options_.progress_file = config.sequencer().progress_file();
@@ -143,16 +143,14 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
   }
 
   const config::Channels& ch = config.channels();
-  for (int k = 0; k < kNumLegs; ++k) {
-    bus_.Subscribe<ft_sample_t>(inputs_conv_.FtChannel(k),
-                                [this, k](const MessageInfo& i, const ft_sample_t& m) { OnFt(k, i, m); });
-  }
-  bus_.Subscribe<servo_state_t>(ch.servo_state(), [this](const MessageInfo& i, const servo_state_t& m) {
-    OnServo(i, m);
-  });
-  bus_.Subscribe<mocap_body_t>(ch.mocap_body(), [this](const MessageInfo& i, const mocap_body_t& m) {
-    OnMocap(i, m);
-  });
+  DeviceInputs::Handlers handlers;
+  handlers.ft = [this](const FtInput& in) { inputs_.ft[in.leg] = in; };
+  handlers.servo = [this](const ServoInput& in) {
+    inputs_.servo = in;
+    Tick();
+  };
+  handlers.mocap = [this](const MocapInput& in) { inputs_.mocap = in; };
+  device_inputs_.Subscribe(bus_, handlers);
   bus_.Subscribe<service_status_t>(ch.status(), [this](const MessageInfo& i, const service_status_t& m) {
     OnStatus(i, m);
   });
@@ -160,19 +158,6 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
       ch.sequencer_control(),
       [this](const MessageInfo& i, const sequencer_control_t& m) { OnControl(i, m); });
   if (steps_.empty()) state_ = State::kDone;
-}
-
-void Sequencer::OnFt(int leg, const MessageInfo&, const ft_sample_t& msg) {
-  inputs_.ft[leg] = inputs_conv_.FromFt(leg, msg);
-}
-
-void Sequencer::OnServo(const MessageInfo&, const servo_state_t& msg) {
-  inputs_.servo = inputs_conv_.FromServo(msg);
-  Tick();
-}
-
-void Sequencer::OnMocap(const MessageInfo&, const mocap_body_t& msg) {
-  if (auto m = inputs_conv_.FromMocap(msg)) inputs_.mocap = *m;
 }
 
 void Sequencer::OnStatus(const MessageInfo&, const service_status_t& msg) {

@@ -19,12 +19,9 @@
 #include <string>
 
 #include "common/bus.h"
-#include "ftcal/ft_sample_t.hpp"
-#include "ftcal/mocap_body_t.hpp"
 #include "ftcal/sequencer_control_t.hpp"
 #include "ftcal/service_status_t.hpp"
-#include "ftcal/servo_state_t.hpp"
-#include "pose_segmenter/stage_inputs.h"
+#include "common/messages.h"
 #include "proto/config.pb.h"
 #include "sequencer/plan.h"
 #include "sequencer/safety.h"
@@ -74,9 +71,6 @@ class Sequencer {
   void OnPrompt(std::function<void(const std::string&)> fn) { on_prompt_ = std::move(fn); }
 
  private:
-  void OnFt(int leg, const MessageInfo& info, const ft_sample_t& msg);
-  void OnServo(const MessageInfo& info, const servo_state_t& msg);
-  void OnMocap(const MessageInfo& info, const mocap_body_t& msg);
   void OnStatus(const MessageInfo& info, const service_status_t& msg);
   void OnControl(const MessageInfo& info, const sequencer_control_t& msg);
 
@@ -94,7 +88,7 @@ class Sequencer {
   const config::Config& config_;
   Bus& bus_;
   Options options_;
-  StageInputs inputs_conv_;
+  DeviceInputs device_inputs_;
   Safety safety_;
   Schedule schedule_;
   // The steps this run executes: the schedule, or on resume the prelude of the resumed phase

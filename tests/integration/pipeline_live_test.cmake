@@ -4,7 +4,7 @@
 # ctest runs (PRE_TEST).
 add_executable(pipeline_live_test "${CMAKE_CURRENT_LIST_DIR}/pipeline_live_test.cc")
 target_link_libraries(pipeline_live_test PRIVATE
-  ftcal_twin ftcal_calibrator ftcal_common ftcal_lcmtypes ftcal_child_process GTest::gtest
+  ftcal_twin ftcal_calibrator ftcal_pose_segmenter_stage ftcal_common ftcal_lcmtypes ftcal_child_process GTest::gtest
   GTest::gtest_main Threads::Threads)
 target_compile_definitions(pipeline_live_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"

@@ -1,0 +1,421 @@
+#include "common/messages.h"
+
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+
+#include "ftcal/config.h"
+#include "ftcal/hanging.h"
+
+namespace ftcal {
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+void QuaternionOf(const Mat3& R, double q_wxyz[4]) {
+  const Eigen::Vector4d q = RotationToQuaternion(R);
+  for (int i = 0; i < 4; ++i) q_wxyz[i] = q[i];
+}
+
+Mat3 RotationOf(const double q_wxyz[4]) {
+  return QuaternionToRotation(Eigen::Vector4d(q_wxyz[0], q_wxyz[1], q_wxyz[2], q_wxyz[3]));
+}
+
+std::vector<std::string> LegNameList() { return {kLegNames.begin(), kLegNames.end()}; }
+
+}  // namespace
+
+// ---- FT_<LEG> ----
+
+FtInput FromLcm(const ft_sample_t& msg, int leg) {
+  if (leg < 0 || leg >= kNumLegs || msg.leg != kLegNames[leg]) {
+    throw BadInput("leg name not the channel's",
+                   "message names leg '" + msg.leg + "' on the channel of leg " +
+                       (leg >= 0 && leg < kNumLegs ? std::string(kLegNames[leg])
+                                                   : std::to_string(leg)));
+  }
+  FtInput in;
+  in.utime = msg.utime;
+  in.leg = leg;
+  for (int i = 0; i < 6; ++i) in.wrench[i] = msg.wrench[i];
+  in.flags = msg.flags;
+  return in;
+}
+
+ft_sample_t ToLcm(const FtInput& in) {
+  ft_sample_t msg{};
+  msg.utime = in.utime;
+  msg.leg = std::string(kLegNames.at(static_cast<size_t>(in.leg)));
+  for (int i = 0; i < 6; ++i) msg.wrench[i] = in.wrench[i];
+  msg.flags = in.flags;
+  return msg;
+}
+
+// ---- SERVO_STATE ----
+
+ServoInput FromLcm(const servo_state_t& msg) {
+  ServoInput in;
+  in.utime = msg.utime;
+  std::array<bool, kNumLegs> seen{};
+  for (int i = 0; i < msg.num_servos; ++i) {
+    const auto k = LegIndex(msg.leg[i]);
+    if (!k) {
+      throw BadInput("unknown leg in servo state", "servo " + std::to_string(i) + " (id " +
+                                                       std::to_string(msg.id[i]) +
+                                                       ") names leg '" + msg.leg[i] + "'");
+    }
+    if (seen[*k]) {
+      throw BadInput("duplicate leg in servo state", "leg " + msg.leg[i] + " twice");
+    }
+    seen[*k] = true;
+    in.angle_rad[*k] = msg.angle_rad[i];
+  }
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (!seen[k]) {
+      throw BadInput("servo state without every leg",
+                     "no servo for leg " + std::string(kLegNames[k]));
+    }
+  }
+  return in;
+}
+
+servo_state_t ToLcm(const ServoInput& in) {
+  servo_state_t msg{};
+  msg.utime = in.utime;
+  msg.num_servos = kNumLegs;
+  msg.leg = LegNameList();
+  msg.id.assign(kNumLegs, 0);
+  msg.angle_rad.assign(in.angle_rad.begin(), in.angle_rad.end());
+  msg.velocity_rad_s.assign(kNumLegs, 0.0);
+  msg.current_a.assign(kNumLegs, 0.0);
+  msg.hardware_error.assign(kNumLegs, 0);
+  msg.device_tick_ms.assign(kNumLegs, 0);
+  msg.flags.assign(kNumLegs, 0);
+  return msg;
+}
+
+// ---- MOCAP_BODY ----
+
+MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers) {
+  MocapInput in;
+  in.utime = msg.utime;
+  in.tracked = msg.tracked;
+  if (msg.tracked) {
+    const Eigen::Vector4d q(msg.q_wc[0], msg.q_wc[1], msg.q_wc[2], msg.q_wc[3]);
+    if (q.allFinite() && std::abs(q.norm() - 1.0) > 1e-3) {
+      throw BadInput("mocap q_wc not a unit quaternion",
+                     "|q_wc| = " + std::to_string(q.norm()) + " at utime " +
+                         std::to_string(msg.utime));
+    }
+    // A non-finite quaternion stays non-finite: the aligner/corrector count and drop it.
+    in.R_WC = q.allFinite() ? QuaternionToRotation(q) : Mat3::Constant(kNaN);
+  }
+  bool all = msg.tracked && msg.num_markers >= chassis_markers;
+  for (int i = 0; all && i < msg.num_markers; ++i) all = msg.marker_tracked[i];
+  in.markers_ok = all;
+  return in;
+}
+
+mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_markers) {
+  mocap_body_t msg{};
+  msg.utime = in.utime;
+  msg.body = body;
+  msg.tracked = in.tracked;
+  if (in.tracked) {
+    QuaternionOf(in.R_WC, msg.q_wc);
+  } else {
+    for (double& q : msg.q_wc) q = kNaN;
+  }
+  for (int i = 0; i < 4; ++i) msg.q_gc[i] = msg.q_wc[i];
+  for (double& p : msg.position_m) p = kNaN;
+  msg.residual_m = kNaN;
+  msg.num_markers = chassis_markers;
+  msg.marker_m.assign(static_cast<size_t>(chassis_markers), std::vector<double>(3, kNaN));
+  msg.marker_tracked.assign(static_cast<size_t>(chassis_markers), in.markers_ok);
+  return msg;
+}
+
+// ---- SYNC_SAMPLE ----
+
+AlignedSample FromLcm(const sync_sample_t& msg) {
+  if (msg.num_legs != kNumLegs) {
+    throw BadInput("SYNC_SAMPLE leg count", std::to_string(msg.num_legs) + " legs, expected " +
+                                                std::to_string(kNumLegs));
+  }
+  AlignedSample a;
+  SyncSample& s = a.sample;
+  s.utime = msg.utime;
+  for (int i = 0; i < kNumLegs; ++i) {
+    if (msg.leg[i] != kLegNames[i]) {
+      throw BadInput("SYNC_SAMPLE legs not in config order",
+                     "leg " + std::to_string(i) + " is '" + msg.leg[i] + "'");
+    }
+    for (int c = 0; c < 6; ++c) s.wrench[i][c] = msg.wrench[i][c];
+    s.angle_rad[i] = msg.angle_rad[i];
+  }
+  s.R_WC = RotationOf(msg.q_wc);
+  s.attitude_ok = msg.attitude_ok;
+  s.markers_ok = msg.markers_ok;
+  a.flags = msg.flags;
+  return a;
+}
+
+void ToLcm(const AlignedSample& a, sync_sample_t* out) {
+  const SyncSample& s = a.sample;
+  sync_sample_t& msg = *out;
+  if (msg.wrench.size() != kNumLegs || msg.num_legs != kNumLegs) {
+    msg.num_legs = kNumLegs;
+    msg.leg = LegNameList();
+    msg.wrench.assign(kNumLegs, std::vector<double>(6));
+    msg.angle_rad.assign(kNumLegs, 0.0);
+  }
+  msg.utime = s.utime;
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int i = 0; i < 6; ++i) msg.wrench[k][i] = s.wrench[k][i];
+    msg.angle_rad[k] = s.angle_rad[k];
+  }
+  QuaternionOf(s.R_WC, msg.q_wc);
+  msg.attitude_ok = s.attitude_ok;
+  msg.markers_ok = s.markers_ok;
+  msg.flags = a.flags;
+}
+
+sync_sample_t ToLcm(const AlignedSample& a) {
+  sync_sample_t msg{};
+  ToLcm(a, &msg);
+  return msg;
+}
+
+// ---- STEADY_POSE ----
+
+SteadyPoseOut FromLcm(const steady_pose_t& msg, SteadyPoseHeader* header) {
+  if (msg.num_legs != kNumLegs) {
+    throw BadInput("STEADY_POSE leg count", std::to_string(msg.num_legs) + " legs, expected " +
+                                                std::to_string(kNumLegs));
+  }
+  SteadyPoseOut p;
+  std::array<bool, kNumLegs> seen{};
+  for (int i = 0; i < kNumLegs; ++i) {
+    const auto k = LegIndex(msg.leg[i]);
+    if (!k) throw BadInput("STEADY_POSE unknown leg", "leg '" + msg.leg[i] + "'");
+    if (seen[*k]) throw BadInput("STEADY_POSE duplicate leg", "leg " + msg.leg[i] + " twice");
+    seen[*k] = true;
+    for (int c = 0; c < 6; ++c) p.pose.wrench[*k][c] = msg.wrench[i][c];
+    p.pose.angle_rad[*k] = msg.angle_rad[i];
+  }
+  p.pose.R_WC = RotationOf(msg.q_wc);
+  p.pose.t_s = 0.5e-6 * static_cast<double>(msg.start_utime + msg.end_utime);
+  p.start_utime = msg.start_utime;
+  p.end_utime = msg.end_utime;
+  p.num_samples = msg.num_samples;
+  p.markers_ok = msg.markers_ok;
+  if (header) *header = {msg.utime, msg.session_id, msg.pose_index};
+  return p;
+}
+
+steady_pose_t ToLcm(const SteadyPoseOut& p, const SteadyPoseHeader& header) {
+  steady_pose_t msg{};
+  msg.utime = header.utime;
+  msg.session_id = header.session_id;
+  msg.pose_index = header.pose_index;
+  msg.start_utime = p.start_utime;
+  msg.end_utime = p.end_utime;
+  msg.num_samples = p.num_samples;
+  msg.num_legs = kNumLegs;
+  msg.leg = LegNameList();
+  msg.wrench.assign(kNumLegs, std::vector<double>(6));
+  msg.angle_rad.assign(kNumLegs, 0.0);
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int i = 0; i < 6; ++i) msg.wrench[k][i] = p.pose.wrench[k][i];
+    msg.angle_rad[k] = p.pose.angle_rad[k];
+  }
+  QuaternionOf(p.pose.R_WC, msg.q_wc);
+  msg.markers_ok = p.markers_ok;
+  return msg;
+}
+
+// ---- CALIBRATION ----
+
+CalibrationMessage FromLcm(const calibration_t& msg) {
+  if (msg.size != static_cast<int32_t>(msg.data.size())) {
+    throw std::runtime_error("size field " + std::to_string(msg.size) + " but " +
+                             std::to_string(msg.data.size()) + " bytes");
+  }
+  const std::string bytes(msg.data.begin(), msg.data.end());
+  CalibrationMessage out;
+  out.sha256 = Sha256Hex(bytes);
+  if (out.sha256 != msg.content_sha256) {
+    throw std::runtime_error("content_sha256 " + msg.content_sha256 +
+                             " does not match the data's " + out.sha256);
+  }
+  if (!out.proto.ParseFromString(bytes)) {
+    throw std::runtime_error("data is not a binary ftcal.calibration.Calibration");
+  }
+  out.version = msg.version;
+  out.utime = msg.utime;
+  return out;
+}
+
+calibration_t ToLcm(const calibration::Calibration& proto, int64_t version, int64_t utime) {
+  std::string bytes;
+  proto.SerializeToString(&bytes);
+  calibration_t msg{};
+  msg.utime = utime;
+  msg.version = version;
+  msg.content_sha256 = Sha256Hex(bytes);
+  msg.data.assign(bytes.begin(), bytes.end());
+  msg.size = static_cast<int32_t>(msg.data.size());
+  return msg;
+}
+
+// ---- CONTACT_WRENCH ----
+
+ContactWrenches FromLcm(const contact_wrench_t& msg) {
+  if (msg.num_legs != kNumLegs) {
+    throw BadInput("CONTACT_WRENCH leg count", std::to_string(msg.num_legs) + " legs, expected " +
+                                                   std::to_string(kNumLegs));
+  }
+  ContactWrenches c;
+  c.utime = msg.utime;
+  c.updated_leg = msg.updated_leg;
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (msg.leg[k] != kLegNames[k]) {
+      throw BadInput("CONTACT_WRENCH legs not in config order",
+                     "leg " + std::to_string(k) + " is '" + msg.leg[k] + "'");
+    }
+    for (int i = 0; i < 6; ++i) c.wrench_W[k][i] = msg.wrench_w[k][i];
+    c.ft_age_s[k] = msg.ft_age_s[k];
+  }
+  for (int i = 0; i < 6; ++i) {
+    c.total_W[i] = msg.total_w[i];
+    c.residual_W[i] = msg.residual_w[i];
+  }
+  c.calibration_version = msg.calibration_version;
+  c.servo_age_s = msg.servo_age_s;
+  c.mocap_age_s = msg.mocap_age_s;
+  c.flags = msg.flags;
+  return c;
+}
+
+void ToLcm(const ContactWrenches& c, contact_wrench_t* out) {
+  contact_wrench_t& msg = *out;
+  if (msg.wrench_w.size() != kNumLegs || msg.num_legs != kNumLegs) {
+    msg.num_legs = kNumLegs;
+    msg.leg = LegNameList();
+    msg.wrench_w.assign(kNumLegs, std::vector<double>(6));
+    msg.ft_age_s.assign(kNumLegs, 0.0);
+  }
+  msg.utime = c.utime;
+  msg.updated_leg = c.updated_leg;
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int i = 0; i < 6; ++i) msg.wrench_w[k][i] = c.wrench_W[k][i];
+    msg.ft_age_s[k] = c.ft_age_s[k];
+  }
+  for (int i = 0; i < 6; ++i) {
+    msg.total_w[i] = c.total_W[i];
+    msg.residual_w[i] = c.residual_W[i];
+  }
+  msg.calibration_version = c.calibration_version;
+  msg.servo_age_s = c.servo_age_s;
+  msg.mocap_age_s = c.mocap_age_s;
+  msg.flags = c.flags;
+}
+
+contact_wrench_t ToLcm(const ContactWrenches& c) {
+  contact_wrench_t msg{};
+  ToLcm(c, &msg);
+  return msg;
+}
+
+// ---- EXPERIMENT phases ----
+
+std::optional<HangSeries> HangSeriesOfPhase(int phase) {
+  if (phase < experiment_marker_t::HANG_X_POS || phase > experiment_marker_t::HANG_Z_NEG) {
+    return std::nullopt;
+  }
+  return static_cast<HangSeries>(phase - experiment_marker_t::HANG_X_POS);
+}
+
+int8_t PhaseOfHangSeries(HangSeries series) {
+  return static_cast<int8_t>(experiment_marker_t::HANG_X_POS + static_cast<int>(series));
+}
+
+std::string PhaseName(int phase) {
+  if (const auto series = HangSeriesOfPhase(phase)) return HangSeriesName(*series);
+  switch (phase) {
+    case experiment_marker_t::IDLE: return "IDLE";
+    case experiment_marker_t::STANDING: return "STANDING";
+    case experiment_marker_t::WALKING: return "WALKING";
+    case experiment_marker_t::TRIPOD: return "TRIPOD";
+    default: return "phase " + std::to_string(phase);
+  }
+}
+
+// ---- device inputs ----
+
+DeviceInputs::DeviceInputs(const config::Config& config)
+    : channels_(config.channels()),
+      body_name_(config.mocap().body_name()),
+      chassis_markers_(static_cast<int>(config.robot().chassis_marker_count())) {
+  if (config.robot().leg_size() != kNumLegs) {
+    throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
+                                " legs expected, got " +
+                                std::to_string(config.robot().leg_size()));
+  }
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (config.robot().leg(k).name() != kLegNames[k]) {
+      throw std::invalid_argument("config: robot.leg[" + std::to_string(k) + "].name: '" +
+                                  config.robot().leg(k).name() + "', expected '" +
+                                  std::string(kLegNames[k]) + "'");
+    }
+    ft_channel_[k] = config.channels().ft_prefix() + std::string(kLegNames[k]);
+  }
+}
+
+std::optional<MocapInput> DeviceInputs::FromMocap(const mocap_body_t& msg) const {
+  if (msg.body != body_name_) return std::nullopt;
+  return FromLcm(msg, chassis_markers_);
+}
+
+void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
+  if (h.ft) {
+    for (int k = 0; k < kNumLegs; ++k) {
+      bus.Subscribe<ft_sample_t>(ft_channel_[k], [k, f = h.ft](const MessageInfo&,
+                                                               const ft_sample_t& m) {
+        f(FromLcm(m, k));
+      });
+    }
+  }
+  if (h.servo) {
+    bus.Subscribe<servo_state_t>(channels_.servo_state(),
+                                 [f = h.servo](const MessageInfo&, const servo_state_t& m) {
+                                   f(FromLcm(m));
+                                 });
+  }
+  if (h.mocap) {
+    bus.Subscribe<mocap_body_t>(channels_.mocap_body(),
+                                [this, f = h.mocap](const MessageInfo&, const mocap_body_t& m) {
+                                  if (const auto in = FromMocap(m)) f(*in);
+                                });
+  }
+}
+
+AlignerOptions AlignerOptionsFromConfig(const config::Config& config) {
+  AlignerOptions o;
+  o.max_servo_age_s = config.corrector().max_servo_age_s();
+  o.max_mocap_age_s = config.corrector().max_mocap_age_s();
+  return o;
+}
+
+SegmenterOptions SegmenterOptionsFromConfig(const config::Segmenter& s) {
+  SegmenterOptions o;
+  o.sample_rate_hz = s.sample_rate_hz();
+  o.savgol_window = static_cast<int>(s.savgol_window());
+  o.savgol_order = static_cast<int>(s.savgol_order());
+  o.max_force_rate_n_s = s.max_force_rate_n_s();
+  o.min_steady_s = s.min_steady_s();
+  o.require_all_markers = s.require_all_markers();
+  return o;
+}
+
+}  // namespace ftcal

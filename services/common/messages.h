@@ -1,0 +1,147 @@
+// The message boundary: every conversion between the LCM messages (lcmtypes/) and libcal's
+// transport-free types, in one place, as a named pair per type (FromLcm / ToLcm), and the
+// device-input subscriptions every stage needs. No service folder converts messages itself.
+//
+// Validation happens here: a message from an unknown leg, on the wrong channel, without every
+// leg, or with a quaternion that is not one is refused with a BadInput naming what was wrong;
+// non-finite numbers are passed on for the aligner/corrector to count (they own the drop rule).
+// The fields a libcal type does not carry (device sequence numbers, servo ids and currents,
+// marker positions) are left zero or NaN by ToLcm: ToLcm is for the stages' outputs and for
+// tests, not for the bridges, which fill every field from their device.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <stdexcept>
+#include <string>
+
+#include "common/bus.h"
+#include "ftcal/aligner.h"
+#include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_t.hpp"
+#include "ftcal/corrector.h"
+#include "ftcal/dataset.h"
+#include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/mocap_body_t.hpp"
+#include "ftcal/segmenter.h"
+#include "ftcal/servo_state_t.hpp"
+#include "ftcal/steady_pose_t.hpp"
+#include "ftcal/sync_sample_t.hpp"
+#include "proto/calibration.pb.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+// ---- constants that lcmtypes/ and libcal both define (libcal does not include lcmtypes) ----
+static_assert(contact_wrench_t::FLAG_STALE_FT == kFlagStaleFt);
+static_assert(contact_wrench_t::FLAG_STALE_SERVO == kFlagStaleServo);
+static_assert(contact_wrench_t::FLAG_STALE_MOCAP == kFlagStaleMocap);
+static_assert(contact_wrench_t::FLAG_SATURATED == kFlagSaturated);
+static_assert(experiment_marker_t::HANG_X_NEG - experiment_marker_t::HANG_X_POS ==
+              static_cast<int>(HangSeries::kXNeg));
+static_assert(experiment_marker_t::HANG_Z_POS - experiment_marker_t::HANG_X_POS ==
+              static_cast<int>(HangSeries::kZPos));
+static_assert(experiment_marker_t::HANG_Z_NEG - experiment_marker_t::HANG_X_POS ==
+              static_cast<int>(HangSeries::kZNeg));
+static_assert(kNumHangSeries == 4);
+
+// ---- FT_<LEG>: ft_sample_t <-> FtInput ----
+// `leg` is the channel's leg; the message must name the same one (BadInput otherwise).
+FtInput FromLcm(const ft_sample_t& msg, int leg);
+ft_sample_t ToLcm(const FtInput& in);
+
+// ---- SERVO_STATE: servo_state_t <-> ServoInput ----
+// Every leg exactly once, by name, in any order (BadInput otherwise).
+ServoInput FromLcm(const servo_state_t& msg);
+// The legs in config order; ids, velocities, currents and ticks zero.
+servo_state_t ToLcm(const ServoInput& in);
+
+// ---- MOCAP_BODY: mocap_body_t <-> MocapInput ----
+// markers_ok: tracked, at least `chassis_markers` markers, every one tracked. A tracked q_wc
+// that is finite but not a unit quaternion is a BadInput; a non-finite one stays non-finite.
+MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers);
+// `chassis_markers` markers, tracked when in.markers_ok, positions NaN; q_gc = q_wc.
+mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_markers);
+
+// ---- SYNC_SAMPLE: sync_sample_t <-> AlignedSample ----
+AlignedSample FromLcm(const sync_sample_t& msg);
+sync_sample_t ToLcm(const AlignedSample& in);
+// The same into a message already sized for six legs (the segmenter's hot path: no allocation).
+void ToLcm(const AlignedSample& in, sync_sample_t* out);
+
+// ---- STEADY_POSE: steady_pose_t <-> SteadyPoseOut ----
+// What the message carries besides the pose.
+struct SteadyPoseHeader {
+  int64_t utime = 0;  // publish time
+  std::string session_id;
+  int32_t pose_index = 0;
+};
+// Legs by name, any order (BadInput for another count or an unknown leg); pose.t_s is the
+// centre of [start_utime, end_utime].
+SteadyPoseOut FromLcm(const steady_pose_t& msg, SteadyPoseHeader* header = nullptr);
+steady_pose_t ToLcm(const SteadyPoseOut& pose, const SteadyPoseHeader& header);
+
+// ---- CALIBRATION: calibration_t <-> calibration::Calibration ----
+struct CalibrationMessage {
+  calibration::Calibration proto;
+  int64_t version = 0;
+  int64_t utime = 0;
+  std::string sha256;  // hex SHA-256 of the binary proto: the calibration's identity
+};
+// Checks the size field, the SHA-256 and the protobuf; throws std::runtime_error naming which.
+CalibrationMessage FromLcm(const calibration_t& msg);
+calibration_t ToLcm(const calibration::Calibration& proto, int64_t version, int64_t utime);
+
+// ---- CONTACT_WRENCH: contact_wrench_t <-> ContactWrenches ----
+ContactWrenches FromLcm(const contact_wrench_t& msg);
+contact_wrench_t ToLcm(const ContactWrenches& in);
+// The same into a message already sized for six legs (the corrector's hot path).
+void ToLcm(const ContactWrenches& in, contact_wrench_t* out);
+
+// ---- EXPERIMENT phases ----
+// The hanging series of a HANG_* phase, nullopt for any other phase.
+std::optional<HangSeries> HangSeriesOfPhase(int phase);
+int8_t PhaseOfHangSeries(HangSeries series);
+// "HANG_X_POS" ... "TRIPOD", or "phase N" for a code no lcmtypes constant names.
+std::string PhaseName(int phase);
+
+// ---- device inputs: what every stage reads from the bridges ----
+// The config's FT channels, chassis body and marker count, and the subscriptions to FT_<LEG>,
+// SERVO_STATE and MOCAP_BODY that hand libcal inputs to a stage.
+class DeviceInputs {
+ public:
+  // Throws std::invalid_argument when the config's legs are not kLegNames in order.
+  explicit DeviceInputs(const config::Config& config);
+
+  // FT_<LEG> channel name of leg k.
+  const std::string& FtChannel(int k) const { return ft_channel_[k]; }
+  FtInput FromFt(int leg, const ft_sample_t& msg) const { return FromLcm(msg, leg); }
+  ServoInput FromServo(const servo_state_t& msg) const { return FromLcm(msg); }
+  // nullopt for another rigid body than the config's chassis body.
+  std::optional<MocapInput> FromMocap(const mocap_body_t& msg) const;
+
+  // A null handler is not subscribed. Mocap frames of another body are not handed on.
+  struct Handlers {
+    std::function<void(const FtInput&)> ft;
+    std::function<void(const ServoInput&)> servo;
+    std::function<void(const MocapInput&)> mocap;
+  };
+  void Subscribe(Bus& bus, Handlers handlers) const;
+
+ private:
+  const config::Channels channels_;
+  std::array<std::string, kNumLegs> ft_channel_;
+  std::string body_name_;
+  int chassis_markers_;
+};
+
+// The aligner's freshness limits: the corrector's (corrector.max_servo_age_s,
+// max_mocap_age_s), so every stage calls the same input stale.
+AlignerOptions AlignerOptionsFromConfig(const config::Config& config);
+// The segmenter's options (config section segmenter), as the segmenter and calibrator use them.
+SegmenterOptions SegmenterOptionsFromConfig(const config::Segmenter& segmenter);
+
+}  // namespace ftcal

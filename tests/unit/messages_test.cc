@@ -1,0 +1,337 @@
+// The message boundary (services/common/messages.h): every FromLcm / ToLcm pair round-trips a
+// value with a distinct number in every field, the refusals name what was wrong, and the
+// device-input subscriptions hand a stage the converted inputs of a real replayed log.
+#include "common/messages.h"
+
+#include <unistd.h>
+
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+#include <spdlog/sinks/null_sink.h>
+
+#include "ftcal/config.h"
+#include "ftcal/geometry.h"
+
+namespace ftcal {
+namespace {
+
+const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
+
+// A distinct number for every field: i-th call gives base + i/8 (exact in binary).
+struct Distinct {
+  double next = 1.0;
+  double operator()() { return next += 0.125; }
+};
+
+Vec6 DistinctVec6(Distinct& d) {
+  Vec6 v;
+  for (int i = 0; i < 6; ++i) v[i] = d();
+  return v;
+}
+
+Mat3 SomeRotation() { return RotationFromRollPitchYaw(0.1, -0.2, 0.3); }
+
+void ExpectRotationNear(const Mat3& a, const Mat3& b) {
+  EXPECT_LT((a - b).cwiseAbs().maxCoeff(), 1e-14) << a << "\nvs\n" << b;
+}
+
+template <class Fn>
+std::string BadInputReason(Fn fn) {
+  try {
+    fn();
+  } catch (const BadInput& e) {
+    return e.kind() + ": " + e.what();
+  }
+  return "";
+}
+
+TEST(Messages, FtSampleRoundTrip) {
+  Distinct d;
+  FtInput in;
+  in.utime = 1'700'000'000'123'456;
+  in.leg = 4;
+  in.wrench = DistinctVec6(d);
+  in.flags = ft_sample_t::FLAG_SATURATED | ft_sample_t::FLAG_GAP;
+  const ft_sample_t msg = ToLcm(in);
+  EXPECT_EQ(msg.leg, "MR");
+  const FtInput back = FromLcm(msg, 4);
+  EXPECT_EQ(back.utime, in.utime);
+  EXPECT_EQ(back.leg, in.leg);
+  EXPECT_EQ(back.wrench, in.wrench);
+  EXPECT_EQ(back.flags, in.flags);
+  // On another leg's channel the message is refused, naming both.
+  const std::string why = BadInputReason([&] { FromLcm(msg, 1); });
+  EXPECT_NE(why.find("'MR'"), std::string::npos) << why;
+  EXPECT_NE(why.find("ML"), std::string::npos) << why;
+}
+
+TEST(Messages, ServoStateRoundTripAndLegsByName) {
+  Distinct d;
+  ServoInput in;
+  in.utime = 42;
+  for (double& a : in.angle_rad) a = d();
+  const ServoInput back = FromLcm(ToLcm(in));
+  EXPECT_EQ(back.utime, in.utime);
+  EXPECT_EQ(back.angle_rad, in.angle_rad);
+
+  // The bus order is the servo ids', not the legs': the angles follow the names.
+  servo_state_t msg = ToLcm(in);
+  std::reverse(msg.leg.begin(), msg.leg.end());
+  std::reverse(msg.angle_rad.begin(), msg.angle_rad.end());
+  EXPECT_EQ(FromLcm(msg).angle_rad, in.angle_rad);
+
+  servo_state_t dup = ToLcm(in);
+  dup.leg[5] = "HL";
+  EXPECT_NE(BadInputReason([&] { FromLcm(dup); }).find("HL twice"), std::string::npos);
+  servo_state_t unknown = ToLcm(in);
+  unknown.leg[2] = "XX";
+  EXPECT_NE(BadInputReason([&] { FromLcm(unknown); }).find("'XX'"), std::string::npos);
+  servo_state_t missing = ToLcm(in);
+  missing.num_servos = 5;
+  EXPECT_NE(BadInputReason([&] { FromLcm(missing); }).find("FR"), std::string::npos);
+}
+
+TEST(Messages, MocapBodyRoundTrip) {
+  for (const bool markers_ok : {true, false}) {
+    MocapInput in;
+    in.utime = 77;
+    in.tracked = true;
+    in.R_WC = SomeRotation();
+    in.markers_ok = markers_ok;
+    const mocap_body_t msg = ToLcm(in, "chassis", 4);
+    EXPECT_EQ(msg.body, "chassis");
+    const MocapInput back = FromLcm(msg, 4);
+    EXPECT_EQ(back.utime, in.utime);
+    EXPECT_TRUE(back.tracked);
+    ExpectRotationNear(back.R_WC, in.R_WC);
+    EXPECT_EQ(back.markers_ok, markers_ok);
+    // Fewer markers than the chassis has: not all tracked.
+    EXPECT_FALSE(FromLcm(msg, 5).markers_ok);
+  }
+  MocapInput lost;
+  lost.utime = 78;
+  lost.tracked = false;
+  const MocapInput back = FromLcm(ToLcm(lost, "chassis", 4), 4);
+  EXPECT_FALSE(back.tracked);
+  EXPECT_FALSE(back.markers_ok);
+
+  mocap_body_t bad = ToLcm(MocapInput{79, true, SomeRotation(), true}, "chassis", 4);
+  bad.q_wc[0] = 2.0;
+  EXPECT_NE(BadInputReason([&] { FromLcm(bad, 4); }).find("unit quaternion"), std::string::npos);
+  bad.q_wc[0] = NAN;  // passed on, non-finite, for the aligner to count
+  EXPECT_FALSE(FromLcm(bad, 4).R_WC.allFinite());
+}
+
+TEST(Messages, SyncSampleRoundTrip) {
+  Distinct d;
+  AlignedSample a;
+  a.sample.utime = 1234;
+  for (int k = 0; k < kNumLegs; ++k) {
+    a.sample.wrench[k] = DistinctVec6(d);
+    a.sample.angle_rad[k] = d();
+  }
+  a.sample.R_WC = SomeRotation();
+  a.sample.attitude_ok = true;
+  a.sample.markers_ok = false;
+  a.flags = 5;
+  const AlignedSample back = FromLcm(ToLcm(a));
+  EXPECT_EQ(back.sample.utime, a.sample.utime);
+  EXPECT_EQ(back.sample.wrench, a.sample.wrench);
+  EXPECT_EQ(back.sample.angle_rad, a.sample.angle_rad);
+  ExpectRotationNear(back.sample.R_WC, a.sample.R_WC);
+  EXPECT_TRUE(back.sample.attitude_ok);
+  EXPECT_FALSE(back.sample.markers_ok);
+  EXPECT_EQ(back.flags, 5);
+  // The reused-message form gives the same bytes as the fresh one.
+  sync_sample_t reused{};
+  ToLcm(a, &reused);
+  ToLcm(a, &reused);
+  const sync_sample_t fresh = ToLcm(a);
+  ASSERT_EQ(reused.getEncodedSize(), fresh.getEncodedSize());
+  std::vector<uint8_t> x(fresh.getEncodedSize()), y(fresh.getEncodedSize());
+  reused.encode(x.data(), 0, static_cast<int>(x.size()));
+  fresh.encode(y.data(), 0, static_cast<int>(y.size()));
+  EXPECT_EQ(x, y);
+}
+
+TEST(Messages, SteadyPoseRoundTripAndLegsByName) {
+  Distinct d;
+  SteadyPoseOut p;
+  for (int k = 0; k < kNumLegs; ++k) {
+    p.pose.wrench[k] = DistinctVec6(d);
+    p.pose.angle_rad[k] = d();
+  }
+  p.pose.R_WC = SomeRotation();
+  p.start_utime = 1'000'000;
+  p.end_utime = 3'000'000;
+  p.pose.t_s = 2.0;  // the centre of the span: what the message implies
+  p.num_samples = 201;
+  p.markers_ok = false;
+  const SteadyPoseHeader header{99, "session-7", 12};
+  steady_pose_t msg = ToLcm(p, header);
+  SteadyPoseHeader h;
+  const SteadyPoseOut back = FromLcm(msg, &h);
+  EXPECT_EQ(h.utime, 99);
+  EXPECT_EQ(h.session_id, "session-7");
+  EXPECT_EQ(h.pose_index, 12);
+  EXPECT_EQ(back.pose.wrench, p.pose.wrench);
+  EXPECT_EQ(back.pose.angle_rad, p.pose.angle_rad);
+  ExpectRotationNear(back.pose.R_WC, p.pose.R_WC);
+  EXPECT_EQ(back.pose.t_s, 2.0);
+  EXPECT_EQ(back.start_utime, p.start_utime);
+  EXPECT_EQ(back.end_utime, p.end_utime);
+  EXPECT_EQ(back.num_samples, 201);
+  EXPECT_FALSE(back.markers_ok);
+
+  std::swap(msg.leg[0], msg.leg[3]);
+  std::swap(msg.wrench[0], msg.wrench[3]);
+  std::swap(msg.angle_rad[0], msg.angle_rad[3]);
+  EXPECT_EQ(FromLcm(msg).pose.wrench, p.pose.wrench);
+  msg.leg[1] = "HR";  // twice now
+  EXPECT_NE(BadInputReason([&] { FromLcm(msg); }).find("HR twice"), std::string::npos);
+  msg.num_legs = 5;
+  EXPECT_NE(BadInputReason([&] { FromLcm(msg); }).find("5 legs"), std::string::npos);
+}
+
+TEST(Messages, CalibrationRoundTripAndRefusals) {
+  calibration::Calibration proto;
+  proto.set_version(3);
+  proto.set_robot_name("bigant-messages-test");
+  proto.set_total_mass_kg(8.18);
+  const calibration_t msg = ToLcm(proto, 17, 555);
+  const CalibrationMessage back = FromLcm(msg);
+  EXPECT_EQ(back.proto.SerializeAsString(), proto.SerializeAsString());
+  EXPECT_EQ(back.version, 17);
+  EXPECT_EQ(back.utime, 555);
+  EXPECT_EQ(back.sha256, Sha256Hex(proto.SerializeAsString()));
+  EXPECT_EQ(msg.content_sha256, back.sha256);
+
+  auto reason = [](const calibration_t& m) -> std::string {
+    try {
+      FromLcm(m);
+    } catch (const std::runtime_error& e) {
+      return e.what();
+    }
+    return "";
+  };
+  calibration_t bad_hash = msg;
+  bad_hash.content_sha256[0] = bad_hash.content_sha256[0] == '0' ? '1' : '0';
+  EXPECT_NE(reason(bad_hash).find("does not match"), std::string::npos);
+  calibration_t bad_size = msg;
+  bad_size.size += 1;
+  EXPECT_NE(reason(bad_size).find("size field"), std::string::npos);
+  calibration_t not_proto = msg;
+  not_proto.data.assign({0xff, 0xff, 0xff});
+  not_proto.size = 3;
+  not_proto.content_sha256 = Sha256Hex(std::string(3, '\xff'));
+  EXPECT_NE(reason(not_proto).find("not a binary"), std::string::npos);
+}
+
+TEST(Messages, ContactWrenchRoundTrip) {
+  Distinct d;
+  ContactWrenches c;
+  c.utime = 31337;
+  c.updated_leg = 2;
+  for (int k = 0; k < kNumLegs; ++k) {
+    c.wrench_W[k] = DistinctVec6(d);
+    c.ft_age_s[k] = d();
+  }
+  c.total_W = DistinctVec6(d);
+  c.residual_W = DistinctVec6(d);
+  c.calibration_version = 8;
+  c.servo_age_s = d();
+  c.mocap_age_s = d();
+  c.flags = kFlagStaleMocap | kFlagSaturated;
+  const ContactWrenches back = FromLcm(ToLcm(c));
+  EXPECT_EQ(back.utime, c.utime);
+  EXPECT_EQ(back.updated_leg, c.updated_leg);
+  EXPECT_EQ(back.wrench_W, c.wrench_W);
+  EXPECT_EQ(back.ft_age_s, c.ft_age_s);
+  EXPECT_EQ(back.total_W, c.total_W);
+  EXPECT_EQ(back.residual_W, c.residual_W);
+  EXPECT_EQ(back.calibration_version, 8);
+  EXPECT_EQ(back.servo_age_s, c.servo_age_s);
+  EXPECT_EQ(back.mocap_age_s, c.mocap_age_s);
+  EXPECT_EQ(back.flags, c.flags);
+}
+
+TEST(Messages, Phases) {
+  for (const HangSeries s : {HangSeries::kXPos, HangSeries::kXNeg, HangSeries::kZPos, HangSeries::kZNeg}) {
+    EXPECT_EQ(HangSeriesOfPhase(PhaseOfHangSeries(s)), s);
+  }
+  EXPECT_EQ(PhaseOfHangSeries(HangSeries::kZNeg), int{experiment_marker_t::HANG_Z_NEG});
+  EXPECT_EQ(PhaseName(experiment_marker_t::HANG_X_NEG), "HANG_X_NEG");
+  EXPECT_EQ(PhaseName(experiment_marker_t::TRIPOD), "TRIPOD");
+  EXPECT_EQ(PhaseName(42), "phase 42");
+  EXPECT_FALSE(HangSeriesOfPhase(experiment_marker_t::STANDING));
+  EXPECT_FALSE(HangSeriesOfPhase(experiment_marker_t::IDLE));
+}
+
+// The subscriptions over a real replayed log: each handler gets its input converted, the
+// other rigid body's frames are not handed on, and a message on the wrong leg's channel is a
+// counted drop, not a crash.
+TEST(Messages, DeviceInputsOverAReplayedLog) {
+  const config::Config config = LoadConfigFile(kConfig);
+  const std::string dir = ::testing::TempDir();
+  const std::string in_path = dir + "/messages_test_" + std::to_string(::getpid()) + ".lcmlog";
+  Distinct d;
+  FtInput ft;
+  ft.utime = 10;
+  ft.leg = 3;
+  ft.wrench = DistinctVec6(d);
+  ServoInput servo;
+  servo.utime = 11;
+  for (double& a : servo.angle_rad) a = d();
+  const MocapInput mocap{12, true, SomeRotation(), true};
+  const int markers = static_cast<int>(config.robot().chassis_marker_count());
+  {
+    lcm::LogFile log(in_path, "w");
+    int64_t n = 0;
+    auto write = [&](const std::string& channel, const auto& msg) {
+      std::vector<uint8_t> buf(static_cast<size_t>(msg.getEncodedSize()));
+      msg.encode(buf.data(), 0, static_cast<int>(buf.size()));
+      lcm::LogEvent ev;
+      ev.eventnum = n;
+      ev.timestamp = 100 + n++;
+      ev.channel = channel;
+      ev.datalen = static_cast<int32_t>(buf.size());
+      ev.data = buf.data();
+      log.writeEvent(&ev);
+    };
+    const auto& ch = config.channels();
+    write(ch.ft_prefix() + "HR", ToLcm(ft));
+    write(ch.ft_prefix() + "HL", ToLcm(ft));  // HR's sample on HL's channel
+    write(ch.servo_state(), ToLcm(servo));
+    write(ch.mocap_body(), ToLcm(mocap, "another body", markers));
+    write(ch.mocap_body(), ToLcm(mocap, config.mocap().body_name(), markers));
+  }
+  ServiceStats stats(std::make_shared<spdlog::logger>("messages_test",
+                                                      std::make_shared<spdlog::sinks::null_sink_mt>()));
+  LogReplayBus bus(in_path, in_path + ".out", stats);
+  const DeviceInputs inputs(config);
+  EXPECT_EQ(inputs.FtChannel(3), config.channels().ft_prefix() + "HR");
+  std::vector<FtInput> fts;
+  std::vector<ServoInput> servos;
+  std::vector<MocapInput> frames;
+  inputs.Subscribe(bus, {[&](const FtInput& in) { fts.push_back(in); },
+                         [&](const ServoInput& in) { servos.push_back(in); },
+                         [&](const MocapInput& in) { frames.push_back(in); }});
+  bus.Run([] {}, 1'000'000);
+  ::unlink(in_path.c_str());
+  ASSERT_EQ(fts.size(), 1u);
+  EXPECT_EQ(fts[0].leg, 3);
+  EXPECT_EQ(fts[0].wrench, ft.wrench);
+  ASSERT_EQ(servos.size(), 1u);
+  EXPECT_EQ(servos[0].angle_rad, servo.angle_rad);
+  ASSERT_EQ(frames.size(), 1u);
+  ExpectRotationNear(frames[0].R_WC, mocap.R_WC);
+  EXPECT_TRUE(frames[0].markers_ok);
+  EXPECT_EQ(stats.drops(), 1);
+}
+
+}  // namespace
+}  // namespace ftcal
