@@ -1,5 +1,6 @@
 #include "ftcal/corrector.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -20,6 +21,35 @@ void CheckAge(double s, const char* what) {
 std::string LegLabel(int k) { return "leg " + std::string(kLegNames[k]); }
 
 }  // namespace
+
+LegWrench LegWrenchOf(const ContactWrenches& c) {
+  LegWrench w;
+  w.utime = c.utime;
+  w.leg = c.updated_leg;
+  w.wrench_W = c.wrench_W[c.updated_leg];
+  w.servo_age_s = c.servo_age_s;
+  w.mocap_age_s = c.mocap_age_s;
+  w.flags = c.leg_flags;
+  return w;
+}
+
+WrenchSum WrenchSumOf(const ContactWrenches& c) {
+  WrenchSum s;
+  s.utime = c.utime;
+  s.total_W = c.total_W;
+  s.residual_W = c.residual_W;
+  s.calibration_version = c.calibration_version;
+  s.oldest_ft_age_s = 0.0;
+  for (const double age : c.ft_age_s) {
+    if (age < 0) {
+      s.oldest_ft_age_s = -1.0;
+      break;
+    }
+    s.oldest_ft_age_s = std::max(s.oldest_ft_age_s, age);
+  }
+  s.flags = c.sum_flags;
+  return s;
+}
 
 Corrector::Corrector(const CorrectorOptions& options) : options_(options) {
   CheckAge(options.max_ft_age_s, "max_ft_age_s");
@@ -54,6 +84,8 @@ void Corrector::SetCalibration(const RobotCalibration& cal, int64_t version) {
   has_calibration_ = true;
   // Wrenches corrected with the previous calibration must not be summed with new ones.
   for (LegState& s : state_) s.seen = false;
+  since_sum_ = 0;
+  last_sum_utime_ = -1;
 }
 
 bool Corrector::AddServo(const ServoInput& in) {
@@ -132,15 +164,17 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
     flags |= kFlagStaleServo;
   }
 
+  if (saturated) flags |= kFlagSaturated;
   st.seen = true;
   st.utime = t;
-  st.saturated = saturated;
+  st.flags = flags;
   st.wrench_W = std::isnan(angle) ? Vec6::Constant(kNaN) : CorrectLeg(in.leg, in.wrench, angle, R_WC);
 
   out->utime = t;
   out->updated_leg = in.leg;
   out->calibration_version = version_;
   out->total_W.setZero();
+  int32_t sum_flags = 0;
   for (int k = 0; k < kNumLegs; ++k) {
     const LegState& s = state_[k];
     if (!s.seen) {
@@ -151,13 +185,25 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
       out->wrench_W[k] = s.wrench_W;
       out->ft_age_s[k] = 1e-6 * static_cast<double>(t - s.utime);
       if (std::abs(out->ft_age_s[k]) > options_.max_ft_age_s) flags |= kFlagStaleFt;
-      if (s.saturated) flags |= kFlagSaturated;
+      flags |= s.flags & kFlagSaturated;
+      sum_flags |= s.flags;
     }
     out->total_W += out->wrench_W[k];
   }
   out->residual_W = out->total_W;
   out->residual_W[2] -= weight_total_n_;
   out->flags = flags;
+  out->leg_flags = st.flags;
+  out->sum_flags = sum_flags | (flags & kFlagStaleFt);
+  constexpr unsigned kAllLegs = (1u << kNumLegs) - 1;
+  since_sum_ |= 1u << in.leg;
+  if (last_sum_utime_ < 0) last_sum_utime_ = t;
+  out->sum_due = since_sum_ == kAllLegs ||
+                 1e-6 * static_cast<double>(t - last_sum_utime_) > options_.max_ft_age_s;
+  if (out->sum_due) {
+    since_sum_ = 0;
+    last_sum_utime_ = t;
+  }
   ++counters_.corrected;
   return true;
 }

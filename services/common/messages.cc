@@ -268,62 +268,57 @@ calibration_t ToLcm(const calibration::Calibration& proto, int64_t version, int6
   return msg;
 }
 
-// ---- CONTACT_WRENCH ----
+// ---- CONTACT_WRENCH, CONTACT_WRENCH_SUM ----
 
-ContactWrenches FromLcm(const contact_wrench_t& msg) {
-  if (msg.num_legs != kNumLegs) {
-    throw BadInput("CONTACT_WRENCH leg count", std::to_string(msg.num_legs) + " legs, expected " +
-                                                   std::to_string(kNumLegs));
+LegWrench FromLcm(const contact_wrench_t& msg) {
+  if (msg.leg < 0 || msg.leg >= kNumLegs) {
+    throw BadInput("CONTACT_WRENCH leg index", "leg " + std::to_string(msg.leg) + " outside [0, " +
+                                                   std::to_string(kNumLegs) + ")");
   }
-  ContactWrenches c;
-  c.utime = msg.utime;
-  c.updated_leg = msg.updated_leg;
-  for (int k = 0; k < kNumLegs; ++k) {
-    if (msg.leg[k] != kLegNames[k]) {
-      throw BadInput("CONTACT_WRENCH legs not in config order",
-                     "leg " + std::to_string(k) + " is '" + msg.leg[k] + "'");
-    }
-    for (int i = 0; i < 6; ++i) c.wrench_W[k][i] = msg.wrench_w[k][i];
-    c.ft_age_s[k] = msg.ft_age_s[k];
-  }
-  for (int i = 0; i < 6; ++i) {
-    c.total_W[i] = msg.total_w[i];
-    c.residual_W[i] = msg.residual_w[i];
-  }
-  c.calibration_version = msg.calibration_version;
-  c.servo_age_s = msg.servo_age_s;
-  c.mocap_age_s = msg.mocap_age_s;
-  c.flags = msg.flags;
-  return c;
+  LegWrench w;
+  w.utime = msg.utime;
+  w.leg = msg.leg;
+  for (int i = 0; i < 6; ++i) w.wrench_W[i] = msg.wrench_w[i];
+  w.servo_age_s = msg.servo_age_s;
+  w.mocap_age_s = msg.mocap_age_s;
+  w.flags = msg.flags;
+  return w;
 }
 
-void ToLcm(const ContactWrenches& c, contact_wrench_t* out) {
-  contact_wrench_t& msg = *out;
-  if (msg.wrench_w.size() != kNumLegs || msg.num_legs != kNumLegs) {
-    msg.num_legs = kNumLegs;
-    msg.leg = LegNameList();
-    msg.wrench_w.assign(kNumLegs, std::vector<double>(6));
-    msg.ft_age_s.assign(kNumLegs, 0.0);
-  }
-  msg.utime = c.utime;
-  msg.updated_leg = c.updated_leg;
-  for (int k = 0; k < kNumLegs; ++k) {
-    for (int i = 0; i < 6; ++i) msg.wrench_w[k][i] = c.wrench_W[k][i];
-    msg.ft_age_s[k] = c.ft_age_s[k];
-  }
-  for (int i = 0; i < 6; ++i) {
-    msg.total_w[i] = c.total_W[i];
-    msg.residual_w[i] = c.residual_W[i];
-  }
-  msg.calibration_version = c.calibration_version;
-  msg.servo_age_s = c.servo_age_s;
-  msg.mocap_age_s = c.mocap_age_s;
-  msg.flags = c.flags;
-}
-
-contact_wrench_t ToLcm(const ContactWrenches& c) {
+contact_wrench_t ToLcm(const LegWrench& w) {
   contact_wrench_t msg{};
-  ToLcm(c, &msg);
+  msg.utime = w.utime;
+  msg.leg = static_cast<int8_t>(w.leg);
+  for (int i = 0; i < 6; ++i) msg.wrench_w[i] = w.wrench_W[i];
+  msg.servo_age_s = static_cast<float>(w.servo_age_s);
+  msg.mocap_age_s = static_cast<float>(w.mocap_age_s);
+  msg.flags = static_cast<int8_t>(w.flags);
+  return msg;
+}
+
+WrenchSum FromLcm(const contact_wrench_sum_t& msg) {
+  WrenchSum s;
+  s.utime = msg.utime;
+  for (int i = 0; i < 6; ++i) {
+    s.total_W[i] = msg.total_w[i];
+    s.residual_W[i] = msg.residual_w[i];
+  }
+  s.calibration_version = msg.calibration_version;
+  s.oldest_ft_age_s = msg.oldest_ft_age_s;
+  s.flags = msg.flags;
+  return s;
+}
+
+contact_wrench_sum_t ToLcm(const WrenchSum& s) {
+  contact_wrench_sum_t msg{};
+  msg.utime = s.utime;
+  for (int i = 0; i < 6; ++i) {
+    msg.total_w[i] = s.total_W[i];
+    msg.residual_w[i] = s.residual_W[i];
+  }
+  msg.calibration_version = s.calibration_version;
+  msg.oldest_ft_age_s = static_cast<float>(s.oldest_ft_age_s);
+  msg.flags = static_cast<int8_t>(s.flags);
   return msg;
 }
 

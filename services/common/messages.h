@@ -20,6 +20,7 @@
 #include "common/bus.h"
 #include "ftcal/aligner.h"
 #include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/corrector.h"
 #include "ftcal/dataset.h"
@@ -36,10 +37,13 @@
 namespace ftcal {
 
 // ---- constants that lcmtypes/ and libcal both define (libcal does not include lcmtypes) ----
-static_assert(contact_wrench_t::FLAG_STALE_FT == kFlagStaleFt);
 static_assert(contact_wrench_t::FLAG_STALE_SERVO == kFlagStaleServo);
 static_assert(contact_wrench_t::FLAG_STALE_MOCAP == kFlagStaleMocap);
 static_assert(contact_wrench_t::FLAG_SATURATED == kFlagSaturated);
+static_assert(contact_wrench_sum_t::FLAG_STALE_FT == kFlagStaleFt);
+static_assert(contact_wrench_sum_t::FLAG_STALE_SERVO == kFlagStaleServo);
+static_assert(contact_wrench_sum_t::FLAG_STALE_MOCAP == kFlagStaleMocap);
+static_assert(contact_wrench_sum_t::FLAG_SATURATED == kFlagSaturated);
 static_assert(experiment_marker_t::HANG_X_NEG - experiment_marker_t::HANG_X_POS ==
               static_cast<int>(HangSeries::kXNeg));
 static_assert(experiment_marker_t::HANG_Z_POS - experiment_marker_t::HANG_X_POS ==
@@ -95,11 +99,14 @@ struct CalibrationMessage {
 CalibrationMessage FromLcm(const calibration_t& msg);
 calibration_t ToLcm(const calibration::Calibration& proto, int64_t version, int64_t utime);
 
-// ---- CONTACT_WRENCH: contact_wrench_t <-> ContactWrenches ----
-ContactWrenches FromLcm(const contact_wrench_t& msg);
-contact_wrench_t ToLcm(const ContactWrenches& in);
-// The same into a message already sized for six legs (the corrector's hot path).
-void ToLcm(const ContactWrenches& in, contact_wrench_t* out);
+// ---- CONTACT_WRENCH: contact_wrench_t <-> LegWrench (one leg-sample) ----
+// A leg index outside the legs is a BadInput. Ages travel as float seconds (-1: none).
+LegWrench FromLcm(const contact_wrench_t& msg);
+contact_wrench_t ToLcm(const LegWrench& in);
+
+// ---- CONTACT_WRENCH_SUM: contact_wrench_sum_t <-> WrenchSum ----
+WrenchSum FromLcm(const contact_wrench_sum_t& msg);
+contact_wrench_sum_t ToLcm(const WrenchSum& in);
 
 // ---- EXPERIMENT phases ----
 // The hanging series of a HANG_* phase, nullopt for any other phase.

@@ -109,17 +109,25 @@ void CorrectorStage::OnFt(const FtInput& in) {
     UpdateCounters();
     return;
   }
-  ToLcm(out_, &msg_);
   if (out_.flags & (kFlagStaleFt | kFlagStaleServo | kFlagStaleMocap)) ++stale_;
-  // Encode into a reused buffer (Bus::Publish would allocate one per message).
-  const int size = msg_.getEncodedSize();
-  if (buffer_.size() < static_cast<size_t>(size)) buffer_.resize(static_cast<size_t>(size));
-  if (msg_.encode(buffer_.data(), 0, size) != size) {
-    bus_.stats().Error("encode contact_wrench_t", "message did not encode");
-  } else {
-    bus_.PublishRaw(config_.channels().contact_wrench(), buffer_.data(), size);
+  PublishReused(config_.channels().contact_wrench(), ToLcm(LegWrenchOf(out_)));
+  ++leg_samples_;
+  if (out_.sum_due) {
+    PublishReused(config_.channels().contact_wrench_sum(), ToLcm(WrenchSumOf(out_)));
+    ++sums_;
   }
   UpdateCounters();
+}
+
+template <class Msg>
+void CorrectorStage::PublishReused(const std::string& channel, const Msg& msg) {
+  const int size = msg.getEncodedSize();
+  if (buffer_.size() < static_cast<size_t>(size)) buffer_.resize(static_cast<size_t>(size));
+  if (msg.encode(buffer_.data(), 0, size) != size) {
+    bus_.stats().Error(std::string("encode ") + Msg::getTypeName(), "message did not encode");
+    return;
+  }
+  bus_.PublishRaw(channel, buffer_.data(), size);
 }
 
 void CorrectorStage::UpdateCounters() {

@@ -1,7 +1,7 @@
 // ftcal-corrector's work, transport-agnostic through the Bus (docs/method.md, "Correction"):
-// every FT_<LEG> sample becomes one CONTACT_WRENCH with all six legs' ground-contact wrenches
-// in W about the CoM (libcal's Corrector), using SERVO_STATE for the leg phase and MOCAP_BODY
-// for R_WC.
+// every FT_<LEG> sample becomes one CONTACT_WRENCH with that leg's ground-contact wrench in W
+// about the CoM (libcal's Corrector), using SERVO_STATE for the leg phase and MOCAP_BODY for
+// R_WC; once every leg has a new sample, one CONTACT_WRENCH_SUM with the six legs' sum.
 //
 // Calibration: from --calibration FILE at start and/or any CALIBRATION message, picked up
 // without a restart. A message is checked (its SHA-256, the protobuf, CalibrationFromProto
@@ -18,6 +18,7 @@
 #include "common/bus.h"
 #include "common/messages.h"
 #include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/corrector.h"
 #include "ftcal/service_status_t.hpp"
@@ -39,6 +40,9 @@ class CorrectorStage {
   void UseCalibration(const calibration::Calibration& proto, int64_t version,
                       const std::string& sha256);
   bool has_calibration() const { return corrector_.has_calibration(); }
+  // CONTACT_WRENCH and CONTACT_WRENCH_SUM messages published.
+  int64_t leg_samples() const { return leg_samples_; }
+  int64_t sums() const { return sums_; }
   // Says in the status (last error, DEGRADED) why nothing is published yet. Called once the
   // start-up calibration, if any, has been applied, so a --calibration start reports no error.
   void ReportWaitingForCalibration();
@@ -49,6 +53,10 @@ class CorrectorStage {
   void OnMocap(const MocapInput& in);
   void OnCalibration(const calibration_t& msg);
   void UpdateCounters();
+  // Encodes into buffer_ (Bus::Publish's buffer is per thread; this one is per stage) and
+  // publishes: the hot path allocates nothing.
+  template <class Msg>
+  void PublishReused(const std::string& channel, const Msg& msg);
 
   const config::Config& config_;
   Bus& bus_;
@@ -57,13 +65,12 @@ class CorrectorStage {
   Corrector corrector_;
   std::string calibration_sha256_;
   ContactWrenches out_;
-  contact_wrench_t msg_;  // reused: no allocation per sample
   std::vector<uint8_t> buffer_;
   struct Counters {
     int64_t *corrected, *no_calibration, *calibrations, *calibrations_refused, *drop_out_of_order,
         *drop_non_finite, *stale;
   } counters_{};
-  int64_t calibrations_ = 0, refused_ = 0, stale_ = 0;
+  int64_t calibrations_ = 0, refused_ = 0, stale_ = 0, leg_samples_ = 0, sums_ = 0;
 };
 
 }  // namespace ftcal

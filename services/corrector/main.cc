@@ -10,10 +10,12 @@ int main(int argc, char** argv) {
   ftcal::ServiceApp app(
       {"ftcal-corrector",
        "Reads FT_<LEG> (ft_sample_t), SERVO_STATE, MOCAP_BODY and CALIBRATION (calibration_t). "
-       "Publishes CONTACT_WRENCH (contact_wrench_t) for every transducer sample: each leg's "
-       "ground-contact wrench in W about the CoM (docs/method.md eq. 3, the leg's latest sample), "
-       "their sum, its residual against (0,0,G,0,0,0), the calibration version, input ages and "
-       "stale/saturated flags (inputs older than corrector.max_*_age_s). A new CALIBRATION is "
+       "Publishes CONTACT_WRENCH (contact_wrench_t) for every transducer sample: that leg's "
+       "ground-contact wrench in W about the CoM (docs/method.md eq. 3), the servo and mocap "
+       "ages and stale/saturated flags (inputs older than corrector.max_*_age_s); and "
+       "CONTACT_WRENCH_SUM (contact_wrench_sum_t) once every leg has a new sample: the six legs' "
+       "sum, its residual against (0,0,G,0,0,0), the calibration version, the oldest sample's "
+       "age and the flags. A new CALIBRATION is "
        "validated against the config and used without a restart; a bad one is refused and "
        "logged. Publishes nothing (state DEGRADED) until a calibration is in use.",
        /*replayable=*/true});
@@ -37,7 +39,10 @@ int main(int argc, char** argv) {
       }
     }
     stage.ReportWaitingForCalibration();
-    return app.Run();
+    const int rc = app.Run();
+    app.log().info("{} leg-samples corrected, {} sums published", stage.leg_samples(),
+                   stage.sums());
+    return rc;
   } catch (const std::exception& e) {
     app.log().critical("{}", e.what());
     return 2;

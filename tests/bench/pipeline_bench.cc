@@ -4,10 +4,11 @@
 //   ftcal-pose-segmenter     --replay of that log: x real time
 //   ftcal-calibrator         --log session --log poses: end to end, reading included
 //   ftcal-corrector          --replay with the calibration: leg-samples/s (one FT_<LEG> sample
-//                            in, one CONTACT_WRENCH out)
+//                            in, one CONTACT_WRENCH out, and a CONTACT_WRENCH_SUM per six)
 // The logs (~3 GB) go to a temporary directory under --dir (default /tmp), removed at the end
 // unless --keep. --dir /dev/shm shows what the stages do without the disk: the corrector writes
-// ~570 bytes per leg-sample, so on a disk its rate is the disk's write rate.
+// ~145 bytes per leg-sample (568 before CONTACT_WRENCH carried one leg), so on a slow disk its
+// rate is the disk's write rate.
 //   <build>/tests/bench/pipeline_bench [--poses N] [--dir DIR] [--keep]
 #include <fcntl.h>
 #include <sys/resource.h>
@@ -155,7 +156,7 @@ int main(int argc, char** argv) {
                           dir + "/cal.pbtxt", "--replay", dir + "/session.lcmlog", "--out",
                           dir + "/contact.lcmlog"},
                          dir + "/cor.out");
-  const double out = Capture(cor.out, "in [0-9]+ out ([0-9]+)", "output count");
+  const double out = Capture(cor.out, "([0-9]+) leg-samples corrected", "leg-sample count");
   std::error_code ec;
   const double bytes = static_cast<double>(std::filesystem::file_size(dir + "/contact.lcmlog", ec));
   std::snprintf(fig, sizeof fig,

@@ -45,6 +45,7 @@
 #include "child_process.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/standing.h"
@@ -318,20 +319,16 @@ class PipelineE2e : public ::testing::Test {
       }
     }
     WalkErrors e;
-    std::array<int64_t, kNumLegs> latest;
-    latest.fill(-1);
-    int64_t last_total_frame = -1;
     for (const contact_wrench_t& m :
          ReadChannel<contact_wrench_t>(px->wrench_logs.at(name), ch.contact_wrench())) {
       ++e.outputs;
-      const int k = m.updated_leg;
+      const int k = m.leg;
       EXPECT_TRUE(k >= 0 && k < kNumLegs) << name;
       if (k < 0 || k >= kNumLegs) continue;
       const auto it = frame_of[k].find(m.utime);
       EXPECT_NE(it, frame_of[k].end()) << name << ": no FT sample of leg " << k << " at " << m.utime;
       if (it == frame_of[k].end()) continue;
       const int64_t i = it->second;
-      latest[k] = i;
       // The first frame comes before any servo state or mocap frame: flagged, not compared.
       if (m.flags != 0) {
         ++e.flagged;
@@ -341,22 +338,40 @@ class PipelineE2e : public ::testing::Test {
       const Pose3 X_W_C(f.R_WC, Vec3::Zero());
       const Vec6 truth = TransformWrench(X_W_C, f.ground_w_C[k]);
       Vec6 got;
-      for (int a = 0; a < 6; ++a) got[a] = m.wrench_w[k][a];
+      for (int a = 0; a < 6; ++a) got[a] = m.wrench_w[a];
       e.leg_force[k].Add(got.head<3>() - truth.head<3>());
       e.leg_torque[k].Add(got.tail<3>() - truth.tail<3>());
       ++e.leg_samples;
-      // The first output whose six legs all carry frame i's samples: its total is frame i's.
-      if (i != last_total_frame &&
-          std::all_of(latest.begin(), latest.end(), [i](int64_t j) { return j == i; })) {
-        last_total_frame = i;
-        Vec6 total_truth = Vec6::Zero();
-        for (int l = 0; l < kNumLegs; ++l) total_truth += TransformWrench(X_W_C, f.ground_w_C[l]);
-        Vec6 total;
-        for (int a = 0; a < 6; ++a) total[a] = m.total_w[a];
-        e.total_force.Add(total.head<3>() - total_truth.head<3>());
-        e.total_torque.Add(total.tail<3>() - total_truth.tail<3>());
-        ++e.frames_with_total;
+    }
+    // The first sum whose six legs all carry frame i's samples (each leg's latest sample at the
+    // sum's time is of frame i): its total is frame i's.
+    int64_t last_total_frame = -1;
+    for (const contact_wrench_sum_t& s :
+         ReadChannel<contact_wrench_sum_t>(px->wrench_logs.at(name), ch.contact_wrench_sum())) {
+      if (s.flags != 0) continue;  // stale or saturated inputs: flagged, not compared
+      int64_t i = -1;
+      bool one_frame = true;
+      for (int k = 0; k < kNumLegs && one_frame; ++k) {
+        auto it = frame_of[k].upper_bound(s.utime);
+        if (it == frame_of[k].begin()) {
+          one_frame = false;
+          break;
+        }
+        const int64_t j = std::prev(it)->second;
+        if (i < 0) i = j;
+        one_frame = j == i;
       }
+      if (!one_frame || i == last_total_frame) continue;
+      last_total_frame = i;
+      const TwinFrame& f = px->walk[static_cast<size_t>(i)];
+      const Pose3 X_W_C(f.R_WC, Vec3::Zero());
+      Vec6 total_truth = Vec6::Zero();
+      for (int l = 0; l < kNumLegs; ++l) total_truth += TransformWrench(X_W_C, f.ground_w_C[l]);
+      Vec6 total;
+      for (int a = 0; a < 6; ++a) total[a] = s.total_w[a];
+      e.total_force.Add(total.head<3>() - total_truth.head<3>());
+      e.total_torque.Add(total.tail<3>() - total_truth.tail<3>());
+      ++e.frames_with_total;
     }
     return e;
   }

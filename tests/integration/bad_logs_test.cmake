@@ -3,7 +3,7 @@
 # --log: counted or refused, never a wrong output. No network: logs only.
 ftcal_add_gtest(bad_logs_test integration TIMEOUT 180
   SOURCES "${CMAKE_CURRENT_LIST_DIR}/bad_logs_test.cc"
-  LIBS ftcal_twin ftcal_lcmtypes ftcal_child_process)
+  LIBS ftcal_twin ftcal_messages ftcal_lcmtypes ftcal_child_process)
 target_compile_definitions(bad_logs_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
   FTCAL_POSE_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>"

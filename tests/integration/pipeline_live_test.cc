@@ -39,6 +39,7 @@
 #include "common/service_stats.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
@@ -338,6 +339,17 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   // Reordering or loss is the exception on loopback, not the rule (even on a busy machine).
   EXPECT_LE(c.inputs_differ, c.outputs / 20) << "first at utime "
                                            << (c.differ_utimes.empty() ? 0 : c.differ_utimes[0]);
+  // CONTACT_WRENCH_SUM: the replay's sums are the sums of its leg-samples, one per six; the live
+  // sums carry the published calibration (the recorder may lose a leg-sample, so the live sums
+  // are not checked against the recorded legs).
+  const double weight = CalibrationFromProto(from_bus, fx->config.robot()).TotalWeightN();
+  const SumCheck ref_sums = CheckSums(cor_ref, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
+  EXPECT_EQ(ref_sums.worst, 0.0);
+  EXPECT_LT(ref_sums.worst_age, 1e-6);
+  EXPECT_GE(ref_sums.sums * kNumLegs + kNumLegs, ref_w.size());
+  const auto live_sums = ReadChannel<contact_wrench_sum_t>(recorded, ch.contact_wrench_sum());
+  EXPECT_GT(live_sums.size(), live_w.size() / kNumLegs / 2);
+  for (const auto& s : live_sums) EXPECT_EQ(s.calibration_version, cal_msg.version);
 }
 
 // UDP loses a datagram now and then on a busy machine, so the live test above can compare the

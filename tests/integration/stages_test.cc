@@ -18,9 +18,11 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "common/messages.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
@@ -66,14 +68,7 @@ experiment_marker_t Marker(int64_t utime, bool start) {
 
 calibration_t CalibrationMessage(const calibration::Calibration& proto, int64_t version,
                                  bool corrupt_hash) {
-  calibration_t m{};
-  m.utime = kT0;
-  m.version = version;
-  std::string bytes;
-  proto.SerializeToString(&bytes);
-  m.data.assign(bytes.begin(), bytes.end());
-  m.size = static_cast<int32_t>(m.data.size());
-  m.content_sha256 = Sha256Hex(bytes);
+  calibration_t m = ToLcm(proto, version, kT0);
   if (corrupt_hash) m.content_sha256[0] = m.content_sha256[0] == '0' ? '1' : '0';
   return m;
 }
@@ -280,45 +275,58 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
   const std::string out = Replay(FTCAL_CORRECTOR, fx->log_path, "corrector");
   const auto& ch = fx->config.channels();
   const auto wrenches = ReadChannel<contact_wrench_t>(out, ch.contact_wrench());
-  // One output per transducer sample.
+  const auto sums = ReadChannel<contact_wrench_sum_t>(out, ch.contact_wrench_sum());
+  // One output per transducer sample; one sum per frame, when its six legs have come.
   ASSERT_EQ(wrenches.size(), fx->frames.size() * kNumLegs);
+  ASSERT_EQ(sums.size(), fx->frames.size());
   // Per sample: reading noise 0.05 N, attitude noise 0.2 deg (about 0.05 N on 13 N of load,
   // 0.02 N on a 6 N leg): sigma about 0.08 N per force axis. Torques about the CoM: lever
   // arms up to 0.3 m.
   double sum_sq_f = 0, sum_sq_tau = 0, max_f = 0, max_tau = 0;
   int n = 0;
-  const int64_t v2_frame_utime = fx->v2_utime + 1;
   for (const contact_wrench_t& m : wrenches) {
     const TwinFrame& f = FrameAt(m.utime);
-    const int k = m.updated_leg;
-    const bool last_leg = k == kNumLegs - 1;
+    const int k = m.leg;
     // Expected flags: the first frame's readings come before any servo state or mocap frame
-    // (stale servo and mocap, the leg's wrench NaN) and before the other legs' readings (stale
-    // FT); a new calibration forgets the legs corrected with the old one, so the frame where v2
-    // arrives flags the legs not yet corrected with it.
+    // (stale servo and mocap, the leg's wrench NaN).
     if (m.utime == kT0) {
-      EXPECT_EQ(m.flags, contact_wrench_t::FLAG_STALE_SERVO | contact_wrench_t::FLAG_STALE_MOCAP |
-                             (last_leg ? 0 : contact_wrench_t::FLAG_STALE_FT));
-      EXPECT_TRUE(std::isnan(m.wrench_w[k][2]));
+      EXPECT_EQ(m.flags, contact_wrench_t::FLAG_STALE_SERVO | contact_wrench_t::FLAG_STALE_MOCAP);
+      EXPECT_TRUE(std::isnan(m.wrench_w[2]));
       continue;
     }
-    EXPECT_EQ(m.flags, m.utime == v2_frame_utime && !last_leg ? contact_wrench_t::FLAG_STALE_FT : 0)
-        << "utime " << m.utime << " leg " << k;
+    EXPECT_EQ(m.flags, 0) << "utime " << m.utime << " leg " << k;
     const Vec6 truth_W = TransformWrench(Pose3(f.R_WC, Vec3::Zero()), f.ground_w_C[k]);
     for (int i = 0; i < 6; ++i) {
-      const double e = std::abs(m.wrench_w[k][i] - truth_W[i]);
+      const double e = std::abs(m.wrench_w[i] - truth_W[i]);
       (i < 3 ? sum_sq_f : sum_sq_tau) += e * e;
       (i < 3 ? max_f : max_tau) = std::max(i < 3 ? max_f : max_tau, e);
     }
     ++n;
-    // Before v2's event version 1; the corrupt message in between changed nothing.
-    EXPECT_EQ(m.calibration_version, m.utime < fx->v2_utime ? 1 : 2);
-    if (last_leg) {
-      // All six legs of this frame: their sum is the robot's weight when the pose is steady.
-      if (f.steady) EXPECT_NEAR(m.total_w[2], fx->twin->Truth().TotalWeightN(), 1.0);
-      EXPECT_NEAR(m.residual_w[2], m.total_w[2] - fx->twin->Truth().TotalWeightN(), 1e-9);
-    }
   }
+  const double weight = fx->twin->Truth().TotalWeightN();
+  for (const contact_wrench_sum_t& s : sums) {
+    const TwinFrame& f = FrameAt(s.utime);  // the frame whose last leg completed the set
+    // The first frame's: every leg stale servo and mocap, no number. A new calibration forgets
+    // the legs corrected with the old one: no sum mixes the two (CheckSums below), and the sum
+    // of the frame where v2 arrives is all v2 (the calibration arrives between frames).
+    if (s.utime == kT0) {
+      EXPECT_EQ(s.flags, contact_wrench_sum_t::FLAG_STALE_SERVO | contact_wrench_sum_t::FLAG_STALE_MOCAP);
+      EXPECT_TRUE(std::isnan(s.total_w[2]));
+      continue;
+    }
+    EXPECT_EQ(s.flags, 0) << "utime " << s.utime;
+    EXPECT_EQ(s.oldest_ft_age_s, 0.0f) << "the six samples of a frame share its time";
+    // Before v2's event version 1; the corrupt message in between changed nothing.
+    EXPECT_EQ(s.calibration_version, s.utime < fx->v2_utime ? 1 : 2);
+    // All six legs of this frame: their sum is the robot's weight when the pose is steady.
+    if (f.steady) EXPECT_NEAR(s.total_w[2], weight, 1.0);
+    EXPECT_NEAR(s.residual_w[2], s.total_w[2] - weight, 1e-9);
+  }
+  const twin_log::SumCheck sc = twin_log::CheckSums(out, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
+  EXPECT_EQ(sc.sums, fx->frames.size());
+  EXPECT_EQ(sc.nan_sums, 1u);  // the first frame's
+  EXPECT_EQ(sc.worst, 0.0) << "a sum is not the sum of the legs published before it";
+  EXPECT_EQ(sc.worst_age, 0.0);
   const double rms_f = std::sqrt(sum_sq_f / (3 * n)), rms_tau = std::sqrt(sum_sq_tau / (3 * n));
   EXPECT_LT(rms_f, 0.12);
   EXPECT_GT(rms_f, 0.02) << "the readings are noisy: an error this small means the truth leaked";
@@ -352,7 +360,8 @@ TEST_F(StagesTest, BadInputsAreCountedAsDropsAndChangeNoOutput) {
     const std::string tag = std::string(exe).substr(std::string(exe).rfind('/') + 1);
     const std::string clean = Replay(exe, fx->log_path, tag + "_clean");
     const std::string dirty = Replay(exe, fx->log_bad_path, tag + "_dirty");
-    for (const std::string& channel : {ch.sync_sample(), ch.steady_pose(), ch.contact_wrench()}) {
+    for (const std::string& channel :
+         {ch.sync_sample(), ch.steady_pose(), ch.contact_wrench(), ch.contact_wrench_sum()}) {
       const auto a = RawChannel(clean, channel), b = RawChannel(dirty, channel);
       ASSERT_EQ(a.size(), b.size()) << tag << " " << channel;
       // STEADY_POSE's utime is the publish time (the input event's): compare from byte 16 on
@@ -398,6 +407,7 @@ TEST_F(StagesTest, CorrectorWithoutACalibrationPublishesNothingAndSaysWhy) {
   const std::string out = Replay(FTCAL_CORRECTOR, fx->log_no_cal_path, "corrector_no_cal");
   const auto& ch = fx->config.channels();
   EXPECT_TRUE(ReadChannel<contact_wrench_t>(out, ch.contact_wrench()).empty());
+  EXPECT_TRUE(ReadChannel<contact_wrench_sum_t>(out, ch.contact_wrench_sum()).empty());
   const auto status = ReadChannel<service_status_t>(out, ch.status());
   ASSERT_EQ(status.size(), 1u);
   EXPECT_NE(status[0].last_error.find("no calibration"), std::string::npos) << status[0].last_error;
@@ -423,7 +433,9 @@ TEST_F(StagesTest, CorrectorStartsWithACalibrationFile) {
       << ReadFile(fx->dir + "/corrector_file.err");
   const auto wrenches = ReadChannel<contact_wrench_t>(out, fx->config.channels().contact_wrench());
   ASSERT_EQ(wrenches.size(), fx->frames.size() * kNumLegs);
-  EXPECT_EQ(wrenches.back().calibration_version, 5);
+  const auto sums = ReadChannel<contact_wrench_sum_t>(out, fx->config.channels().contact_wrench_sum());
+  ASSERT_FALSE(sums.empty());
+  EXPECT_EQ(sums.back().calibration_version, 5);
 
   // A calibration for another robot shape is refused at start, naming the problem.
   calibration::Calibration bad = truth;

@@ -3,7 +3,7 @@
 # network namespace (scripts/netns-exec), listed when ctest runs (PRE_TEST).
 add_executable(stages_test "${CMAKE_CURRENT_LIST_DIR}/stages_test.cc")
 target_link_libraries(stages_test PRIVATE
-  ftcal_twin ftcal_lcmtypes ftcal_child_process GTest::gtest GTest::gtest_main Threads::Threads)
+  ftcal_twin ftcal_messages ftcal_lcmtypes ftcal_child_process GTest::gtest GTest::gtest_main Threads::Threads)
 target_compile_definitions(stages_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
   FTCAL_POSE_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>"

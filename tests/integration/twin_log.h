@@ -16,6 +16,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "ftcal/config.h"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
@@ -191,71 +192,40 @@ inline size_t AppendSession(const BigAntTwin& twin, const config::Config& cfg,
 
 // ---- comparing CONTACT_WRENCH streams ----
 //
-// "Same inputs" is read off the messages themselves. An output's ages (ft_age_s per leg,
-// servo_age_s, mocap_age_s) are its utime minus the stamps of the inputs it used, so equal ages
-// mean the same samples. But each leg's wrench was corrected when that leg's own sample came,
-// with the servo state and attitude of that moment: those are the ages of the output that leg's
-// sample produced (at utime - ft_age_s[k]). So two outputs have the same inputs when their own
-// ages agree and so do those of the outputs that last updated each leg.
+// "Same inputs" is read off the messages themselves. A leg-sample's output depends on that
+// sample and on the servo state and attitude of that moment; its ages (servo_age_s,
+// mocap_age_s) are its utime minus the stamps of those inputs, so equal ages and flags mean the
+// same inputs. The sums (CONTACT_WRENCH_SUM) are checked against the leg-samples before them in
+// the same stream (CheckSums).
 
 inline bool SameOrBothNan(double a, double b) { return a == b || (std::isnan(a) && std::isnan(b)); }
 
-using WrenchKey = std::pair<int64_t, int32_t>;  // (utime, updated_leg)
+using WrenchKey = std::pair<int64_t, int32_t>;  // (utime, leg)
 using WrenchIndex = std::map<WrenchKey, const contact_wrench_t*>;
 
 inline WrenchIndex IndexWrenches(const std::vector<contact_wrench_t>& v) {
   WrenchIndex index;
-  for (const auto& m : v) index[{m.utime, m.updated_leg}] = &m;
+  for (const auto& m : v) index[{m.utime, m.leg}] = &m;
   return index;
 }
 
-inline bool SameOwnInputs(const contact_wrench_t& a, const contact_wrench_t& b) {
-  if (a.flags != b.flags || a.calibration_version != b.calibration_version ||
-      !SameOrBothNan(a.servo_age_s, b.servo_age_s) || !SameOrBothNan(a.mocap_age_s, b.mocap_age_s) ||
-      a.num_legs != b.num_legs) {
-    return false;
-  }
-  for (int k = 0; k < a.num_legs; ++k) {
-    if (!SameOrBothNan(a.ft_age_s[k], b.ft_age_s[k])) return false;
-  }
-  return true;
+inline bool SameInputs(const contact_wrench_t& a, const contact_wrench_t& b) {
+  return a.flags == b.flags && SameOrBothNan(a.servo_age_s, b.servo_age_s) &&
+         SameOrBothNan(a.mocap_age_s, b.mocap_age_s);
 }
 
-inline bool SameInputs(const contact_wrench_t& a, const WrenchIndex& a_index,
-                       const contact_wrench_t& b, const WrenchIndex& b_index) {
-  if (!SameOwnInputs(a, b)) return false;
-  for (int k = 0; k < a.num_legs; ++k) {
-    if (k == a.updated_leg || a.ft_age_s[k] < 0) continue;  // its own, or not seen yet
-    const WrenchKey key{a.utime - std::llround(a.ft_age_s[k] * 1e6), k};
-    const auto ia = a_index.find(key), ib = b_index.find(key);
-    if (ia == a_index.end() || ib == b_index.end()) return false;
-    if (!SameOrBothNan(ia->second->servo_age_s, ib->second->servo_age_s) ||
-        !SameOrBothNan(ia->second->mocap_age_s, ib->second->mocap_age_s) ||
-        ia->second->flags != ib->second->flags) {
-      return false;
-    }
+// The largest difference between two numbers; infinite when one is NaN and the other not.
+inline void Worst(double x, double y, double* worst) {
+  if (std::isnan(x) != std::isnan(y)) {
+    *worst = INFINITY;
+  } else if (!std::isnan(x)) {
+    *worst = std::max(*worst, std::abs(x - y));
   }
-  return true;
 }
 
-// The largest difference between two outputs' wrenches (each leg's, the total, the residual);
-// infinite when one is NaN and the other not.
 inline double MaxWrenchDifference(const contact_wrench_t& a, const contact_wrench_t& b) {
   double worst = 0.0;
-  auto diff = [&worst](double x, double y) {
-    if (std::isnan(x) != std::isnan(y)) {
-      worst = INFINITY;
-    } else if (!std::isnan(x)) {
-      worst = std::max(worst, std::abs(x - y));
-    }
-  };
-  for (int k = 0; k < a.num_legs; ++k) {
-    for (int i = 0; i < 6; ++i) diff(a.wrench_w[k][i], b.wrench_w[k][i]);
-  }
-  for (int i = 0; i < 6; ++i) {
-    diff(a.total_w[i], b.total_w[i]);
-    diff(a.residual_w[i], b.residual_w[i]);
-  }
+  for (int i = 0; i < 6; ++i) Worst(a.wrench_w[i], b.wrench_w[i], &worst);
   return worst;
 }
 
@@ -271,24 +241,82 @@ struct WrenchComparison {
 
 inline WrenchComparison CompareWrenches(const std::vector<contact_wrench_t>& test,
                                         const std::vector<contact_wrench_t>& ref) {
-  const WrenchIndex t_index = IndexWrenches(test), r_index = IndexWrenches(ref);
+  const WrenchIndex r_index = IndexWrenches(ref);
   std::map<WrenchKey, int> seen;
   WrenchComparison c;
   for (const auto& m : test) {
     ++c.outputs;
-    if (++seen[{m.utime, m.updated_leg}] > 1) ++c.duplicate;
-    const auto it = r_index.find({m.utime, m.updated_leg});
+    if (++seen[{m.utime, m.leg}] > 1) ++c.duplicate;
+    const auto it = r_index.find({m.utime, m.leg});
     if (it == r_index.end()) {
       ++c.missing_ref;
       continue;
     }
-    if (!SameInputs(m, t_index, *it->second, r_index)) {
+    if (!SameInputs(m, *it->second)) {
       ++c.inputs_differ;
       c.differ_utimes.push_back(m.utime);
       continue;
     }
     ++c.same_inputs;
     c.worst = std::max(c.worst, MaxWrenchDifference(m, *it->second));
+  }
+  return c;
+}
+
+// Every CONTACT_WRENCH_SUM of a log against the leg-samples published before it in the same log:
+// its total is the sum of the six legs' latest wrench_w, its residual that total minus
+// (0, 0, weight_n, 0, 0, 0) (not checked when weight_n is NaN), its oldest_ft_age_s the oldest
+// of their ages. A sum while a leg has
+// no sample under the current calibration carries NaN (counted in nan_sums, not compared).
+struct SumCheck {
+  size_t sums = 0;
+  size_t nan_sums = 0;
+  size_t legs = 0;       // leg-samples read
+  double worst = 0.0;    // total and residual against the legs, N or N*m
+  double worst_age = 0.0;
+};
+
+inline SumCheck CheckSums(const std::string& path, const std::string& leg_channel,
+                          const std::string& sum_channel, double weight_n) {
+  SumCheck c;
+  lcm::LogFile log(path, "r");
+  std::array<contact_wrench_t, kNumLegs> current{};
+  std::array<bool, kNumLegs> have{};
+  while (const lcm::LogEvent* e = log.readNextEvent()) {
+    if (e->channel == leg_channel) {
+      contact_wrench_t m;
+      if (m.decode(e->data, 0, e->datalen) != e->datalen || m.leg < 0 || m.leg >= kNumLegs) {
+        ADD_FAILURE() << "bad contact_wrench_t in " << path;
+        continue;
+      }
+      current[m.leg] = m;
+      have[m.leg] = true;
+      ++c.legs;
+    } else if (e->channel == sum_channel) {
+      contact_wrench_sum_t s;
+      if (s.decode(e->data, 0, e->datalen) != e->datalen) {
+        ADD_FAILURE() << "bad contact_wrench_sum_t in " << path;
+        continue;
+      }
+      ++c.sums;
+      if (std::isnan(s.total_w[0]) || !std::all_of(have.begin(), have.end(), [](bool b) { return b; })) {
+        ++c.nan_sums;
+        continue;
+      }
+      double total[6] = {0, 0, 0, 0, 0, 0};
+      double oldest = 0.0;
+      for (int k = 0; k < kNumLegs; ++k) {
+        for (int i = 0; i < 6; ++i) total[i] += current[k].wrench_w[i];
+        oldest = std::max(oldest, 1e-6 * static_cast<double>(s.utime - current[k].utime));
+      }
+      for (int i = 0; i < 6; ++i) {
+        Worst(s.total_w[i], total[i], &c.worst);
+        if (!std::isnan(weight_n)) {
+          Worst(s.residual_w[i], total[i] - (i == 2 ? weight_n : 0.0), &c.worst);
+        }
+      }
+      c.worst_age = std::max(c.worst_age, std::abs(s.oldest_ft_age_s - oldest));
+    }
   }
   return c;
 }

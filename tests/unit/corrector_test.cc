@@ -200,6 +200,65 @@ TEST(Corrector, ANewCalibrationReplacesTheOldAndForgetsWrenchesCorrectedWithIt) 
   EXPECT_TRUE(out->flags & kFlagStaleFt);
 }
 
+// The sum is due once per set of six: when every leg has a new sample since the previous sum, or,
+// with a leg silent, at the first sample more than max_ft_age_s after it. Its views carry the
+// sample's own flags (LegWrenchOf) and every leg's, with stale FT (WrenchSumOf).
+TEST(Corrector, TheSumIsDueOncePerSetOfSixOrWhenALegFallsSilent) {
+  const RobotCalibration cal = MakeCalibration(10);
+  CorrectorOptions opt;
+  opt.max_ft_age_s = 0.05;
+  Corrector c(opt);
+  c.SetCalibration(cal, 3);
+  Vec6 w;
+  w << 1, 2, 25, 0.1, 0.2, 0.3;
+  int64_t t = 1'000'000;
+  // Two rounds in leg order: due at the sixth of each, never before.
+  for (int round = 0; round < 2; ++round, t += 10'000) {
+    c.AddServo({t, Fill(0.2)});
+    c.AddMocap({t, true, Mat3::Identity(), true});
+    for (int k = 0; k < kNumLegs; ++k) {
+      const auto out = c.AddFt({t + k, k, w, 0}, k == 2);
+      ASSERT_TRUE(out);
+      EXPECT_EQ(out->sum_due, k == kNumLegs - 1) << "round " << round << " leg " << k;
+      const LegWrench leg = LegWrenchOf(*out);
+      EXPECT_EQ(leg.leg, k);
+      EXPECT_EQ(leg.utime, t + k);
+      EXPECT_EQ(leg.wrench_W, out->wrench_W[k]);
+      EXPECT_EQ(leg.flags, k == 2 ? kFlagSaturated : 0);
+      if (out->sum_due) {
+        const WrenchSum sum = WrenchSumOf(*out);
+        Vec6 total = Vec6::Zero();
+        for (int l = 0; l < kNumLegs; ++l) total += out->wrench_W[l];
+        EXPECT_EQ(sum.total_W, total);
+        EXPECT_EQ(sum.residual_W[2], total[2] - cal.TotalWeightN());
+        EXPECT_EQ(sum.calibration_version, 3);
+        EXPECT_NEAR(sum.oldest_ft_age_s, 5e-6, 1e-12);  // leg 0, 5 us before leg 5
+        EXPECT_EQ(sum.flags, kFlagSaturated);            // leg 2's, or-ed in
+      }
+    }
+  }
+  // Leg 0 falls silent: the others' samples complete no set, until max_ft_age_s has passed
+  // since the last sum; that sum flags leg 0 stale.
+  const int64_t last_sum = t - 10'000 + kNumLegs - 1;
+  for (; t < last_sum + 80'000; t += 10'000) {
+    c.AddServo({t, Fill(0.2)});
+    c.AddMocap({t, true, Mat3::Identity(), true});
+    for (int k = 1; k < kNumLegs; ++k) {
+      const auto out = c.AddFt({t + k, k, w, 0}, false);
+      ASSERT_TRUE(out);
+      const bool late = 1e-6 * static_cast<double>(t + k - last_sum) > opt.max_ft_age_s;
+      if (out->sum_due) {
+        EXPECT_TRUE(late) << "due at " << t + k;
+        EXPECT_TRUE(WrenchSumOf(*out).flags & kFlagStaleFt);
+        EXPECT_GT(WrenchSumOf(*out).oldest_ft_age_s, opt.max_ft_age_s);
+        return;
+      }
+      EXPECT_FALSE(late) << "not due at " << t + k;
+    }
+  }
+  ADD_FAILURE() << "no sum while leg 0 was silent";
+}
+
 TEST(Corrector, RefusesANonFiniteCalibrationAndKeepsTheOldOne) {
   Corrector c({});
   const RobotCalibration good = MakeCalibration(1);

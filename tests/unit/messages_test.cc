@@ -232,31 +232,47 @@ TEST(Messages, CalibrationRoundTripAndRefusals) {
 }
 
 TEST(Messages, ContactWrenchRoundTrip) {
+  Distinct d;  // multiples of 1/8: the float ages carry them exactly
+  LegWrench w;
+  w.utime = 31337;
+  w.leg = 2;
+  w.wrench_W = DistinctVec6(d);
+  w.servo_age_s = d();
+  w.mocap_age_s = d();
+  w.flags = kFlagStaleMocap | kFlagSaturated;
+  const contact_wrench_t msg = ToLcm(w);
+  const LegWrench back = FromLcm(msg);
+  EXPECT_EQ(back.utime, w.utime);
+  EXPECT_EQ(back.leg, w.leg);
+  EXPECT_EQ(back.wrench_W, w.wrench_W);
+  EXPECT_EQ(back.servo_age_s, w.servo_age_s);
+  EXPECT_EQ(back.mocap_age_s, w.mocap_age_s);
+  EXPECT_EQ(back.flags, w.flags);
+  // The size the architecture map quotes: fingerprint + payload.
+  EXPECT_EQ(msg.getEncodedSize(), 8 + 66);
+  contact_wrench_t bad = msg;
+  bad.leg = 6;
+  EXPECT_NE(BadInputReason([&] { FromLcm(bad); }).find("leg 6"), std::string::npos);
+}
+
+TEST(Messages, ContactWrenchSumRoundTrip) {
   Distinct d;
-  ContactWrenches c;
-  c.utime = 31337;
-  c.updated_leg = 2;
-  for (int k = 0; k < kNumLegs; ++k) {
-    c.wrench_W[k] = DistinctVec6(d);
-    c.ft_age_s[k] = d();
-  }
-  c.total_W = DistinctVec6(d);
-  c.residual_W = DistinctVec6(d);
-  c.calibration_version = 8;
-  c.servo_age_s = d();
-  c.mocap_age_s = d();
-  c.flags = kFlagStaleMocap | kFlagSaturated;
-  const ContactWrenches back = FromLcm(ToLcm(c));
-  EXPECT_EQ(back.utime, c.utime);
-  EXPECT_EQ(back.updated_leg, c.updated_leg);
-  EXPECT_EQ(back.wrench_W, c.wrench_W);
-  EXPECT_EQ(back.ft_age_s, c.ft_age_s);
-  EXPECT_EQ(back.total_W, c.total_W);
-  EXPECT_EQ(back.residual_W, c.residual_W);
+  WrenchSum s;
+  s.utime = 31338;
+  s.total_W = DistinctVec6(d);
+  s.residual_W = DistinctVec6(d);
+  s.calibration_version = 8;
+  s.oldest_ft_age_s = d();
+  s.flags = kFlagStaleFt | kFlagStaleServo;
+  const contact_wrench_sum_t msg = ToLcm(s);
+  const WrenchSum back = FromLcm(msg);
+  EXPECT_EQ(back.utime, s.utime);
+  EXPECT_EQ(back.total_W, s.total_W);
+  EXPECT_EQ(back.residual_W, s.residual_W);
   EXPECT_EQ(back.calibration_version, 8);
-  EXPECT_EQ(back.servo_age_s, c.servo_age_s);
-  EXPECT_EQ(back.mocap_age_s, c.mocap_age_s);
-  EXPECT_EQ(back.flags, c.flags);
+  EXPECT_EQ(back.oldest_ft_age_s, s.oldest_ft_age_s);
+  EXPECT_EQ(back.flags, s.flags);
+  EXPECT_EQ(msg.getEncodedSize(), 8 + 117);
 }
 
 TEST(Messages, Phases) {

@@ -16,6 +16,12 @@
 // An input older than its configured age sets its stale flag: the number is still published,
 // flagged, never silently used.
 //
+// The sum is worth publishing once per set of six (the service sends every leg-sample on its own
+// and the sum separately, docs/architecture.md "CONTACT_WRENCH"): `sum_due` is set by the sample
+// that completes a set, every leg having a new sample since the previous sum, or, when a leg falls
+// silent, by the first sample more than max_ft_age_s after the previous sum (its stale flag says
+// which).
+//
 // Speed: the per-leg constant transforms (R, p of X_C_ft,k, the offset, the weight, the CoM
 // curve) are precomputed when a calibration is set; a sample costs one leg's correction and a
 // six-term sum, with no allocation.
@@ -55,7 +61,34 @@ struct ContactWrenches {
   double servo_age_s = -1.0;               // -1: no servo state
   double mocap_age_s = -1.0;               // -1: no mocap frame
   int32_t flags = 0;
+  // The flags of the triggering sample's own correction (kFlagStaleServo, kFlagStaleMocap,
+  // kFlagSaturated), and those of every leg's latest sample or-ed with kFlagStaleFt (the sum's).
+  int32_t leg_flags = 0;
+  int32_t sum_flags = 0;
+  bool sum_due = false;  // see the header comment: this sample completes a set of six
 };
+
+// One leg-sample's correction, as published on CONTACT_WRENCH.
+struct LegWrench {
+  int64_t utime = 0;
+  int leg = 0;
+  Vec6 wrench_W = Vec6::Zero();
+  double servo_age_s = -1.0;
+  double mocap_age_s = -1.0;
+  int32_t flags = 0;  // kFlagStaleServo, kFlagStaleMocap, kFlagSaturated of this sample
+};
+LegWrench LegWrenchOf(const ContactWrenches& c);
+
+// The six legs' sum, as published on CONTACT_WRENCH_SUM.
+struct WrenchSum {
+  int64_t utime = 0;
+  Vec6 total_W = Vec6::Zero();
+  Vec6 residual_W = Vec6::Zero();
+  int64_t calibration_version = 0;
+  double oldest_ft_age_s = -1.0;  // -1: a leg has no sample yet
+  int32_t flags = 0;              // every leg's latest flags or-ed, with kFlagStaleFt
+};
+WrenchSum WrenchSumOf(const ContactWrenches& c);
 
 struct CorrectorCounters {
   int64_t ft_in = 0, servo_in = 0, mocap_in = 0;
@@ -107,10 +140,13 @@ class Corrector {
   struct LegState {
     bool seen = false;
     int64_t utime = 0;
-    bool saturated = false;
+    int32_t flags = 0;  // of its own correction
     Vec6 wrench_W = Vec6::Zero();
   };
   std::array<LegState, kNumLegs> state_;
+  // Legs with a new sample since the last sum (bit k), and that sum's time (-1: none yet).
+  unsigned since_sum_ = 0;
+  int64_t last_sum_utime_ = -1;
   CorrectorCounters counters_;
 };
 
