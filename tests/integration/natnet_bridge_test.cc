@@ -249,6 +249,25 @@ TEST(NatNetBridgeTest, UnicastClientAsksForItsBitstream) {
   EXPECT_EQ(run.Counter("decode_errors"), 0);
 }
 
+TEST(NatNetBridgeTest, WithoutMidExposureTheCameraDataTimeIsUsed) {
+  // USB cameras and playback send mid-exposure 0 (§5.3): the stamp falls back to the camera
+  // data's arrival, which the emulator puts half the system latency before transmit.
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.mid_exposure_zero = true;
+  PairRun run = RunWithBridge(eo, 150, BridgeOptions(false));
+  std::map<int32_t, const sim::NatNetSentFrame*> by_frame;
+  for (const auto& s : run.sent) by_frame[s.frame_number] = &s;
+  std::vector<double> residual_us;
+  for (const auto& m : run.published) {
+    residual_us.push_back(double(m.utime - by_frame.at(int32_t(m.frame_number))->exposure_utime));
+  }
+  ASSERT_GE(residual_us.size(), 100u);
+  std::sort(residual_us.begin(), residual_us.end());
+  EXPECT_LT(std::abs(residual_us[residual_us.size() / 2]), 500.0);
+  EXPECT_EQ(run.Counter("clock_fallbacks"), 0);
+  EXPECT_NEAR(run.Counter("system_latency_us"), 1000, 2);
+}
+
 TEST(NatNetBridgeTest, ZUpMotiveGivesTheSamePoses) {
   auto eo = EmulatorOptions({4, 1}, false);
   eo.z_up = true;
