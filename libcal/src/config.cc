@@ -380,6 +380,33 @@ void ValidateRobot(const Node& node, const config::Robot& robot) {
   }
 }
 
+void ValidateNatNet(const Node& node, const config::NatNet& n) {
+  if (n.server_address().empty()) node.Missing("server_address");
+  ValidatePort(node, "command_port", n.command_port());
+  ValidatePort(node, "data_port", n.data_port());
+  if (n.up_axis() != "Y" && n.up_axis() != "Z") {
+    node.Error("up_axis", "must be \"Y\" or \"Z\", got \"" + n.up_axis() + "\"");
+  }
+  const std::string& v = n.bitstream_version();
+  if (!v.empty() && !(v.size() >= 3 && (v[0] == '3' || v[0] == '4') && v[1] == '.' &&
+                      v.find_first_not_of("0123456789.") == std::string::npos)) {
+    node.Error("bitstream_version", "must be a NatNet 3.x or 4.x version such as \"4.1\", got \"" +
+                                        v + "\"");
+  }
+  if (!v.empty() && n.multicast()) {
+    node.Error("bitstream_version", "only a unicast client can choose the bitstream (multicast)");
+  }
+  if (node.Finite("keepalive_s", n.keepalive_s()) && !(n.keepalive_s() > 0)) {
+    node.Error("keepalive_s", "must be positive");
+  }
+  if (node.Finite("silence_s", n.silence_s()) && !(n.silence_s() > 0)) {
+    node.Error("silence_s", "must be positive");
+  }
+  if (n.has_x_pivot_chassis()) {
+    ValidatePose(node.Child("x_pivot_chassis", n.x_pivot_chassis()), n.x_pivot_chassis());
+  }
+}
+
 void ValidateMocap(const Node& node, const config::Mocap& mocap) {
   if (!mocap.has_server_address() || mocap.server_address().empty()) {
     node.Missing("server_address");
@@ -391,6 +418,8 @@ void ValidateMocap(const Node& node, const config::Mocap& mocap) {
     node.Error("hang_axis_tolerance_deg",
                "must be in (0, 90), got " + FormatNumber(mocap.hang_axis_tolerance_deg()));
   }
+  if (mocap.system() == config::OPTITRACK && !mocap.has_natnet()) node.Missing("natnet");
+  if (mocap.has_natnet()) ValidateNatNet(node.Child("natnet", mocap.natnet()), mocap.natnet());
 }
 
 void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus) {

@@ -10,6 +10,7 @@
 #include <stdexcept>
 
 #include "ftcal/calibration_io.h"
+#include "ftcal/config.h"
 #include "ftcal/legs.h"
 #include "protocol2.h"
 
@@ -105,6 +106,15 @@ QtmPose QtmPoseFromFrame(const TwinFrame& f, double residual_m) {
   return p;
 }
 
+NatNetPose NatNetPoseFromFrame(const TwinFrame& f, double residual_m) {
+  NatNetPose p;
+  p.R_GC = f.R_GC;
+  p.p_GoCo_G_m = f.p_GB_m;
+  p.residual_m = residual_m;
+  p.markers_G_m.assign(f.marker_G_m.begin(), f.marker_G_m.end());
+  return p;
+}
+
 // ---- Truth CSVs ----
 
 std::string AtiTruthCsv(const std::vector<AtiTruthRow>& rows) {
@@ -169,6 +179,24 @@ std::string QtmTruthCsv(const std::vector<std::string>& labels,
     CsvValue(out, s.body.residual_mm);
     for (const auto& m : s.markers) {
       for (int i = 0; i < 3; ++i) CsvValue(out, m.p_GoM_G_mm(i));
+    }
+    out << "\n";
+  }
+  return out.str();
+}
+
+std::string NatNetTruthCsv(const std::vector<NatNetSentFrame>& frames) {
+  std::ostringstream out;
+  out << "tick,frame_number,timestamp_s,exposure_utime,corrupt,edit_mode,tracked,px_m,py_m,pz_m,"
+         "r11,r21,r31,r12,r22,r32,r13,r23,r33\n";
+  for (const NatNetSentFrame& s : frames) {
+    char t[32];
+    std::snprintf(t, sizeof t, "%.6f", s.timestamp_s);
+    out << s.tick << "," << s.frame_number << "," << t << "," << s.exposure_utime << ","
+        << int(s.corrupt) << "," << int(s.edit_mode) << "," << int(s.tracked);
+    for (int i = 0; i < 3; ++i) CsvValue(out, s.p_GoCo_G_m(i));
+    for (int j = 0; j < 3; ++j) {
+      for (int i = 0; i < 3; ++i) CsvValue(out, s.R_GC(i, j));
     }
     out << "\n";
   }
@@ -312,31 +340,68 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   }
   pty_ = std::make_unique<PtyBus>(*dxl_, options_.pty_link);
 
-  // QTM.
-  QtmEmulatorOptions qo;
-  qo.address = config.mocap().server_address();
-  qo.port = static_cast<std::uint16_t>(options_.qtm_port >= 0 ? options_.qtm_port
-                                                             : int(config.mocap().port()));
-  qo.rate_hz = options_.qtm_rate_hz;
-  qo.body_name = config.mocap().body_name();
-  for (const auto& m : twin_->MarkersB()) qo.body_points_m.push_back(m);
-  qo.labels = DefaultQtmLabels(kNumChassisMarkers);
-  qtm_labels_ = qo.labels;
-  qo.faults = options_.qtm_faults;
-  if (qo.faults.seed == 0) qo.faults.seed = options_.seed;
-  const double qtm_rate = qo.rate_hz;
   const double residual_m = twin_options.marker_noise_m;
-  if (commanded_) {
-    qtm_ = std::make_unique<QtmEmulator>(qo, [this, residual_m](int64_t) -> std::optional<QtmPose> {
-      return QtmPoseFromFrame(*LatestFrame(), residual_m);
-    });
+  if (options_.mocap == "natnet") {
+    // Motive, from the config's mocap.natnet section (the bridge reads the same).
+    const config::NatNet& n = config.mocap().natnet();
+    NatNetEmulatorOptions no;
+    no.address = n.server_address().empty() ? config.mocap().server_address() : n.server_address();
+    no.command_port = static_cast<std::uint16_t>(n.command_port());
+    no.data_port = static_cast<std::uint16_t>(n.data_port());
+    no.multicast = options_.natnet_multicast >= 0 ? options_.natnet_multicast != 0 : n.multicast();
+    no.multicast_group = n.multicast_group();
+    no.version = options_.natnet_version;
+    no.rate_hz = options_.natnet_rate_hz;
+    no.body_name = config.mocap().body_name();
+    no.z_up = n.up_axis() == "Z";
+    if (n.has_x_pivot_chassis()) {
+      const Pose3 X_PC = ToPose3(n.x_pivot_chassis());
+      no.R_PC = X_PC.R;
+      no.p_PoCo_P_m = X_PC.p;
+    }
+    for (const auto& m : twin_->MarkersB()) no.body_points_C_m.push_back(m);
+    no.faults = options_.natnet_faults;
+    if (no.faults.seed == 0) no.faults.seed = options_.seed;
+    const double rate = no.rate_hz;
+    if (commanded_) {
+      natnet_ = std::make_unique<NatNetEmulator>(no, [this, residual_m](int64_t) -> std::optional<NatNetPose> {
+        return NatNetPoseFromFrame(*LatestFrame(), residual_m);
+      });
+    } else {
+      natnet_ = std::make_unique<NatNetEmulator>(
+          no, [series, rate, residual_m](int64_t tick) -> std::optional<NatNetPose> {
+            return NatNetPoseFromFrame(series->At(static_cast<double>(tick) / rate), residual_m);
+          });
+    }
+    natnet_->SetObserver([this](const NatNetSentFrame& s) { natnet_truth_.push_back(s); });
+  } else if (options_.mocap == "qtm") {
+    // QTM.
+    QtmEmulatorOptions qo;
+    qo.address = config.mocap().server_address();
+    qo.port = static_cast<std::uint16_t>(options_.qtm_port >= 0 ? options_.qtm_port
+                                                               : int(config.mocap().port()));
+    qo.rate_hz = options_.qtm_rate_hz;
+    qo.body_name = config.mocap().body_name();
+    for (const auto& m : twin_->MarkersB()) qo.body_points_m.push_back(m);
+    qo.labels = DefaultQtmLabels(kNumChassisMarkers);
+    qtm_labels_ = qo.labels;
+    qo.faults = options_.qtm_faults;
+    if (qo.faults.seed == 0) qo.faults.seed = options_.seed;
+    const double qtm_rate = qo.rate_hz;
+    if (commanded_) {
+      qtm_ = std::make_unique<QtmEmulator>(qo, [this, residual_m](int64_t) -> std::optional<QtmPose> {
+        return QtmPoseFromFrame(*LatestFrame(), residual_m);
+      });
+    } else {
+      qtm_ = std::make_unique<QtmEmulator>(
+          qo, [series, qtm_rate, residual_m](int64_t tick) -> std::optional<QtmPose> {
+            return QtmPoseFromFrame(series->At(static_cast<double>(tick) / qtm_rate), residual_m);
+          });
+    }
+    qtm_->SetObserver([this](const QtmSentFrame& s) { qtm_truth_.push_back(s); });
   } else {
-    qtm_ = std::make_unique<QtmEmulator>(
-        qo, [series, qtm_rate, residual_m](int64_t tick) -> std::optional<QtmPose> {
-          return QtmPoseFromFrame(series->At(static_cast<double>(tick) / qtm_rate), residual_m);
-        });
+    throw std::invalid_argument("live: mocap '" + options_.mocap + "' is not qtm or natnet");
   }
-  qtm_->SetObserver([this](const QtmSentFrame& s) { qtm_truth_.push_back(s); });
 
   // Everything is bound: start the clock and the devices.
   pty_->Open();
@@ -345,7 +410,10 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   if (commanded_) twin_thread_ = std::thread([this] { RunTwin(); });
   ati_thread_ = std::thread([this] { RunAti(); });
   dxl_thread_ = std::thread([this] { RunDxl(); });
-  qtm_thread_ = std::thread([this] { qtm_->Run(-1, [this] { return !stop_.load(); }); });
+  if (qtm_) qtm_thread_ = std::thread([this] { qtm_->Run(-1, [this] { return !stop_.load(); }); });
+  if (natnet_) {
+    qtm_thread_ = std::thread([this] { natnet_->Run(-1, [this] { return !stop_.load(); }); });
+  }
 }
 
 LiveSim::~LiveSim() { Stop(); }
@@ -354,7 +422,10 @@ double LiveSim::Now() const {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0_).count();
 }
 
-std::uint16_t LiveSim::qtm_port() const { return qtm_->port(); }
+std::uint16_t LiveSim::qtm_port() const { return qtm_ ? qtm_->port() : 0; }
+std::uint16_t LiveSim::natnet_command_port() const {
+  return natnet_ ? natnet_->command_port() : 0;
+}
 
 void LiveSim::RunAti() {
   std::vector<pollfd> fds;
@@ -446,7 +517,8 @@ void LiveSim::Stop() {
   if (stopped_) return;
   stopped_ = true;
   stop_.store(true);
-  qtm_->RequestStop();
+  if (qtm_) qtm_->RequestStop();
+  if (natnet_) natnet_->RequestStop();
   for (std::thread* t : {&ati_thread_, &dxl_thread_, &qtm_thread_, &twin_thread_}) {
     if (t->joinable()) t->join();
   }
@@ -460,7 +532,8 @@ LiveCounts LiveSim::Counts() const {
   c.dxl = dxl_->fault_counts();
   c.dxl_replies = static_cast<std::int64_t>(dxl_truth_.size());
   c.dxl_reopens = dxl_reopens_;
-  c.qtm = qtm_->counters();
+  if (qtm_) c.qtm = qtm_->counters();
+  if (natnet_) c.natnet = natnet_->counters();
   return c;
 }
 
@@ -468,7 +541,8 @@ void LiveSim::WriteTruth(const std::string& dir) const {
   if (!stopped_) throw std::logic_error("LiveSim::WriteTruth before Stop()");
   WriteFileAtomic(dir + "/ati.csv", AtiTruthCsv(ati_truth_));
   WriteFileAtomic(dir + "/dynamixel.csv", DxlTruthCsv(dxl_truth_));
-  WriteFileAtomic(dir + "/qtm.csv", QtmTruthCsv(qtm_labels_, qtm_truth_));
+  if (qtm_) WriteFileAtomic(dir + "/qtm.csv", QtmTruthCsv(qtm_labels_, qtm_truth_));
+  if (natnet_) WriteFileAtomic(dir + "/natnet.csv", NatNetTruthCsv(natnet_truth_));
 }
 
 }  // namespace ftcal::sim

@@ -5,7 +5,8 @@
 //   *From...        what each device reports at a twin frame (ATI counts, servo counts, QTM pose)
 //   *TruthCsv       the truth series each emulator produced, as the CSV files the tests read
 //   LiveSim         six ATI Net F/T boxes (RDT + calibration page), the Dynamixel bus on a pty
-//                   and the QTM RT server, each on its own thread, until Stop()
+//                   and the motion capture (the QTM RT server, or with mocap = "natnet" the
+//                   Motive NatNet server), each on its own thread, until Stop()
 //
 // In the recorded scenarios (walk, stand, tripod, hang-*) every device reads the same twin
 // series on the same clock (seconds since LiveSim started), so at any moment the wrenches, the
@@ -36,6 +37,7 @@
 
 #include "ati_emulator.h"
 #include "dynamixel_emulator.h"
+#include "natnet_emulator.h"
 #include "proto/config.pb.h"
 #include "qtm_emulator.h"
 #include "sim/twin.h"
@@ -84,6 +86,8 @@ DxlDrivenState DxlStateFromAngle(double angle_rad, double rate_rad_s, std::int32
 double DxlAngleFromCounts(double counts, std::int32_t zero_count, int direction);
 // The mocap's view of a twin frame.
 QtmPose QtmPoseFromFrame(const TwinFrame& frame, double residual_m);
+// The same view for the Motive emulator (it turns it into Motive's axes and pivot itself).
+NatNetPose NatNetPoseFromFrame(const TwinFrame& frame, double residual_m);
 
 // Truth CSVs (the formats of ftcal-emulate-ati --truth, ftcal-emulate-dynamixel --truth and
 // ftcal-emulate-qtm --truth). `leg` indexes kLegNames.
@@ -95,6 +99,9 @@ std::string AtiTruthCsv(const std::vector<AtiTruthRow>& rows);
 std::string DxlTruthCsv(const std::vector<DxlReplyRecord>& rows);
 std::string QtmTruthCsv(const std::vector<std::string>& labels,
                         const std::vector<QtmSentFrame>& frames);
+// natnet.csv: per frame sent, the tick, frame number, Motive timestamp, mid-exposure host time,
+// faults, and the chassis pose in ftcal's frame G (rotation column-major).
+std::string NatNetTruthCsv(const std::vector<NatNetSentFrame>& frames);
 
 // "A:B:C" -> {"A", "B", "C"}; a number in a flag's text, or std::invalid_argument naming the
 // flag.
@@ -132,6 +139,14 @@ struct LiveOptions {
   int qtm_port = -1;
   double qtm_rate_hz = 100.0;
   QtmFaults qtm_faults;
+
+  // Which motion capture the twin serves: "qtm" or "natnet" (the config's mocap.natnet
+  // section gives Motive's address, ports, up axis and pivot; the transport can be overridden).
+  std::string mocap = "qtm";
+  natnet::Version natnet_version{4, 1};
+  int natnet_multicast = -1;  // -1: the config's mocap.natnet.multicast
+  double natnet_rate_hz = 100.0;
+  NatNetFaults natnet_faults;
 };
 
 struct LiveCounts {
@@ -140,6 +155,7 @@ struct LiveCounts {
   std::int64_t dxl_replies = 0;
   std::int64_t dxl_reopens = 0;
   QtmEmulatorCounters qtm;
+  NatNetEmulatorCounters natnet;
 };
 
 class LiveSim {
@@ -156,11 +172,13 @@ class LiveSim {
   double Now() const;
   // Ends the device threads (idempotent); the truth and counts are complete afterwards.
   void Stop();
-  // After Stop(): the truth series in `dir` (ati.csv, dynamixel.csv, qtm.csv), each atomically.
+  // After Stop(): the truth series in `dir` (ati.csv, dynamixel.csv, and qtm.csv or
+  // natnet.csv), each atomically.
   void WriteTruth(const std::string& dir) const;
   LiveCounts Counts() const;  // after Stop()
   const std::string& pty_path() const { return pty_slave_; }
-  std::uint16_t qtm_port() const;
+  std::uint16_t qtm_port() const;  // 0 with mocap "natnet"
+  std::uint16_t natnet_command_port() const;  // 0 with mocap "qtm"
   int ati_boxes() const { return static_cast<int>(ati_.size()); }
   std::size_t ati_truth_rows() const { return ati_truth_.size(); }
   bool commanded() const { return commanded_; }
@@ -197,6 +215,8 @@ class LiveSim {
 
   std::unique_ptr<QtmEmulator> qtm_;
   std::vector<std::string> qtm_labels_;
+  std::vector<NatNetSentFrame> natnet_truth_;
+  std::unique_ptr<NatNetEmulator> natnet_;
 
   // "commanded": the legs follow the servos. The Dynamixel thread alone touches dxl_; it
   // copies the servos' positions into servo_counts_, which the twin thread reads to make the

@@ -8,7 +8,8 @@
 //   ftcal-sim live --pty-link PATH [--scenario walk] [--seed N] [--duration S] [faults...]
 // runs the twin's devices in real time on this machine (services/sim/live.h): six ATI Net F/T
 // boxes (RDT and calibration page) at the config's addresses, the Dynamixel bus on a
-// pseudo-terminal linked at PATH, the QTM RT server at the config's address; the bridges run
+// pseudo-terminal linked at PATH, the QTM RT server (or with --mocap natnet OptiTrack Motive's
+// NatNet server, --natnet-version, --natnet-transport) at the config's address; the bridges run
 // against it unchanged. With --scenario commanded the servos follow the goals a bridge writes
 // (first-order, --servo-tau) and the twin's legs follow the servos. At the end (SIGINT, SIGTERM or --duration) the truth series of every
 // device, with the faults injected, goes to --truth-dir.
@@ -65,6 +66,9 @@ struct LiveFlags {
   std::vector<std::string> qtm_untracked, qtm_silent, qtm_no_more_data, qtm_disconnect;
   std::vector<double> qtm_settings_changed;
   std::string start_angles;
+  std::string natnet_version = "4.1", natnet_transport;
+  std::vector<std::string> natnet_untracked, natnet_silent, natnet_edit_mode, natnet_down;
+  std::vector<double> natnet_model_change;
 };
 
 void AddLiveFlags(CLI::App* live, LiveFlags* f) {
@@ -83,7 +87,8 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
   live->add_option("--duration", f->duration_s, "seconds to run (default: until SIGINT/SIGTERM)")
       ->check(CLI::NonNegativeNumber);
   live->add_option("--truth-dir", f->truth_dir,
-                   "directory for the truth series at exit: ati.csv, dynamixel.csv, qtm.csv")
+                   "directory for the truth series at exit: ati.csv, dynamixel.csv, qtm.csv or "
+                   "natnet.csv")
       ->check(CLI::ExistingDirectory);
   live->add_option("--ready", f->ready_path, "file written once every device is up");
   live->add_option("--pty-link", o.pty_link,
@@ -151,6 +156,39 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
                    "START_S:DURATION_S  QTM shuts down: clients closed, refused meanwhile");
   live->add_option("--qtm-settings-changed", f->qtm_settings_changed,
                    "T_S  Camera Settings Changed event");
+  // Motion capture: QTM, or OptiTrack Motive (NatNet) from the config's mocap.natnet section.
+  live->add_option("--mocap", o.mocap, "motion capture to serve: qtm or natnet")
+      ->check(CLI::IsMember({"qtm", "natnet"}))
+      ->capture_default_str();
+  live->add_option("--natnet-version", f->natnet_version, "Motive's NatNet bitstream")
+      ->check(CLI::IsMember({"3.0", "3.1", "4.0", "4.1", "4.2"}))
+      ->capture_default_str();
+  live->add_option("--natnet-transport", f->natnet_transport,
+                   "multicast or unicast (default: the config's mocap.natnet.multicast)")
+      ->check(CLI::IsMember({"multicast", "unicast"}));
+  live->add_option("--natnet-rate", o.natnet_rate_hz, "Motive's frame rate, Hz")
+      ->check(CLI::Range(1.0, 2000.0))
+      ->capture_default_str();
+  live->add_option("--natnet-gap", o.natnet_faults.gap_probability,
+                   "probability per frame of skipped frame numbers")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--natnet-duplicate", o.natnet_faults.duplicate_probability,
+                   "probability per frame that it is sent twice")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_option("--natnet-corrupt", o.natnet_faults.corrupt_probability,
+                   "probability per frame of a corrupt frame (framing intact)")
+      ->check(CLI::Range(0.0, 1.0));
+  live->add_flag("--natnet-mid-exposure-zero", o.natnet_faults.mid_exposure_zero,
+                 "send mid-exposure ticks 0 (USB cameras, playback)");
+  live->add_option("--natnet-untracked", f->natnet_untracked, "START_S:DURATION_S  body not tracked");
+  live->add_option("--natnet-silent", f->natnet_silent,
+                   "START_S:DURATION_S  Motive up and answering, no frames");
+  live->add_option("--natnet-edit-mode", f->natnet_edit_mode,
+                   "START_S:DURATION_S  frames flagged edit mode (4.0+)");
+  live->add_option("--natnet-down", f->natnet_down,
+                   "START_S:DURATION_S  Motive gone; restarts afterwards (frames, clock, ids anew)");
+  live->add_option("--natnet-model-change", f->natnet_model_change,
+                   "T_S  model list changed: the rigid bodies swap order and ids");
 }
 
 // "START_S:DURATION_S" -> ticks at `rate_hz`.
@@ -257,6 +295,25 @@ void ResolveLiveFlags(LiveFlags* f) {
     if (!(t >= 0)) throw std::invalid_argument("--qtm-settings-changed: negative time");
     q.settings_changed.push_back(std::llround(t * r));
   }
+  const auto v = ftcal::natnet::ParseVersion(f->natnet_version);
+  if (!v) throw std::invalid_argument("--natnet-version '" + f->natnet_version + "'");
+  o.natnet_version = *v;
+  if (!f->natnet_transport.empty()) o.natnet_multicast = f->natnet_transport == "multicast";
+  auto& n = o.natnet_faults;
+  n.seed = o.seed;
+  const double nr = o.natnet_rate_hz;
+  auto window = [nr](const std::string& w, const char* flag) {
+    const auto t = TickWindowFlag(w, nr, flag);
+    return ftcal::sim::NatNetWindow{t.first_tick, t.num_ticks};
+  };
+  for (const auto& w : f->natnet_untracked) n.untracked.push_back(window(w, "--natnet-untracked"));
+  for (const auto& w : f->natnet_silent) n.silent.push_back(window(w, "--natnet-silent"));
+  for (const auto& w : f->natnet_edit_mode) n.edit_mode.push_back(window(w, "--natnet-edit-mode"));
+  for (const auto& w : f->natnet_down) n.down.push_back(window(w, "--natnet-down"));
+  for (double t : f->natnet_model_change) {
+    if (!(t >= 0)) throw std::invalid_argument("--natnet-model-change: negative time");
+    n.model_changes.push_back(std::llround(t * nr));
+  }
 }
 
 int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
@@ -269,11 +326,16 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
 
   ftcal::sim::LiveSim sim(config, flags.options);
   if (!flags.ready_path.empty()) ftcal::WriteFileAtomic(flags.ready_path, "ready\n");
+  const std::string mocap =
+      sim.natnet_command_port() != 0
+          ? "Motive NatNet " + flags.options.natnet_version.ToString() + " on port " +
+                std::to_string(sim.natnet_command_port())
+          : "QTM on port " + std::to_string(sim.qtm_port());
   std::printf("ftcal-sim live: scenario %s (seed %llu): %d ATI boxes at %d records/s, "
-              "Dynamixel bus on %s (linked at %s), QTM on port %u\n",
+              "Dynamixel bus on %s (linked at %s), %s\n",
               flags.options.scenario.c_str(), static_cast<unsigned long long>(flags.options.seed),
               sim.ati_boxes(), flags.options.ati_rate_hz, sim.pty_path().c_str(),
-              flags.options.pty_link.c_str(), sim.qtm_port());
+              flags.options.pty_link.c_str(), mocap.c_str());
   std::fflush(stdout);
   while (g_stop == 0 && !(flags.duration_s > 0 && sim.Now() >= flags.duration_s)) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
@@ -307,6 +369,17 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
               (long long)c.qtm.gaps, (long long)c.qtm.frames_skipped,
               (long long)c.qtm.connections, (long long)c.qtm.disconnects,
               (long long)c.qtm.events_sent);
+  if (flags.options.mocap == "natnet") {
+    const auto& n = c.natnet;
+    std::printf("  natnet: ticks %lld frames_sent %lld corrupt %lld duplicated %lld untracked %lld "
+                "gaps %lld skipped %lld connects %lld keepalives %lld descriptions %lld restarts "
+                "%lld model_changes %lld expired %lld\n",
+                (long long)n.ticks, (long long)n.frames_sent, (long long)n.frames_corrupt,
+                (long long)n.frames_duplicated, (long long)n.frames_untracked, (long long)n.gaps,
+                (long long)n.frames_skipped, (long long)n.connects, (long long)n.keepalives,
+                (long long)n.descriptions_sent, (long long)n.restarts, (long long)n.model_changes,
+                (long long)n.clients_expired);
+  }
   std::fflush(stdout);
   return 0;
 }

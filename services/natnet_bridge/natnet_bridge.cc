@@ -1,0 +1,749 @@
+#include "natnet_bridge.h"
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+#include "ftcal/config.h"
+
+namespace ftcal {
+namespace {
+
+// f32 rounding leaves a unit quaternion within ~1e-7 of norm 1: farther is not a pose Motive
+// computed.
+constexpr double kMaxQuaternionNormError = 1e-3;
+constexpr double kDescriptionsRetryS = 1.0;
+// While Motive answers but sends no frames, ask again this often whether it is still there.
+constexpr double kProbeIntervalS = 1.0;
+// A mapped sample time later than its receipt by more, or older by more than a second, is a
+// clock we do not understand: the receipt time is used instead (and counted).
+constexpr double kMaxFutureUs = 1000.0;
+constexpr double kMaxLatencyUs = 1e6;
+constexpr char kClientName[] = "ftcal-natnet-bridge";
+
+uint32_t Ipv4(const std::string& text, const std::string& field) {
+  in_addr a{};
+  if (::inet_pton(AF_INET, text.c_str(), &a) != 1) {
+    throw NatNetConfigError("config " + field + " '" + text + "' is not an IPv4 address");
+  }
+  return a.s_addr;
+}
+
+bool Finite(const natnet::Vec3f& v) {
+  return std::isfinite(v[0]) && std::isfinite(v[1]) && std::isfinite(v[2]);
+}
+
+}  // namespace
+
+// ---- MotiveFrames ----
+
+MotiveFrames::MotiveFrames(UpAxis up, const Pose3& X_PC) : X_PC_(X_PC) {
+  if (up == UpAxis::kY) {
+    // Rx(+90°): y_Y -> z_G, z_Y -> -y_G.
+    R_GM_ << 1, 0, 0,
+             0, 0, -1,
+             0, 1, 0;
+  } else {
+    R_GM_.setIdentity();
+  }
+}
+
+MotiveFrames MotiveFrames::FromConfig(const config::NatNet& n) {
+  UpAxis up;
+  if (n.up_axis() == "Y") {
+    up = UpAxis::kY;
+  } else if (n.up_axis() == "Z") {
+    up = UpAxis::kZ;
+  } else {
+    throw NatNetConfigError("config mocap.natnet.up_axis '" + n.up_axis() + "' is not Y or Z");
+  }
+  return MotiveFrames(up, n.has_x_pivot_chassis() ? ToPose3(n.x_pivot_chassis()) : Pose3());
+}
+
+Vec3 MotiveFrames::Point(const natnet::Vec3f& p) const {
+  return R_GM_ * Vec3(p[0], p[1], p[2]);
+}
+
+Mat3 MotiveFrames::Rotation(const natnet::Quatf& q) const {
+  // Wire order x, y, z, w; QuaternionToRotation takes (w, x, y, z).
+  Eigen::Vector4d wxyz(q[3], q[0], q[1], q[2]);
+  wxyz.normalize();
+  return R_GM_ * QuaternionToRotation(wxyz);
+}
+
+Pose3 MotiveFrames::Chassis(const natnet::Vec3f& p, const natnet::Quatf& q) const {
+  return Pose3(Rotation(q), Point(p)) * X_PC_;
+}
+
+// ---- Options ----
+
+NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap) {
+  const config::NatNet& n = mocap.natnet();
+  NatNetBridgeOptions o;
+  if (mocap.system() != config::OPTITRACK) {
+    throw NatNetConfigError("config mocap.system is not OPTITRACK: this config runs "
+                            "ftcal-mocap-bridge (Qualisys), not ftcal-natnet-bridge");
+  }
+  o.address = n.server_address();
+  if (o.address.empty()) throw NatNetConfigError("config mocap.natnet.server_address is empty");
+  Ipv4(o.address, "mocap.natnet.server_address");
+  auto port = [](uint32_t p, const std::string& field) {
+    if (p == 0 || p > 65535) {
+      throw NatNetConfigError("config " + field + " " + std::to_string(p) + " is not a UDP port");
+    }
+    return static_cast<uint16_t>(p);
+  };
+  o.command_port = port(n.command_port(), "mocap.natnet.command_port");
+  o.data_port = port(n.data_port(), "mocap.natnet.data_port");
+  o.multicast = n.multicast();
+  o.multicast_group = n.multicast_group();
+  o.local_interface = n.local_interface();
+  if (o.multicast) {
+    const uint32_t group = ntohl(Ipv4(o.multicast_group, "mocap.natnet.multicast_group"));
+    if ((group >> 28) != 0xE) {
+      throw NatNetConfigError("config mocap.natnet.multicast_group '" + o.multicast_group +
+                              "' is not a multicast (class D) address");
+    }
+    Ipv4(o.local_interface, "mocap.natnet.local_interface");
+  }
+  if (!n.bitstream_version().empty()) {
+    const auto v = natnet::ParseVersion(n.bitstream_version());
+    if (!v || !natnet::Supported(*v)) {
+      throw NatNetConfigError("config mocap.natnet.bitstream_version '" + n.bitstream_version() +
+                              "': the bridge reads NatNet 3.x and 4.x");
+    }
+    if (o.multicast) {
+      throw NatNetConfigError("config mocap.natnet.bitstream_version: only a unicast client can "
+                              "choose the bitstream (set multicast: false or leave it empty)");
+    }
+    o.bitstream = v;
+  }
+  o.body_name = mocap.body_name();
+  if (o.body_name.empty()) throw NatNetConfigError("config mocap.body_name is empty");
+  const MotiveFrames frames = MotiveFrames::FromConfig(n);
+  o.up_axis = n.up_axis() == "Z" ? MotiveFrames::UpAxis::kZ : MotiveFrames::UpAxis::kY;
+  if (n.has_x_pivot_chassis()) o.X_PC = ToPose3(n.x_pivot_chassis());
+  if (!(n.keepalive_s() > 0) || !(n.silence_s() > 0)) {
+    throw NatNetConfigError("config mocap.natnet.keepalive_s and silence_s must be positive");
+  }
+  o.keepalive_s = n.keepalive_s();
+  o.silence_s = n.silence_s();
+  (void)frames;
+  return o;
+}
+
+// ---- NatNetBridge ----
+
+NatNetBridge::NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, PublishFn publish,
+                           ClockFn now_utime)
+    : options_(std::move(options)),
+      frames_(options_.up_axis, options_.X_PC),
+      stats_(stats),
+      publish_(std::move(publish)),
+      now_utime_(std::move(now_utime)),
+      next_connect_(Clock::now()),
+      backoff_s_(options_.backoff_min_s) {
+  for (const char* name :
+       {"frames", "published", "untracked", "frame_gaps", "frames_lost", "frame_restarts",
+        "duplicates", "decode_errors", "edit_mode_frames", "model_changes", "description_reads",
+        "bitstream_changes", "body_missing", "connects", "probes", "server_lost", "not_streaming",
+        "keepalives", "timeouts", "foreign_packets", "unknown_messages", "clock_fallbacks",
+        "clock_resyncs", "system_latency_us", "transit_us"}) {
+    stats_.Counter(name);
+  }
+  server_ip_ = Ipv4(options_.address, "mocap.natnet.server_address");
+  buffer_.resize(65536);
+  OpenSockets();
+}
+
+NatNetBridge::~NatNetBridge() { CloseSockets(); }
+
+std::string NatNetBridge::LinkName(Link link) {
+  switch (link) {
+    case Link::kDisconnected: return "disconnected";
+    case Link::kAwaitInfo: return "awaiting SERVERINFO";
+    case Link::kAwaitDescriptions: return "awaiting descriptions";
+    case Link::kStreaming: return "streaming";
+  }
+  return "?";
+}
+
+double NatNetBridge::SecondsSince(Clock::time_point t) const {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
+
+NatNetBridge::Clock::time_point NatNetBridge::After(double s) const {
+  return Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
+}
+
+void NatNetBridge::OpenSockets() {
+  command_fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+  if (command_fd_ < 0) throw NatNetConfigError(std::string("socket: ") + std::strerror(errno));
+  // Unicast frames arrive here too (§2.5): room for a burst of large frames.
+  const int rcvbuf = 1 << 20;
+  ::setsockopt(command_fd_, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+  sockaddr_in any{};
+  any.sin_family = AF_INET;
+  any.sin_addr.s_addr = htonl(INADDR_ANY);
+  if (::bind(command_fd_, reinterpret_cast<sockaddr*>(&any), sizeof any) != 0) {
+    throw NatNetConfigError(std::string("binding the command socket: ") + std::strerror(errno));
+  }
+  if (!options_.multicast) return;
+  data_fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+  if (data_fd_ < 0) throw NatNetConfigError(std::string("socket: ") + std::strerror(errno));
+  const int one = 1;
+  ::setsockopt(data_fd_, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);  // clients share 1511
+  ::setsockopt(data_fd_, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+  // Bound to INADDR_ANY, not the interface: on Linux an interface-bound socket never sees the
+  // group's datagrams; the interface is chosen in the membership (§2.4).
+  sockaddr_in data{};
+  data.sin_family = AF_INET;
+  data.sin_addr.s_addr = htonl(INADDR_ANY);
+  data.sin_port = htons(options_.data_port);
+  if (::bind(data_fd_, reinterpret_cast<sockaddr*>(&data), sizeof data) != 0) {
+    throw NatNetConfigError("binding the data socket to port " + std::to_string(options_.data_port) +
+                            ": " + std::strerror(errno));
+  }
+  ip_mreq m{};
+  m.imr_multiaddr.s_addr = Ipv4(options_.multicast_group, "mocap.natnet.multicast_group");
+  m.imr_interface.s_addr = Ipv4(options_.local_interface, "mocap.natnet.local_interface");
+  if (::setsockopt(data_fd_, IPPROTO_IP, IP_ADD_MEMBERSHIP, &m, sizeof m) != 0) {
+    throw NatNetConfigError("joining " + options_.multicast_group + " on " +
+                            options_.local_interface + ": " + std::strerror(errno));
+  }
+}
+
+void NatNetBridge::CloseSockets() {
+  if (command_fd_ >= 0) ::close(command_fd_);
+  if (data_fd_ >= 0) ::close(data_fd_);
+  command_fd_ = data_fd_ = -1;
+}
+
+std::vector<int> NatNetBridge::fds() const {
+  std::vector<int> out{command_fd_};
+  if (data_fd_ >= 0) out.push_back(data_fd_);
+  return out;
+}
+
+void NatNetBridge::SendToServer(uint16_t id, const std::vector<uint8_t>& payload) {
+  const std::vector<uint8_t> bytes = natnet::EncodePacket(id, payload);
+  sockaddr_in to{};
+  to.sin_family = AF_INET;
+  to.sin_addr.s_addr = server_ip_;
+  to.sin_port = htons(options_.command_port);
+  if (::sendto(command_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to),
+               sizeof to) < 0) {
+    // ECONNREFUSED and friends: Motive's port is closed; the reply timeout handles it.
+    stats_.Error("natnet send", "message " + std::to_string(id) + " to " + options_.address + ":" +
+                                    std::to_string(options_.command_port) + ": " +
+                                    std::strerror(errno));
+  }
+}
+
+void NatNetBridge::SendConnect() {
+  sent_at_ = Clock::now();
+  SendToServer(natnet::kConnect, natnet::EncodeConnect(kClientName, options_.bitstream));
+}
+
+void NatNetBridge::RequestDescriptions() {
+  ++stats_.Counter("description_reads");
+  descriptions_pending_ = true;
+  retry_descriptions_at_.reset();
+  sent_at_ = Clock::now();
+  SendToServer(natnet::kRequestModelDef, {});
+}
+
+int NatNetBridge::TimerDueMs() const {
+  if (link_ == Link::kDisconnected) {
+    const auto ms =
+        std::chrono::duration_cast<std::chrono::milliseconds>(next_connect_ - Clock::now()).count();
+    return static_cast<int>(std::clamp<int64_t>(ms + 1, 0, 100));
+  }
+  return 20;
+}
+
+void NatNetBridge::Step(int max_wait_ms) {
+  OnTimer();
+  const int wait = std::max(0, std::min(max_wait_ms, TimerDueMs()));
+  std::vector<pollfd> p;
+  for (int fd : fds()) p.push_back({fd, POLLIN, 0});
+  if (::poll(p.data(), p.size(), wait) > 0) {
+    for (const pollfd& x : p) {
+      if (x.revents & (POLLIN | POLLERR)) OnReadable(x.fd);
+    }
+  }
+  OnTimer();
+}
+
+void NatNetBridge::OnReadable(int fd) { Drain(fd); }
+
+void NatNetBridge::Drain(int fd) {
+  for (;;) {
+    sockaddr_in from{};
+    socklen_t len = sizeof from;
+    // MSG_TRUNC: the datagram's real length, so a cut one is seen as such (§6 "truncation").
+    const ssize_t n = ::recvfrom(fd, buffer_.data(), buffer_.size(), MSG_TRUNC,
+                                 reinterpret_cast<sockaddr*>(&from), &len);
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      if (errno != EAGAIN && errno != EWOULDBLOCK) {
+        // An ICMP port-unreachable from a stopped Motive surfaces here on the command socket.
+        stats_.Drop("natnet receive error", std::strerror(errno));
+        continue;
+      }
+      return;
+    }
+    const int64_t receive_us = now_utime_();
+    if (static_cast<size_t>(n) > buffer_.size()) {
+      ++stats_.Counter("decode_errors");
+      stats_.Drop("natnet datagram truncated", std::to_string(n) + " bytes");
+      continue;
+    }
+    const bool from_server = from.sin_addr.s_addr == server_ip_;
+    const uint8_t* data = buffer_.data();
+    const size_t size = static_cast<size_t>(n);
+    natnet::Packet packet;
+    if (!from_server) {
+      ++stats_.Counter("foreign_packets");
+      char ip[INET_ADDRSTRLEN] = {};
+      ::inet_ntop(AF_INET, &from.sin_addr, ip, sizeof ip);
+      stats_.Drop("natnet datagram from another host", std::string(ip) + " is not " + options_.address);
+      continue;
+    }
+    try {
+      packet = natnet::DecodePacket(data, size);
+    } catch (const natnet::NatNetError& e) {
+      ++stats_.Counter("decode_errors");
+      stats_.Drop("natnet datagram malformed", e.what());
+      continue;
+    }
+    switch (packet.id) {
+      case natnet::kServerInfo: HandleServerInfo(packet); break;
+      case natnet::kModelDef: HandleDescriptions(packet); break;
+      case natnet::kFrameOfData: HandleFrame(packet, receive_us); break;
+      case natnet::kResponse: HandleResponse(packet); break;
+      case natnet::kMessageString:
+        stats_.log().info("Motive says: {}", natnet::DecodeString(packet.payload));
+        break;
+      case natnet::kEchoResponse:
+      case natnet::kUnrecognizedRequest:
+      case natnet::kUnrecognizedRequestAlt:
+        break;  // replies without transaction ids: nothing to match them to (§6)
+      default:
+        ++stats_.Counter("unknown_messages");
+        stats_.Drop("natnet message unknown", "id " + std::to_string(packet.id));
+    }
+  }
+}
+
+void NatNetBridge::HandleDatagram(const uint8_t* data, size_t size, bool from_server) {
+  if (!from_server) {
+    ++stats_.Counter("foreign_packets");
+    return;
+  }
+  natnet::Packet packet;
+  try {
+    packet = natnet::DecodePacket(data, size);
+  } catch (const natnet::NatNetError& e) {
+    ++stats_.Counter("decode_errors");
+    stats_.Drop("natnet datagram malformed", e.what());
+    return;
+  }
+  switch (packet.id) {
+    case natnet::kServerInfo: return HandleServerInfo(packet);
+    case natnet::kModelDef: return HandleDescriptions(packet);
+    case natnet::kFrameOfData: return HandleFrame(packet, now_utime_());
+    case natnet::kResponse: return HandleResponse(packet);
+    default: return;
+  }
+}
+
+void NatNetBridge::HandleServerInfo(const natnet::Packet& p) {
+  natnet::ServerInfo info;
+  try {
+    info = natnet::DecodeServerInfo(p.payload);
+  } catch (const natnet::NatNetError& e) {
+    ++stats_.Counter("decode_errors");
+    stats_.Drop("natnet SERVERINFO malformed", e.what());
+    return;
+  }
+  if (!natnet::Supported(info.version())) {
+    throw NatNetConfigError("Motive at " + options_.address + " streams NatNet " +
+                            info.version().ToString() + "; ftcal-natnet-bridge reads 3.x and 4.x");
+  }
+  if (probing_) {
+    // Motive answers, so it is up: while it sends no frames the bridge waits, it does not
+    // start over (its descriptions still hold).
+    probing_ = false;
+    if (!server_up_not_streaming_) {
+      ++stats_.Counter("not_streaming");
+      stats_.log().warn("Motive at {} answers but sends no frames: waiting", options_.address);
+    }
+    server_up_not_streaming_ = true;
+    server_ = info;
+    return;
+  }
+  if (link_ != Link::kAwaitInfo) return;  // a late duplicate
+  server_ = info;
+  // The version to parse with: the one asked for (unicast), which Motive honours in
+  // NAT_CONNECT (§2.3), else the server's; a Bitstream reply overrides both.
+  version_ = options_.bitstream.value_or(info.version());
+  ++stats_.Counter("connects");
+  stats_.log().info("Motive '{}' {}.{} at {}: NatNet {} ({}), clock {} Hz, parsing {}",
+                    info.app_name, info.app_version[0], info.app_version[1], options_.address,
+                    info.version().ToString(), info.multicast ? "multicast" : "unicast",
+                    info.clock_frequency_hz, version_.ToString());
+  if (info.multicast != options_.multicast) {
+    stats_.log().warn("Motive says it streams {} but the config says {} (mocap.natnet.multicast)",
+                      info.multicast ? "multicast" : "unicast",
+                      options_.multicast ? "multicast" : "unicast");
+  }
+  offset_window_.clear();
+  link_ = Link::kAwaitDescriptions;
+  next_keepalive_ = After(options_.keepalive_s);
+  if (options_.bitstream) SendToServer(natnet::kRequest, natnet::EncodeString("Bitstream"));
+  RequestDescriptions();
+}
+
+void NatNetBridge::HandleResponse(const natnet::Packet& p) {
+  const std::string text = natnet::DecodeString(p.payload);
+  if (text.rfind("Bitstream,", 0) != 0) return;
+  const auto v = natnet::ParseVersion(text.substr(10));
+  if (!v || !natnet::Supported(*v)) {
+    stats_.Error("natnet bitstream", "Motive reports '" + text + "', which the bridge cannot read");
+    return;
+  }
+  if (*v != version_) {
+    stats_.log().warn("Motive streams bitstream {}, not {}: switching", v->ToString(),
+                      version_.ToString());
+    version_ = *v;
+    if (!descriptions_pending_) RequestDescriptions();
+  }
+}
+
+void NatNetBridge::HandleDescriptions(const natnet::Packet& p) {
+  if (link_ == Link::kDisconnected || link_ == Link::kAwaitInfo) {
+    stats_.Drop("natnet descriptions before SERVERINFO", "the version is not known yet");
+    return;
+  }
+  descriptions_pending_ = false;
+  natnet::Descriptions d;
+  try {
+    d = natnet::DecodeDescriptions(p.payload, version_);
+  } catch (const natnet::NatNetError& e) {
+    ++stats_.Counter("decode_errors");
+    descriptions_problem_ = std::string("unreadable descriptions: ") + e.what();
+    stats_.Error("natnet descriptions unreadable", e.what());
+    retry_descriptions_at_ = After(kDescriptionsRetryS);
+    return;
+  }
+  const auto it = std::find_if(d.rigid_bodies.begin(), d.rigid_bodies.end(),
+                               [&](const auto& rb) { return rb.name == options_.body_name; });
+  if (it == d.rigid_bodies.end()) {
+    std::string names;
+    for (const auto& rb : d.rigid_bodies) names += (names.empty() ? "" : ", ") + rb.name;
+    descriptions_problem_ = "rigid body '" + options_.body_name + "' (config mocap.body_name) is " +
+                            "not among Motive's [" + names + "]";
+    ++stats_.Counter("body_missing");
+    stats_.Error("natnet body missing", descriptions_problem_);
+    body_id_.reset();
+    retry_descriptions_at_ = After(kDescriptionsRetryS);
+    return;
+  }
+  descriptions_problem_.clear();
+  if (body_id_ != it->id) {
+    stats_.log().info("Motive rigid body '{}' is id {} with {} markers", it->name, it->id,
+                      it->marker_positions.size());
+  }
+  body_id_ = it->id;
+  // Labeled markers of a rigid body carry its id in the high 16 bits and the 1-based member
+  // index in the low 16 (§4.3): the description's order is the published order.
+  marker_ids_.clear();
+  for (size_t i = 0; i < it->marker_positions.size(); ++i) {
+    marker_ids_.push_back(static_cast<int32_t>((static_cast<uint32_t>(it->id) << 16) | (i + 1)));
+  }
+  if (link_ == Link::kAwaitDescriptions) {
+    link_ = Link::kStreaming;
+    last_frame_at_ = Clock::now();
+  }
+}
+
+void NatNetBridge::ServerLost(const std::string& why) {
+  ++stats_.Counter("server_lost");
+  stats_.Error("natnet server lost", options_.address + ": " + why);
+  ResetSession();
+  link_ = Link::kDisconnected;
+  next_connect_ = After(backoff_s_);
+  backoff_s_ = std::min(options_.backoff_max_s, backoff_s_ * 2);
+}
+
+void NatNetBridge::ResetSession() {
+  body_id_.reset();
+  marker_ids_.clear();
+  descriptions_pending_ = false;
+  descriptions_problem_.clear();
+  retry_descriptions_at_.reset();
+  probing_ = false;
+  server_up_not_streaming_ = false;
+  got_frame_ = false;
+  edit_mode_ = false;
+  offset_window_.clear();
+}
+
+void NatNetBridge::OnTimer() {
+  const auto now = Clock::now();
+  if (link_ == Link::kDisconnected) {
+    if (now >= next_connect_) {
+      link_ = Link::kAwaitInfo;
+      SendConnect();
+    }
+    return;
+  }
+  if (link_ == Link::kAwaitInfo) {
+    if (SecondsSince(sent_at_) > options_.reply_timeout_s) {
+      ++stats_.Counter("timeouts");
+      stats_.Error("natnet no SERVERINFO", "Motive at " + options_.address + ":" +
+                                               std::to_string(options_.command_port) +
+                                               " did not answer NAT_CONNECT (streaming off, "
+                                               "wrong address or interface?)");
+      link_ = Link::kDisconnected;
+      next_connect_ = After(backoff_s_);
+      backoff_s_ = std::min(options_.backoff_max_s, backoff_s_ * 2);
+    }
+    return;
+  }
+  if (!options_.multicast && now >= next_keepalive_) {
+    // Unicast sessions go to sleep without it (§2.5); no reply is expected.
+    SendToServer(natnet::kKeepAlive, {});
+    ++stats_.Counter("keepalives");
+    next_keepalive_ = now + std::chrono::duration_cast<Clock::duration>(
+                                std::chrono::duration<double>(options_.keepalive_s));
+  }
+  if (descriptions_pending_ && SecondsSince(sent_at_) > options_.reply_timeout_s) {
+    ++stats_.Counter("timeouts");
+    if (link_ == Link::kAwaitDescriptions) {
+      ServerLost("no answer to NAT_REQUEST_MODELDEF");
+      return;
+    }
+    RequestDescriptions();
+  }
+  if (retry_descriptions_at_ && now >= *retry_descriptions_at_) RequestDescriptions();
+  if (link_ != Link::kStreaming) return;
+  if (probing_) {
+    if (SecondsSince(sent_at_) > options_.reply_timeout_s) {
+      ServerLost("no frame for " + std::to_string(SecondsSince(last_frame_at_)) +
+                 " s and no answer to NAT_CONNECT");
+    }
+    return;
+  }
+  const double quiet_s = SecondsSince(last_frame_at_);
+  const double probe_after_s =
+      server_up_not_streaming_ ? options_.silence_s + kProbeIntervalS : options_.silence_s;
+  if (quiet_s > probe_after_s && SecondsSince(sent_at_) > kProbeIntervalS * 0.5) {
+    // Is Motive gone, or up and not streaming? Only SERVERINFO tells; for a unicast client
+    // the CONNECT also re-registers it with a restarted Motive.
+    ++stats_.Counter("probes");
+    probing_ = true;
+    SendConnect();
+  }
+}
+
+std::optional<double> NatNetBridge::clock_offset_us() const {
+  if (offset_window_.empty()) return std::nullopt;
+  return offset_window_.front().second;
+}
+
+int64_t NatNetBridge::SampleUtime(const natnet::FrameOfData& f, int64_t receive_us) {
+  const double hz = static_cast<double>(server_.clock_frequency_hz);
+  if (!(hz > 0) || f.transmit_ticks == 0) {
+    ++stats_.Counter("clock_fallbacks");
+    return receive_us;
+  }
+  const auto us = [hz](uint64_t ticks) { return static_cast<double>(ticks) / hz * 1e6; };
+  const double transmit_us = us(f.transmit_ticks);
+  const double d = static_cast<double>(receive_us) - transmit_us;
+  // Sliding minimum: the deque holds increasing values, oldest first.
+  while (!offset_window_.empty() && offset_window_.back().second >= d) offset_window_.pop_back();
+  offset_window_.emplace_back(receive_us, d);
+  const double window_us = options_.clock_window_s * 1e6;
+  while (offset_window_.front().first < receive_us - static_cast<int64_t>(window_us)) {
+    offset_window_.pop_front();
+  }
+  const double offset = offset_window_.front().second;
+  // Mid-exposure is the sample time (the photons' average age, §5.3); 0 when Motive does not
+  // know it (USB cameras, playback): the camera data's arrival, else the transmit time.
+  const uint64_t sample_ticks = f.mid_exposure_ticks != 0   ? f.mid_exposure_ticks
+                                : f.data_received_ticks != 0 ? f.data_received_ticks
+                                                             : f.transmit_ticks;
+  const double sample_us = us(sample_ticks) + offset;
+  stats_.Counter("system_latency_us") = std::llround(transmit_us - us(sample_ticks));
+  stats_.Counter("transit_us") = std::llround(d - offset);
+  const double age = static_cast<double>(receive_us) - sample_us;
+  if (!(age > -kMaxFutureUs && age < kMaxLatencyUs)) {
+    ++stats_.Counter("clock_fallbacks");
+    return receive_us;
+  }
+  return std::llround(sample_us);
+}
+
+void NatNetBridge::HandleFrame(const natnet::Packet& p, int64_t receive_us) {
+  if (link_ == Link::kDisconnected || link_ == Link::kAwaitInfo) {
+    stats_.Drop("natnet frame before SERVERINFO", "the version is not known yet");
+    return;
+  }
+  const auto params = natnet::PeekFrameParams(p.payload);
+  if (params && (*params & natnet::kFrameBitstreamChanged)) {
+    ++stats_.Counter("bitstream_changes");
+    if (!options_.multicast) SendToServer(natnet::kRequest, natnet::EncodeString("Bitstream"));
+  }
+  natnet::FrameOfData f;
+  try {
+    f = natnet::DecodeFrame(p.payload, version_);
+  } catch (const natnet::NatNetError& e) {
+    ++stats_.Counter("decode_errors");
+    stats_.Drop("natnet frame undecodable", e.what());
+    return;
+  }
+  stats_.CountIn();
+  ++stats_.Counter("frames");
+  last_frame_at_ = Clock::now();
+  probing_ = false;
+  if (server_up_not_streaming_) stats_.log().info("Motive streams again");
+  server_up_not_streaming_ = false;
+  if (!got_frame_) backoff_s_ = options_.backoff_min_s;  // the link works: next loss retries fast
+  got_frame_ = true;
+
+  const std::string where = "frame " + std::to_string(f.frame_number);
+  if (last_frame_) {
+    const int64_t step = int64_t{f.frame_number} - *last_frame_;
+    const bool restarted =
+        step < 0 || (last_timestamp_s_ && f.timestamp_s + 1.0 < *last_timestamp_s_);
+    if (step == 0) {
+      ++stats_.Counter("duplicates");
+      stats_.Drop("natnet duplicate frame", where + " again");
+      return;
+    }
+    if (restarted) {
+      // Motive restarted (or a take was rewound): its clock and maybe its ids changed.
+      ++stats_.Counter("frame_restarts");
+      ++stats_.Counter("clock_resyncs");
+      offset_window_.clear();
+      if (!descriptions_pending_) RequestDescriptions();
+    } else if (step > 1) {
+      ++stats_.Counter("frame_gaps");
+      stats_.Counter("frames_lost") += step - 1;
+    }
+  }
+  last_frame_ = f.frame_number;
+  last_timestamp_s_ = f.timestamp_s;
+
+  if (f.model_list_changed()) {
+    ++stats_.Counter("model_changes");
+    stats_.log().info("Motive's model list changed ({}): re-reading descriptions", where);
+    if (!descriptions_pending_) RequestDescriptions();
+  }
+  // Bit 2 means edit mode from 4.0 on only (§4.4); a 3.x stream cannot say.
+  if (version_.AtLeast(4, 0) && f.edit_mode()) {
+    ++stats_.Counter("edit_mode_frames");
+    if (!edit_mode_) stats_.log().warn("Motive is in edit mode: its frames are not live");
+    edit_mode_ = true;
+    stats_.Drop("natnet edit-mode frame", where + ": playback, not live data");
+    return;
+  }
+  edit_mode_ = false;
+  if (descriptions_pending_ || !body_id_) {
+    stats_.Drop("natnet frame while descriptions are unknown",
+                where + ": body ids are mapped by name from NAT_MODELDEF first");
+    return;
+  }
+  const auto body = std::find_if(f.rigid_bodies.begin(), f.rigid_bodies.end(),
+                                 [&](const natnet::RigidBodyData& b) { return b.id == *body_id_; });
+  if (body == f.rigid_bodies.end()) {
+    ++stats_.Counter("body_missing");
+    stats_.Drop("natnet body not in frame", where + ": no rigid body with id " +
+                                                std::to_string(*body_id_) + " ('" +
+                                                options_.body_name + "')");
+    if (!descriptions_pending_ && !retry_descriptions_at_) RequestDescriptions();
+    return;
+  }
+  const bool tracked = body->tracked();
+  if (tracked) {
+    const auto& q = body->orientation;
+    const double norm = std::sqrt(double(q[0]) * q[0] + double(q[1]) * q[1] +
+                                  double(q[2]) * q[2] + double(q[3]) * q[3]);
+    if (!Finite(body->position) || !std::isfinite(norm) ||
+        std::abs(norm - 1.0) > kMaxQuaternionNormError || !std::isfinite(body->mean_error) ||
+        body->mean_error < 0) {
+      ++stats_.Counter("decode_errors");
+      stats_.Drop("natnet pose not a rigid motion",
+                  where + ": non-finite values or a quaternion of norm " + std::to_string(norm));
+      return;
+    }
+  }
+
+  mocap_body_t msg;
+  msg.utime = SampleUtime(f, receive_us);
+  msg.frame_number = f.frame_number;
+  msg.device_utime = std::llround(f.timestamp_s * 1e6);
+  msg.body = options_.body_name;
+  msg.tracked = tracked;
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  if (tracked) {
+    const Pose3 X_GC = frames_.Chassis(body->position, body->orientation);
+    const Eigen::Vector4d q_gc = RotationToQuaternion(X_GC.R);
+    const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(X_GC.R));
+    for (int i = 0; i < 4; ++i) {
+      msg.q_gc[i] = q_gc(i);
+      msg.q_wc[i] = q_wc(i);
+    }
+    msg.yaw_rad = HeadingYaw(X_GC.R);
+    for (int i = 0; i < 3; ++i) msg.position_m[i] = X_GC.p(i);
+    msg.residual_m = body->mean_error;
+  } else {
+    // An untracked body's pose is Motive's last one (§4.2): never published as a value.
+    for (int i = 0; i < 4; ++i) msg.q_gc[i] = msg.q_wc[i] = nan;
+    for (int i = 0; i < 3; ++i) msg.position_m[i] = nan;
+    msg.yaw_rad = nan;
+    msg.residual_m = nan;
+    ++stats_.Counter("untracked");
+  }
+  msg.num_markers = static_cast<int32_t>(marker_ids_.size());
+  msg.marker_m.assign(marker_ids_.size(), std::vector<double>(3, nan));
+  msg.marker_tracked.assign(marker_ids_.size(), false);
+  for (const natnet::LabeledMarker& m : f.labeled_markers) {
+    const auto it = std::find(marker_ids_.begin(), marker_ids_.end(), m.id);
+    if (it == marker_ids_.end() || m.occluded() || !Finite(m.position)) continue;
+    const size_t i = static_cast<size_t>(it - marker_ids_.begin());
+    const Vec3 p = frames_.Point(m.position);
+    msg.marker_tracked[i] = true;
+    for (int a = 0; a < 3; ++a) msg.marker_m[i][a] = p(a);
+  }
+  publish_(msg);
+  ++stats_.Counter("published");
+}
+
+std::string NatNetBridge::health_reason() const {
+  if (link_ == Link::kDisconnected || link_ == Link::kAwaitInfo) {
+    return "no SERVERINFO from Motive at " + options_.address + ":" +
+           std::to_string(options_.command_port);
+  }
+  if (!descriptions_problem_.empty()) return descriptions_problem_;
+  if (link_ == Link::kAwaitDescriptions) return "awaiting Motive's data descriptions";
+  if (edit_mode_) return "Motive is in edit mode (playback, not live)";
+  if (server_up_not_streaming_) return "Motive is up but sends no frames";
+  if (SecondsSince(last_frame_at_) > options_.silence_s) {
+    return "no frame from Motive for more than " + std::to_string(options_.silence_s) + " s";
+  }
+  if (!got_frame_) return "no frame yet";
+  return "";
+}
+
+}  // namespace ftcal

@@ -1,0 +1,179 @@
+// The OptiTrack Motive NatNet client behind ftcal-natnet-bridge: the handshake of
+// docs/natnet-protocol.md §2 (NAT_CONNECT -> NAT_SERVERINFO, NAT_REQUEST_MODELDEF ->
+// NAT_MODELDEF), frames over multicast (a data socket joined to the group) or unicast (frames on
+// the command socket, a keep-alive every keepalive_s), and each frame turned into the same
+// mocap_body_t that ftcal-mocap-bridge publishes for QTM (docs/writing-a-bridge.md).
+//
+// Testable without LCM: the caller passes a publish callback and a clock; the class never
+// blocks longer than the wait it is given. Counters (ServiceStats, in the heartbeat): frames,
+// published, untracked, frame_gaps, frames_lost, frame_restarts, duplicates, decode_errors,
+// edit_mode_frames, model_changes, description_reads, bitstream_changes, body_missing,
+// connects, probes, server_lost, not_streaming, keepalives, timeouts, foreign_packets,
+// unknown_messages, clock_fallbacks, and the latest timing in microseconds: system_latency_us
+// (Motive's mid-exposure to transmit), transit_us (transmit to receipt, after the clock offset),
+// clock_resyncs.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "common/service_stats.h"
+#include "ftcal/geometry.h"
+#include "ftcal/mocap_body_t.hpp"
+#include "natnet_protocol.h"
+#include "proto/config.pb.h"
+
+namespace ftcal {
+
+// A configuration the bridge cannot serve, or a server it must not read (NatNet < 3.0).
+class NatNetConfigError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// Motive's frames and units -> ftcal's, in one place (docs/natnet-protocol.md §5).
+//
+// G is ftcal's mocap global frame: right-handed, z up (as QTM's). Motive streams Y-up by
+// default: p_G = Rx(+90°) p_Y, i.e. (x, y, z)_G = (x, -z, y)_Y; with Motive's Z-up setting the
+// axes already agree. The rigid body's quaternion (x, y, z, w, Hamilton) is R_YP: the pivot
+// frame P into Motive's world, so R_GP = Rx(+90°) R_YP (the body frame itself is unchanged).
+// The chassis frame C sits in P at X_PC (configured): R_GC = R_GP R_PC, p_GoCo = p_GoPo +
+// R_GP p_PoCo. Positions are metres on the wire and stay metres.
+class MotiveFrames {
+ public:
+  enum class UpAxis { kY, kZ };
+  MotiveFrames(UpAxis up, const Pose3& X_PC);
+  // Throws NatNetConfigError for an up_axis other than "Y"/"Z".
+  static MotiveFrames FromConfig(const config::NatNet& n);
+
+  Vec3 Point(const natnet::Vec3f& p_motive) const;      // a position in G
+  Mat3 Rotation(const natnet::Quatf& q_xyzw) const;     // R_GP (quaternion normalised)
+  // The chassis pose from the rigid body's pose: R_GC and p_GoCo_G.
+  Pose3 Chassis(const natnet::Vec3f& p, const natnet::Quatf& q_xyzw) const;
+  const Mat3& R_GM() const { return R_GM_; }  // Motive's world axes into G
+
+ private:
+  Mat3 R_GM_;
+  Pose3 X_PC_;
+};
+
+struct NatNetBridgeOptions {
+  std::string address;
+  uint16_t command_port = natnet::kCommandPort;
+  uint16_t data_port = natnet::kDataPort;
+  bool multicast = true;
+  std::string multicast_group = natnet::kMulticastGroup;
+  std::string local_interface = "0.0.0.0";
+  std::optional<natnet::Version> bitstream;  // unicast: asked for in NAT_CONNECT
+  std::string body_name = "chassis";
+  MotiveFrames::UpAxis up_axis = MotiveFrames::UpAxis::kY;
+  Pose3 X_PC;                       // chassis in the pivot frame
+  double keepalive_s = 1.0;
+  double reply_timeout_s = 1.0;     // SERVERINFO and MODELDEF answers
+  double silence_s = 0.5;           // no frame this long: DEGRADED, and probe the server
+  double backoff_min_s = 0.05;
+  double backoff_max_s = 1.0;
+  double clock_window_s = 5.0;      // the minimum-transit window of the clock offset
+};
+
+// From the config's mocap section (body_name, natnet). Throws NatNetConfigError naming the field.
+NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap);
+
+class NatNetBridge {
+ public:
+  using PublishFn = std::function<void(const mocap_body_t&)>;
+  using ClockFn = std::function<int64_t()>;  // host time, us since the epoch
+
+  enum class Link { kDisconnected, kAwaitInfo, kAwaitDescriptions, kStreaming };
+
+  NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, PublishFn publish,
+               ClockFn now_utime);
+  ~NatNetBridge();
+  NatNetBridge(const NatNetBridge&) = delete;
+  NatNetBridge& operator=(const NatNetBridge&) = delete;
+
+  // One turn of the loop: waits up to `max_wait_ms` in poll() on the sockets, handles what
+  // arrived and the timers. Throws NatNetConfigError for a server older than NatNet 3.0 or a
+  // socket that cannot be set up as configured.
+  void Step(int max_wait_ms);
+  // For a caller's own poll(): the sockets (the data socket only in multicast), then
+  // OnReadable(fd) for each readable one and OnTimer().
+  std::vector<int> fds() const;
+  void OnReadable(int fd);
+  void OnTimer();
+  int TimerDueMs() const;
+
+  Link link() const { return link_; }
+  bool healthy() const { return health_reason().empty(); }
+  std::string health_reason() const;
+  static std::string LinkName(Link link);
+  natnet::Version version() const { return version_; }
+  // Motive's clock mapped to the host's: host_us = ticks / f * 1e6 + offset (nullopt before
+  // the first frame of this session).
+  std::optional<double> clock_offset_us() const;
+
+  // Handles one datagram as if it had arrived from `from_server` (tests, benchmarks).
+  void HandleDatagram(const uint8_t* data, size_t size, bool from_server);
+
+ private:
+  using Clock = std::chrono::steady_clock;
+
+  void OpenSockets();
+  void CloseSockets();
+  void SendToServer(uint16_t id, const std::vector<uint8_t>& payload);
+  void SendConnect();
+  void RequestDescriptions();
+  void Drain(int fd);
+  void HandleServerInfo(const natnet::Packet& p);
+  void HandleDescriptions(const natnet::Packet& p);
+  void HandleResponse(const natnet::Packet& p);
+  void HandleFrame(const natnet::Packet& p, int64_t receive_us);
+  void ServerLost(const std::string& why);
+  void ResetSession();
+  int64_t SampleUtime(const natnet::FrameOfData& f, int64_t receive_us);
+  double SecondsSince(Clock::time_point t) const;
+  Clock::time_point After(double s) const;
+
+  NatNetBridgeOptions options_;
+  MotiveFrames frames_;
+  ServiceStats& stats_;
+  PublishFn publish_;
+  ClockFn now_utime_;
+
+  int command_fd_ = -1;
+  int data_fd_ = -1;
+  uint32_t server_ip_ = 0;  // network order
+  Link link_ = Link::kDisconnected;
+  Clock::time_point next_connect_;
+  Clock::time_point sent_at_;          // the outstanding request (CONNECT or MODELDEF)
+  Clock::time_point next_keepalive_;
+  Clock::time_point last_frame_at_;
+  double backoff_s_;
+  bool probing_ = false;               // silent: a CONNECT is out to see whether Motive is up
+  bool server_up_not_streaming_ = false;
+  bool descriptions_pending_ = false;
+  bool got_frame_ = false;
+  bool edit_mode_ = false;
+
+  natnet::ServerInfo server_;
+  natnet::Version version_{0, 0};
+  std::optional<int32_t> body_id_;
+  std::vector<int32_t> marker_ids_;    // labeled-marker ids of the body's members
+  std::string descriptions_problem_;
+  std::optional<Clock::time_point> retry_descriptions_at_;
+
+  std::optional<int32_t> last_frame_;
+  std::optional<double> last_timestamp_s_;
+  // Sliding minimum of (receipt - transmit) over clock_window_s: the clock offset plus the
+  // smallest transit seen, Motive's clock mapped onto the host's without echoes (§5.3).
+  std::deque<std::pair<int64_t, double>> offset_window_;
+  std::vector<uint8_t> buffer_;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,418 @@
+// ftcal-natnet-bridge against the twin's Motive (NatNet) emulator, for bitstreams 3.1 and 4.1
+// over unicast and multicast. The whole binary runs inside scripts/netns-exec (a private
+// network namespace with loopback multicast): the emulator serves on 127.0.0.1:1510/1511 in a
+// thread, the bridge's class runs in the test thread, its output through a callback.
+//
+// The truth is what generated the data: the emulator's source poses, in ftcal's z-up frame,
+// which the emulator turned into Motive's Y-up axes and the rigid body's pivot frame; the
+// bridge must undo both to within f32 rounding. Its utime is compared with the instant the
+// emulator stamped as mid-exposure on the host clock.
+#include <sys/wait.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <set>
+#include <thread>
+
+#include <gtest/gtest.h>
+#include <spdlog/sinks/null_sink.h>
+#include <spdlog/spdlog.h>
+
+#include "child_process.h"
+#include "ftcal/geometry.h"
+#include "natnet_bridge.h"
+#include "natnet_emulator.h"
+
+namespace ftcal {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+double SecondsSince(Clock::time_point t) {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
+
+int64_t WallUtime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// Synthetic chassis motion with a known heading per tick and four markers on the body; marker
+// 2 is not seen for ticks 10-19.
+constexpr double kYaw0 = 0.3, kYawRate = 0.004;
+const Vec3 kPointsC[4] = {{0.2, 0.1, 0.05}, {0.2, -0.1, 0.05}, {-0.2, 0.1, 0.05}, {-0.2, -0.1, 0.05}};
+sim::NatNetPose SyntheticPose(int64_t k) {
+  sim::NatNetPose p;
+  const double t = 0.01 * static_cast<double>(k);
+  p.R_GC = RotationFromRollPitchYaw(0.05 * std::sin(t), 0.03 * std::cos(t), kYaw0 + kYawRate * k);
+  p.p_GoCo_G_m = Vec3(1.0 + 0.001 * k, -2.0, 0.25);
+  p.residual_m = 0.0004;
+  for (const Vec3& b : kPointsC) p.markers_G_m.push_back(p.R_GC * b + p.p_GoCo_G_m);
+  if (k >= 10 && k < 20) p.markers_G_m[2].setConstant(kNaN);
+  return p;
+}
+
+// The pivot Motive would have made: at the markers' centroid, axes turned from the chassis'.
+Pose3 PivotChassis() {
+  return Pose3(RotationFromRollPitchYaw(0.0, 0.0, 0.5), Vec3(0.0, 0.0, -0.05));
+}
+
+sim::NatNetEmulatorOptions EmulatorOptions(natnet::Version v, bool multicast) {
+  sim::NatNetEmulatorOptions o;
+  o.version = v;
+  o.multicast = multicast;
+  o.rate_hz = 200;
+  o.R_PC = PivotChassis().R;
+  o.p_PoCo_P_m = PivotChassis().p;
+  o.body_points_C_m.assign(std::begin(kPointsC), std::end(kPointsC));
+  return o;
+}
+
+NatNetBridgeOptions BridgeOptions(bool multicast, std::optional<natnet::Version> bitstream = {}) {
+  NatNetBridgeOptions o;
+  o.address = "127.0.0.1";
+  o.multicast = multicast;
+  o.bitstream = bitstream;
+  o.X_PC = PivotChassis();
+  return o;
+}
+
+std::shared_ptr<spdlog::logger> QuietLogger() {
+  static auto log = std::make_shared<spdlog::logger>(
+      "natnet_bridge_test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  return log;
+}
+
+struct PairRun {
+  std::vector<sim::NatNetSentFrame> sent;
+  std::vector<mocap_body_t> published;
+  std::vector<std::string> health;
+  sim::NatNetEmulatorCounters emulator;
+  std::unique_ptr<ServiceStats> stats;
+  natnet::Version version;
+  int64_t Counter(const std::string& name) const {
+    auto it = stats->counters().find(name);
+    return it == stats->counters().end() ? -1 : it->second;
+  }
+  bool SawHealth(const std::string& part) const {
+    return std::any_of(health.begin(), health.end(),
+                       [&](const std::string& h) { return h.find(part) != std::string::npos; });
+  }
+};
+
+PairRun RunWithBridge(sim::NatNetEmulatorOptions eo, int64_t ticks, NatNetBridgeOptions bo) {
+  PairRun run;
+  sim::NatNetEmulator emulator(std::move(eo), [](int64_t k) { return SyntheticPose(k); });
+  emulator.SetObserver([&run](const sim::NatNetSentFrame& s) { run.sent.push_back(s); });
+  bo.command_port = emulator.command_port();
+  bo.data_port = emulator.data_port();
+  run.stats = std::make_unique<ServiceStats>(QuietLogger());
+  NatNetBridge bridge(bo, *run.stats,
+                      [&run](const mocap_body_t& m) { run.published.push_back(m); }, WallUtime);
+  std::atomic<bool> done{false};
+  std::thread server([&] {
+    emulator.Run(ticks);
+    done = true;
+  });
+  try {
+    while (!done) {
+      bridge.Step(5);
+      const std::string reason = bridge.health_reason();
+      if (run.health.empty() || run.health.back() != reason) run.health.push_back(reason);
+    }
+    const auto drain = Clock::now();
+    while (SecondsSince(drain) < 0.2) bridge.Step(5);
+  } catch (...) {
+    emulator.RequestStop();
+    server.join();
+    throw;
+  }
+  server.join();
+  run.emulator = emulator.counters();
+  run.version = bridge.version();
+  return run;
+}
+
+// The published message against the pose that generated it.
+void ExpectMatchesTruth(const mocap_body_t& m, const sim::NatNetSentFrame& s, const std::string& where) {
+  EXPECT_EQ(m.frame_number, s.frame_number) << where;
+  EXPECT_EQ(m.body, "chassis") << where;
+  EXPECT_EQ(m.device_utime, std::llround(s.timestamp_s * 1e6)) << where;
+  ASSERT_EQ(bool(m.tracked), s.tracked) << where;
+  if (m.tracked) {
+    const Mat3 R_GC = QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
+    EXPECT_LT((R_GC - s.R_GC).cwiseAbs().maxCoeff(), 2e-6) << where;
+    const double yaw = std::atan2(s.R_GC(1, 0), s.R_GC(0, 0));
+    EXPECT_NEAR(m.yaw_rad, yaw, 2e-6) << where;
+    const Mat3 R_WC = QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
+    EXPECT_LT((R_WC - RemoveHeading(s.R_GC)).cwiseAbs().maxCoeff(), 2e-6) << where;
+    for (int a = 0; a < 3; ++a) EXPECT_NEAR(m.position_m[a], s.p_GoCo_G_m(a), 2e-6) << where;
+    EXPECT_NEAR(m.residual_m, 0.0004, 1e-9) << where;
+  } else {
+    for (int i = 0; i < 4; ++i) EXPECT_TRUE(std::isnan(m.q_gc[i]) && std::isnan(m.q_wc[i])) << where;
+    for (int i = 0; i < 3; ++i) EXPECT_TRUE(std::isnan(m.position_m[i])) << where;
+    EXPECT_TRUE(std::isnan(m.yaw_rad)) << where;
+  }
+  ASSERT_EQ(m.num_markers, static_cast<int>(s.markers_G_m.size())) << where;
+  for (size_t i = 0; i < s.markers_G_m.size(); ++i) {
+    const bool seen = s.tracked && s.markers_G_m[i].allFinite();
+    ASSERT_EQ(bool(m.marker_tracked[i]), seen) << where << " marker " << i;
+    for (int a = 0; a < 3; ++a) {
+      if (seen) {
+        EXPECT_NEAR(m.marker_m[i][a], s.markers_G_m[i](a), 2e-6) << where;
+      } else {
+        EXPECT_TRUE(std::isnan(m.marker_m[i][a])) << where;
+      }
+    }
+  }
+}
+
+struct Transport {
+  natnet::Version version;
+  bool multicast;
+};
+std::string Name(const Transport& t) {
+  return "NatNet " + t.version.ToString() + (t.multicast ? " multicast" : " unicast");
+}
+
+class NatNetBridgeTransportTest : public ::testing::TestWithParam<Transport> {};
+
+TEST_P(NatNetBridgeTransportTest, PublishesEveryFrameAsGeneratedWithTheExposureTime) {
+  const Transport t = GetParam();
+  auto eo = EmulatorOptions(t.version, t.multicast);
+  eo.faults.untracked.push_back({100, 20});
+  PairRun run = RunWithBridge(eo, 300, BridgeOptions(t.multicast));
+  EXPECT_EQ(run.version, t.version) << Name(t);
+  ASSERT_GE(run.sent.size(), 200u) << Name(t) << ": the bridge streamed too late";
+  std::map<int32_t, const sim::NatNetSentFrame*> by_frame;
+  for (const auto& s : run.sent) by_frame[s.frame_number] = &s;
+  // Multicast frames flow before the handshake ends: those are dropped, nothing after.
+  ASSERT_GE(run.published.size() + 20, run.sent.size()) << Name(t);
+  std::vector<double> residual_us;
+  int untracked = 0;
+  for (const auto& m : run.published) {
+    const auto it = by_frame.find(static_cast<int32_t>(m.frame_number));
+    ASSERT_NE(it, by_frame.end()) << Name(t) << ": frame " << m.frame_number << " was never sent";
+    ExpectMatchesTruth(m, *it->second, Name(t) + " frame " + std::to_string(m.frame_number));
+    residual_us.push_back(static_cast<double>(m.utime - it->second->exposure_utime));
+    untracked += !m.tracked;
+  }
+  EXPECT_EQ(untracked, 20) << Name(t);
+  EXPECT_EQ(run.Counter("untracked"), 20) << Name(t);
+  EXPECT_EQ(run.Counter("published"), static_cast<int64_t>(run.published.size()));
+  EXPECT_EQ(run.Counter("decode_errors"), 0) << Name(t);
+  EXPECT_EQ(run.Counter("frame_gaps"), 0) << Name(t);
+  EXPECT_EQ(run.Counter("connects"), 1) << Name(t);
+  EXPECT_EQ(run.Counter("server_lost"), 0) << Name(t);
+  EXPECT_EQ(run.stats->errors(), 0) << Name(t) << ": " << run.stats->last_error();
+  if (!t.multicast) {
+    // Motive streams to a unicast client from its NAT_CONNECT on: a frame may come before the
+    // descriptions do, and is dropped (by name, nothing else is).
+    const auto& kinds = run.stats->kinds();
+    const auto early = kinds.find("natnet frame while descriptions are unknown");
+    EXPECT_EQ(run.stats->drops(), early == kinds.end() ? 0 : early->second) << Name(t);
+    EXPECT_LE(run.stats->drops(), 2) << Name(t);
+    EXPECT_GE(run.Counter("keepalives"), 1) << Name(t);
+  }
+  EXPECT_NE(std::find(run.health.begin(), run.health.end(), ""), run.health.end()) << Name(t);
+  // The time stamp: the mid-exposure instant on the host clock, from Motive's ticks and the
+  // minimum-transit offset. Its residual is the smallest loopback transit plus scheduling.
+  std::sort(residual_us.begin(), residual_us.end());
+  const double median = residual_us[residual_us.size() / 2];
+  const double p95 = residual_us[residual_us.size() * 95 / 100];
+  std::printf("[ residual ] %s: utime - exposure median %.0f us, p95 %.0f us, min %.0f, max %.0f "
+              "(system latency 2000 us removed)\n",
+              Name(t).c_str(), median, p95, residual_us.front(), residual_us.back());
+  EXPECT_LT(std::abs(median), 1000.0) << Name(t);
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    VersionsAndTransports, NatNetBridgeTransportTest,
+    ::testing::Values(Transport{{3, 1}, false}, Transport{{4, 1}, false}, Transport{{3, 1}, true},
+                      Transport{{4, 1}, true}),
+    [](const ::testing::TestParamInfo<Transport>& info) {
+      return "v" + std::to_string(info.param.version.major) + std::to_string(info.param.version.minor) +
+             (info.param.multicast ? "_multicast" : "_unicast");
+    });
+
+TEST(NatNetBridgeTest, UnicastClientAsksForItsBitstream) {
+  // Motive speaks 4.1; the bridge asks for 3.1 in NAT_CONNECT and reads 3.1 frames.
+  auto eo = EmulatorOptions({4, 1}, false);
+  PairRun run = RunWithBridge(eo, 200, BridgeOptions(false, natnet::Version{3, 1}));
+  EXPECT_EQ(run.version, (natnet::Version{3, 1}));
+  EXPECT_GE(run.published.size(), 150u);
+  EXPECT_EQ(run.Counter("decode_errors"), 0);
+}
+
+TEST(NatNetBridgeTest, WithoutMidExposureTheCameraDataTimeIsUsed) {
+  // USB cameras and playback send mid-exposure 0 (§5.3): the stamp falls back to the camera
+  // data's arrival, which the emulator puts half the system latency before transmit.
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.mid_exposure_zero = true;
+  PairRun run = RunWithBridge(eo, 150, BridgeOptions(false));
+  std::map<int32_t, const sim::NatNetSentFrame*> by_frame;
+  for (const auto& s : run.sent) by_frame[s.frame_number] = &s;
+  std::vector<double> residual_us;
+  for (const auto& m : run.published) {
+    residual_us.push_back(double(m.utime - by_frame.at(int32_t(m.frame_number))->exposure_utime));
+  }
+  ASSERT_GE(residual_us.size(), 100u);
+  std::sort(residual_us.begin(), residual_us.end());
+  EXPECT_LT(std::abs(residual_us[residual_us.size() / 2]), 500.0);
+  EXPECT_EQ(run.Counter("clock_fallbacks"), 0);
+  EXPECT_NEAR(run.Counter("system_latency_us"), 1000, 2);
+}
+
+TEST(NatNetBridgeTest, ZUpMotiveGivesTheSamePoses) {
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.z_up = true;
+  auto bo = BridgeOptions(false);
+  bo.up_axis = MotiveFrames::UpAxis::kZ;
+  PairRun run = RunWithBridge(eo, 150, bo);
+  ASSERT_GE(run.published.size(), 100u);
+  std::map<int32_t, const sim::NatNetSentFrame*> by_frame;
+  for (const auto& s : run.sent) by_frame[s.frame_number] = &s;
+  for (const auto& m : run.published) {
+    ExpectMatchesTruth(m, *by_frame.at(static_cast<int32_t>(m.frame_number)), "z-up");
+  }
+}
+
+TEST(NatNetBridgeTest, WrongUpAxisIsVisibleNotSilent) {
+  // The control: the same Y-up stream read as Z-up gives poses far from the truth, so the
+  // conversion above is what makes them agree.
+  auto eo = EmulatorOptions({4, 1}, false);
+  auto bo = BridgeOptions(false);
+  bo.up_axis = MotiveFrames::UpAxis::kZ;
+  PairRun run = RunWithBridge(eo, 100, bo);
+  ASSERT_GE(run.published.size(), 50u);
+  const auto& m = run.published.back();
+  const auto& s = *std::find_if(run.sent.begin(), run.sent.end(),
+                                [&](const auto& x) { return x.frame_number == m.frame_number; });
+  EXPECT_GT(std::abs(m.position_m[2] - s.p_GoCo_G_m(2)), 0.1);
+}
+
+TEST(NatNetBridgeTest, CountsEveryFaultAndPublishesNothingCorrupt) {
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.seed = 7;
+  eo.faults.gap_probability = 0.03;
+  eo.faults.duplicate_probability = 0.03;
+  eo.faults.corrupt_probability = 0.03;
+  eo.faults.edit_mode.push_back({150, 30});
+  eo.faults.model_changes = {200, 260};
+  PairRun run = RunWithBridge(eo, 340, BridgeOptions(false));
+  const auto& e = run.emulator;
+  ASSERT_GT(e.frames_corrupt, 0);
+  ASSERT_GT(e.frames_duplicated, 0);
+  ASSERT_GT(e.gaps, 0);
+  // Loopback loses nothing: every fault the emulator made is counted by the bridge, each copy
+  // of a corrupt frame as undecodable (a duplicated corrupt frame is never seen as a duplicate).
+  int64_t corrupt_copies = 0, clean_duplicates = 0;
+  for (const auto& s : run.sent) {
+    corrupt_copies += s.corrupt ? (s.duplicated ? 2 : 1) : 0;
+    clean_duplicates += s.duplicated && !s.corrupt;
+  }
+  EXPECT_EQ(run.Counter("decode_errors"), corrupt_copies);
+  EXPECT_EQ(run.Counter("duplicates"), clean_duplicates);
+  EXPECT_GE(run.Counter("frame_gaps"), e.gaps);  // a corrupt frame between two makes a gap too
+  EXPECT_EQ(run.Counter("model_changes"), 2);
+  EXPECT_EQ(run.Counter("edit_mode_frames"), 30 - std::count_if(run.sent.begin(), run.sent.end(), [](const auto& s) {
+                                                 return s.edit_mode && s.corrupt;
+                                               }));
+  EXPECT_TRUE(run.SawHealth("edit mode"));
+  // Nothing corrupt, duplicated or in edit mode was published; after each model change (the
+  // body renumbered and moved in the list) the body is found again by name.
+  std::map<int32_t, const sim::NatNetSentFrame*> by_frame;
+  for (const auto& s : run.sent) by_frame[s.frame_number] = &s;
+  std::set<int64_t> seen;
+  int64_t after_changes = 0;
+  for (const auto& m : run.published) {
+    const auto& s = *by_frame.at(static_cast<int32_t>(m.frame_number));
+    EXPECT_FALSE(s.corrupt) << m.frame_number;
+    EXPECT_FALSE(s.edit_mode) << m.frame_number;
+    EXPECT_TRUE(seen.insert(m.frame_number).second) << "frame " << m.frame_number << " twice";
+    ExpectMatchesTruth(m, s, "frame " + std::to_string(m.frame_number));
+    after_changes += s.tick > 265;
+  }
+  EXPECT_GT(after_changes, 50);
+}
+
+TEST(NatNetBridgeTest, WaitsWhileMotiveIsUpButNotStreaming) {
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.silent.push_back({100, 400});  // 2 s without frames, commands answered
+  PairRun run = RunWithBridge(eo, 700, BridgeOptions(false));
+  EXPECT_GE(run.Counter("probes"), 1);
+  EXPECT_GE(run.Counter("not_streaming"), 1);
+  EXPECT_EQ(run.Counter("server_lost"), 0);
+  EXPECT_EQ(run.Counter("connects"), 1);  // never started over
+  EXPECT_TRUE(run.SawHealth("up but sends no frames"));
+  const int64_t after = std::count_if(run.published.begin(), run.published.end(),
+                                      [](const auto& m) { return m.frame_number > 500; });
+  EXPECT_GT(after, 150);
+}
+
+TEST(NatNetBridgeTest, ReconnectsAfterMotiveRestarts) {
+  auto eo = EmulatorOptions({3, 1}, false);
+  eo.faults.down.push_back({100, 300});  // 1.5 s gone; back with new frame numbers and body id
+  PairRun run = RunWithBridge(eo, 700, BridgeOptions(false));
+  EXPECT_EQ(run.emulator.restarts, 1);
+  EXPECT_GE(run.Counter("server_lost"), 1);
+  EXPECT_GE(run.Counter("connects"), 2);
+  EXPECT_TRUE(run.SawHealth("no SERVERINFO"));
+  // After the restart: frame numbers from 1 again, poses right under the new body id.
+  std::vector<const sim::NatNetSentFrame*> restarted;
+  for (const auto& s : run.sent) {
+    if (s.tick >= 400) restarted.push_back(&s);
+  }
+  int matched = 0;
+  for (const auto& m : run.published) {
+    for (const auto* s : restarted) {
+      if (s->frame_number == m.frame_number && m.utime > restarted.front()->exposure_utime - 1000) {
+        ExpectMatchesTruth(m, *s, "after restart, frame " + std::to_string(m.frame_number));
+        ++matched;
+      }
+    }
+  }
+  EXPECT_GT(matched, 150);
+}
+
+TEST(NatNetBridgeTest, UnicastKeepAliveHoldsTheSession) {
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.client_timeout_s = 1.5;
+  PairRun run = RunWithBridge(eo, 800, BridgeOptions(false));  // 4 s
+  EXPECT_EQ(run.emulator.clients_expired, 0);
+  EXPECT_GE(run.emulator.keepalives, 3);
+  EXPECT_EQ(run.Counter("connects"), 1);
+  EXPECT_GE(run.published.size(), 750u);
+}
+
+TEST(NatNetBridgeTest, BodyMissingIsReportedByName) {
+  auto eo = EmulatorOptions({4, 1}, false);
+  auto bo = BridgeOptions(false);
+  bo.body_name = "robot";
+  PairRun run = RunWithBridge(eo, 100, bo);
+  EXPECT_TRUE(run.published.empty());
+  EXPECT_TRUE(run.SawHealth("rigid body 'robot'"));
+  EXPECT_TRUE(run.SawHealth("[wand, chassis]"));
+}
+
+#ifdef FTCAL_NATNET_BRIDGE
+TEST(NatNetBridgeProcessTest, RefusesAConfigThatRunsTheQualisysBridge) {
+  // The embedded default config selects QUALISYS: the NatNet bridge must not also publish.
+  const std::string dir = testing::MakeTempDir();
+  testing::Child child({FTCAL_NATNET_BRIDGE}, dir + "/out", dir + "/err");
+  const auto status = child.Wait(10);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 2) << testing::DescribeWaitStatus(*status);
+  EXPECT_NE(testing::ReadFile(dir + "/err").find("mocap.system"), std::string::npos)
+      << testing::ReadFile(dir + "/err");
+  testing::RemoveTree(dir);
+}
+#endif
+
+}  // namespace
+}  // namespace ftcal
