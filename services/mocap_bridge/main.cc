@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <chrono>
 
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
 #include "mocap_bridge.h"
@@ -61,7 +62,7 @@ int main(int argc, char** argv) {
   } catch (const ftcal::MocapConfigError& e) {
     app.stats().Error("configuration", e.what());  // logs it, and the last heartbeat carries it
     app.SetState(ftcal::service_status_t::FAILED);
-    rc = 2;
+    rc = ftcal::kExitConfig;
   }
   bus.Publish(channels.status(), app.Status(), /*count=*/false);
   app.stats().LogSummary();
