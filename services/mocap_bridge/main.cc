@@ -45,11 +45,13 @@ int main(int argc, char** argv) {
         if (reason != last_reason) {
           if (reason.empty()) {
             app.log().info("streaming");
+            app.stats().ClearLastError();  // the status says what is wrong now, not once
           } else {
             app.log().warn("degraded: {}", reason);
           }
           last_reason = reason;
         }
+        if (!reason.empty()) app.stats().SetLastError(reason);
         bus.Publish(channels.status(), app.Status(), /*count=*/false);
         next_heartbeat += std::chrono::seconds(1);
         if (next_heartbeat <= now) next_heartbeat = now + std::chrono::seconds(1);
