@@ -112,8 +112,10 @@ int main(int argc, char** argv) {
           app.log().warn("DEGRADED: {}", why);
         } else {
           app.log().info("RUNNING: all servos answer");
+          app.stats().ClearLastError();  // the status says what is wrong now, not once
         }
       }
+      if (degraded) app.stats().SetLastError(why);
       app.SetState(state);
       app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);
     };

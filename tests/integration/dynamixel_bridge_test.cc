@@ -614,11 +614,19 @@ TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePerc
   ASSERT_FALSE(statuses.empty());
   EXPECT_EQ(Counter(statuses.back(), "servos_lost"), 1);
   EXPECT_EQ(Counter(statuses.back(), "servos_found"), 1);
-  bool said_lost = false;
+  // The status says what is wrong while it is wrong, and nothing once it is healthy again.
+  bool said_lost = false, healthy_after = false;
   for (const auto& s : statuses) {
-    said_lost = said_lost || s.last_error.find("servo 4 (HR) gave no valid reply") != std::string::npos;
+    if (s.state == service_status_t::DEGRADED) {
+      said_lost = said_lost || s.last_error.find("servo 4 (HR) lost") != std::string::npos;
+    }
+    if (said_lost && s.state == service_status_t::RUNNING) {
+      healthy_after = true;
+      EXPECT_EQ(s.last_error, "");
+    }
   }
   EXPECT_TRUE(said_lost) << "the status names the lost servo";
+  EXPECT_TRUE(healthy_after);
 }
 
 TEST_F(DynamixelBridgeProcesses, RestartAndVanishingPortResumeWithAVisibleGap) {
