@@ -170,6 +170,14 @@ class Node {
   std::vector<std::string>* errors_;
 };
 
+// Bounds of plausibility: far beyond any hexapod this project calibrates, close enough to
+// catch a unit typed wrong (grams for kg, mm for m).
+constexpr double kMaxRobotMassKg = 1000.0;
+constexpr double kMaxTransducerDistanceM = 10.0;
+constexpr double kMinRatedRange = 1e-3;
+constexpr double kMaxRatedRange = 1e6;
+constexpr double kMaxSavgolWindowS = 60.0;
+
 std::string JoinErrors(const std::vector<std::string>& errors) {
   std::string out;
   for (const std::string& e : errors) {
@@ -267,8 +275,25 @@ void ValidateAti(const Node& node, const config::AtiTransducer& ati) {
       const double v = ati.rated_range(i);
       if (node.Finite("rated_range", v, i) && !(v > 0.0)) {
         node.Error("rated_range", "must be > 0, got " + FormatNumber(v), i);
+      } else if (std::isfinite(v) && !(v >= kMinRatedRange && v <= kMaxRatedRange)) {
+        // ATI's smallest transducer (Nano17) is rated 0.12 N*m, its largest (Omega250) 16 kN.
+        node.Error("rated_range", "must be in [" + FormatNumber(kMinRatedRange) + ", " +
+                                      FormatNumber(kMaxRatedRange) + "] N or N*m, got " +
+                                      FormatNumber(v), i);
       }
     }
+  }
+}
+
+// A transducer more than this from the body origin is a typo (a hip 2 km away), not a robot.
+void ValidateTransducerOffset(const Node& node, const config::Pose& pose) {
+  if (!pose.has_translation_m()) return;
+  const auto& t = pose.translation_m();
+  const double d = std::sqrt(t.x() * t.x() + t.y() * t.y() + t.z() * t.z());
+  if (std::isfinite(d) && d > kMaxTransducerDistanceM) {
+    node.Error("translation_m", "is " + FormatNumber(d) + " m from the body origin; more than " +
+                                    FormatNumber(kMaxTransducerDistanceM) +
+                                    " m is not a leg of this robot (units are metres)");
   }
 }
 
@@ -306,6 +331,11 @@ void ValidateRobot(const Node& node, const config::Robot& robot) {
     node.Missing("total_mass_kg");
   } else {
     node.Positive("total_mass_kg", robot.total_mass_kg());
+    if (robot.total_mass_kg() > kMaxRobotMassKg) {
+      node.Error("total_mass_kg", "must be at most " + FormatNumber(kMaxRobotMassKg) +
+                                      " kg (units are kg), got " +
+                                      FormatNumber(robot.total_mass_kg()));
+    }
   }
   if (node.Finite("g0_m_s2", robot.g0_m_s2()) &&
       !(robot.g0_m_s2() > 9.7 && robot.g0_m_s2() < 9.9)) {
@@ -360,6 +390,7 @@ void ValidateRobot(const Node& node, const config::Robot& robot) {
       leg_node.Missing("x_b_ft");
     } else {
       ValidatePose(leg_node.Child("x_b_ft", leg.x_b_ft()), leg.x_b_ft());
+      ValidateTransducerOffset(leg_node.Child("x_b_ft", leg.x_b_ft()), leg.x_b_ft());
     }
     if (!leg.has_ati()) {
       leg_node.Missing("ati");
@@ -441,6 +472,13 @@ void ValidateSegmenter(const Node& node, const config::Segmenter& s) {
                                     std::to_string(s.savgol_order()) + "), got " +
                                     std::to_string(s.savgol_window()));
   }
+  if (std::isfinite(s.sample_rate_hz()) && s.sample_rate_hz() > 0 &&
+      s.savgol_window() / s.sample_rate_hz() > kMaxSavgolWindowS) {
+    node.Error("savgol_window", "spans " + FormatNumber(s.savgol_window() / s.sample_rate_hz()) +
+                                    " s at sample_rate_hz " + FormatNumber(s.sample_rate_hz()) +
+                                    "; at most " + FormatNumber(kMaxSavgolWindowS) +
+                                    " s, got " + std::to_string(s.savgol_window()));
+  }
   node.Positive("max_force_rate_n_s", s.max_force_rate_n_s());
   node.Positive("min_steady_s", s.min_steady_s());
 }
@@ -491,11 +529,33 @@ void ValidateCorrector(const Node& node, const config::Corrector& c) {
 void ValidateChannels(const Node& node, const config::Channels& c) {
   const pb::Descriptor* d = c.GetDescriptor();
   const pb::Reflection* r = c.GetReflection();
-  // Every field is a channel name; reflection keeps this in step with the schema.
+  // Every field is a channel name; reflection keeps this in step with the schema. Two
+  // purposes on one channel make a process read its own output (the corrector once ate its
+  // CONTACT_WRENCH): every name, and every FT_<LEG> the prefix makes, must be distinct.
+  std::vector<std::pair<std::string, std::string>> names;  // channel, field
   for (int i = 0; i < d->field_count(); ++i) {
     const pb::FieldDescriptor* f = d->field(i);
-    if (f->type() == pb::FieldDescriptor::TYPE_STRING && r->GetString(c, f).empty()) {
+    if (f->type() != pb::FieldDescriptor::TYPE_STRING) continue;
+    const std::string value = r->GetString(c, f);
+    if (value.empty()) {
       node.Error(f->name(), "channel name must not be empty");
+      continue;
+    }
+    if (f->name() == "ft_prefix") {
+      for (std::string_view leg : kLegNames) {
+        names.emplace_back(value + std::string(leg), "ft_prefix (" + value + std::string(leg) + ")");
+      }
+    } else {
+      names.emplace_back(value, f->name());
+    }
+  }
+  for (std::size_t i = 0; i < names.size(); ++i) {
+    for (std::size_t j = 0; j < i; ++j) {
+      if (names[i].first == names[j].first) {
+        const std::string field = names[i].second.substr(0, names[i].second.find(' '));
+        node.Error(field, "channel '" + names[i].first + "' is also channels." +
+                              names[j].second + ": each channel carries one thing");
+      }
     }
   }
 }

@@ -2,6 +2,7 @@
 
 #include <pugixml.hpp>
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
@@ -282,6 +283,30 @@ bool ExceedsRatedRange(const Vector6d& wrench, const std::array<double, 6>& rate
   return false;
 }
 
+void CheckCountsPerUnit(double counts_per_force, double counts_per_torque,
+                        const std::array<double, 6>& rated_range, std::string_view source) {
+  constexpr double kMinSpan = 1 << 10;
+  constexpr double kMaxSpan = 2147483647.0;
+  auto check = [&](double cpu, int first_axis, const char* field, const char* unit) {
+    double smallest = rated_range[first_axis], largest = rated_range[first_axis];
+    for (int i = first_axis; i < first_axis + 3; ++i) {
+      smallest = std::min(smallest, rated_range[i]);
+      largest = std::max(largest, rated_range[i]);
+    }
+    const double lo = kMinSpan / smallest, hi = kMaxSpan / largest;
+    if (!(cpu >= lo && cpu <= hi)) {
+      std::ostringstream os;
+      os << source << ": " << field << " " << cpu << " counts/" << unit
+         << " is outside the plausible range [" << lo << ", " << hi << "] for rated ranges of "
+         << smallest << " to " << largest << " " << unit
+         << " (each must span 2^10 to 2^31 counts)";
+      throw RdtError(os.str());
+    }
+  };
+  check(counts_per_force, 0, "counts per force (cfgcpf)", "N");
+  check(counts_per_torque, 3, "counts per torque (cfgcpt)", "Nm");
+}
+
 NetFtConfig ParseNetFtXml(std::string_view xml, std::string_view source) {
   pugi::xml_document doc;
   const pugi::xml_parse_result parsed = doc.load_buffer(xml.data(), xml.size());
@@ -360,6 +385,7 @@ NetFtConfig ParseNetFtXml(std::string_view xml, std::string_view source) {
     c.run_status = static_cast<std::uint32_t>(x);
   }
   if (auto v = optional("cfgnam")) c.config_name = std::string(Trim(*v));
+  CheckCountsPerUnit(c.counts_per_force, c.counts_per_torque, c.rated_range, source);
   return c;
 }
 

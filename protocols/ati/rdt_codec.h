@@ -170,9 +170,17 @@ struct NetFtConfig {
   std::string config_name;                 // cfgnam, may be empty
 };
 
+// Counts per unit are plausible when each axis' rated range spans between 2^10 counts (coarser
+// is no force/torque sensor) and 2^31 counts (beyond, the rated load would overflow the i32
+// counts): a 1e300 cfgcpf (every force read as 0) is refused. Throws RdtError naming `source`,
+// the value and the plausible range.
+void CheckCountsPerUnit(double counts_per_force, double counts_per_torque,
+                        const std::array<double, 6>& rated_range, std::string_view source);
+
 // Parses the page. `source` names it in error messages (e.g. "http://10.0.0.7/netftapi2.xml").
 // Throws RdtError on malformed XML, a missing or unparsable required field (cfgcpf, cfgcpt,
-// scfgfu, scfgtu, cfgmr, comrdtrate, setcfgsel), non-positive counts per unit, or units other
+// scfgfu, scfgtu, cfgmr, comrdtrate, setcfgsel), counts per unit outside CheckCountsPerUnit's
+// range, or units other
 // than N and Nm (we refuse rather than convert: the calibration is done in SI).
 NetFtConfig ParseNetFtXml(std::string_view xml, std::string_view source);
 

@@ -51,6 +51,19 @@ constexpr std::uint16_t kAddrGoalPosition = 116;
 constexpr std::uint16_t kAddrPresentBlock = 120;  // Realtime Tick ... Present Temperature
 constexpr std::uint16_t kPresentBlockBytes = 28;  // addresses 120-147
 
+// Bytes on the wire of a status packet with `params` parameter bytes at most (header, id,
+// length, instruction, error, params, CRC; stuffing can add one byte per three of params).
+constexpr std::size_t MaxStatusPacketBytes(std::size_t params) {
+  return kHeaderBytes + 2 + params + params / 3 + 2;
+}
+// Seconds `bytes` take on a UART at `baud` (start + 8 data + stop bits each).
+constexpr double WireSeconds(std::size_t bytes, std::uint32_t baud) {
+  return 10.0 * static_cast<double>(bytes) / static_cast<double>(baud);
+}
+// Return Delay Time (address 9): 2 us per unit, factory default 250 (500 us).
+constexpr std::uint16_t kAddrReturnDelayTime = 9;
+constexpr double kReturnDelayUnitS = 2e-6;
+
 // CRC-16/UMTS (poly 0x8005, init 0, MSB first, no reflection, no final XOR) over `n` bytes,
 // continuing from `crc`.
 std::uint16_t Crc16(const std::uint8_t* data, std::size_t n, std::uint16_t crc = 0);

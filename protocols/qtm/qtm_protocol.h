@@ -86,6 +86,8 @@ bool IsVersionAccepted(std::string_view reply, std::string_view version);
 
 // Event number of an Event packet (§3.7); throws QtmError unless the payload is 1 byte.
 std::uint8_t DecodeEvent(const Packet& packet);
+constexpr std::uint8_t kEventCaptureStarted = 3;
+constexpr std::uint8_t kEventRtFromFileStarted = 8;
 constexpr std::uint8_t kEventCameraSettingsChanged = 11;
 constexpr std::uint8_t kEventQtmShuttingDown = 12;
 std::string EventName(std::uint8_t event);

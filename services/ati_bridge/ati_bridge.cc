@@ -13,9 +13,16 @@
 #include <httplib.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cerrno>
 #include <cmath>
+#include <condition_variable>
 #include <cstring>
+#include <map>
+#include <mutex>
+#include <thread>
+
+#include <spdlog/fmt/fmt.h>
 
 #include "ftcal/legs.h"
 
@@ -28,6 +35,8 @@ constexpr int kBatch = 64;             // datagrams per recvmmsg
 constexpr int kMaxBatchesPerCall = 4;  // per socket, before the others get their turn
 constexpr std::size_t kSlotBytes = 1536;  // an Ethernet frame: the largest buffered datagram we take
 constexpr auto kCalibrationRetry = std::chrono::seconds(1);
+constexpr auto kCalibrationRetryMax = std::chrono::seconds(16);
+constexpr auto kStateLogPeriod = std::chrono::seconds(30);
 
 std::int64_t RealtimeNs() {
   timespec ts;
@@ -198,11 +207,49 @@ struct AtiBridge::Transducer {
   std::array<std::array<char, CMSG_SPACE(sizeof(timespec))>, kBatch> controls{};
 
   AtiTransducerCounters c;
+  // What is wrong with this transducer now ("" when streaming and calibrated): the status's
+  // last_error.
+  std::string problem;
+  // State-change lines (silent, down, streaming again, send failures, calibration failures) of
+  // a flapping or refusing box: per kind, one line per kStateLogPeriod with the count between.
+  struct KindLog {
+    Clock::time_point last{};
+    bool logged = false;
+    std::uint64_t unlogged = 0;
+  };
+  std::map<std::string, KindLog> state_logs;
+  Clock::duration calibration_backoff = kCalibrationRetry;
   // Once-per-kind logging of bad input.
   bool logged_wrong_length = false, logged_duplicate = false, logged_late = false,
        logged_stale = false, logged_status = false, logged_foreign = false,
        logged_saturated = false, logged_publish = false, logged_recv = false;
 };
+
+void AtiBridge::LogState(Transducer& t, const char* kind, spdlog::level::level_enum level,
+                         const std::string& text) {
+  Transducer::KindLog& k = t.state_logs[kind];
+  const auto now = Clock::now();
+  if (k.logged && now - k.last < kStateLogPeriod) {
+    ++k.unlogged;
+    return;
+  }
+  if (k.unlogged > 0) {
+    log_->log(level, "{}: {} ({} more times since the last such line)", t.leg, text, k.unlogged);
+  } else {
+    log_->log(level, "{}: {}", t.leg, text);
+  }
+  k.logged = true;
+  k.last = now;
+  k.unlogged = 0;
+}
+
+std::string AtiBridge::Problems() const {
+  std::string out;
+  for (const auto& t : transducers_) {
+    if (!t->problem.empty()) out += (out.empty() ? "" : "; ") + t->leg + ": " + t->problem;
+  }
+  return out;
+}
 
 AtiBridge::AtiBridge(const config::Config& config, const std::vector<std::string>& legs,
                      Publisher publish, std::shared_ptr<spdlog::logger> log,
@@ -271,6 +318,14 @@ AtiBridge::AtiBridge(const config::Config& config, const std::vector<std::string
       // Counts from the config but no range: the page still supplies cfgmr.
       t->calibrated = false;
     }
+    if (t->counts_from_config && t->range_from_config) {
+      try {
+        rdt::CheckCountsPerUnit(t->counts_per_force, t->counts_per_torque, t->rated_range,
+                                "leg " + name + " (config)");
+      } catch (const rdt::RdtError& e) {
+        throw AtiBridgeError(e.what());
+      }
+    }
 
     t->msg.leg = name;
     t->encoded.resize(static_cast<std::size_t>(t->msg.getEncodedSize()));
@@ -305,11 +360,52 @@ bool AtiBridge::AllUp() const {
 }
 
 void AtiBridge::ReadCalibration(Transducer& t) {
+  // One deadline on the whole fetch: httplib's timeouts are per read, so a page trickling a
+  // byte at a time would hold start-up for as long as it likes. A watchdog stops the client at
+  // the deadline whatever it is doing (connecting, reading headers or body).
+  const auto deadline = Clock::now() + Seconds(options_.http_timeout_s);
   httplib::Client client(t.address, t.http_port);
   const auto timeout = std::chrono::duration<double>(options_.http_timeout_s);
   client.set_connection_timeout(std::chrono::duration_cast<std::chrono::microseconds>(timeout));
   client.set_read_timeout(std::chrono::duration_cast<std::chrono::microseconds>(timeout));
-  const auto res = client.Get("/netftapi2.xml");
+  std::mutex mu;
+  std::condition_variable cv;
+  bool done = false;
+  std::atomic<bool> too_slow{false};
+  std::thread watchdog([&] {
+    std::unique_lock<std::mutex> lock(mu);
+    if (!cv.wait_until(lock, deadline, [&] { return done; })) {
+      too_slow = true;
+      client.stop();
+    }
+  });
+  // The page is a few kB; a bigger one is not a Net F/T page and is not held in memory.
+  std::string body;
+  bool too_big = false;
+  auto res = client.Get("/netftapi2.xml", [&](const char* data, std::size_t n) {
+    if (body.size() + n > options_.calibration_page_max_bytes) {
+      too_big = true;
+      return false;
+    }
+    body.append(data, n);
+    return !too_slow.load();
+  });
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    done = true;
+  }
+  cv.notify_one();
+  watchdog.join();
+  if (too_big) {
+    throw AtiBridgeError("leg " + t.leg + ": calibration page " + t.url + " is larger than " +
+                         std::to_string(options_.calibration_page_max_bytes) +
+                         " bytes: not a Net F/T page; refused");
+  }
+  if (too_slow) {
+    throw AtiBridgeError("leg " + t.leg + ": calibration page " + t.url +
+                         fmt::format(" not read within {} s ({} bytes came): refused",
+                                     options_.http_timeout_s, body.size()));
+  }
   if (!res) {
     throw AtiBridgeError("leg " + t.leg + ": cannot read the calibration page " + t.url + ": " +
                          httplib::to_string(res.error()));
@@ -318,18 +414,30 @@ void AtiBridge::ReadCalibration(Transducer& t) {
     throw AtiBridgeError("leg " + t.leg + ": calibration page " + t.url + " answered HTTP " +
                          std::to_string(res->status));
   }
+  res->body = std::move(body);
   rdt::NetFtConfig page;
   try {
     page = rdt::ParseNetFtXml(res->body, t.url);
   } catch (const rdt::RdtError& e) {
     throw AtiBridgeError("leg " + t.leg + ": " + e.what());
   }
+  const std::array<double, 6> range = t.range_from_config ? t.rated_range : page.rated_range;
+  try {
+    // The page's own values were checked by the parser; a mix with the config's is checked
+    // here.
+    rdt::CheckCountsPerUnit(t.counts_from_config ? t.counts_per_force : page.counts_per_force,
+                            t.counts_from_config ? t.counts_per_torque : page.counts_per_torque,
+                            range, "leg " + t.leg + " (" + t.url + " and the config)");
+  } catch (const rdt::RdtError& e) {
+    throw AtiBridgeError(e.what());
+  }
   if (!t.counts_from_config) {
     t.counts_per_force = page.counts_per_force;
     t.counts_per_torque = page.counts_per_torque;
   }
-  if (!t.range_from_config) t.rated_range = page.rated_range;
+  t.rated_range = range;
   t.calibrated = true;
+  t.calibration_backoff = kCalibrationRetry;
   ++t.c.calibration_reads;
   log_->info("{}: {} counts/N, {} counts/Nm, rated range {} N / {} N*m, RDT {} Hz (from {})",
              t.leg, t.counts_per_force, t.counts_per_torque, t.rated_range[2], t.rated_range[5],
@@ -392,8 +500,11 @@ void AtiBridge::SendRequest(Transducer& t, rdt::Command command) {
     t.restart_pending = true;
   }
   if (sent != static_cast<ssize_t>(bytes.size())) {
-    log_->warn("{}: sending the RDT command 0x{:04x} to {}:{} failed: {}", t.leg,
-               static_cast<unsigned>(command), t.address, t.rdt_port, std::strerror(errno));
+    ++t.c.send_errors;
+    t.problem = fmt::format("sending the RDT command 0x{:04x} to {}:{} failed: {}",
+                            static_cast<unsigned>(command), t.address, t.rdt_port,
+                            std::strerror(errno));
+    LogState(t, "send", spdlog::level::warn, t.problem);
   }
 }
 
@@ -517,9 +628,10 @@ void AtiBridge::HandleSocket(Transducer& t) {
       t.last_record = batch_time;
       t.backoff_s = options_.silence_timeout_s;
       t.unanswered = 0;
-      if (!t.up || t.silent) log_->info("{}: streaming again", t.leg);
+      if (!t.up || t.silent) LogState(t, "streaming", spdlog::level::info, "streaming again");
       t.silent = false;
       t.up = t.calibrated;
+      if (t.up) t.problem.clear();
     }
     if (n < kBatch) {
       t.drained_at_ns = std::max(t.drained_at_ns, asked_ns);
@@ -582,8 +694,10 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
       } catch (const AtiBridgeError& e) {
         t.calibrated = false;
         t.up = false;
-        t.next_calibration_try = Clock::now() + kCalibrationRetry;
-        log_->error("{} (not publishing until it can be read)", e.what());
+        t.calibration_backoff = kCalibrationRetry;
+        t.next_calibration_try = Clock::now() + t.calibration_backoff;
+        t.problem = std::string(e.what()) + " (not publishing until it can be read)";
+        LogState(t, "calibration", spdlog::level::err, t.problem);
       }
     }
   }
@@ -669,8 +783,12 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
     try {
       ReadCalibration(t);
     } catch (const AtiBridgeError& e) {
-      t.next_calibration_try = now + kCalibrationRetry;
-      log_->debug("{}", e.what());
+      // A box still booting refuses for a while: ask less and less often.
+      t.calibration_backoff = std::min<Clock::duration>(2 * t.calibration_backoff,
+                                                        kCalibrationRetryMax);
+      t.next_calibration_try = now + t.calibration_backoff;
+      t.problem = std::string(e.what()) + " (not publishing until it can be read)";
+      LogState(t, "calibration", spdlog::level::err, t.problem);
     }
   }
   const auto deadline =
@@ -686,15 +804,17 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
   if (!t.silent) {
     t.silent = true;
     ++t.c.silences;
-    log_->warn("{}: no record for {:.0f} ms: sending start again", t.leg,
-               std::chrono::duration<double, std::milli>(now - t.last_record).count());
+    t.problem = fmt::format("no record for {:.0f} ms: sending start again",
+                            std::chrono::duration<double, std::milli>(now - t.last_record).count());
+    LogState(t, "silent", spdlog::level::warn, t.problem);
   }
   SendRequest(t, rdt::Command::kRealtime);
   ++t.unanswered;
   if (t.up && t.unanswered >= options_.down_after_requests) {
     t.up = false;
-    log_->error("{}: the box at {}:{} does not answer: reported down", t.leg, t.address,
-                t.rdt_port);
+    t.problem = fmt::format("the box at {}:{} does not answer: reported down", t.address,
+                            t.rdt_port);
+    LogState(t, "down", spdlog::level::err, t.problem);
   }
   t.next_request = now + Seconds(t.backoff_s);
   t.backoff_s = std::min(2 * t.backoff_s, options_.max_backoff_s);
@@ -714,6 +834,7 @@ std::vector<std::pair<std::string, std::int64_t>> AtiBridge::CounterTable() cons
         {"start_requests", c.start_requests}, {"restarts", c.restarts},
         {"silences", c.silences},         {"reboots", c.reboots},
         {"calibration_reads", c.calibration_reads}, {"recv_errors", c.recv_errors},
+        {"send_errors", c.send_errors},
         {"publish_errors", c.publish_errors}, {"held_in_stack", c.held_in_stack},
         {"up", t->up ? 1u : 0u},
     };

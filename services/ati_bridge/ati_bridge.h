@@ -45,7 +45,8 @@ struct AtiBridgeOptions {
   double silence_timeout_s = 0.1;  // no record for this long: re-send the start command
   double max_backoff_s = 1.0;      // re-sends back off 0.1, 0.2, 0.4 ... up to this
   int down_after_requests = 2;     // unanswered re-sends before the transducer is reported down
-  double http_timeout_s = 1.0;
+  double http_timeout_s = 1.0;         // the whole calibration-page fetch, not each read
+  std::size_t calibration_page_max_bytes = 64 << 10;  // a real netftapi2.xml is a few kB
   int receive_buffer_bytes = 8 << 20;  // SO_RCVBUF (the kernel caps it at rmem_max)
 };
 
@@ -72,6 +73,7 @@ struct AtiTransducerCounters {
   std::uint64_t reboots = 0;        // ft_sequence went backwards
   std::uint64_t calibration_reads = 0;
   std::uint64_t recv_errors = 0;
+  std::uint64_t send_errors = 0;
   std::uint64_t publish_errors = 0;
   // Records the kernel timestamped before this socket was last drained empty: they were still in
   // the network stack (a deferred softirq) when the bridge looked, so their wait was not the
@@ -147,6 +149,8 @@ class AtiBridge {
 
   // True when every transducer is streaming (none silent past the timeout).
   bool AllUp() const;
+  // What is wrong now, per transducer ("HL: no record for 150 ms: ..."); "" when all is well.
+  std::string Problems() const;
   std::size_t size() const;
   const std::string& leg(std::size_t i) const;
   bool up(std::size_t i) const;
@@ -168,6 +172,10 @@ class AtiBridge {
   void SendRequest(Transducer& t, rdt::Command command);
   void ReadCalibration(Transducer& t);
   void Service(Transducer& t, std::chrono::steady_clock::time_point now);
+  // Logs a state change of kind `kind`: at once, or (a box flapping or refusing) folded into
+  // the next line of that kind at most once per 30 s, which gives the count in between.
+  void LogState(Transducer& t, const char* kind, spdlog::level::level_enum level,
+                const std::string& text);
 
   AtiBridgeOptions options_;
   Publisher publish_;

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "ati_bridge.h"
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
 
@@ -55,6 +56,7 @@ int main(int argc, char** argv) {
   auto log = spdlog::get("ftcal-ati-bridge");
   ftcal::Bus& bus = app.bus();
   std::unique_ptr<ftcal::AtiBridge> bridge;
+  int failure = ftcal::kExitConfig;  // until the bridge is built: its checks of the config
   try {
     bridge = std::make_unique<ftcal::AtiBridge>(
         app.config(), legs,
@@ -62,6 +64,7 @@ int main(int argc, char** argv) {
           bus.PublishRaw(channel, data, size);
         },
         log, options);
+    failure = ftcal::kExitDeviceIo;  // the calibration pages, the sockets
     bridge->Start();
     const ftcal::AtiSchedulingGranted granted = ftcal::ApplyScheduling(scheduling, *log);
     app.stats().Counter("sched_fifo") = granted.fifo ? 1 : 0;
@@ -75,7 +78,7 @@ int main(int argc, char** argv) {
       bus.Publish(app.config().channels().status(), app.Status(), /*count=*/false);
     } catch (const std::exception&) {
     }
-    return 3;
+    return failure;
   }
 
   const std::string& status_channel = app.config().channels().status();
@@ -105,6 +108,12 @@ int main(int argc, char** argv) {
                                          : ftcal::service_status_t::DEGRADED;
     const bool changed = state != app.state();
     app.SetState(state);
+    // The status carries what is wrong now, and nothing once it is healthy again.
+    if (state == ftcal::service_status_t::DEGRADED) {
+      app.stats().SetLastError(bridge->Problems());
+    } else if (changed) {
+      app.stats().ClearLastError();
+    }
     const auto now = Clock::now();
     if (changed || now >= next_heartbeat) {
       try {

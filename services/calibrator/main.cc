@@ -20,6 +20,8 @@
 
 #include "calibrator/calibrator.h"
 #include "common/bus.h"
+#include "common/default_config.h"
+#include "common/exit_codes.h"
 #include "common/heartbeat.h"
 #include "common/service.h"
 #include "common/service_stats.h"
@@ -89,7 +91,7 @@ int Report(const ftcal::CalibrationRun& run, const Args& args, const std::string
   const int rc = RunReport(args.out, ftcal::ResidualsPathFor(args.out), walking, args);
   if (rc != 0) {
     spdlog::error("report failed (exit {}); the calibration file is written", rc);
-    return 1;
+    return ftcal::kExitDeviceIo;
   }
   return 0;
 }
@@ -168,7 +170,7 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
 
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
-  if (!ReadLogs(collector, args)) return 1;
+  if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
   const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, OptionsOf(args));
   ftcal::WriteCalibrationOutputs(run, args.out);
   spdlog::info("wrote {} and {}", args.out, ftcal::ResidualsPathFor(args.out));
@@ -193,7 +195,7 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
 // Offset drift: the base calibration's offsets re-estimated from the logs, all else kept.
 int ReestimateOffsets(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
-  if (!ReadLogs(collector, args)) return 1;
+  if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
   const ftcal::OffsetReestimationRun run = ftcal::RunOffsetReestimation(
       collector, config, args.reestimate_base, args.partial, OptionsOf(args));
   ftcal::WriteCalibrationFile(run.proto, args.out);
@@ -272,43 +274,44 @@ int main(int argc, char** argv) {
   cli.add_flag("--partial", args.partial,
                "with --reestimate-offsets: keep the old value of the components the data does "
                "not determine (listed) instead of refusing");
-  cli.add_option("--config", args.config_path, "configuration file; default: the embedded " +
-                                                   ftcal::ServiceApp::DefaultConfigPath());
+  cli.add_option("--config", args.config_path, "configuration file; default: the " +
+                                                   std::string(ftcal::kDefaultConfigName) +
+                                                   " built in");
   cli.add_option("--lcm-url", args.lcm_url, "live: LCM URL; overrides the config's lcm_url");
-  cli.add_option("--log-level", args.log_level, "log level (trace..off); default info");
-  CLI11_PARSE(cli, argc, argv);
+  ftcal::AddLogLevelOption(cli, &args.log_level);
+  cli.footer(ftcal::ExitCodeTable());
+  if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
   spdlog::set_default_logger(spdlog::stderr_color_mt("ftcal-calibrator"));
   spdlog::cfg::load_env_levels();
   if (!args.log_level.empty()) spdlog::set_level(spdlog::level::from_str(args.log_level));
-  if (args.config_path.empty()) args.config_path = ftcal::ServiceApp::DefaultConfigPath();
-
   ftcal::config::Config config;
   try {
-    config = ftcal::LoadConfigFile(args.config_path);
+    config = ftcal::LoadConfigOrDefault(args.config_path);
   } catch (const ftcal::ConfigError& e) {
     spdlog::critical("{}", e.what());
-    return 2;
+    return ftcal::kExitConfig;
   }
   if (!args.reestimate_base.empty() && (args.logs.empty() || !args.report_dir.empty())) {
     spdlog::critical("--reestimate-offsets needs --log (the drift session) and takes no --report");
-    return 2;
+    return ftcal::kExitUsage;
   }
   if (args.partial && args.reestimate_base.empty()) {
     spdlog::critical("--partial goes with --reestimate-offsets");
-    return 2;
+    return ftcal::kExitUsage;
   }
   try {
     if (!args.reestimate_base.empty()) return ReestimateOffsets(config, args);
     return args.logs.empty() ? Live(config, args) : Offline(config, args);
   } catch (const CalibratorInputError& e) {
     spdlog::critical("refused: {}", e.what());
-    return 2;
+    return ftcal::kExitRefused;
   } catch (const std::invalid_argument& e) {
     spdlog::critical("refused: {}", e.what());
-    return 2;
+    return ftcal::kExitRefused;
   } catch (const std::exception& e) {
+    // What is left is a file that cannot be read or written (the calibration, its CSVs).
     spdlog::critical("{}", e.what());
-    return 1;
+    return ftcal::kExitDeviceIo;
   }
 }

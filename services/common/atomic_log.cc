@@ -1,22 +1,73 @@
 #include "common/atomic_log.h"
 
+#include <dirent.h>
 #include <fcntl.h>
+#include <signal.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <stdexcept>
 
 namespace ftcal {
+namespace {
+
+std::pair<std::string, std::string> SplitPath(const std::string& path) {
+  const auto slash = path.rfind('/');
+  if (slash == std::string::npos) return {".", path};
+  return {slash == 0 ? "/" : path.substr(0, slash), path.substr(slash + 1)};
+}
+
+}  // namespace
+
+std::string AtomicLogFile::TempPrefix(const std::string& path) {
+  const auto [dir, base] = SplitPath(path);
+  return "." + base + ".tmp.";
+}
+
+int AtomicLogFile::RemoveLeftovers(const std::string& path) {
+  const auto [dir, base] = SplitPath(path);
+  const std::string prefix = TempPrefix(path);
+  DIR* d = ::opendir(dir.c_str());
+  if (d == nullptr) return 0;
+  int removed = 0;
+  while (const dirent* e = ::readdir(d)) {
+    const std::string name = e->d_name;
+    if (name.compare(0, prefix.size(), prefix) != 0) continue;
+    // .<base>.tmp.<pid>.<random>: the pid of the run that wrote it.
+    char* end = nullptr;
+    const long pid = std::strtol(name.c_str() + prefix.size(), &end, 10);
+    if (pid <= 0 || end == nullptr || *end != '.') continue;
+    if (::kill(static_cast<pid_t>(pid), 0) == 0 || errno != ESRCH) continue;  // still running
+    if (::unlinkat(::dirfd(d), name.c_str(), 0) == 0) ++removed;
+  }
+  ::closedir(d);
+  return removed;
+}
 
 AtomicLogFile::AtomicLogFile(const std::string& path, const std::string& what)
-    : path_(path), tmp_path_(path + ".tmp." + std::to_string(::getpid())), what_(what) {
-  fd_ = ::open(tmp_path_.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+    : path_(path), what_(what) {
+  const auto [dir, base] = SplitPath(path);
+  struct stat st {};
+  if (::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode)) {
+    throw std::runtime_error(what_ + " '" + path_ + "' is a directory");
+  }
+  // A run killed with SIGKILL (or a power cut) cannot clean up after itself: the next run of
+  // the same output does.
+  RemoveLeftovers(path);
+  // Beside the target, so that the rename is atomic; a name no one can predict, opened
+  // exclusively (mkostemp: O_CREAT | O_EXCL, which never follows a symlink planted there).
+  // Created before any work, so an unwritable output is known at once.
+  tmp_path_ = dir + "/" + TempPrefix(path) + std::to_string(::getpid()) + ".XXXXXX";
+  fd_ = ::mkostemp(tmp_path_.data(), O_CLOEXEC);
   if (fd_ < 0) {
-    throw std::runtime_error(what_ + " '" + path_ + "': cannot create '" + tmp_path_ +
+    throw std::runtime_error(what_ + " '" + path_ + "': cannot create a file in '" + dir +
                              "': " + std::strerror(errno));
   }
+  ::fchmod(fd_, 0644);  // mkostemp makes it 0600; logs are for everyone to read
   fill_.reserve(kBufferBytes + 4096);
   pending_.reserve(kBufferBytes + 4096);
   try {
@@ -58,7 +109,10 @@ void AtomicLogFile::WriterLoop() {
       const ssize_t n = ::write(fd_, p, left);
       if (n < 0) {
         if (errno == EINTR) continue;
-        error = std::strerror(errno);
+        error = errno == ENOSPC || errno == EDQUOT
+                    ? std::string("the disk is full (") + std::strerror(errno) +
+                          "): free space and run again; nothing was written under the final name"
+                    : std::strerror(errno);
         break;
       }
       p += n;

@@ -1,7 +1,9 @@
-// An LCM event log written atomically: events go to a temporary file beside the target, and
-// Commit() fsyncs it, renames it onto the final name and syncs the directory. Destroyed without
-// Commit() (an error, an interrupted run), it removes the temporary file, so a partial log never
-// appears under the final name.
+// An LCM event log written atomically: events go to a temporary file beside the target
+// (.<name>.tmp.<pid>.<random>, created exclusively), and Commit() fsyncs it, renames it onto the
+// final name and syncs the directory. Destroyed without Commit() (an error, an interrupted run,
+// SIGINT/SIGTERM through the services' shutdown), it removes the temporary file, so a partial
+// log never appears under the final name; the leftovers of a run killed outright are removed
+// by the next run writing the same output.
 //
 // Writing overlaps the caller's work: events are encoded into one 1 MiB buffer while a writer
 // thread hands the previous one to the kernel. A replay's output is several times its input
@@ -22,7 +24,8 @@ namespace ftcal {
 class AtomicLogFile {
  public:
   // `what` names the file in error messages, e.g. "replay output". Throws std::runtime_error
-  // naming the path when the temporary file cannot be created.
+  // naming the path when the temporary file cannot be created (the directory is missing or
+  // not writable) or `path` is a directory.
   AtomicLogFile(const std::string& path, const std::string& what);
   ~AtomicLogFile();
   AtomicLogFile(const AtomicLogFile&) = delete;
@@ -36,6 +39,10 @@ class AtomicLogFile {
   // destruction removes it).
   void Commit();
   bool committed() const { return committed_; }
+  const std::string& temp_path() const { return tmp_path_; }
+  // Removes the temporary files of `path` left by runs no longer alive; returns how many.
+  static int RemoveLeftovers(const std::string& path);
+  static std::string TempPrefix(const std::string& path);
   const std::string& path() const { return path_; }
 
  private:

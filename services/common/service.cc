@@ -2,19 +2,21 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <climits>
+#include <fstream>
 #include <iostream>
+#include <optional>
 
 #include <spdlog/cfg/env.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include "common/default_config.h"
+#include "common/exit_codes.h"
 #include "common/shutdown.h"
 #include "ftcal/config.h"
 
-#ifndef FTCAL_SOURCE_DIR
-#error "FTCAL_SOURCE_DIR must be defined by the build (services/common/CMakeLists.txt)"
-#endif
 
 namespace ftcal {
 namespace {
@@ -22,18 +24,31 @@ namespace {
 constexpr int64_t kLoopTickUs = 100'000;
 constexpr double kHeartbeatPeriodS = 1.0;
 
-const std::vector<std::string> kLogLevels = {"trace", "debug",    "info", "warn",
-                                             "error", "critical", "off"};
+// The URL's integer option `key` ("ttl", "recv_buf_size"), if given.
+std::optional<long long> UrlOption(const std::string& url, const std::string& key) {
+  const auto q = url.find('?');
+  if (q == std::string::npos) return std::nullopt;
+  std::size_t at = q + 1;
+  while (at < url.size()) {
+    const auto end = std::min(url.find('&', at), url.size());
+    const std::string item = url.substr(at, end - at);
+    if (item.compare(0, key.size() + 1, key + "=") == 0) {
+      try {
+        return std::stoll(item.substr(key.size() + 1));
+      } catch (const std::exception&) {
+        return std::nullopt;
+      }
+    }
+    at = end + 1;
+  }
+  return std::nullopt;
+}
 
-bool FileExists(const std::string& path) { return ::access(path.c_str(), R_OK) == 0; }
-
-std::string ExecutableDir() {
-  char buf[PATH_MAX + 1] = {};
-  const ssize_t n = ::readlink("/proc/self/exe", buf, PATH_MAX);
-  if (n <= 0) return "";
-  std::string path(buf, static_cast<size_t>(n));
-  const auto slash = path.rfind('/');
-  return slash == std::string::npos ? "" : path.substr(0, slash);
+long long ReadRmemMax() {
+  std::ifstream in("/proc/sys/net/core/rmem_max");
+  long long v = -1;
+  in >> v;
+  return in ? v : -1;
 }
 
 std::shared_ptr<spdlog::logger> MakeLogger(const std::string& name) {
@@ -45,6 +60,25 @@ std::shared_ptr<spdlog::logger> MakeLogger(const std::string& name) {
 
 }  // namespace
 
+std::vector<std::string> LcmUrlWarnings(const std::string& url, long long rmem_max) {
+  std::vector<std::string> out;
+  if (url.rfind("udpm://", 0) != 0) return out;
+  const auto ttl = UrlOption(url, "ttl");
+  if (ttl && *ttl > 0) {
+    out.push_back("LCM URL " + url + ": ttl=" + std::to_string(*ttl) +
+                  " sends every message (device data, commands) beyond this host; use ttl=0 "
+                  "unless the processes run on several hosts of a closed lab network");
+  }
+  const auto asked = UrlOption(url, "recv_buf_size");
+  if (asked && rmem_max >= 0 && *asked > rmem_max) {
+    out.push_back("LCM URL " + url + ": recv_buf_size=" + std::to_string(*asked) +
+                  " but the kernel allows " + std::to_string(rmem_max) +
+                  " bytes (net.core.rmem_max): bursts can be lost; raise it with sysctl -w "
+                  "net.core.rmem_max=" + std::to_string(*asked));
+  }
+  return out;
+}
+
 ServiceApp::ServiceApp(ServiceSpec spec)
     : spec_(std::move(spec)),
       cli_(spec_.description, spec_.name),
@@ -53,10 +87,9 @@ ServiceApp::ServiceApp(ServiceSpec spec)
       state_(service_status_t::STARTING) {
   cli_.add_option("--config", config_path_,
                   "configuration file (protobuf text format, libcal/proto/config.proto); "
-                  "default: the embedded " + DefaultConfigPath());
+                  "default: the " + std::string(kDefaultConfigName) + " built in");
   cli_.add_option("--lcm-url", lcm_url_, "LCM URL; overrides the config's lcm_url");
-  cli_.add_option("--log-level", log_level_, "log level; default from SPDLOG_LEVEL, else info")
-      ->check(CLI::IsMember(kLogLevels));
+  AddLogLevelOption(cli_, &log_level_);
   if (spec_.replayable) {
     auto* in = cli_.add_option("--replay", replay_in_,
                                "run over this LCM log at full speed instead of live LCM");
@@ -73,40 +106,39 @@ ServiceApp::ServiceApp(ServiceSpec spec)
       std::string(spec_.replayable
                       ? " On --replay it writes one final service_status_t with its counters "
                         "to the output log instead of the heartbeat."
-                      : ""));
+                      : "") +
+      "\n\n" + ExitCodeTable());
 }
 
 ServiceApp::~ServiceApp() = default;
 
-std::string ServiceApp::DefaultConfigPath() {
-  const std::string installed = ExecutableDir() + "/../share/ftcal/config/sim.pbtxt";
-  if (FileExists(installed)) return installed;
-  return std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
-}
 
 std::optional<int> ServiceApp::Init(int argc, char** argv) {
-  try {
-    cli_.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
-    return cli_.exit(e);
-  }
+  if (auto rc = ParseCommandLine(cli_, argc, argv)) return rc;
 
   log_ = MakeLogger(spec_.name);
   spdlog::cfg::load_env_levels();
   if (!log_level_.empty()) log_->set_level(spdlog::level::from_str(log_level_));
   stats_ = std::make_unique<ServiceStats>(log_);
 
-  if (config_path_.empty()) config_path_ = DefaultConfigPath();
   try {
-    config_ = LoadConfigFile(config_path_);
+    config_ = LoadConfigOrDefault(config_path_);
+    if (config_path_.empty()) config_path_ = kDefaultConfigName;
   } catch (const ConfigError& e) {
     std::cerr << spec_.name << ": " << e.what() << "\n";
-    return 2;
+    return kExitConfig;
   } catch (const std::exception& e) {
     std::cerr << spec_.name << ": " << config_path_ << ": " << e.what() << "\n";
-    return 2;
+    return kExitConfig;
   }
   if (lcm_url_.empty()) lcm_url_ = config_.lcm_url();
+  if (!replay_in_.empty()) {
+    // Replays read and write files: the URL is not used.
+  } else {
+    for (const std::string& warning : LcmUrlWarnings(lcm_url_, ReadRmemMax())) {
+      log_->warn("{}", warning);
+    }
+  }
 
   try {
     if (!replay_in_.empty()) {
@@ -117,7 +149,7 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
     InstallShutdownHandlers();
   } catch (const std::exception& e) {
     log_->critical("{}", e.what());
-    return 1;
+    return kExitDeviceIo;
   }
   log_->info("pid {} config {} {}", identity_.pid, config_path_,
              replaying() ? "replay " + replay_in_ + " -> " + replay_out_ : "lcm " + lcm_url_);
@@ -167,7 +199,7 @@ int ServiceApp::Run() {
   int rc = 0;
   if (auto* replay = dynamic_cast<LogReplayBus*>(bus_.get())) {
     if (!replay->finished()) {
-      rc = 1;
+      rc = kExitDeviceIo;  // interrupted: the output log is not written
     } else {
       try {
         PublishStatus();
@@ -176,7 +208,7 @@ int ServiceApp::Run() {
                    replay_out_);
       } catch (const std::exception& e) {
         log_->critical("{}", e.what());
-        rc = 1;
+        rc = kExitDeviceIo;
       }
     }
   } else {

@@ -8,7 +8,7 @@
 //     return app.Run();
 //   }
 //
-// Flags: --config FILE (default: the embedded config/sim.pbtxt), --lcm-url URL (overrides the
+// Flags: --config FILE (default: config/sim.pbtxt as built into the binary), --lcm-url URL (overrides the
 // config's lcm_url), --log-level LEVEL (else SPDLOG_LEVEL), and for a replayable stage
 // --replay IN.lcmlog --out OUT.lcmlog. On replay the heartbeat is not logged; instead one final
 // service_status_t (state STOPPING, the run's counters) is written to the output log on the
@@ -32,6 +32,11 @@
 
 namespace ftcal {
 
+// What a careful operator should hear about an LCM URL: a multicast ttl > 0 (traffic leaves
+// the host), a recv_buf_size above the kernel's limit `rmem_max` (the socket silently gets
+// less, and a recording loses bursts). Empty when there is nothing to say.
+std::vector<std::string> LcmUrlWarnings(const std::string& url, long long rmem_max);
+
 struct ServiceSpec {
   std::string name;         // e.g. "ftcal-status"; also the logger's and heartbeat's name
   std::string description;  // what the process reads and publishes, for --help
@@ -49,9 +54,9 @@ class ServiceApp {
   CLI::App& cli() { return cli_; }
 
   // Parses flags, sets up logging, loads the config, opens the bus and installs the signal
-  // handlers. Returns an exit code when the process should end now: 0 after --help, CLI11's
-  // code for a bad flag, 2 for a bad config file (its ConfigError printed), 1 when the bus
-  // cannot be opened.
+  // handlers. Returns an exit code (common/exit_codes.h) when the process should end now: 0
+  // after --help, 1 for a bad flag, 3 for a bad config file (its ConfigError printed), 4 when
+  // the bus or the replay log cannot be opened.
   std::optional<int> Init(int argc, char** argv);
 
   // Valid after a successful Init().
@@ -73,15 +78,11 @@ class ServiceApp {
 
   // Runs until SIGINT/SIGTERM (or RequestShutdown()) live, or to the end of the input on
   // replay; then publishes a final STOPPING status and logs a summary. Returns the exit code:
-  // 0, or 1 when a replay was interrupted or its output could not be written.
+  // 0, or 4 when a replay was interrupted or its output could not be written.
   int Run();
 
   // The heartbeat as it would be published now.
   service_status_t Status() const;
-
-  // The embedded default config: <exe>/../share/ftcal/config/sim.pbtxt when installed, else
-  // the source tree's config/sim.pbtxt.
-  static std::string DefaultConfigPath();
 
  private:
   struct Periodic {

@@ -4,23 +4,44 @@
 
 namespace ftcal {
 
-ServiceStats::ServiceStats(std::shared_ptr<spdlog::logger> log) : log_(std::move(log)) {}
+ServiceStats::ServiceStats(std::shared_ptr<spdlog::logger> log,
+                           std::chrono::steady_clock::duration repeat_log_period)
+    : log_(std::move(log)), repeat_log_period_(repeat_log_period) {}
 
-bool ServiceStats::CountKind(const std::string& kind) { return ++kinds_[kind] == 1; }
+std::int64_t ServiceStats::CountKind(const std::string& kind) {
+  const auto now = std::chrono::steady_clock::now();
+  KindLog& k = kind_logs_[kind];
+  ++k.unlogged;
+  if (++kinds_[kind] == 1 || now - k.last_logged >= repeat_log_period_) {
+    k.last_logged = now;
+    return std::exchange(k.unlogged, 0);
+  }
+  return 0;
+}
 
 void ServiceStats::Drop(const std::string& kind, const std::string& reason) {
   ++drops_;
-  if (CountKind(kind)) {
-    log_->warn("dropped input: {}: {} (further drops of this kind are counted, not logged)",
+  const std::int64_t n = CountKind(kind);
+  if (n == 0) return;
+  if (kinds_[kind] == 1) {
+    log_->warn("dropped input: {}: {} (repeats are counted and logged at most once a minute)",
                kind, reason);
+  } else {
+    log_->warn("dropped input: {}: {} more since the last line ({} in all); latest: {}", kind,
+               n, kinds_[kind], reason);
   }
 }
 
 void ServiceStats::Error(const std::string& kind, const std::string& reason) {
   ++errors_;
   last_error_ = kind + ": " + reason;
-  if (CountKind(kind)) {
-    log_->error("{}: {} (further errors of this kind are counted, not logged)", kind, reason);
+  const std::int64_t n = CountKind(kind);
+  if (n == 0) return;
+  if (kinds_[kind] == 1) {
+    log_->error("{}: {} (repeats are counted and logged at most once a minute)", kind, reason);
+  } else {
+    log_->error("{}: {} more since the last line ({} in all); latest: {}", kind, n,
+                kinds_[kind], reason);
   }
 }
 

@@ -1,11 +1,14 @@
 // What a process counts about itself; its heartbeat (service_status_t) publishes these.
 //
 // Bad input and errors are counted per *kind* (a short stable label such as
-// "undecodable ftcal.ft_sample_t on FT_HL") and logged the first time each kind occurs, so a
-// 100 Hz stream of bad packets costs one log line, not a hundred a second; LogSummary() prints
-// the totals per kind at exit.
+// "undecodable ftcal.ft_sample_t on FT_HL") and logged the first time each kind occurs, then at
+// most once per repeat_log_period with the count since the last line, so a 100 Hz stream of bad
+// packets costs one log line a minute, not a hundred a second; LogSummary() prints the totals
+// per kind at exit. last_error() is the latest error text, cleared when the process says it
+// is healthy again.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -17,7 +20,8 @@ namespace ftcal {
 
 class ServiceStats {
  public:
-  explicit ServiceStats(std::shared_ptr<spdlog::logger> log);
+  explicit ServiceStats(std::shared_ptr<spdlog::logger> log,
+                        std::chrono::steady_clock::duration repeat_log_period = std::chrono::seconds(60));
 
   void CountIn() { ++msgs_in_; }
   void CountOut() { ++msgs_out_; }
@@ -33,6 +37,9 @@ class ServiceStats {
   int64_t drops() const { return drops_; }
   int64_t errors() const { return errors_; }
   const std::string& last_error() const { return last_error_; }
+  // For errors a process tracks itself (a device's state): the text the status carries.
+  void SetLastError(std::string text) { last_error_ = std::move(text); }
+  void ClearLastError() { last_error_.clear(); }
   const std::map<std::string, int64_t>& counters() const { return counters_; }
   // Occurrences per drop/error kind.
   const std::map<std::string, int64_t>& kinds() const { return kinds_; }
@@ -42,8 +49,15 @@ class ServiceStats {
   void LogSummary() const;
 
  private:
-  // Returns true the first time `kind` is seen.
-  bool CountKind(const std::string& kind);
+  // Counts `kind`; returns the number of occurrences the caller should report in a log line
+  // now (1 the first time, the count since the last line once repeat_log_period has passed),
+  // or 0 to stay quiet.
+  std::int64_t CountKind(const std::string& kind);
+
+  struct KindLog {
+    std::chrono::steady_clock::time_point last_logged{};
+    std::int64_t unlogged = 0;
+  };
 
   std::shared_ptr<spdlog::logger> log_;
   int64_t msgs_in_ = 0;
@@ -53,6 +67,8 @@ class ServiceStats {
   std::string last_error_;
   std::map<std::string, int64_t> counters_;
   std::map<std::string, int64_t> kinds_;
+  std::chrono::steady_clock::duration repeat_log_period_;
+  std::map<std::string, KindLog> kind_logs_;
 };
 
 }  // namespace ftcal

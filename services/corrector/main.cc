@@ -1,6 +1,7 @@
 // ftcal-corrector: ground-contact wrenches from every transducer sample (pipeline item 4).
 #include <exception>
 
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "corrector/corrector_stage.h"
 #include "ftcal/calibration_io.h"
@@ -35,7 +36,7 @@ int main(int argc, char** argv) {
         stage.UseCalibration(proto, static_cast<int64_t>(proto.version()), ftcal::Sha256Hex(bytes));
       } catch (const std::exception& e) {
         app.log().critical("--calibration {}: {}", calibration_path, e.what());
-        return 2;
+        return ftcal::kExitRefused;
       }
     }
     stage.ReportWaitingForCalibration();
@@ -44,7 +45,7 @@ int main(int argc, char** argv) {
                    stage.sums());
     return rc;
   } catch (const std::exception& e) {
-    app.log().critical("{}", e.what());
-    return 2;
+    app.log().critical("config: {}", e.what());
+    return ftcal::kExitConfig;
   }
 }

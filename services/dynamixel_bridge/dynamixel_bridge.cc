@@ -7,6 +7,8 @@
 #include <limits>
 #include <stdexcept>
 
+#include <spdlog/fmt/fmt.h>
+
 #include "common/bus.h"
 
 namespace ftcal {
@@ -18,8 +20,12 @@ constexpr std::uint16_t kErrorBlockBytes = dxl::kAddrHardwareErrorStatus - dxl::
 // Position mode (3) keeps goals inside the default position limits (§2.7).
 constexpr std::int32_t kMinGoalCount = 0;
 constexpr std::int32_t kMaxGoalCount = 4095;
-// An unwrapped tick is meaningless across an outage longer than one wrap of the 15-bit tick.
-constexpr double kTickUnwrapMaxGapS = 30.0;
+// Past half a wrap of the 15-bit tick the direction of a change is ambiguous: the next tick
+// is taken as it comes and the unwrapper starts again.
+constexpr double kTickUnwrapMaxGapS = 16.0;
+// A tick change of less than half a wrap is forward (§2.9: the tick wraps at 32768 ms).
+constexpr std::uint16_t kTickHalfWrap = 0x4000;
+constexpr std::size_t kPingParams = 3;
 
 std::string ServoName(std::uint8_t id, const std::string& leg) {
   return "servo " + std::to_string(id) + " (" + leg + ")";
@@ -48,6 +54,9 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
   if (options_.hardware_error_every < 1) {
     throw std::invalid_argument("hardware_error_every must be >= 1");
   }
+  if (options_.lost_after_misses < 1) throw std::invalid_argument("lost_after_misses must be >= 1");
+  if (!(options_.reprobe_every_s > 0)) throw std::invalid_argument("reprobe_every_s must be > 0");
+  if (baud_ == 0) throw std::invalid_argument("config: dynamixel.baud is 0");
   for (const auto& leg : config_.robot().leg()) {
     ServoSlot s;
     s.leg = leg.name();
@@ -59,10 +68,31 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
     }
     s.min_angle_rad = leg.servo().min_angle_rad();
     s.max_angle_rad = leg.servo().max_angle_rad();
-    ids_.push_back(s.id);
     servos_.push_back(std::move(s));
   }
   if (servos_.empty()) throw std::invalid_argument("config: no servos");
+}
+
+std::vector<std::size_t> DynamixelBridge::ActiveSlots() const {
+  std::vector<std::size_t> slots;
+  for (std::size_t i = 0; i < servos_.size(); ++i) {
+    if (!servos_[i].lost) slots.push_back(i);
+  }
+  return slots;
+}
+
+std::vector<std::uint8_t> DynamixelBridge::IdsOf(const std::vector<std::size_t>& slots) const {
+  std::vector<std::uint8_t> ids;
+  for (const std::size_t i : slots) ids.push_back(servos_[i].id);
+  return ids;
+}
+
+std::vector<std::uint8_t> DynamixelBridge::lost() const {
+  std::vector<std::uint8_t> ids;
+  for (const auto& s : servos_) {
+    if (s.lost) ids.push_back(s.id);
+  }
+  return ids;
 }
 
 DynamixelBridge::ServoSlot* DynamixelBridge::FindId(std::uint8_t id) {
@@ -91,10 +121,18 @@ bool DynamixelBridge::Connect() {
   stats_.log().info("opened {} at {} bit/s", device_, baud_);
 
   missing_at_start_.clear();
-  for (auto& s : servos_) {
-    const auto got = Transact(dxl::BuildPing(s.id), {s.id},
+  for (std::size_t i = 0; i < servos_.size(); ++i) {
+    ServoSlot& s = servos_[i];
+    // A new port session: the ticks seen before it say nothing about the next one (the outage
+    // may have been longer than a wrap, or the servos rebooted).
+    s.ticks.Reset();
+    s.tick_known = false;
+    s.lost = false;
+    s.probe_outstanding = false;
+    s.consecutive_misses = 0;
+    const auto got = Transact(dxl::BuildPing(s.id), {i}, kPingParams,
                               [&](std::size_t, const dxl::StatusPacket& p) {
-                                if (p.params.size() != 3) return false;
+                                if (p.params.size() != kPingParams) return false;
                                 const int model = p.params[0] | (p.params[1] << 8);
                                 if (model != 321) {
                                   stats_.Error(ServoName(s.id, s.leg) + " is not an MX-106(2.0)",
@@ -108,8 +146,14 @@ bool DynamixelBridge::Connect() {
       missing_at_start_.push_back(s.id);
       stats_.Error(ServoName(s.id, s.leg) + " missing",
                    ServoName(s.id, s.leg) + " does not answer PING on " + device_);
+      // Not read each cycle until a PING finds it.
+      s.lost = true;
+      s.next_probe = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                        std::chrono::duration<double>(options_.reprobe_every_s));
     }
   }
+  ReadReturnDelays(ActiveSlots());
+  if (!port_) return false;
   if (missing_at_start_.empty()) {
     stats_.log().info("all {} servos answer PING", servos_.size());
   }
@@ -141,17 +185,25 @@ void DynamixelBridge::SyncParserStats() {
 }
 
 std::vector<bool> DynamixelBridge::Transact(
-    const std::vector<std::uint8_t>& packet, const std::vector<std::uint8_t>& ids,
+    const std::vector<std::uint8_t>& packet, const std::vector<std::size_t>& slots,
+    std::size_t reply_params,
     const std::function<bool(std::size_t, const dxl::StatusPacket&)>& on_reply) {
-  std::vector<bool> got(ids.size(), false);
-  if (!port_) return got;
+  std::vector<bool> got(slots.size(), false);
+  if (!port_ || slots.empty()) return got;
+  // The replies follow one another on the bus, each after its servo's return delay: waiting
+  // longer only lets one silent servo eat the other servos' cycle (§2.9).
+  double budget_s = dxl::WireSeconds(packet.size(), baud_) + reply_timeout_s_;
+  for (const std::size_t i : slots) {
+    budget_s += dxl::WireSeconds(dxl::MaxStatusPacketBytes(reply_params), baud_) +
+                servos_[i].return_delay_s;
+  }
   const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                                           std::chrono::duration<double>(reply_timeout_s_));
+                                           std::chrono::duration<double>(budget_s));
   try {
     // A reply that missed its deadline must not pass for the answer to this request.
     DrainLate();
     port_->WriteAll(packet.data(), packet.size(), 100);
-    std::size_t remaining = ids.size();
+    std::size_t remaining = slots.size();
     std::uint8_t buf[1024];
     while (remaining > 0) {
       const auto left = deadline - Clock::now();
@@ -163,16 +215,27 @@ std::vector<bool> DynamixelBridge::Transact(
       const std::size_t n = port_->ReadSome(buf, sizeof buf);
       parser_.Feed(buf, n);
       while (auto status = parser_.NextStatus()) {
-        const auto it = std::find(ids.begin(), ids.end(), status->id);
-        const std::size_t i = static_cast<std::size_t>(it - ids.begin());
-        if (it == ids.end() || got[i]) {
+        std::size_t k = 0;
+        while (k < slots.size() && servos_[slots[k]].id != status->id) ++k;
+        if (k == slots.size() || got[k]) {
+          if (ProbeAnswered(*status)) continue;
           ++stats_.Counter("unexpected_replies");
           stats_.Drop("unexpected status packet",
                       "status from id " + std::to_string(status->id) + " that was not asked");
           continue;
         }
-        if (on_reply(i, *status)) {
-          got[i] = true;
+        if (status->error_number() == 0 && status->params.size() != reply_params) {
+          // Protocol 2.0 replies carry no request number: the size tells which request a
+          // reply answers, and this one answers an earlier one.
+          ++stats_.Counter("mismatched_replies");
+          stats_.Drop("status packet of another request",
+                      "status from id " + std::to_string(status->id) + " with " +
+                          std::to_string(status->params.size()) + " bytes, expected " +
+                          std::to_string(reply_params) + ": a late reply to an earlier request");
+          continue;
+        }
+        if (on_reply(k, *status)) {
+          got[k] = true;
           --remaining;
         }
       }
@@ -183,6 +246,59 @@ std::vector<bool> DynamixelBridge::Transact(
   }
   SyncParserStats();
   return got;
+}
+
+void DynamixelBridge::ReadReturnDelays(const std::vector<std::size_t>& slots) {
+  for (const std::size_t i : slots) {
+    ServoSlot& s = servos_[i];
+    Transact(dxl::BuildRead(s.id, dxl::kAddrReturnDelayTime, 1), {i}, 1,
+             [&](std::size_t, const dxl::StatusPacket& p) {
+               if (p.error_number() != 0) return false;
+               s.return_delay_s = p.params[0] * dxl::kReturnDelayUnitS;
+               return true;
+             });
+    if (!port_) return;
+  }
+}
+
+void DynamixelBridge::Reprobe() {
+  const auto now = Clock::now();
+  for (std::size_t i = 0; i < servos_.size(); ++i) {
+    ServoSlot& s = servos_[i];
+    if (!s.lost || now < s.next_probe) continue;
+    // Sent, not waited for: the answer is picked up between cycles (OnDeviceReadable) or at
+    // the start of the next read, so a probe of a silent servo costs the others nothing.
+    const auto ping = dxl::BuildPing(s.id);
+    try {
+      DrainLate();
+      port_->WriteAll(ping.data(), ping.size(), 100);
+    } catch (const dxl::SerialError& e) {
+      PortLost(e.what());
+      return;
+    }
+    ++stats_.Counter("reprobes");
+    s.probe_outstanding = true;
+    s.next_probe = now + std::chrono::duration_cast<Clock::duration>(
+                             std::chrono::duration<double>(options_.reprobe_every_s));
+    return;  // one probe per cycle: their replies must not collide on the bus
+  }
+}
+
+bool DynamixelBridge::ProbeAnswered(const dxl::StatusPacket& status) {
+  ServoSlot* s = FindId(status.id);
+  if (s == nullptr || !s->lost || !s->probe_outstanding || status.error_number() != 0 ||
+      status.params.size() != kPingParams) {
+    return false;
+  }
+  s->lost = false;
+  s->probe_outstanding = false;
+  s->consecutive_misses = 0;
+  // Its tick goes on from where it was unless it was gone too long to tell (ReadPresent).
+  s->tick_known = false;
+  force_error_read_ = true;
+  ++stats_.Counter("servos_found");
+  stats_.log().info("{} answers again: read each cycle", ServoName(s->id, s->leg));
+  return true;
 }
 
 void DynamixelBridge::SendPendingWrites() {
@@ -219,10 +335,13 @@ void DynamixelBridge::SendPendingWrites() {
 
 void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
   const auto now = Clock::now();
+  fresh->assign(servos_.size(), false);
+  const std::vector<std::size_t> slots = ActiveSlots();
   std::vector<bool> repeated(servos_.size(), false);
-  *fresh = Transact(
-      dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, ids_), ids_,
-      [&](std::size_t i, const dxl::StatusPacket& p) {
+  const std::vector<bool> got = slots.empty() ? std::vector<bool>{} : Transact(
+      dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, IdsOf(slots)), slots,
+      dxl::kPresentBlockBytes, [&](std::size_t k, const dxl::StatusPacket& p) {
+        const std::size_t i = slots[k];
         ServoSlot& s = servos_[i];
         if (p.error_number() != 0) {
           ++stats_.Counter("status_errors");
@@ -230,33 +349,33 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
                       "the reply to the present-block read carries an error; its data is not used");
           return false;
         }
-        if (p.params.size() != dxl::kPresentBlockBytes) {
-          ++stats_.Counter("malformed");
-          stats_.Drop("present block of the wrong size",
-                      ServoName(s.id, s.leg) + " sent " + std::to_string(p.params.size()) +
-                          " bytes, expected 28");
-          return false;
-        }
         const dxl::PresentState st = dxl::DecodePresentBlock(p.params.data(), p.params.size());
-        // Protocol 2.0 has no sequence number: under load a reply that missed its deadline can
-        // arrive during the next request and look like its answer. The Realtime Tick is the
-        // only witness: a block with the tick of the last one accepted is that same late
-        // reply (or a second read within one ms, which says nothing new either): this cycle
-        // publishes that servo STALE rather than the same sample twice.
-        if (s.ever_read && st.realtime_tick_ms == s.last_raw_tick) {
-          ++stats_.Counter("repeated_tick");
-          stats_.Drop("repeated Realtime Tick",
-                      ServoName(s.id, s.leg) + " sent a present block with the tick of the last "
-                                               "one (a late reply); not published again");
-          repeated[i] = true;
-          return true;
-        }
-        s.last_raw_tick = st.realtime_tick_ms;
         if (s.ever_read && now - s.last_read > std::chrono::duration_cast<Clock::duration>(
                                                    std::chrono::duration<double>(
                                                        kTickUnwrapMaxGapS))) {
           s.ticks.Reset();
+          s.tick_known = false;
         }
+        // Protocol 2.0 has no sequence number: under load a reply that missed its deadline can
+        // arrive during the next request and look like its answer. The Realtime Tick is the
+        // only witness: a block whose tick is not after the last one accepted is that late
+        // reply (or a second read within one ms, which says nothing new either): this cycle
+        // publishes that servo STALE rather than an old sample as new.
+        const std::uint16_t forward =
+            static_cast<std::uint16_t>((st.realtime_tick_ms - s.last_raw_tick) & 0x7FFF);
+        if (s.tick_known && (forward == 0 || forward >= kTickHalfWrap)) {
+          const bool same = forward == 0;
+          ++stats_.Counter(same ? "repeated_tick" : "backward_tick");
+          stats_.Drop(same ? "repeated Realtime Tick" : "Realtime Tick went backwards",
+                      ServoName(s.id, s.leg) + " sent a present block with tick " +
+                          std::to_string(st.realtime_tick_ms) + " after " +
+                          std::to_string(s.last_raw_tick) +
+                          " (a late reply); not published as new");
+          repeated[i] = true;
+          return true;
+        }
+        s.last_raw_tick = st.realtime_tick_ms;
+        s.tick_known = true;
         s.ever_read = true;
         s.last_read = now;
         s.angle_rad = dxl::PositionToRad(st.present_position, s.zero_count, s.direction);
@@ -267,32 +386,51 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
           ++stats_.Counter("hw_error_alerts");
           stats_.Error(ServoName(s.id, s.leg) + " hardware error",
                        ServoName(s.id, s.leg) + " raised its Alert bit");
+          force_error_read_ = true;  // what the error is: read it this cycle
         }
         s.alert = p.alert();
         s.consecutive_misses = 0;
         stats_.CountIn();
         return true;
       });
+  for (std::size_t k = 0; k < slots.size(); ++k) {
+    (*fresh)[slots[k]] = got[k] && !repeated[slots[k]];
+  }
   for (std::size_t i = 0; i < servos_.size(); ++i) {
     ServoSlot& s = servos_[i];
-    if (repeated[i]) (*fresh)[i] = false;
     if ((*fresh)[i]) continue;
-    ++s.consecutive_misses;
     ++stats_.Counter("stale");
+    if (s.lost) {
+      ++stats_.Counter("lost_cycles");
+      continue;
+    }
+    ++s.consecutive_misses;
     stats_.Drop(ServoName(s.id, s.leg) + " no valid reply",
                 "no valid reply this cycle: published STALE with its last good values");
+    if (s.consecutive_misses >= options_.lost_after_misses && port_) {
+      s.lost = true;
+      s.next_probe = now + std::chrono::duration_cast<Clock::duration>(
+                               std::chrono::duration<double>(options_.reprobe_every_s));
+      ++stats_.Counter("servos_lost");
+      stats_.Error(ServoName(s.id, s.leg) + " lost",
+                   ServoName(s.id, s.leg) + " gave no valid reply in " +
+                       std::to_string(s.consecutive_misses) +
+                       fmt::format(" cycles: left out of the reads, PINGed every {} s",
+                                   options_.reprobe_every_s));
+    }
   }
 }
 
 void DynamixelBridge::ReadHardwareErrors() {
-  Transact(dxl::BuildSyncRead(kErrorBlockAddress, kErrorBlockBytes, ids_), ids_,
-           [&](std::size_t i, const dxl::StatusPacket& p) {
-             ServoSlot& s = servos_[i];
-             if (p.error_number() != 0 || p.params.size() != kErrorBlockBytes) {
+  const std::vector<std::size_t> slots = ActiveSlots();
+  if (slots.empty()) return;
+  Transact(dxl::BuildSyncRead(kErrorBlockAddress, kErrorBlockBytes, IdsOf(slots)), slots,
+           kErrorBlockBytes, [&](std::size_t k, const dxl::StatusPacket& p) {
+             ServoSlot& s = servos_[slots[k]];
+             if (p.error_number() != 0) {
                ++stats_.Counter("status_errors");
                stats_.Drop(ServoName(s.id, s.leg) + " bad hardware-error reply",
-                           "error '" + dxl::DescribeStatusError(p.error) + "' or " +
-                               std::to_string(p.params.size()) + " bytes");
+                           "error '" + dxl::DescribeStatusError(p.error) + "'");
                return false;
              }
              s.torque_enable = p.params[0];
@@ -320,13 +458,15 @@ void DynamixelBridge::Cycle() {
   SendPendingWrites();
   std::vector<bool> fresh;
   ReadPresent(&fresh);
-  bool want_errors = force_error_read_ || cycles_ % options_.hardware_error_every == 1 ||
-                     options_.hardware_error_every == 1;
-  for (const auto& s : servos_) want_errors = want_errors || s.alert || s.hardware_error != 0;
+  // Torque Enable and Hardware Error Status change rarely and the Alert bit of every present
+  // reply says when to look: a low rate, not every cycle, even while a servo is in error.
+  const bool want_errors = force_error_read_ || cycles_ % options_.hardware_error_every == 1 ||
+                           options_.hardware_error_every == 1;
   if (port_ && want_errors) {
     force_error_read_ = false;
     ReadHardwareErrors();
   }
+  if (port_) Reprobe();
   if (!port_) return;  // lost during the cycle: nothing trustworthy to publish
   last_fresh_ = fresh;
   Publish(now_utime_(), fresh);
@@ -348,6 +488,7 @@ void DynamixelBridge::Publish(std::int64_t utime, const std::vector<bool>& fresh
     msg.device_tick_ms.push_back(s.tick_ms);
     int32_t flags = 0;
     if (!fresh[i]) flags |= servo_state_t::FLAG_STALE;
+    if (s.lost) flags |= servo_state_t::FLAG_LOST;
     if (s.hardware_error != 0 || s.alert) flags |= servo_state_t::FLAG_HW_ERROR;
     if (s.torque_enable == 0) flags |= servo_state_t::FLAG_TORQUE_OFF;
     msg.flags.push_back(flags);
@@ -361,6 +502,7 @@ void DynamixelBridge::DrainLate() {
     // Nobody is being asked: whatever comes is a late reply or noise.
     parser_.Feed(buf, n);
     while (auto status = parser_.NextStatus()) {
+      if (ProbeAnswered(*status)) continue;
       ++stats_.Counter("late_replies");
       stats_.Drop("late status packet",
                   "status from id " + std::to_string(status->id) + " after its deadline");
@@ -427,7 +569,10 @@ bool DynamixelBridge::Degraded(std::string* why) const {
   } else {
     for (std::size_t i = 0; i < servos_.size(); ++i) {
       const ServoSlot& s = servos_[i];
-      if (i < last_fresh_.size() && !last_fresh_[i]) {
+      if (s.lost) {
+        reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) +
+                  fmt::format(" lost (PINGed every {} s)", options_.reprobe_every_s);
+      } else if (i < last_fresh_.size() && !last_fresh_[i]) {
         reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " not answering";
       } else if (s.hardware_error != 0 || s.alert) {
         reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " hardware error";

@@ -2,12 +2,17 @@
 // read-write cycle at a time (pending torque/goal writes, SYNC READ of the present block,
 // Hardware Error Status now and then), turning the replies into a servo_state_t.
 //
-// Rules (docs/device-protocols.md §2.9): replies are matched by id, never by position; a servo
-// that does not answer this cycle is flagged STALE with its last good values (NaN before it
-// ever answered), and the other servos are published as usual; CRC errors, timeouts, malformed
-// packets, status errors and hardware errors are counted and logged once per kind; a port
-// that vanishes is reopened with back-off. Nothing a servo did not say is ever published as a
-// value.
+// Rules (docs/device-protocols.md §2.9): replies are matched to their request by id (never by
+// position), by length (a reply of another request's size is a late one) and by a Realtime Tick
+// that moves forward; the rest are counted and dropped. Each read waits only as long as the
+// replies take on the wire at the bus's baud rate, plus each servo's Return Delay Time, plus
+// the config's reply_timeout_s for adapter and OS latency. A servo that does not answer this
+// cycle is flagged STALE with its last good values (NaN before it ever answered); after
+// lost_after_misses cycles in a row it is LOST: left out of the reads (so it no longer costs the
+// other five a timeout each cycle) and PINGed every reprobe_every_s until it answers. CRC
+// errors, timeouts, malformed packets, status errors and hardware errors are counted and logged
+// once per kind; a port that vanishes is reopened with back-off. Nothing a servo did not say
+// is ever published as a value.
 #pragma once
 
 #include <chrono>
@@ -30,6 +35,8 @@ namespace ftcal {
 struct DynamixelBridgeOptions {
   std::string device;          // serial device; empty: the config's
   int hardware_error_every = 10;  // read address 64-70 every n-th cycle (and after an alert)
+  int lost_after_misses = 5;   // consecutive cycles without a valid reply before a servo is lost
+  double reprobe_every_s = 1.0;  // a lost servo is PINGed this often
   double reopen_min_s = 0.1;   // back-off between attempts to reopen a vanished port
   double reopen_max_s = 2.0;
 };
@@ -63,6 +70,8 @@ class DynamixelBridge {
   // True while a servo is missing, stale, in hardware error, or the port is down; `why` says
   // which.
   bool Degraded(std::string* why = nullptr) const;
+  // Servos currently lost (left out of the reads, re-probed now and then).
+  std::vector<std::uint8_t> lost() const;
   // Ids that did not answer the start-up PING.
   const std::vector<std::uint8_t>& missing_at_start() const { return missing_at_start_; }
   std::int64_t cycles() const { return cycles_; }
@@ -80,23 +89,40 @@ class DynamixelBridge {
     dxl::TickUnwrapper ticks;
     std::int64_t tick_ms = 0;
     std::uint16_t last_raw_tick = 0;
+    bool tick_known = false;  // last_raw_tick is from this port session and this find
+    double return_delay_s = 500e-6;  // factory default until read from the servo
     std::int32_t hardware_error = 0;
     int torque_enable = -1;  // -1 unknown
     bool alert = false;
     int consecutive_misses = 0;
+    bool lost = false;
+    bool probe_outstanding = false;  // a PING sent, its answer not seen yet
+    Clock::time_point next_probe{};
     Clock::time_point last_read{};
     // Pending from SERVO_CMD.
     std::optional<bool> pending_torque;
     std::optional<std::int32_t> goal_count;
   };
 
-  // Sends `packet` and collects one status per id in `ids` until all came or the reply
-  // timeout passed; `on_reply` gets each matched status. Returns the ids that answered.
-  // `on_reply` returns false to reject a reply (error byte, wrong size): that servo stays
-  // unanswered.
+  // Sends `packet` and collects one status per servo in `slots` (indices into servos_) until
+  // all came or the deadline passed: the wire time of the request and of the replies of
+  // `reply_params` bytes each, the servos' return delays, and reply_timeout_s. A reply from a
+  // servo not asked, or a second one, is counted unexpected; one without error whose size is
+  // not `reply_params` answers another request (late) and is counted mismatched. `on_reply`
+  // gets each matched status (with its index into `slots`) and returns false to reject it (an
+  // error byte): that servo stays unanswered. Returns, per slot, whether it answered.
   std::vector<bool> Transact(
-      const std::vector<std::uint8_t>& packet, const std::vector<std::uint8_t>& ids,
+      const std::vector<std::uint8_t>& packet, const std::vector<std::size_t>& slots,
+      std::size_t reply_params,
       const std::function<bool(std::size_t, const dxl::StatusPacket&)>& on_reply);
+  // The slots not lost, and their ids.
+  std::vector<std::size_t> ActiveSlots() const;
+  std::vector<std::uint8_t> IdsOf(const std::vector<std::size_t>& slots) const;
+  void ReadReturnDelays(const std::vector<std::size_t>& slots);
+  // Sends a PING to at most one lost servo whose probe is due (without waiting for it).
+  void Reprobe();
+  // True when `status` answers an outstanding probe: that servo is found (read again).
+  bool ProbeAnswered(const dxl::StatusPacket& status);
   void ReadPresent(std::vector<bool>* fresh);
   // Reads what is waiting; complete status packets are late replies (counted, dropped). Throws
   // dxl::SerialError.
@@ -121,7 +147,6 @@ class DynamixelBridge {
   dxl::PacketParser parser_;
   dxl::PacketParser::Stats synced_{};  // parser counts already moved into stats_
   std::vector<ServoSlot> servos_;
-  std::vector<std::uint8_t> ids_;
   std::vector<std::uint8_t> missing_at_start_;
   std::vector<bool> last_fresh_;
   bool force_error_read_ = true;

@@ -10,6 +10,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "common/bus.h"
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
 #include "dynamixel_bridge/dynamixel_bridge.h"
@@ -51,7 +52,8 @@ int main(int argc, char** argv) {
        "READ of the present block at dynamixel.rate_hz, Hardware Error Status now and then, and "
        "publishes SERVO_STATE (servo_state_t: shaft angles in rad, 0 = leg straight down, "
        "velocity, current, hardware error, unwrapped device tick, STALE/HW_ERROR/TORQUE_OFF "
-       "flags). Reads SERVO_CMD (servo_command_t) and writes torque enable and goal positions, "
+       "flags; LOST for a servo silent for --lost-after cycles, which is then only PINGed "
+       "every --reprobe-every s). Reads SERVO_CMD (servo_command_t) and writes torque enable and goal positions, "
        "clamped to the config's angle limits. DEGRADED while a servo is silent or faulty or the "
        "port is down (it is reopened with back-off).",
        /*replayable=*/false});
@@ -63,13 +65,23 @@ int main(int argc, char** argv) {
                   "read Hardware Error Status every n-th cycle (and after any alert)")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  app.cli()
+      .add_option("--lost-after", options.lost_after_misses,
+                  "cycles in a row without a valid reply before a servo is LOST: left out of "
+                  "the reads (so it costs the others no timeout) and PINGed now and then")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.cli()
+      .add_option("--reprobe-every", options.reprobe_every_s, "seconds between PINGs of a lost servo")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   const auto& config = app.config();
   const double rate_hz = config.dynamixel().rate_hz();
   if (!(rate_hz > 0 && rate_hz <= 1000)) {
     app.log().critical("config: dynamixel.rate_hz {} outside (0, 1000]", rate_hz);
-    return 2;
+    return ftcal::kExitConfig;
   }
   std::string url = config.lcm_url();
   if (auto* opt = app.cli().get_option("--lcm-url"); opt->count() > 0) url = opt->as<std::string>();
@@ -85,7 +97,7 @@ int main(int argc, char** argv) {
     lcm::LCM cmd_lcm(url);
     if (!cmd_lcm.good()) {
       app.log().critical("cannot open LCM at {}", url);
-      return 1;
+      return ftcal::kExitDeviceIo;
     }
     CommandSink sink{&bridge, &app.stats()};
     cmd_lcm.subscribe(config.channels().servo_cmd(), &CommandSink::OnMessage, &sink);
@@ -100,8 +112,10 @@ int main(int argc, char** argv) {
           app.log().warn("DEGRADED: {}", why);
         } else {
           app.log().info("RUNNING: all servos answer");
+          app.stats().ClearLastError();  // the status says what is wrong now, not once
         }
       }
+      if (degraded) app.stats().SetLastError(why);
       app.SetState(state);
       app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);
     };
@@ -138,9 +152,12 @@ int main(int argc, char** argv) {
       if (fds[0].revents & POLLIN) cmd_lcm.handleTimeout(0);
       if (nfds == 2 && fds[1].revents != 0) bridge.OnDeviceReadable();
     }
+  } catch (const std::invalid_argument& e) {  // the bridge's config checks
+    app.log().critical("{}", e.what());
+    return ftcal::kExitConfig;
   } catch (const std::exception& e) {
     app.log().critical("{}", e.what());
-    return 2;
+    return ftcal::kExitDeviceIo;
   }
   app.SetState(ftcal::service_status_t::STOPPING);
   app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);

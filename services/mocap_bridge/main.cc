@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <chrono>
 
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
 #include "mocap_bridge.h"
@@ -44,11 +45,13 @@ int main(int argc, char** argv) {
         if (reason != last_reason) {
           if (reason.empty()) {
             app.log().info("streaming");
+            app.stats().ClearLastError();  // the status says what is wrong now, not once
           } else {
             app.log().warn("degraded: {}", reason);
           }
           last_reason = reason;
         }
+        if (!reason.empty()) app.stats().SetLastError(reason);
         bus.Publish(channels.status(), app.Status(), /*count=*/false);
         next_heartbeat += std::chrono::seconds(1);
         if (next_heartbeat <= now) next_heartbeat = now + std::chrono::seconds(1);
@@ -61,7 +64,7 @@ int main(int argc, char** argv) {
   } catch (const ftcal::MocapConfigError& e) {
     app.stats().Error("configuration", e.what());  // logs it, and the last heartbeat carries it
     app.SetState(ftcal::service_status_t::FAILED);
-    rc = 2;
+    rc = ftcal::kExitConfig;
   }
   bus.Publish(channels.status(), app.Status(), /*count=*/false);
   app.stats().LogSummary();

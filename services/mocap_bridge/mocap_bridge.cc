@@ -151,6 +151,13 @@ void MocapBridge::StartConnect() {
   // QTM's frames are small and latency matters more than packet count (§3.3).
   const int one = 1;
   ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+  // A QTM that is not capturing is quiet for as long as it likes: a dead peer is found by
+  // keepalive probes (about 5 s), not by silence.
+  const int idle_s = 2, interval_s = 1, probes = 3;
+  ::setsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &one, sizeof one);
+  ::setsockopt(fd, IPPROTO_TCP, TCP_KEEPIDLE, &idle_s, sizeof idle_s);
+  ::setsockopt(fd, IPPROTO_TCP, TCP_KEEPINTVL, &interval_s, sizeof interval_s);
+  ::setsockopt(fd, IPPROTO_TCP, TCP_KEEPCNT, &probes, sizeof probes);
   sockaddr_in addr{};
   addr.sin_family = AF_INET;
   addr.sin_port = htons(options_.port);
@@ -281,7 +288,10 @@ void MocapBridge::OnTimer() {
   }
   if (link_ == Link::kStreaming) {
     const double quiet_s = SecondsSince(last_packet_);
-    if (quiet_s > options_.silence_reconnect_s) {
+    // Not capturing, QTM sends nothing until the next measurement, whose start it announces
+    // (§3.10): the connection is kept; only a lost connection (recv 0 or an error, which TCP
+    // keepalive also raises for a peer gone dead) reconnects.
+    if (quiet_s > options_.silence_reconnect_s && !no_more_data_) {
       ++stats_.Counter("timeouts");
       Disconnect("no packet from QTM for " + std::to_string(quiet_s) + " s", true);
     } else if (quiet_s > options_.silence_degraded_s && !silent_ && !no_more_data_) {
@@ -446,6 +456,11 @@ void MocapBridge::HandleEvent(uint8_t event) {
   if (event == qtm::kEventCameraSettingsChanged) {
     // The bodies or labels may have changed order: no frame is mapped until they are re-read.
     stats_.log().info("QTM event {}: re-reading parameters", qtm::EventName(event));
+    if (link_ == Link::kStreaming && !parameters_pending_) RequestParameters();
+  } else if (event == qtm::kEventCaptureStarted || event == qtm::kEventRtFromFileStarted) {
+    // A new measurement: its bodies may differ from the last one's (§3.10).
+    stats_.log().info("QTM event {}: a new measurement; re-reading parameters",
+                      qtm::EventName(event));
     if (link_ == Link::kStreaming && !parameters_pending_) RequestParameters();
   } else if (event == qtm::kEventQtmShuttingDown) {
     stats_.log().warn("QTM event {}: expecting a disconnect", qtm::EventName(event));

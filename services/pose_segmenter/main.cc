@@ -1,6 +1,7 @@
 // ftcal-pose-segmenter: aligned samples and steady standing poses (pipeline item 2).
 #include <exception>
 
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "pose_segmenter/pose_segmenter_stage.h"
 
@@ -20,7 +21,7 @@ int main(int argc, char** argv) {
     ftcal::PoseSegmenterStage stage(app.config(), app.bus());
     return app.Run();
   } catch (const std::exception& e) {
-    app.log().critical("{}", e.what());
-    return 2;
+    app.log().critical("config: {}", e.what());
+    return ftcal::kExitConfig;
   }
 }

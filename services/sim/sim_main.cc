@@ -28,6 +28,7 @@
 
 #include <CLI/CLI.hpp>
 
+#include "common/default_config.h"
 #include "common/service.h"
 #include "ftcal/config.h"
 #include "ftcal/calibration_io.h"
@@ -457,8 +458,7 @@ int main(int argc, char** argv) {
 
   if (live->parsed()) {
     try {
-      if (config_path.empty()) config_path = ftcal::ServiceApp::DefaultConfigPath();
-      return RunLive(ftcal::LoadConfigFile(config_path), live_flags);
+      return RunLive(ftcal::LoadConfigOrDefault(config_path), live_flags);
     } catch (const std::exception& e) {
       std::fprintf(stderr, "ftcal-sim live: %s\n", e.what());
       return 1;
@@ -466,8 +466,7 @@ int main(int argc, char** argv) {
   }
 
   try {
-    if (config_path.empty()) config_path = ftcal::ServiceApp::DefaultConfigPath();
-    const ftcal::config::Config config = ftcal::LoadConfigFile(config_path);
+    const ftcal::config::Config config = ftcal::LoadConfigOrDefault(config_path);
     ftcal::TwinOptions twin_options;
     twin_options.seed = seed;
     twin_options.physical_com = physical_com;

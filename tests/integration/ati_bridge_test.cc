@@ -20,6 +20,7 @@
 #include <arpa/inet.h>
 #include <netinet/in.h>
 #include <poll.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 
 #include <gtest/gtest.h>
@@ -33,6 +34,10 @@
 #include "ftcal/config.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/service_status_t.hpp"
+
+// After Eigen (through ati_bridge.h): the split-mode httplib.h pulls in headers whose macros
+// break Eigen's templates when they come first.
+#include <httplib.h>
 
 namespace ftcal {
 namespace {
@@ -373,12 +378,20 @@ TEST_F(AtiBridgeTest, SilenceIsReportedDegradedAndRebootRereadsTheCalibrationPag
   const auto heard = collector.Samples();
   EXPECT_EQ(ExpectSamplesMatchTruth(heard, truth), static_cast<int>(heard.size()));
 
-  // The heartbeat went DEGRADED during the silence and back to RUNNING after it.
+  // The heartbeat went DEGRADED during the silence and back to RUNNING after it; while
+  // DEGRADED it said why (it once said nothing), and once healthy nothing.
   bool degraded = false, running_after = false;
   for (const auto& [s, when] : collector.Statuses()) {
     if (s.pid != bridge->pid()) continue;
-    if (s.state == service_status_t::DEGRADED) degraded = true;
-    if (degraded && s.state == service_status_t::RUNNING) running_after = true;
+    if (s.state == service_status_t::DEGRADED) {
+      degraded = true;
+      EXPECT_TRUE(s.last_error.rfind("HL: ", 0) == 0 || s.last_error.rfind("ML: ", 0) == 0)
+          << "'" << s.last_error << "'";
+    }
+    if (degraded && s.state == service_status_t::RUNNING) {
+      running_after = true;
+      EXPECT_EQ(s.last_error, "");
+    }
   }
   EXPECT_TRUE(degraded);
   EXPECT_TRUE(running_after);
@@ -471,7 +484,8 @@ TEST_F(AtiBridgeTest, RefusesToStreamWithoutTheCalibrationPage) {
   auto bridge = StartBridge("bridge", {"--legs", "HL"});
   const auto status = bridge->Wait(10);
   ASSERT_TRUE(status.has_value()) << "the bridge kept running without counts per unit";
-  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 3) << DescribeWaitStatus(*status);
+  // docs/exit-codes.md: 4, the device (its calibration page) cannot be read.
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 4) << DescribeWaitStatus(*status);
   const std::string err = ReadFile(Path("bridge.err"));
   EXPECT_NE(err.find("leg HL"), std::string::npos) << err;
   EXPECT_NE(err.find("http://127.0.1.1:8080/netftapi2.xml"), std::string::npos) << err;
@@ -678,6 +692,92 @@ TEST(AtiBridgeInProcess, UnknownLegAndBadSignAreRefusedByName) {
     EXPECT_NE(std::string(e.what()).find("ML"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("sign"), std::string::npos) << e.what();
   }
+}
+
+// A web server on loopback serving the calibration page the way a broken or hostile box might:
+// `body_bytes` bytes, `chunk` at a time, `pause_s` between chunks.
+class PageServer {
+ public:
+  PageServer(std::size_t body_bytes, std::size_t chunk, double pause_s) {
+    server_.Get("/netftapi2.xml", [=](const httplib::Request&, httplib::Response& res) {
+      res.set_content_provider(
+          body_bytes, "text/xml",
+          [=](std::size_t offset, std::size_t, httplib::DataSink& sink) {
+            static const std::string block(1 << 16, ' ');
+            if (stop_) return false;
+            if (pause_s > 0 && offset > 0) SleepS(pause_s);
+            const std::size_t n = std::min({chunk, block.size(), body_bytes - offset});
+            return sink.write(block.data(), n);
+          });
+    });
+    port_ = server_.bind_to_any_port("127.0.0.1");
+    thread_ = std::thread([this] { server_.listen_after_bind(); });
+    while (!server_.is_running()) SleepS(0.001);
+  }
+  ~PageServer() {
+    stop_ = true;
+    server_.stop();
+    thread_.join();
+  }
+  int port() const { return port_; }
+
+ private:
+  static void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+  httplib::Server server_;
+  std::thread thread_;
+  std::atomic<bool> stop_{false};
+  int port_ = 0;
+};
+
+// Starts a bridge for HL whose calibration page is served by `server`; returns the refusal and
+// how long Start() took.
+std::pair<std::string, double> StartAgainst(const PageServer& server) {
+  config::Config cfg = SimConfig();
+  auto* ati = cfg.mutable_robot()->mutable_leg(0)->mutable_ati();
+  ati->set_address("127.0.0.1");
+  ati->set_http_port(server.port());
+  auto log = std::make_shared<spdlog::logger>("ati-page", std::make_shared<spdlog::sinks::null_sink_mt>());
+  AtiBridge bridge(cfg, {"HL"}, [](const std::string&, const void*, int) {}, log);
+  const auto t0 = Clock::now();
+  std::string error;
+  try {
+    bridge.Start();
+  } catch (const AtiBridgeError& e) {
+    error = e.what();
+  }
+  return {error, std::chrono::duration<double>(Clock::now() - t0).count()};
+}
+
+long MaxRssKb() {
+  rusage u{};
+  ::getrusage(RUSAGE_SELF, &u);
+  return u.ru_maxrss;
+}
+
+// A 400 MB page took 538-833 MB of memory: the bridge stops reading at its cap (64 kB).
+TEST(AtiBridgeInProcess, AHugeCalibrationPageIsRefusedAtItsCapWithoutTheMemory) {
+  PageServer server(400u << 20, 1 << 16, 0.0);
+  const long before_kb = MaxRssKb();
+  const auto [error, seconds] = StartAgainst(server);
+  const long grew_kb = MaxRssKb() - before_kb;
+  std::printf("[ figure ] 400 MB calibration page: refused after %.3f s, peak RSS grew %ld kB\n",
+              seconds, grew_kb);
+  EXPECT_NE(error.find("larger than 65536 bytes"), std::string::npos) << error;
+  EXPECT_NE(error.find("leg HL"), std::string::npos) << error;
+  EXPECT_LT(grew_kb, 16 << 10) << "kB";
+  EXPECT_LT(seconds, 1.0);
+}
+
+// A page trickling a byte every 0.5 s held start-up for 30 s: one deadline (http_timeout_s,
+// 1 s) now covers the whole fetch.
+TEST(AtiBridgeInProcess, ATricklingCalibrationPageIsRefusedAtTheDeadline) {
+  PageServer server(60, 1, 0.5);
+  const auto [error, seconds] = StartAgainst(server);
+  std::printf("[ figure ] calibration page trickling 1 byte / 0.5 s: refused after %.3f s\n",
+              seconds);
+  EXPECT_NE(error.find("not read within 1 s"), std::string::npos) << error;
+  EXPECT_GE(seconds, 0.9);
+  EXPECT_LT(seconds, 1.8);
 }
 
 }  // namespace

@@ -5,7 +5,7 @@ if(TARGET ftcal-emulate-ati AND TARGET ftcal-ati-bridge)
   add_executable(ati_bridge_test "${CMAKE_CURRENT_LIST_DIR}/ati_bridge_test.cc")
   target_link_libraries(ati_bridge_test PRIVATE
     ftcal_ati_bridge ftcal_ati_emulator libcal ftcal_lcmtypes ftcal_child_process
-    GTest::gtest GTest::gtest_main Threads::Threads)
+    PkgConfig::HTTPLIB GTest::gtest GTest::gtest_main Threads::Threads)
   target_compile_definitions(ati_bridge_test PRIVATE
     FTCAL_EMULATE_ATI="$<TARGET_FILE:ftcal-emulate-ati>"
     FTCAL_ATI_BRIDGE="$<TARGET_FILE:ftcal-ati-bridge>"

@@ -295,7 +295,8 @@ TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
   EXPECT_EQ(run.Counter("frame_restarts"), 1);
   EXPECT_EQ(run.Counter("connects"), 2);
   EXPECT_EQ(run.Counter("disconnects"), 1);
-  EXPECT_EQ(run.Counter("parameter_reads"), 2);  // redone on the new connection
+  // Redone at the new measurement (capture started) and on the new connection.
+  EXPECT_EQ(run.Counter("parameter_reads"), 3);
   EXPECT_EQ(run.Counter("published"), static_cast<int64_t>(run.published.size()));
   auto saw = [&](const std::string& needle) {
     return std::any_of(run.health.begin(), run.health.end(), [&](const std::string& r) {
@@ -342,6 +343,31 @@ TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
     ++matched;
   }
   EXPECT_GE(matched, 100);
+}
+
+// §3.10: QTM not capturing sends No More Data, then nothing until the next measurement. The
+// bridge once reconnected every silence_reconnect_s meanwhile; it keeps the connection and
+// picks the stream up at the capture-started event.
+TEST(MocapBridgeTest, NotCapturingKeepsTheConnectionAndResumesAtCaptureStarted) {
+  auto eo = EmulatorOptions(200);
+  eo.faults.no_more_data = {{100, 300}};  // 1.5 s not capturing
+  MocapBridgeOptions bo;
+  bo.address = "127.0.0.1";
+  bo.silence_reconnect_s = 0.5;  // shorter than the pause
+  PairRun run = RunWithBridge(eo, 600, bo);
+  EXPECT_EQ(run.Counter("no_more_data"), 1);
+  EXPECT_EQ(run.Counter("connects"), 1) << "reconnected while QTM was not capturing";
+  EXPECT_EQ(run.Counter("disconnects"), 0);
+  EXPECT_EQ(run.Counter("timeouts"), 0);
+  EXPECT_EQ(run.Counter("parameter_reads"), 2) << "the new measurement's parameters";
+  EXPECT_EQ(run.Counter("frame_restarts"), 1);
+  ASSERT_FALSE(run.published.empty());
+  // The new measurement's frames were published: numbering restarted at tick 400.
+  const auto sent = ByFrame(run.sent);
+  const mocap_body_t& last = run.published.back();
+  ASSERT_TRUE(sent.count(last.frame_number));
+  EXPECT_EQ(sent.at(last.frame_number)->tick, 599);
+  EXPECT_EQ(run.health.back(), "") << "healthy again at the end";
 }
 
 TEST(MocapBridgeTest, RefusedVersionIsAConfigurationErrorNotAFallback) {

@@ -3,6 +3,7 @@
 // a log (--replay/--out) whose output is checked event by event against hand-computed values.
 #include <signal.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -10,16 +11,20 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <sstream>
 #include <thread>
 
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
 #include <spdlog/sinks/null_sink.h>
+#include <spdlog/sinks/ostream_sink.h>
 #include <spdlog/spdlog.h>
 
 #include "child_process.h"
+#include "common/atomic_log.h"
 #include "common/bus.h"
 #include "common/heartbeat.h"
+#include "common/service.h"
 #include "common/shutdown.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
@@ -56,6 +61,121 @@ std::vector<uint8_t> Encode(const Msg& msg) {
   std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
   msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
   return bytes;
+}
+
+// ---- ServiceStats ----
+
+// A box refusing after a reboot flooded the log with 3025 identical lines: a repeated kind is
+// logged once, then at most once per period with how many came since; last_error is current.
+TEST(ServiceStatsTest, RepeatsAreLoggedOncePerPeriodWithTheirCount) {
+  std::ostringstream out;
+  auto log = std::make_shared<spdlog::logger>(
+      "stats", std::make_shared<spdlog::sinks::ostream_sink_st>(out));
+  log->set_pattern("%v");
+  ServiceStats stats(log, std::chrono::milliseconds(200));
+  for (int i = 0; i < 1000; ++i) stats.Error("box refused", "connection refused #" + std::to_string(i));
+  for (int i = 0; i < 10; ++i) stats.Drop("bad record", "short");
+  auto lines = [&] {
+    std::vector<std::string> v;
+    std::istringstream in(out.str());
+    for (std::string l; std::getline(in, l);) v.push_back(l);
+    return v;
+  };
+  ASSERT_EQ(lines().size(), 2u) << out.str();
+  EXPECT_EQ(stats.last_error(), "box refused: connection refused #999");
+  std::this_thread::sleep_for(std::chrono::milliseconds(250));
+  stats.Error("box refused", "connection refused #1000");
+  ASSERT_EQ(lines().size(), 3u) << out.str();
+  EXPECT_EQ(lines()[2],
+            "box refused: 1000 more since the last line (1001 in all); latest: connection refused #1000");
+  EXPECT_EQ(stats.kinds().at("box refused"), 1001);
+  EXPECT_EQ(stats.errors(), 1001);
+  stats.ClearLastError();
+  EXPECT_EQ(stats.last_error(), "");
+}
+
+// ---- the LCM URL ----
+
+TEST(LcmUrlTest, TtlAboveZeroAndARecvBufferAboveTheKernelLimitAreNamed) {
+  EXPECT_TRUE(LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=0", 212992).empty());
+  EXPECT_TRUE(LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=0&recv_buf_size=212992", 212992).empty());
+  EXPECT_TRUE(LcmUrlWarnings("memq://", 0).empty());
+  const auto ttl = LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=1", 212992);
+  ASSERT_EQ(ttl.size(), 1u);
+  EXPECT_NE(ttl[0].find("ttl=1 sends every message"), std::string::npos) << ttl[0];
+  const auto buf = LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=0&recv_buf_size=8388608", 212992);
+  ASSERT_EQ(buf.size(), 1u);
+  EXPECT_NE(buf[0].find("recv_buf_size=8388608 but the kernel allows 212992 bytes"),
+            std::string::npos)
+      << buf[0];
+  EXPECT_NE(buf[0].find("sysctl -w net.core.rmem_max=8388608"), std::string::npos) << buf[0];
+}
+
+// ---- AtomicLogFile's temporary file ----
+
+// A pid that was alive a moment ago and is not any more.
+pid_t DeadPid() {
+  const pid_t pid = ::fork();
+  if (pid == 0) ::_exit(0);
+  ::waitpid(pid, nullptr, 0);
+  return pid;
+}
+
+bool Exists(const std::string& path) {
+  struct stat st {};
+  return ::lstat(path.c_str(), &st) == 0;
+}
+
+// kill -9 of each stage left 1.3 GB of *.tmp.<pid> files: the temporary file is beside the
+// target under a name no one can predict, gone after an uncommitted run, and a new run of the
+// same output removes what dead runs left (and only that).
+TEST(AtomicLogFileTest, TemporaryFileBesideTheTargetAndLeftoversOfDeadRunsRemoved) {
+  const std::string dir = testing::MakeTempDir();
+  const std::string out = dir + "/out.lcmlog";
+  const std::string dead = dir + "/.out.lcmlog.tmp." + std::to_string(DeadPid()) + ".Ab12Cd";
+  const std::string alive = dir + "/.out.lcmlog.tmp." + std::to_string(::getppid()) + ".Ef34Gh";
+  const std::string other = dir + "/.other.lcmlog.tmp." + std::to_string(DeadPid()) + ".Ij56Kl";
+  for (const auto& p : {dead, alive, other}) std::ofstream(p) << "leftover";
+  {
+    AtomicLogFile log(out, "test output");
+    EXPECT_FALSE(Exists(dead)) << "a dead run's leftover of this output stays";
+    EXPECT_TRUE(Exists(alive)) << "a running writer's file was removed";
+    EXPECT_TRUE(Exists(other)) << "another output's file was removed";
+    const std::string prefix = dir + "/.out.lcmlog.tmp." + std::to_string(::getpid()) + ".";
+    EXPECT_EQ(log.temp_path().compare(0, prefix.size(), prefix), 0) << log.temp_path();
+    EXPECT_EQ(log.temp_path().size(), prefix.size() + 6);
+    EXPECT_TRUE(Exists(log.temp_path()));
+    log.Write(1, "CH", "abc", 3);
+  }
+  EXPECT_FALSE(Exists(out)) << "an uncommitted log appeared under the final name";
+  std::vector<std::string> names;
+  for (const auto& e : std::filesystem::directory_iterator(dir)) names.push_back(e.path().filename());
+  EXPECT_EQ(names.size(), 2u) << "the uncommitted temporary file stayed";
+  {
+    AtomicLogFile log(out, "test output");
+    log.Write(1, "CH", "abc", 3);
+    log.Commit();
+    EXPECT_FALSE(Exists(log.temp_path()));
+    struct stat st {};
+    ASSERT_EQ(::stat(out.c_str(), &st), 0);
+    EXPECT_EQ(st.st_mode & 0777, 0644u);
+  }
+  // An output that cannot be written is known before any work: the constructor refuses.
+  try {
+    AtomicLogFile log(dir + "/no/such/dir/out.lcmlog", "test output");
+    ADD_FAILURE() << "a log in a missing directory was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("cannot create a file in '" + dir + "/no/such/dir'"),
+              std::string::npos)
+        << e.what();
+  }
+  try {
+    AtomicLogFile log(dir, "test output");
+    ADD_FAILURE() << "a directory as the output was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("is a directory"), std::string::npos) << e.what();
+  }
+  testing::RemoveTree(dir);
 }
 
 // ---- the bus on memq:// ----
@@ -397,20 +517,20 @@ TEST_F(ReplayStageTest, AMissingInputIsRefusedAndNoOutputIsLeft) {
               Path("stage.out"), Path("stage.err"));
   const auto rc = stage.Wait(30);
   ASSERT_TRUE(rc.has_value());
-  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 1");
+  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 4");  // docs/exit-codes.md: I/O
   const std::string err = ReadFile(Path("stage.err"));
   EXPECT_NE(err.find(Path("absent.lcmlog")), std::string::npos) << err;
   EXPECT_NE(err.find("No such file"), std::string::npos) << err;
   EXPECT_FALSE(std::filesystem::exists(out_path));
 }
 
-TEST_F(ReplayStageTest, ABadConfigFileExitsTwoNamingTheFile) {
+TEST_F(ReplayStageTest, ABadConfigFileExitsThreeNamingTheFile) {
   const std::string config = Path("bad.pbtxt");
   std::ofstream(config) << "lcm_url: \"memq://\"\nno_such_field: 3\n";
   Child stage({FTCAL_ECHO_STAGE, "--config", config}, Path("stage.out"), Path("stage.err"));
   const auto rc = stage.Wait(30);
   ASSERT_TRUE(rc.has_value());
-  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 2");
+  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 3");  // docs/exit-codes.md: config
   const std::string err = ReadFile(Path("stage.err"));
   EXPECT_NE(err.find(config + ":2:"), std::string::npos) << err;
   EXPECT_NE(err.find("no_such_field"), std::string::npos) << err;
@@ -424,6 +544,37 @@ TEST_F(ReplayStageTest, ReplayFlagsMustComeTogether) {
   EXPECT_NE(DescribeWaitStatus(*rc), "exit 0");
   EXPECT_NE(ReadFile(Path("stage.err")).find("--out"), std::string::npos)
       << ReadFile(Path("stage.err"));
+}
+
+// docs/exit-codes.md: a bad flag is usage (1) in every program, whatever CLI11 calls it; an
+// invalid --log-level is one (it once silenced all logging, and a refusal then exited with no
+// message); --help shows the table.
+TEST_F(ReplayStageTest, BadFlagsExitOneAndHelpListsTheExitCodes) {
+  for (const std::vector<std::string>& args :
+       {std::vector<std::string>{"--log-level", "verbose"},
+        std::vector<std::string>{"--replay", Path("x.lcmlog")},
+        std::vector<std::string>{"--no-such-flag"}}) {
+    std::vector<std::string> argv = {FTCAL_ECHO_STAGE};
+    argv.insert(argv.end(), args.begin(), args.end());
+    Child stage(argv, Path("stage.out"), Path("stage.err"));
+    const auto rc = stage.Wait(30);
+    ASSERT_TRUE(rc.has_value());
+    EXPECT_EQ(DescribeWaitStatus(*rc), "exit 1") << args[0];
+  }
+  EXPECT_NE(ReadFile(Path("stage.err")).find("--no-such-flag"), std::string::npos);
+  {
+    Child stage({FTCAL_ECHO_STAGE, "--log-level", "verbose"}, Path("stage.out"), Path("stage.err"));
+    ASSERT_TRUE(stage.Wait(30).has_value());
+    const std::string err = ReadFile(Path("stage.err"));
+    EXPECT_NE(err.find("--log-level"), std::string::npos) << err;
+    EXPECT_NE(err.find("verbose"), std::string::npos) << err;
+  }
+  Child help({FTCAL_ECHO_STAGE, "--help"}, Path("help.out"), Path("help.err"));
+  const auto rc = help.Wait(30);
+  ASSERT_TRUE(rc.has_value());
+  EXPECT_EQ(DescribeWaitStatus(*rc), "exit 0");
+  EXPECT_NE(ReadFile(Path("help.out")).find("Exit codes: 0 done; 1 usage"), std::string::npos)
+      << ReadFile(Path("help.out"));
 }
 
 }  // namespace

@@ -382,5 +382,24 @@ TEST(RdtCalibrationPage, BadPagesRefused) {
   ExpectRefused("", "malformed XML");
 }
 
+// Counts per unit of 1e300 turned every force into 0: refused, naming the value and the range
+// the rated ranges allow (130 N and 400 N must each span 2^10 .. 2^31 counts:
+// 1024/130 = 7.87692 .. 2^31/400 = 5368709.12 counts/N).
+TEST(RdtCalibrationPage, ImplausibleCountsPerUnitRefusedWithValueAndRange) {
+  const std::string xml = ReadFile(kDataDir + "/netftapi2.xml");
+  ExpectRefused(Replace(xml, "<cfgcpf>1000000</cfgcpf>", "<cfgcpf>1e300</cfgcpf>"), "1e+300");
+  ExpectRefused(Replace(xml, "<cfgcpf>1000000</cfgcpf>", "<cfgcpf>1e300</cfgcpf>"),
+                "[7.87692, 5.36871e+06]");
+  ExpectRefused(Replace(xml, "<cfgcpf>1000000</cfgcpf>", "<cfgcpf>7.8</cfgcpf>"), "(cfgcpf) 7.8 ");
+  ExpectRefused(Replace(xml, "<cfgcpt>1000000</cfgcpt>", "<cfgcpt>1e9</cfgcpt>"),
+                "[102.4, 2.14748e+08]");
+  // The edges are plausible: exactly 2^10 and 2^31 - 1 counts over the largest rated range.
+  EXPECT_NO_THROW(CheckCountsPerUnit(1024.0 / 130, 102.4, {130, 130, 400, 10, 10, 10}, "x"));
+  EXPECT_NO_THROW(CheckCountsPerUnit(2147483647.0 / 400, 2147483647.0 / 10,
+                                     {130, 130, 400, 10, 10, 10}, "x"));
+  // A rated range of 1e-300 N would need 1e303 counts/N to span 2^10 counts: refused.
+  EXPECT_THROW(CheckCountsPerUnit(1e6, 1e6, {130, 130, 1e-300, 10, 10, 10}, "x"), RdtError);
+}
+
 }  // namespace
 }  // namespace ftcal::rdt

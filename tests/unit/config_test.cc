@@ -232,6 +232,17 @@ TEST(Config, RangeChecks) {
       {"\n}\n", "\n}\ndynamixel { baud: 1000000 }\n", "dynamixel.device: required field is missing"},
       {"\n}\n", "\n}\nchannels { status: \"\" }\n", "channels.status: channel name must not be empty"},
       {"\n}\n", "\n}\nlcm_url: \"\"\n", "lcm_url: must not be empty"},
+      // Absurd values a typo makes (issue 14): refused with the field named.
+      {"total_mass_kg: 8.18", "total_mass_kg: 8180", "robot.total_mass_kg: must be at most 1000 kg"},
+      {"x: 0.2 y: -0.15", "x: 2000 y: -0.15", "robot.leg[5].x_b_ft.translation_m: is 2000"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" rated_range: [130, 130, 400, 10, 10, 1e-300] }",
+       "robot.leg[5].ati.rated_range[5]: must be in [0.001, 1000000] N or N*m, got 1e-300"},
+      {"\n}\n", "\n}\nsegmenter { savgol_window: 100001 }\n",
+       "segmenter.savgol_window: spans 1000.01 s at sample_rate_hz 100; at most 60 s, got 100001"},
+      {"\n}\n", "\n}\nchannels { contact_wrench: \"SYNC_SAMPLE\" }\n",
+       "channels.contact_wrench: channel 'SYNC_SAMPLE' is also channels.sync_sample"},
+      {"\n}\n", "\n}\nchannels { ft_prefix: \"SERVO_\" servo_state: \"SERVO_HL\" }\n",
+       "channels.servo_state: channel 'SERVO_HL' is also channels.ft_prefix (SERVO_HL)"},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.to);

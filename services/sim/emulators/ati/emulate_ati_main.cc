@@ -24,15 +24,14 @@
 
 #include <CLI/CLI.hpp>
 
+#include "common/default_config.h"
+#include "common/exit_codes.h"
 #include "ati_emulator.h"
 #include "ftcal/config.h"
 #include "ftcal/legs.h"
 #include "sim/live.h"
 #include "sim/twin.h"
 
-#ifndef FTCAL_SOURCE_DIR
-#error "FTCAL_SOURCE_DIR must be defined by the build"
-#endif
 
 namespace {
 
@@ -79,7 +78,7 @@ int main(int argc, char** argv) {
       "http_port, streaming the counts of a twin scenario in real time. Writes the truth "
       "series (every record generated and the fault applied to it) to --truth at exit.",
       "ftcal-emulate-ati");
-  std::string config_path = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
+  std::string config_path;  // empty: the built-in config/sim.pbtxt
   std::string legs_flag;
   std::string scenario = "walk";
   double duration_s = 0;
@@ -118,10 +117,11 @@ int main(int argc, char** argv) {
   cli.add_flag("--no-http", no_http, "serve no calibration page");
   cli.add_option("--truth", truth_path, "CSV of every record generated, written at exit");
   cli.add_option("--ready", ready_path, "file written once every endpoint is bound");
-  CLI11_PARSE(cli, argc, argv);
+  cli.footer(ftcal::ExitCodeTable());
+  if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
   try {
-    const ftcal::config::Config config = ftcal::LoadConfigFile(config_path);
+    const ftcal::config::Config config = ftcal::LoadConfigOrDefault(config_path);
     std::vector<int> legs;
     if (legs_flag.empty()) {
       for (int k = 0; k < ftcal::kNumLegs; ++k) legs.push_back(k);

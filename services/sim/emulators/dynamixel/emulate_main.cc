@@ -20,6 +20,8 @@
 
 #include <CLI/CLI.hpp>
 
+#include "common/default_config.h"
+#include "common/exit_codes.h"
 #include "dynamixel_emulator.h"
 #include "ftcal/config.h"
 #include "ftcal/legs.h"
@@ -125,11 +127,11 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber);
   cli.add_option("--tick-start", tick_start_ms, "Realtime Tick at start, ms (to test its wrap)")
       ->check(CLI::Range(0, 32767));
-  CLI11_PARSE(cli, argc, argv);
+  cli.footer(ftcal::ExitCodeTable());
+  if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
   try {
-    if (config_path.empty()) config_path = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
-    const ftcal::config::Config config = ftcal::LoadConfigFile(config_path);
+    const ftcal::config::Config config = ftcal::LoadConfigOrDefault(config_path);
 
     ftcal::sim::DxlEmulatorOptions options;
     options.ids.clear();

@@ -11,6 +11,8 @@
 #include <iostream>
 #include <sstream>
 
+#include "common/default_config.h"
+#include "common/exit_codes.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 #include "qtm_emulator.h"
@@ -42,7 +44,7 @@ int main(int argc, char** argv) {
       "BigAnt twin's chassis pose and markers in real time, with fault injection. Writes the "
       "frames it sent to --truth (CSV, atomically) when it ends.",
       "ftcal-emulate-qtm");
-  std::string config_path = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
+  std::string config_path;  // empty: the built-in config/sim.pbtxt
   std::string scenario = "walk";
   double duration_s = 10.0;
   double rate_hz = 100.0;
@@ -92,7 +94,8 @@ int main(int argc, char** argv) {
   cli.add_flag("--reorder-bodies", reorder_bodies,
                "swap the chassis and a decoy body in the 6D list at every settings change and "
                "restart, so a client must re-map bodies by name");
-  CLI11_PARSE(cli, argc, argv);
+  cli.footer(ftcal::ExitCodeTable());
+  if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
   try {
     faults.seed = seed;
@@ -106,7 +109,7 @@ int main(int argc, char** argv) {
     }
     for (double t : settings_changed) faults.settings_changed.push_back(std::llround(t * rate_hz));
 
-    const ftcal::config::Config config = ftcal::LoadConfigFile(config_path);
+    const ftcal::config::Config config = ftcal::LoadConfigOrDefault(config_path);
     ftcal::TwinOptions twin_options;
     twin_options.seed = seed;
     const ftcal::BigAntTwin twin(config, twin_options);

@@ -399,6 +399,8 @@ void QtmEmulator::Tick() {
   if (k > 0 && !no_data && InAny(f.no_more_data, k - 1)) {  // a new measurement begins
     frame_base_ = static_cast<int32_t>(k);
     skipped_ = 0;
+    ++counters_.events_sent;
+    Broadcast(EventPacket(qtm::kEventCaptureStarted));
   }
 
   std::optional<QtmPose> pose = source_(k);
