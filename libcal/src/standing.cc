@@ -30,7 +30,6 @@
 #include <Eigen/Cholesky>
 #include <Eigen/SVD>
 #include <ceres/ceres.h>
-#include <ceres/covariance.h>
 #include <ceres/manifold.h>
 #include <ceres/product_manifold.h>
 
@@ -532,54 +531,78 @@ StandingFit FitFromParams(StandingModel model, const Params& p, bool cayley) {
   return fit;
 }
 
-// sigma from ceres::Covariance at the solution, scaled by the residual variance
-// RSS / (6 P - DOF) (the weights K are not inverse noise variances, so the unscaled
-// covariance would have arbitrary units).
+// sigma from the sandwich covariance C = H^-1 M H^-1 at the solution, H = J^T J and
+// M = sum_rows s2_row J_row^T J_row (J the K-weighted Jacobian in the tangent space). s2 of a pose
+// row is the residual variance of its component [fx fy fz tx ty tz] over the poses (sum of the
+// squared weighted residuals / (P - DOF / 6)); of a hanging-prior row the pooled
+// RSS / (6 P - DOF) its weight was set with. Why not s2 H^-1 with one pooled s2 (the plain scaled
+// covariance): the components' noise differs by an order of magnitude (motion-capture attitude
+// noise lands in fx, fy only), so one pooled variance made the force-determined parameters (the
+// common yaw of R~) overconfident and the torque-determined ones (p~') far too cautious (twin
+// coverage of +-2 sigma 99.7 %). With equal variances the two agree. Both grow with the misfit.
 void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFit* fit,
                    const StandingOptions& options) {
   Params params = ParamsFromFit(*fit);
   Built b = Build(prep, ids, fit->model, false, true, true, &params, options, true);
-  ceres::Covariance::Options co;
-  co.algorithm_type = ceres::DENSE_SVD;
-  co.null_space_rank = 0;
-  co.num_threads = 1;
-  ceres::Covariance cov(co);
-  std::vector<std::pair<const double*, const double*>> pairs;
-  for (double* blk : b.free_blocks) pairs.emplace_back(blk, blk);
-  if (!cov.Compute(pairs, b.problem.get())) {
+  ceres::Problem::EvaluateOptions eo;
+  eo.parameter_blocks = b.free_blocks;
+  eo.apply_loss_function = true;
+  std::vector<double> res;
+  ceres::CRSMatrix crs;
+  b.problem->Evaluate(eo, nullptr, &res, nullptr, &crs);
+  Eigen::MatrixXd J = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
+  for (int r = 0; r < crs.num_rows; ++r) {
+    for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i) J(r, crs.cols[i]) = crs.values[i];
+  }
+  // Pose residual blocks come first (Build adds them before the prior's), six rows each.
+  const int pose_rows = 6 * static_cast<int>(ids.size());
+  const double P = static_cast<double>(ids.size());
+  const double dof_per_row = static_cast<double>(fit->dof) / 6.0;
+  Vec6 s2c = Vec6::Zero();
+  for (int r = 0; r < pose_rows; ++r) s2c[r % 6] += res[r] * res[r];
+  s2c /= std::max(1.0, P - dof_per_row);
+  const Eigen::MatrixXd H = J.transpose() * J;
+  Eigen::MatrixXd M = Eigen::MatrixXd::Zero(H.rows(), H.cols());
+  for (int r = 0; r < J.rows(); ++r) {
+    const double s2 = r < pose_rows ? s2c[r % 6] : fit->residual_variance;
+    M.noalias() += s2 * J.row(r).transpose() * J.row(r);
+  }
+  const Eigen::LDLT<Eigen::MatrixXd> ldlt(H);
+  const Eigen::VectorXd d = ldlt.vectorD();
+  if (ldlt.info() != Eigen::Success || !(d.minCoeff() > 1e-14 * std::max(1.0, d.maxCoeff()))) {
     throw std::invalid_argument(std::string("standing step: covariance of model ") +
                                 StandingModelName(fit->model) +
                                 " is singular at the solution: the poses do not determine it");
   }
-  const double s2 = fit->residual_variance;
+  const Eigen::MatrixXd Hinv = ldlt.solve(Eigen::MatrixXd::Identity(H.rows(), H.cols()));
+  const Eigen::MatrixXd C = Hinv * M * Hinv;
   for (int k = 0; k < kNumLegs; ++k) {
     fit->sigma_rotation_deg[k].setZero();
     fit->sigma_p_tilde_prime_m[k].setZero();
   }
   fit->sigma_p_C_B_m.setZero();
+  int col = 0;
   if (HasRotations(fit->model)) {
-    Eigen::Matrix<double, 18, 18, Eigen::RowMajor> c;
-    cov.GetCovarianceBlockInTangentSpace(b.rot, b.rot, c.data());
     for (int k = 0; k < kNumLegs; ++k) {
       for (int i = 0; i < 3; ++i) {
+        const int j = 3 * k + i;
         fit->sigma_rotation_deg[k][i] = kQuaternionTangentToRotationVector *
-                                        std::sqrt(std::max(0.0, s2 * c(3 * k + i, 3 * k + i))) *
-                                        kRadToDeg;
+                                        std::sqrt(std::max(0.0, C(j, j))) * kRadToDeg;
       }
     }
+    col = 18;
   }
   if (SharedTranslation(fit->model)) {
-    Eigen::Matrix<double, 3, 3, Eigen::RowMajor> c;
-    cov.GetCovarianceBlock(b.trans, b.trans, c.data());
-    for (int i = 0; i < 3; ++i) fit->sigma_p_C_B_m[i] = std::sqrt(std::max(0.0, s2 * c(i, i)));
+    for (int i = 0; i < 3; ++i) {
+      fit->sigma_p_C_B_m[i] = std::sqrt(std::max(0.0, C(col + i, col + i)));
+    }
     // p~'_k = R~_k^T p^C_B: R~ is within degrees of I, so its sigma is p^C_B's to first order.
     for (int k = 0; k < kNumLegs; ++k) fit->sigma_p_tilde_prime_m[k] = fit->sigma_p_C_B_m;
   } else {
-    Eigen::Matrix<double, 18, 18, Eigen::RowMajor> c;
-    cov.GetCovarianceBlock(b.trans, b.trans, c.data());
     for (int k = 0; k < kNumLegs; ++k) {
       for (int i = 0; i < 3; ++i) {
-        fit->sigma_p_tilde_prime_m[k][i] = std::sqrt(std::max(0.0, s2 * c(3 * k + i, 3 * k + i)));
+        const int j = col + 3 * k + i;
+        fit->sigma_p_tilde_prime_m[k][i] = std::sqrt(std::max(0.0, C(j, j)));
       }
     }
   }

@@ -87,9 +87,10 @@ double Rms(const std::vector<Vec6>& residuals, const Vec6& k) {
 // The common yaw of the six R~ is seen by the standing poses only through the chassis tilt
 // (< 3 deg): a yaw of every transducer about z leaves a vertical total force unchanged. From
 // the poses alone (exact hanging rotations, no gravity prior) it comes out ~0.17 deg off on the
-// default seed, 2.2 reported sigma: probes with the twin's noise sources switched off one at a
-// time traced it to the motion capture attitude noise, which lands in the horizontal forces
-// only while the covariance pools one residual variance over all six components. The hanging
+// default seed: probes with the twin's noise sources switched off one at a time traced it to the
+// motion capture attitude noise, which lands in the horizontal forces only. With one residual
+// variance pooled over the six components it was 2.2 reported sigma; the per-component sandwich
+// covariance (standing.cc, AddCovariance) reports it as 1.6 sigma. The hanging
 // gravity prior (ftcal's method) sees that yaw directly and removes the problem; this check
 // shows, for the poses alone, every leg's tilt (x, y) and rotation relative to the common yaw
 // within 0.15 deg and the common yaw within 3 reported sigma.
@@ -216,8 +217,8 @@ void CheckResidualAtTheNoiseFloorAndBaselinesWorse() {
               "%.4f (ratio %.3f); step 1 only %.4f (ratio %.1f); naive tare %.4f (ratio %.1f)\n",
               s.poses.size(), truth_rms, exact, exact / truth_rms, first, first / truth_rms,
               without, without / truth_rms, naive, naive / truth_rms);
-  // Per component (K-weighted): the mocap attitude noise lands in fx, fy only, so the
-  // covariance's one pooled residual variance understates it there (see the common yaw).
+  // Per component (K-weighted): the mocap attitude noise lands in fx, fy only (why the
+  // covariance takes each component's residual variance; see the common yaw).
   const calibration::ResidualStats stats =
       ResidualStatsOf("full", DefaultFtcal().standing.residual_full);
   std::printf("recovery: ftcal: sqrt(K) * rms residual per component [fx fy fz tx ty "
