@@ -89,6 +89,8 @@ TEST(Coverage, TrueValuesWithinTwoReportedSigmas) {
   for (const auto& [name, t] : by_class) {
     std::printf("coverage: %-14s %4d/%4d within 2 sigma = %.1f%%\n", name.c_str(), t.inside,
                 t.total, t.Percent());
+    EXPECT_GE(t.Percent(), 85.0) << name;
+    EXPECT_LE(t.Percent(), 99.0) << name;
     all.inside += t.inside;
     all.total += t.total;
   }
