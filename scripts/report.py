@@ -165,17 +165,69 @@ def save(fig, outdir, name):
 
 
 def plot_residual_violins(res, outdir):
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
-    for i, ax in enumerate(axes.flat):
-        data = [res[v][:, i] for v in VARIANTS]
-        ax.violinplot(data, showmedians=True)
-        ax.set_xticks([1, 2, 3])
-        ax.set_xticklabels(["naive", "without T~", "full"])
-        ax.set_title(COMPONENTS[i])
-        ax.axhline(0.0, color="gray", lw=0.5)
-    fig.suptitle("Residual of the total wrench at the CoM in W, per steady pose")
+    """One axis per panel (variant x component): the naive tare's residuals are tens of times
+    the calibration's, and on a shared axis the calibrated violins would be flat lines."""
+    labels = {"naive tare": "naive tare", "without T~": "without T~ (step 1 only)",
+              "full calibration": "full calibration"}
+    fig, axes = plt.subplots(len(VARIANTS), 6, figsize=(15, 7.5))
+    for r, v in enumerate(VARIANTS):
+        for i in range(6):
+            ax = axes[r, i]
+            ax.violinplot([res[v][:, i]], showmedians=True)
+            ax.set_xticks([])
+            ax.axhline(0.0, color="gray", lw=0.5)
+            ax.tick_params(labelsize=7)
+            if r == 0:
+                ax.set_title(COMPONENTS[i], fontsize=9)
+            if i == 0:
+                ax.set_ylabel(labels[v], fontsize=8)
+    fig.suptitle("Residual of the total wrench at the CoM in W, per steady pose "
+                 "(each panel its own scale)")
     fig.tight_layout()
     return save(fig, outdir, "residuals_violin.png")
+
+
+def leg_table_rows(cal):
+    """The report's Table II per leg: value +- sigma of every per-leg estimate."""
+    def pm(v, s, scale=1.0, digits=4):
+        return f"{fmt(scale * v, digits)} ± {fmt(scale * s, 2)}"
+    rows = []
+    for leg in cal.leg:
+        f, t = leg.force_offset_n, leg.torque_offset_nm
+        r, p = leg.mounting.rotation_vector_deg, leg.mounting.p_tilde_prime_m
+        rows.append([leg.name] + [pm(getattr(f, a), getattr(f, "sigma_" + a)) for a in "xyz"]
+                    + [pm(getattr(t, a), getattr(t, "sigma_" + a)) for a in "xyz"]
+                    + [pm(leg.leg_weight_n.value, leg.leg_weight_n.sigma)]
+                    + [pm(getattr(r, a), getattr(r, "sigma_" + a)) for a in "xyz"]
+                    + [pm(getattr(p, a), getattr(p, "sigma_" + a), 1e3) for a in "xyz"]
+                    + [leg.saturated_samples, leg.saturated_poses])
+    return rows
+
+
+LEG_TABLE_HEADER = (["leg"] + [f"f_o {a} (N)" for a in "xyz"] + [f"τ_o {a} (N m)" for a in "xyz"]
+                    + ["m g (N)"] + [f"R̃ {a} (deg)" for a in "xyz"]
+                    + [f"p̃' {a} (mm)" for a in "xyz"] + ["saturated samples", "saturated poses"])
+
+GLOSSARY = [
+    ("T̃ = (R̃, p̃)", "the mounting error of a transducer: its true pose in the body frame is "
+     "T̃ times the nominal one (design files). R̃ is shown as a rotation vector; p̃' = "
+     "R̃ᵀ(p̃ + p^C_B) is what step 2 estimates. T̃ acts about the body origin, so a tilt alone "
+     "makes p̃' about a centimetre."),
+    ("s (s⁺, s⁻)", "small misalignments of the transducer against gravity in the hanging "
+     "series (the report's eq. 4-7): s⁺ the mean of the two series of a pair, s⁻ half their "
+     "difference."),
+    ("phase φ", "where a leg is in its rotation: φ = θ / 2π wrapped to [0, 1), θ the shaft "
+     "angle, 0 with the leg straight down. The leg's CoM r(φ) is a function of it."),
+    ("naive tare", "the baseline: offsets = the reading with all feet in the air, no leg "
+     "gravity model, nominal mounting."),
+    ("without T~", "step 1 only (offsets, leg weights and CoM from hanging), nominal mounting."),
+    ("robot CoM: fixed / leg-aware", "the balance target of step 2: about a fixed C (the "
+     "report), or about the CoM as it moves with the legs (m_k, r_k(φ) from step 1)."),
+    ("BIC, ΔBIC", "P ln(RSS/P) + DOF ln P over the P standing poses; lowest wins, ΔBIC is a "
+     "row's distance from the winner."),
+    ("noise floor", "what the poses' own within-pose scatter lets the residual be; a residual "
+     "far above it means the model misses something the data sees."),
+]
 
 
 def hanging_stats(cal):
@@ -331,8 +383,38 @@ def main():
             row += [fmt(t), fmt((v - t) / s, 2) if s > 0 else "-"]
         est_rows.append(row)
 
-    model_rows = [["*" if r.selected else "", calibration_pb2.StandingModel.Name(r.model), r.dof,
-                   fmt(r.cv_mse), fmt(r.rss), fmt(r.bic)] for r in cal.model_selection]
+    model_rows = [["*" if r.selected else "", calibration_pb2.StandingModel.Name(r.model),
+                   "leg-aware" if r.leg_aware_com else "fixed", r.dof,
+                   fmt(r.cv_mse), fmt(r.rss), fmt(r.bic), f"{r.delta_bic:.1f}"]
+                  for r in cal.model_selection]
+    margin = ""
+    if cal.solver.HasField("bic_margin"):
+        margin = (f"<p>Selected by a BIC margin of {cal.solver.bic_margin:.1f} over "
+                  f"{html.escape(cal.solver.runner_up)}")
+        if cal.solver.HasField("com_bic_margin"):
+            margin += (f"; {cal.solver.com_bic_margin:.1f} over the best candidate with the other "
+                       "robot-CoM model")
+        margin += ".</p>"
+    mass_and_floor = ""
+    if cal.HasField("mass_check"):
+        m = cal.mass_check
+        mass_and_floor += (f"<p>Total mass: configured {m.configured_kg:.4f} kg, implied by the "
+                           f"data {m.implied_kg:.4f} ± {m.sigma_kg:.4f} kg (allowed difference "
+                           f"{m.allowed_kg:.4f} kg): "
+                           f"{'consistent' if m.consistent else 'MISMATCH (accepted)'}.</p>")
+    if cal.HasField("noise_floor") and cal.noise_floor.HasField("residual_to_floor"):
+        nf = cal.noise_floor
+        mass_and_floor += (f"<p>Standing residual: {nf.residual_to_floor:.2f} times the noise "
+                           f"floor of the poses (warn above {nf.warn_factor:g}); floor rms "
+                           + ", ".join(f"{c} {fmt(x, 2)}" for c, x in zip(COMPONENTS, nf.floor_rms))
+                           + ".</p>")
+    def change(a, b):
+        return f"{100.0 * (b - a) / a:+.0f}%" if a > 0 else "-"
+    rmse_rows = [[r.samples, r.wrench, r.reference, r.count, fmt(r.force_naive_n, 3),
+                  fmt(r.force_calibrated_n, 3), change(r.force_naive_n, r.force_calibrated_n),
+                  fmt(r.torque_naive_nm, 3), fmt(r.torque_calibrated_nm, 3),
+                  change(r.torque_naive_nm, r.torque_calibrated_nm)] for r in cal.result_rmse]
+    warnings = "".join(f"<p><b>Warning:</b> {html.escape(w)}</p>" for w in cal.warning)
     res_rows = [[r.label, r.count] + [fmt(x, 3) for x in r.rms] for r in cal.standing_residual]
     hang_rows = [[r.label, r.count] + [fmt(x, 3) for x in r.rms] for r in cal.hanging_residual]
     prov = cal.provenance
@@ -352,14 +434,25 @@ def main():
         f"<h1>Calibration of {html.escape(cal.robot_name)}</h1>",
         f"<p>Selected model <b>{calibration_pb2.StandingModel.Name(cal.model)}</b> from "
         f"{cal.standing_poses} steady poses.</p>",
-        "<p>Method: step-2 solver " + html.escape(cal.solver.solver) + "; hanging rotations "
+        "<p>Method: profile " + html.escape(cal.solver.profile or "?") + "; step-2 solver "
+        + html.escape(cal.solver.solver) + "; hanging rotations "
         + ("exact" if cal.solver.exact_hanging_rotations else "first-order (report)")
-        + "; hanging gravity prior " + ("on" if cal.solver.hanging_gravity_prior else "off (report)")
-        + "; leg-aware CoM " + ("on" if cal.solver.leg_aware_com else "off (report)") + ".</p>",
+        + "; hanging gravity prior " + ("on" if cal.solver.hanging_gravity_prior else "off")
+        + "; robot CoM " + ("leg-aware" if cal.solver.leg_aware_com else "fixed (report)")
+        + " (" + html.escape(cal.solver.com_model_source or "?") + ").</p>",
+        warnings,
+        mass_and_floor,
         "<h2>Residuals of the total wrench at the CoM (W)</h2>", img(imgs[0]),
         table(["variant", "poses"] + ["rms " + c for c in COMPONENTS], res_rows),
+        "<h2>Ground-contact RMSE: naive tare against the calibration (the journal's terms)</h2>",
+        table(["samples", "wrench", "against", "count", "force naive (N)", "force calibrated (N)",
+               "change", "torque naive (N m)", "torque calibrated (N m)", "change"], rmse_rows)
+        if rmse_rows else "",
         "<h2>Model selection</h2>",
-        table(["selected", "model", "DOF", "CV MSE", "RSS", "BIC"], model_rows),
+        table(["selected", "model", "robot CoM", "DOF", "CV MSE", "RSS", "BIC", "ΔBIC"],
+              model_rows), margin,
+        "<h2>Estimates per leg (the report's Table II; ± 1 σ)</h2>",
+        table(LEG_TABLE_HEADER, leg_table_rows(cal)),
         "<h2>Estimates" + (" and truth" if tru is not None else "") + "</h2>",
         table(est_header, est_rows),
     ]
@@ -374,6 +467,9 @@ def main():
                   img(plot_walking(groups, walk, a.outdir)),
                   table(["variant", "rms of"] + COMPONENTS,
                         walking_rows(groups, walk, cal.total_mass_kg * cal.g0_m_s2))]
+    parts += ["<h2>Glossary</h2>",
+              "<dl>" + "".join(f"<dt><b>{html.escape(t)}</b></dt><dd>{html.escape(d)}</dd>"
+                               for t, d in GLOSSARY) + "</dl>"]
     parts += ["<h2>Provenance</h2>", table(["", ""], prov_rows), "</body></html>"]
 
     fd, tmp = tempfile.mkstemp(dir=a.outdir, suffix=".html.tmp")

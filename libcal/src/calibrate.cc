@@ -3,6 +3,9 @@
 // errors and assembles the calibration file.
 #include "ftcal/calibrate.h"
 
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
 #include <string>
 #include <utility>
 
@@ -18,6 +21,38 @@ RobotCalibration NominalRobot(const config::Config& config) {
   return cal;
 }
 
+namespace {
+
+// The mass the data implies: sum_k m_k g from step 1 plus, per standing pose, the total vertical
+// ground force minus the target, i.e. G_data = G_config + mean_p r_p,z of the full calibration
+// (the leg weights enter r_p,z through -F_g; no standing parameter absorbs a uniform fz bias,
+// the rotations conserve each leg's force magnitude). Its sigma: the standard error of that mean
+// over the poses, the leg weights' and the force offsets' sigmas (step 1), in quadrature.
+calibration::MassCheck CheckTotalMass(const CalibrationRun& run, const config::Config& config) {
+  const std::vector<Vec6>& r = run.standing.residual_full;
+  const double g0 = run.step1.g0;
+  const double P = static_cast<double>(r.size());
+  double mean = 0.0;
+  for (const Vec6& v : r) mean += v[2] / P;
+  double var = 0.0;
+  for (const Vec6& v : r) var += (v[2] - mean) * (v[2] - mean) / std::max(1.0, P - 1.0);
+  double s2 = var / P;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const HangingVariant& h = run.hanging.leg[k].with_s;
+    s2 += h.weight_n.sigma * h.weight_n.sigma + h.force_offset_n.sigma.squaredNorm();
+  }
+  calibration::MassCheck m;
+  m.set_configured_kg(config.robot().total_mass_kg());
+  m.set_implied_kg(config.robot().total_mass_kg() + mean / g0);
+  m.set_sigma_kg(std::sqrt(s2) / g0);
+  m.set_tolerance_kg(config.calibrator().mass_tolerance_kg());
+  m.set_allowed_kg(config.calibrator().mass_check_sigmas() * m.sigma_kg() + m.tolerance_kg());
+  m.set_consistent(std::abs(m.implied_kg() - m.configured_kg()) <= m.allowed_kg());
+  return m;
+}
+
+}  // namespace
+
 CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
                                     const std::vector<StandingPose>& poses,
                                     const config::Config& config,
@@ -25,26 +60,34 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
                                     const CalibrateOptions& options) {
   CalibrationRun run;
   run.hanging = hanging;
+  if (options.has_naive_tare) {
+    for (int k = 0; k < kNumLegs; ++k) run.hanging.leg[k].naive_offset = options.naive_tare[k];
+  }
   run.step1 = NominalRobot(config);
   ApplyHangingResult(hanging, &run.step1);
 
   StandingOptions standing = standing_options;
-  if (config.calibrator().hanging_gravity_prior()) {
+  const config::Calibrator& cc = config.calibrator();
+  if (cc.profile() != config::REPORT && cc.hanging_gravity_prior()) {
     if (hanging.gravity_observations.empty()) {
-      throw CalibrationStageError(
-          "step 2 (standing): calibrator.hanging_gravity_prior needs motion capture attitude "
-          "during every hanging series, and at least one series has none");
+      run.warnings.push_back(
+          "hanging gravity prior skipped: at least one hanging series has no motion capture "
+          "attitude, so the common yaw of the six R~ comes from the chassis tilt of the "
+          "standing poses alone");
+    } else {
+      standing.gravity_prior = hanging.gravity_observations;
     }
-    standing.gravity_prior = hanging.gravity_observations;
   }
 
   std::array<Vec6, kNumLegs> naive{};
-  for (int k = 0; k < kNumLegs; ++k) naive[k] = hanging.leg[k].naive_offset;
+  for (int k = 0; k < kNumLegs; ++k) naive[k] = run.hanging.leg[k].naive_offset;
   try {
     run.standing = CalibrateStanding(run.step1, poses, naive, standing);
     if (options.compare_alternating) {
+      StandingOptions selected = standing;
+      selected.leg_aware_com = run.standing.selected_leg_aware_com;
       run.alternating = FitStandingAlternating(run.step1, poses, run.standing.selected,
-                                               standing);
+                                               selected);
       run.has_alternating = true;
     }
   } catch (const std::invalid_argument& e) {
@@ -52,18 +95,74 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
   }
   run.calibration = run.standing.calibration;
 
+  calibration::NoiseFloor floor;
+  floor.set_poses_with_scatter(static_cast<uint32_t>(run.standing.poses_with_scatter));
+  floor.set_warn_factor(config.calibrator().residual_floor_warn_factor());
+  if (run.standing.residual_to_floor > 0.0) {
+    for (int i = 0; i < 6; ++i) floor.add_floor_rms(run.standing.floor_rms[i]);
+    floor.set_residual_to_floor(run.standing.residual_to_floor);
+    floor.set_above_floor(run.standing.residual_to_floor > floor.warn_factor());
+    if (floor.above_floor()) {
+      char buf[400];
+      std::snprintf(buf, sizeof buf,
+                    "the standing residual is %.1f times the noise floor of the poses (more than "
+                    "calibrator.residual_floor_warn_factor = %g): the selected model (%s) misses "
+                    "something the data sees; its sigmas are scaled by the residual but a bias "
+                    "may remain",
+                    floor.residual_to_floor(), floor.warn_factor(),
+                    CandidateName(run.standing.selected, run.standing.selected_leg_aware_com)
+                        .c_str());
+      run.warnings.push_back(buf);
+    }
+  }
+  calibration::MassCheck mass = CheckTotalMass(run, config);
+  if (!mass.consistent()) {
+    char buf[640];
+    std::snprintf(buf, sizeof buf,
+                  "mass check: the standing poses' total vertical force differs from the config's "
+                  "weight: total_mass_kg %g kg, but the data implies %.4f +- %.4f kg (sum of the "
+                  "leg weights from the hanging series plus the transducers' vertical force over "
+                  "the standing poses; allowed difference %.4f kg = %g sigma + "
+                  "calibrator.mass_tolerance_kg): is the config (total_mass_kg) this robot's?",
+                  config.robot().total_mass_kg(), mass.implied_kg(), mass.sigma_kg(),
+                  mass.allowed_kg(), config.calibrator().mass_check_sigmas());
+    const std::string what = buf;
+    if (!options.accept_mass_mismatch) throw MassMismatchError(what + " (--accept-mass-mismatch to calibrate anyway)");
+    mass.set_accepted_mismatch(true);
+    run.warnings.push_back(what + "; calibrated anyway (--accept-mass-mismatch)");
+  }
+
   calibration::Calibration& out = run.proto;
+  *out.mutable_mass_check() = mass;
+  *out.mutable_noise_floor() = floor;
   out.set_robot_name(config.robot().name());
   out.set_g0_m_s2(run.step1.g0);
   out.set_total_mass_kg(run.step1.total_mass_kg);
   out.set_version(1);
   // Legs in config order before the stages fill them by name.
   for (int k = 0; k < kNumLegs; ++k) out.add_leg()->set_name(std::string(kLegNames[k]));
-  WriteHangingToCalibration(hanging, &out);
+  WriteHangingToCalibration(run.hanging, &out);
+  out.set_naive_tare_source(options.has_naive_tare
+                                ? "TARE phase"
+                                : "upright hanging series near theta = 0 (no TARE phase)");
   FillStandingProto(run.standing, &out);
   // FillStandingProto rewrites the solver block; keep step 1's flag in it.
   out.mutable_solver()->set_exact_hanging_rotations(hanging.exact_rotations);
   out.mutable_solver()->set_hanging_gravity_prior(!standing.gravity_prior.empty());
+  out.mutable_solver()->set_profile(config::CalibrationProfile_Name(cc.profile()));
+  {
+    std::string legs;
+    for (int k = 0; k < kNumLegs; ++k) {
+      const int n = hanging.leg[k].saturated_samples;
+      out.mutable_leg(k)->set_saturated_samples(static_cast<uint32_t>(n));
+      if (n > 0) legs += (legs.empty() ? "" : ", ") + std::string(kLegNames[k]) + " " + std::to_string(n);
+    }
+    if (!legs.empty()) {
+      run.warnings.push_back("hanging samples beyond the transducer's rated range (saturated) "
+                             "left out of step 1: " + legs);
+    }
+  }
+  for (const std::string& w : run.warnings) out.add_warning(w);
   return run;
 }
 
@@ -71,14 +170,46 @@ CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
                          const std::vector<StandingPose>& poses, const config::Config& config,
                          const CalibrateOptions& options) {
   HangingResult step1;
+  HangingOptions hanging_options = HangingOptionsFromConfig(config.calibrator(), config.mocap());
+  SetRatedRanges(config.robot(), &hanging_options);
   try {
-    step1 = RunHanging(hanging, NominalTransducerPoses(config.robot()),
-                       HangingOptionsFromConfig(config.calibrator(), config.mocap()));
+    step1 = RunHanging(hanging, NominalTransducerPoses(config.robot()), hanging_options);
   } catch (const std::invalid_argument& e) {
     throw CalibrationStageError(std::string("step 1 (hanging): ") + e.what());
   }
-  return CalibrateFromHanging(step1, poses, config, StandingOptionsFromConfig(config.calibrator()),
-                              options);
+  // A pose whose median reading is beyond a transducer's rated range is saturated: dropped,
+  // counted against that transducer.
+  std::vector<StandingPose> kept;
+  kept.reserve(poses.size());
+  std::array<int, kNumLegs> saturated_poses{};
+  for (const StandingPose& pose : poses) {
+    bool ok = true;
+    for (int k = 0; k < kNumLegs; ++k) {
+      if ((pose.wrench[k].cwiseAbs().array() > hanging_options.rated_range[k].array()).any()) {
+        ++saturated_poses[k];
+        ok = false;
+      }
+    }
+    if (ok) kept.push_back(pose);
+  }
+  CalibrationRun run = CalibrateFromHanging(
+      step1, kept, config, StandingOptionsFromConfig(config.calibrator()), options);
+  std::string legs;
+  for (int k = 0; k < kNumLegs; ++k) {
+    run.proto.mutable_leg(k)->set_saturated_poses(static_cast<uint32_t>(saturated_poses[k]));
+    if (saturated_poses[k] > 0) {
+      legs += (legs.empty() ? "" : ", ") + std::string(kLegNames[k]) + " " +
+              std::to_string(saturated_poses[k]);
+    }
+  }
+  if (!legs.empty()) {
+    const std::string w = std::to_string(poses.size() - kept.size()) +
+                          " standing poses dropped: a median reading beyond the transducer's "
+                          "rated range (saturated) on " + legs;
+    run.warnings.push_back(w);
+    run.proto.add_warning(w);
+  }
+  return run;
 }
 
 }  // namespace ftcal

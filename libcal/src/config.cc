@@ -510,6 +510,17 @@ void ValidateCalibrator(const Node& node, const config::Calibrator& c) {
   if (c.cv_folds() < 2) {
     node.Error("cv_folds", "must be >= 2, got " + std::to_string(c.cv_folds()));
   }
+  node.Positive("mass_check_sigmas", c.mass_check_sigmas());
+  if (node.Finite("mass_tolerance_kg", c.mass_tolerance_kg()) && c.mass_tolerance_kg() < 0.0) {
+    node.Error("mass_tolerance_kg", "must be >= 0, got " + FormatNumber(c.mass_tolerance_kg()));
+  }
+  node.Positive("residual_floor_warn_factor", c.residual_floor_warn_factor());
+  if (c.profile() == config::CALIBRATION_PROFILE_UNSPECIFIED) {
+    node.Error("profile", "must be FTCAL or REPORT");
+  }
+  if (c.com_model() == config::ROBOT_COM_MODEL_UNSPECIFIED) {
+    node.Error("com_model", "must be COM_BY_DATA, COM_FIXED or COM_LEG_AWARE");
+  }
   if (c.min_poses() < 1) {
     node.Error("min_poses", "must be >= 1, got " + std::to_string(c.min_poses()));
   }

@@ -390,13 +390,23 @@ std::string HangSeriesName(HangSeries series) {
   return "HANG_<invalid " + std::to_string(static_cast<int>(series)) + ">";
 }
 
+void SetRatedRanges(const config::Robot& robot, HangingOptions* options) {
+  for (int k = 0; k < kNumLegs && k < robot.leg_size(); ++k) {
+    const config::AtiTransducer& ati = robot.leg(k).ati();
+    if (ati.rated_range_size() != 6) continue;
+    for (int i = 0; i < 6; ++i) options->rated_range[k][i] = ati.rated_range(i);
+  }
+}
+
 HangingOptions HangingOptionsFromConfig(const config::Calibrator& calibrator,
                                         const config::Mocap& mocap) {
   HangingOptions o;
   o.phase_bins = static_cast<int>(calibrator.phase_bins());
   o.smoother_transition_var_m2 = calibrator.smoother_transition_var();
   o.smoother_observation_var_nm2 = calibrator.smoother_observation_var();
-  o.exact_rotations = calibrator.exact_hanging_rotations();
+  // The REPORT profile is the report's first-order I + [s].
+  o.exact_rotations =
+      calibrator.profile() != config::REPORT && calibrator.exact_hanging_rotations();
   o.axis_tolerance_rad = mocap.hang_axis_tolerance_deg() / kRadToDeg;
   return o;
 }
@@ -929,6 +939,43 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
       Fail("hanging: series " + HangSeriesName(static_cast<HangSeries>(s)) + " is missing");
     }
   }
+  // Saturated samples (beyond the rated range) out, counted per leg: a copy only of the
+  // recordings that have any.
+  std::array<int, kNumLegs> saturated{};
+  std::vector<HangingRecording> unsaturated;
+  unsaturated.reserve(kNumHangSeries);
+  for (int s = 0; s < kNumHangSeries; ++s) {
+    const HangingRecording& rec = *by_series[s];
+    bool any = false;
+    for (int k = 0; k < kNumLegs && !any; ++k) {
+      for (const Vec6& w : rec.legs[k].wrench) {
+        if ((w.cwiseAbs().array() > options.rated_range[k].array()).any()) {
+          any = true;
+          break;
+        }
+      }
+    }
+    if (!any) continue;
+    HangingRecording copy;
+    copy.series = rec.series;
+    copy.gravity_b = rec.gravity_b;
+    copy.attitude = rec.attitude;
+    for (int k = 0; k < kNumLegs; ++k) {
+      const LegSamples& in = rec.legs[k];
+      LegSamples& out = copy.legs[k];
+      for (size_t i = 0; i < in.wrench.size(); ++i) {
+        if ((in.wrench[i].cwiseAbs().array() > options.rated_range[k].array()).any()) {
+          ++saturated[k];
+          continue;
+        }
+        out.t_s.push_back(i < in.t_s.size() ? in.t_s[i] : 0.0);
+        out.angle_rad.push_back(i < in.angle_rad.size() ? in.angle_rad[i] : 0.0);
+        out.wrench.push_back(in.wrench[i]);
+      }
+    }
+    unsaturated.push_back(std::move(copy));
+    by_series[s] = &unsaturated.back();
+  }
   std::array<Vec3, kNumHangSeries> g_b;
   for (int s = 0; s < kNumHangSeries; ++s) g_b[s] = SeriesGravity(*by_series[s], options);
   // The upright series (gravity closest to -z_B) for the naive tare.
@@ -944,6 +991,7 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
   HangingResult result;
   result.exact_rotations = options.exact_rotations;
   result.phase_bins = bins;
+  for (int leg = 0; leg < kNumLegs; ++leg) result.leg[leg].saturated_samples = saturated[leg];
   for (int leg = 0; leg < kNumLegs; ++leg) {
     const std::string leg_where = std::string("hanging, leg ") + std::string(kLegNames[leg]) + ": ";
     // Slot of each series for this leg.

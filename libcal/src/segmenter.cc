@@ -84,7 +84,31 @@ StandingPose MedianPose(const std::vector<SyncSample>& samples) {
   Quat q(q_med[3], q_med[0], q_med[1], q_med[2]);  // coeffs() order is x, y, z, w
   pose.R_WC = q.normalized().toRotationMatrix();
   pose.t_s = 0.5e-6 * static_cast<double>(samples.front().utime + samples.back().utime);
+  SetWithinPoseScatter(samples, &pose);
   return pose;
+}
+
+void SetWithinPoseScatter(const std::vector<SyncSample>& samples, StandingPose* pose) {
+  const size_t n = samples.size();
+  pose->samples = static_cast<int>(n);
+  if (n == 0) return;
+  const double to_sem = 1.4826 * std::sqrt(M_PI / 2.0) / std::sqrt(static_cast<double>(n));
+  std::vector<double> buf(n);
+  auto mad = [&buf]() {
+    const double m = Median(buf);
+    for (double& v : buf) v = std::abs(v - m);
+    return Median(buf);
+  };
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int c = 0; c < 6; ++c) {
+      for (size_t i = 0; i < n; ++i) buf[i] = samples[i].wrench[k][c];
+      pose->wrench_sem[k][c] = to_sem * mad();
+    }
+  }
+  for (int c = 0; c < 3; ++c) {
+    for (size_t i = 0; i < n; ++i) buf[i] = LogSO3(samples[i].R_WC * pose->R_WC.transpose())[c];
+    pose->attitude_sem_rad[c] = to_sem * mad();
+  }
 }
 
 PoseSegmenter::PoseSegmenter(const SegmenterOptions& options, PoseCallback on_pose)

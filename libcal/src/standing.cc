@@ -24,12 +24,12 @@
 #include <stdexcept>
 #include <exception>
 #include <future>
+#include <limits>
 #include <utility>
 
 #include <Eigen/Cholesky>
 #include <Eigen/SVD>
 #include <ceres/ceres.h>
-#include <ceres/covariance.h>
 #include <ceres/manifold.h>
 #include <ceres/product_manifold.h>
 
@@ -531,54 +531,78 @@ StandingFit FitFromParams(StandingModel model, const Params& p, bool cayley) {
   return fit;
 }
 
-// sigma from ceres::Covariance at the solution, scaled by the residual variance
-// RSS / (6 P - DOF) (the weights K are not inverse noise variances, so the unscaled
-// covariance would have arbitrary units).
+// sigma from the sandwich covariance C = H^-1 M H^-1 at the solution, H = J^T J and
+// M = sum_rows s2_row J_row^T J_row (J the K-weighted Jacobian in the tangent space). s2 of a pose
+// row is the residual variance of its component [fx fy fz tx ty tz] over the poses (sum of the
+// squared weighted residuals / (P - DOF / 6)); of a hanging-prior row the pooled
+// RSS / (6 P - DOF) its weight was set with. Why not s2 H^-1 with one pooled s2 (the plain scaled
+// covariance): the components' noise differs by an order of magnitude (motion-capture attitude
+// noise lands in fx, fy only), so one pooled variance made the force-determined parameters (the
+// common yaw of R~) overconfident and the torque-determined ones (p~') far too cautious (twin
+// coverage of +-2 sigma 99.7 %). With equal variances the two agree. Both grow with the misfit.
 void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFit* fit,
                    const StandingOptions& options) {
   Params params = ParamsFromFit(*fit);
   Built b = Build(prep, ids, fit->model, false, true, true, &params, options, true);
-  ceres::Covariance::Options co;
-  co.algorithm_type = ceres::DENSE_SVD;
-  co.null_space_rank = 0;
-  co.num_threads = 1;
-  ceres::Covariance cov(co);
-  std::vector<std::pair<const double*, const double*>> pairs;
-  for (double* blk : b.free_blocks) pairs.emplace_back(blk, blk);
-  if (!cov.Compute(pairs, b.problem.get())) {
+  ceres::Problem::EvaluateOptions eo;
+  eo.parameter_blocks = b.free_blocks;
+  eo.apply_loss_function = true;
+  std::vector<double> res;
+  ceres::CRSMatrix crs;
+  b.problem->Evaluate(eo, nullptr, &res, nullptr, &crs);
+  Eigen::MatrixXd J = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
+  for (int r = 0; r < crs.num_rows; ++r) {
+    for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i) J(r, crs.cols[i]) = crs.values[i];
+  }
+  // Pose residual blocks come first (Build adds them before the prior's), six rows each.
+  const int pose_rows = 6 * static_cast<int>(ids.size());
+  const double P = static_cast<double>(ids.size());
+  const double dof_per_row = static_cast<double>(fit->dof) / 6.0;
+  Vec6 s2c = Vec6::Zero();
+  for (int r = 0; r < pose_rows; ++r) s2c[r % 6] += res[r] * res[r];
+  s2c /= std::max(1.0, P - dof_per_row);
+  const Eigen::MatrixXd H = J.transpose() * J;
+  Eigen::MatrixXd M = Eigen::MatrixXd::Zero(H.rows(), H.cols());
+  for (int r = 0; r < J.rows(); ++r) {
+    const double s2 = r < pose_rows ? s2c[r % 6] : fit->residual_variance;
+    M.noalias() += s2 * J.row(r).transpose() * J.row(r);
+  }
+  const Eigen::LDLT<Eigen::MatrixXd> ldlt(H);
+  const Eigen::VectorXd d = ldlt.vectorD();
+  if (ldlt.info() != Eigen::Success || !(d.minCoeff() > 1e-14 * std::max(1.0, d.maxCoeff()))) {
     throw std::invalid_argument(std::string("standing step: covariance of model ") +
                                 StandingModelName(fit->model) +
                                 " is singular at the solution: the poses do not determine it");
   }
-  const double s2 = fit->residual_variance;
+  const Eigen::MatrixXd Hinv = ldlt.solve(Eigen::MatrixXd::Identity(H.rows(), H.cols()));
+  const Eigen::MatrixXd C = Hinv * M * Hinv;
   for (int k = 0; k < kNumLegs; ++k) {
     fit->sigma_rotation_deg[k].setZero();
     fit->sigma_p_tilde_prime_m[k].setZero();
   }
   fit->sigma_p_C_B_m.setZero();
+  int col = 0;
   if (HasRotations(fit->model)) {
-    Eigen::Matrix<double, 18, 18, Eigen::RowMajor> c;
-    cov.GetCovarianceBlockInTangentSpace(b.rot, b.rot, c.data());
     for (int k = 0; k < kNumLegs; ++k) {
       for (int i = 0; i < 3; ++i) {
+        const int j = 3 * k + i;
         fit->sigma_rotation_deg[k][i] = kQuaternionTangentToRotationVector *
-                                        std::sqrt(std::max(0.0, s2 * c(3 * k + i, 3 * k + i))) *
-                                        kRadToDeg;
+                                        std::sqrt(std::max(0.0, C(j, j))) * kRadToDeg;
       }
     }
+    col = 18;
   }
   if (SharedTranslation(fit->model)) {
-    Eigen::Matrix<double, 3, 3, Eigen::RowMajor> c;
-    cov.GetCovarianceBlock(b.trans, b.trans, c.data());
-    for (int i = 0; i < 3; ++i) fit->sigma_p_C_B_m[i] = std::sqrt(std::max(0.0, s2 * c(i, i)));
+    for (int i = 0; i < 3; ++i) {
+      fit->sigma_p_C_B_m[i] = std::sqrt(std::max(0.0, C(col + i, col + i)));
+    }
     // p~'_k = R~_k^T p^C_B: R~ is within degrees of I, so its sigma is p^C_B's to first order.
     for (int k = 0; k < kNumLegs; ++k) fit->sigma_p_tilde_prime_m[k] = fit->sigma_p_C_B_m;
   } else {
-    Eigen::Matrix<double, 18, 18, Eigen::RowMajor> c;
-    cov.GetCovarianceBlock(b.trans, b.trans, c.data());
     for (int k = 0; k < kNumLegs; ++k) {
       for (int i = 0; i < 3; ++i) {
-        fit->sigma_p_tilde_prime_m[k][i] = std::sqrt(std::max(0.0, s2 * c(3 * k + i, 3 * k + i)));
+        const int j = col + 3 * k + i;
+        fit->sigma_p_tilde_prime_m[k][i] = std::sqrt(std::max(0.0, C(j, j)));
       }
     }
   }
@@ -675,6 +699,7 @@ StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, Standi
                              std::string(StandingModelName(model)) + ": " + summary.message);
   }
   StandingFit fit = FitFromParams(model, params, false);
+  fit.leg_aware_com = prep.leg_aware;
   fit.solver = "joint";
   fit.iterations = static_cast<int>(summary.iterations.size()) - 1;
   fit.initial_cost = summary.initial_cost;
@@ -753,6 +778,19 @@ const char* StandingModelName(StandingModel model) {
   return "?";
 }
 
+const StandingFit& StandingResult::FitOf(StandingModel model, bool leg_aware_com) const {
+  for (const StandingFit& f : fits) {
+    if (f.model == model && f.leg_aware_com == leg_aware_com) return f;
+  }
+  throw std::out_of_range(std::string("StandingResult: model ") + StandingModelName(model) +
+                          (leg_aware_com ? " (leg-aware CoM)" : " (fixed CoM)") +
+                          " was not a candidate");
+}
+
+std::string CandidateName(StandingModel model, bool leg_aware_com) {
+  return std::string(StandingModelName(model)) + (leg_aware_com ? ", leg-aware CoM" : ", fixed CoM");
+}
+
 StandingOptions StandingOptionsFromConfig(const config::Calibrator& c) {
   StandingOptions o;
   o.k_weights = KWeights(c);
@@ -766,7 +804,11 @@ StandingOptions StandingOptionsFromConfig(const config::Calibrator& c) {
   }
   o.robust_loss_scale = c.robust_loss_scale();
   o.cv_folds = static_cast<int>(c.cv_folds());
-  o.leg_aware_com = c.leg_aware_com();
+  // The REPORT profile is the report's fixed C; otherwise com_model says, COM_BY_DATA (the
+  // default) letting model selection choose.
+  const bool report = c.profile() == config::REPORT;
+  o.leg_aware_com = !report && c.com_model() == config::COM_LEG_AWARE;
+  o.select_com = !report && c.com_model() == config::COM_BY_DATA;
   o.min_poses = static_cast<int>(c.min_poses());
   return o;
 }
@@ -792,16 +834,14 @@ StandingFit FitStandingJoint(const RobotCalibration& step1, const std::vector<St
   return fit;
 }
 
-StandingFit FitStandingAlternating(const RobotCalibration& step1,
-                                   const std::vector<StandingPose>& poses, StandingModel model,
-                                   const StandingOptions& options, bool compute_covariance) {
-  ValidateOptions(options);
-  CheckPoseCount(poses.size(), model, options);
-  const Prepared prep = Prepare(step1, poses, options);
-  const std::vector<int> ids = AllIds(poses.size());
+namespace {
+// The report's alternating scheme on a subset of poses (FitStandingAlternating's description).
+StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids,
+                             StandingModel model, const StandingOptions& options,
+                             bool check_rank) {
   const int n_trans = TransSize(model);
   Params params;  // Cayley q = 0 (R~ = I), translations 0
-  {
+  if (check_rank) {
     Built b = Build(prep, ids, model, true, true, true, &params, options, false);
     CheckIdentifiable(b.problem.get(), b.free_blocks, model, ids.size());
   }
@@ -859,12 +899,25 @@ StandingFit FitStandingAlternating(const RobotCalibration& step1,
     }
   }
   StandingFit fit = FitFromParams(model, params, true);
+  fit.leg_aware_com = prep.leg_aware;
   fit.solver = "alternating";
   fit.iterations = sweeps;
   fit.converged = converged;
   FinishFit(prep, ids, &fit);
   fit.initial_cost = initial_cost < 0 ? 0.5 * fit.rss : initial_cost;
   fit.final_cost = HasRotations(model) ? last_cost : 0.5 * fit.rss;
+  return fit;
+}
+}  // namespace
+
+StandingFit FitStandingAlternating(const RobotCalibration& step1,
+                                   const std::vector<StandingPose>& poses, StandingModel model,
+                                   const StandingOptions& options, bool compute_covariance) {
+  ValidateOptions(options);
+  CheckPoseCount(poses.size(), model, options);
+  const Prepared prep = Prepare(step1, poses, options);
+  const std::vector<int> ids = AllIds(poses.size());
+  StandingFit fit = AlternatingOnIds(prep, ids, model, options, true);
   if (compute_covariance) AddCovariance(prep, ids, &fit, options);
   return fit;
 }
@@ -928,6 +981,36 @@ std::vector<Vec6> NaiveTareResiduals(const RobotCalibration& step1,
   return out;
 }
 
+std::vector<Vec6> PoseNoiseFloor(const RobotCalibration& step1,
+                                 const std::vector<StandingPose>& poses) {
+  const double G = step1.TotalWeightN();
+  std::vector<Vec6> out;
+  out.reserve(poses.size());
+  for (const StandingPose& pose : poses) {
+    if (pose.samples <= 0) {
+      out.push_back(Vec6::Constant(std::numeric_limits<double>::quiet_NaN()));
+      continue;
+    }
+    const Mat3 R_WC = ProjectToSO3(pose.R_WC);
+    Mat3 cov_f = Mat3::Zero(), cov_t = Mat3::Zero();
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Mat3 R = R_WC * step1.X_B_ft[k].R;
+      const Mat3 P = Skew(R_WC * step1.X_B_ft[k].p);
+      const Mat3 cf = R * pose.wrench_sem[k].head<3>().cwiseAbs2().asDiagonal() * R.transpose();
+      cov_f += cf;
+      cov_t += R * pose.wrench_sem[k].tail<3>().cwiseAbs2().asDiagonal() * R.transpose() +
+               P * cf * P.transpose();
+    }
+    // An attitude error d (rotation vector in W) turns the total force (0, 0, G) by d x.
+    const Mat3 A = -Skew(Vec3(0, 0, G));
+    cov_f += A * pose.attitude_sem_rad.cwiseAbs2().asDiagonal() * A.transpose();
+    Vec6 sigma;
+    sigma << cov_f.diagonal().cwiseSqrt(), cov_t.diagonal().cwiseSqrt();
+    out.push_back(sigma);
+  }
+  return out;
+}
+
 double WeightedRss(const std::vector<Vec6>& residuals, const Vec6& k_weights) {
   double rss = 0.0;
   for (const Vec6& r : residuals) rss += r.cwiseProduct(r).dot(k_weights);
@@ -952,8 +1035,10 @@ double CrossValidationMse(const RobotCalibration& step1, const std::vector<Stand
                                   "-fold cross-validation");
     }
     const StandingFit fit =
-        JointOnIds(prep, train, full_data_fit.model, options, &full_data_fit, false,
-                   kCrossValidationTolerance);
+        options.solver == StandingSolver::kAlternating
+            ? AlternatingOnIds(prep, train, full_data_fit.model, options, false)
+            : JointOnIds(prep, train, full_data_fit.model, options, &full_data_fit, false,
+                         kCrossValidationTolerance);
     sum += WeightedRss(ResidualsOfPoses(prep, fit, test), k) / static_cast<double>(test.size());
   }
   return sum / options.cv_folds;
@@ -975,14 +1060,29 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
     StandingFit fit;
     double cv_mse = 0.0;
   };
+  std::vector<bool> targets;
+  if (options.select_com) {
+    targets = {false, true};
+  } else {
+    targets = {options.leg_aware_com};
+  }
+  result.com_selected_by_data = options.select_com;
+  // Each candidate is fitted and cross-validated by the configured solver, so the table
+  // describes the parameters that are written.
+  const bool alternating = options.solver == StandingSolver::kAlternating;
   std::vector<std::future<ModelRun>> runs;
-  for (StandingModel model : kStandingModels) {
-    runs.push_back(std::async(std::launch::async, [&step1, &poses, &options, model] {
-      ModelRun run;
-      run.fit = FitStandingJoint(step1, poses, model, options);
-      run.cv_mse = CrossValidationMse(step1, poses, run.fit, options);
-      return run;
-    }));
+  for (const bool aware : targets) {
+    for (StandingModel model : kStandingModels) {
+      StandingOptions o = options;
+      o.leg_aware_com = aware;
+      runs.push_back(std::async(std::launch::async, [&step1, &poses, o, model, alternating] {
+        ModelRun run;
+        run.fit = alternating ? FitStandingAlternating(step1, poses, model, o)
+                              : FitStandingJoint(step1, poses, model, o);
+        run.cv_mse = CrossValidationMse(step1, poses, run.fit, o);
+        return run;
+      }));
+    }
   }
   std::vector<ModelRun> done;
   std::exception_ptr first_error;
@@ -995,27 +1095,30 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
   }
   if (first_error) std::rethrow_exception(first_error);
   double best_bic = 0.0;
-  for (size_t m = 0; m < kStandingModels.size(); ++m) {
-    const StandingModel model = kStandingModels[m];
+  size_t best = 0;
+  for (size_t m = 0; m < done.size(); ++m) {
     StandingFit& fit = done[m].fit;
     ModelSelectionRow row;
-    row.model = model;
+    row.model = fit.model;
+    row.leg_aware_com = fit.leg_aware_com;
     row.dof = fit.dof;
     row.rss = fit.rss;
     row.bic = P * std::log(fit.rss / P) + fit.dof * std::log(P);
     row.cv_mse = done[m].cv_mse;
     if (result.model_selection.empty() || row.bic < best_bic) {
       best_bic = row.bic;
-      result.selected = model;
+      best = m;
     }
     result.model_selection.push_back(row);
     result.fits.push_back(std::move(fit));
   }
-  for (ModelSelectionRow& row : result.model_selection) row.selected = row.model == result.selected;
-  const size_t sel = static_cast<size_t>(result.selected) - 1;
-  result.fit = options.solver == StandingSolver::kAlternating
-                   ? FitStandingAlternating(step1, poses, result.selected, options)
-                   : result.fits[sel];
+  for (size_t m = 0; m < result.model_selection.size(); ++m) {
+    result.model_selection[m].selected = m == best;
+  }
+  result.selected = result.fits[best].model;
+  result.selected_leg_aware_com = result.fits[best].leg_aware_com;
+  result.options.leg_aware_com = result.selected_leg_aware_com;
+  result.fit = result.fits[best];
   result.calibration = ApplyStandingFit(step1, result.fit);
   RobotCalibration without = step1;
   for (int k = 0; k < kNumLegs; ++k) {
@@ -1023,9 +1126,27 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
     without.leg[k].p_tilde_prime = Vec3::Zero();
   }
   without.p_C_B = Vec3::Zero();
+  {
+    const std::vector<Vec6> floor = PoseNoiseFloor(step1, poses);
+    Vec6 sum2 = Vec6::Zero();
+    for (const Vec6& f : floor) {
+      if (!f.allFinite()) continue;
+      ++result.poses_with_scatter;
+      sum2 += f.cwiseAbs2();
+    }
+    if (result.poses_with_scatter == result.poses && result.poses > 0) {
+      result.floor_rms = (sum2 / result.poses).cwiseSqrt();
+      result.floor_variance = (sum2 / result.poses).dot(options.k_weights) / 6.0;
+      if (result.floor_variance > 0.0) {
+        result.residual_to_floor = std::sqrt(result.fit.residual_variance / result.floor_variance);
+      }
+    }
+  }
   result.residual_naive = NaiveTareResiduals(step1, naive_offset, poses);
-  result.residual_without = TotalWrenchResiduals(without, poses, options.leg_aware_com);
-  result.residual_full = TotalWrenchResiduals(result.calibration, poses, options.leg_aware_com);
+  result.residual_without =
+      TotalWrenchResiduals(without, poses, result.selected_leg_aware_com);
+  result.residual_full =
+      TotalWrenchResiduals(result.calibration, poses, result.selected_leg_aware_com);
   return result;
 }
 
@@ -1116,6 +1237,25 @@ void FillStandingProto(const StandingResult& result, calibration::Calibration* o
     r->set_rss(row.rss);
     r->set_bic(row.bic);
     r->set_selected(row.selected);
+    r->set_leg_aware_com(row.leg_aware_com);
+  }
+  // Margins: how much the selected candidate won by.
+  double selected_bic = 0.0;
+  for (const ModelSelectionRow& row : result.model_selection) {
+    if (row.selected) selected_bic = row.bic;
+  }
+  double runner_up = std::numeric_limits<double>::infinity();
+  double other_com = std::numeric_limits<double>::infinity();
+  std::string runner_up_name;
+  for (int i = 0; i < out->model_selection_size(); ++i) {
+    const ModelSelectionRow& row = result.model_selection[static_cast<size_t>(i)];
+    out->mutable_model_selection(i)->set_delta_bic(row.bic - selected_bic);
+    if (row.selected) continue;
+    if (row.bic < runner_up) {
+      runner_up = row.bic;
+      runner_up_name = CandidateName(row.model, row.leg_aware_com);
+    }
+    if (row.leg_aware_com != result.selected_leg_aware_com) other_com = std::min(other_com, row.bic);
   }
   calibration::SolverInfo* s = out->mutable_solver();
   s->set_solver(fit.solver);
@@ -1127,7 +1267,17 @@ void FillStandingProto(const StandingResult& result, calibration::Calibration* o
                      : result.options.robust_loss == StandingLoss::kCauchy ? "CAUCHY"
                                                                             : "NONE";
   s->set_robust_loss(loss);
-  s->set_leg_aware_com(result.options.leg_aware_com);
+  s->set_leg_aware_com(result.selected_leg_aware_com);
+  s->set_com_model_source(result.com_selected_by_data ? "selected by the data"
+                                                      : "fixed by the config");
+  s->clear_bic_margin();
+  s->clear_runner_up();
+  s->clear_com_bic_margin();
+  if (std::isfinite(runner_up)) {
+    s->set_bic_margin(runner_up - selected_bic);
+    s->set_runner_up(runner_up_name);
+  }
+  if (std::isfinite(other_com)) s->set_com_bic_margin(other_com - selected_bic);
   out->clear_standing_residual();
   *out->add_standing_residual() = ResidualStatsOf("naive tare", result.residual_naive);
   *out->add_standing_residual() = ResidualStatsOf("without T~", result.residual_without);

@@ -2,6 +2,7 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <ctime>
 #include <filesystem>
@@ -117,6 +118,9 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
             current_poses_.push_back(p.pose);
             ++counters_.segmented_poses;
           });
+    } else if (phase_ == experiment_marker_t::TARE) {
+      for (Vec6& w : tare_sum_) w.setZero();
+      tare_count_ = 0;
     } else if (phase_ == experiment_marker_t::TRIPOD) {
       current_unloaded_.clear();
       segmenter_ = std::make_unique<PoseSegmenter>(
@@ -165,6 +169,14 @@ void CalibrationCollector::EndPhase(bool completed) {
       standing_session_ = phase_session_;
     }
     current_poses_.clear();
+  } else if (phase_ == experiment_marker_t::TARE) {
+    if (completed && tare_count_ > 0) {
+      std::array<Vec6, kNumLegs> mean;
+      for (int k = 0; k < kNumLegs; ++k) mean[k] = tare_sum_[k] / static_cast<double>(tare_count_);
+      tare_ = mean;
+      spdlog::info("TARE complete (session '{}'): naive tare from {} samples", phase_session_,
+                   tare_count_);
+    }
   } else if (phase_ == experiment_marker_t::TRIPOD) {
     if (completed) {
       spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
@@ -226,6 +238,9 @@ void CalibrationCollector::OnAligned(const AlignedSample& a) {
   } else if (phase_ == experiment_marker_t::TRIPOD && segmenter_) {
     ++counters_.tripod_samples;
     segmenter_->Add(s);
+  } else if (phase_ == experiment_marker_t::TARE) {
+    for (int k = 0; k < kNumLegs; ++k) tare_sum_[k] += s.wrench[k];
+    ++tare_count_;
   } else if (phase_ == experiment_marker_t::WALKING) {
     ++counters_.walking_samples;
     if (walking_.empty() && current_walk_.size() < kMaxWalkingSamples) current_walk_.push_back(s);
@@ -280,7 +295,33 @@ std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
 std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
   // Poses a segmenter already published are what the operator saw; when the log has none, the
   // same segmenter logic over the STANDING spans gives them.
-  return logged_poses_.empty() ? segmented_poses_ : logged_poses_;
+  if (logged_poses_.empty()) return segmented_poses_;
+  // A STEADY_POSE message carries medians only; the within-pose scatter (the noise floor,
+  // docs/method.md) comes from this collector's own segmentation of the same span, matched by
+  // time (the same logic on the same samples finds the same runs) and shaft angles.
+  std::vector<StandingPose> out = logged_poses_;
+  std::vector<const StandingPose*> by_time;
+  for (const StandingPose& p : segmented_poses_) by_time.push_back(&p);
+  std::sort(by_time.begin(), by_time.end(),
+            [](const StandingPose* a, const StandingPose* b) { return a->t_s < b->t_s; });
+  for (StandingPose& pose : out) {
+    auto it = std::lower_bound(by_time.begin(), by_time.end(), pose.t_s,
+                               [](const StandingPose* p, double t) { return p->t_s < t; });
+    for (auto c : {it, it == by_time.begin() ? it : it - 1}) {
+      if (c == by_time.end()) continue;
+      const StandingPose& seg = **c;
+      bool same = std::abs(seg.t_s - pose.t_s) < 0.5;
+      for (int k = 0; k < kNumLegs && same; ++k) {
+        same = std::abs(seg.angle_rad[k] - pose.angle_rad[k]) < 1e-3;
+      }
+      if (!same) continue;
+      pose.samples = seg.samples;
+      pose.wrench_sem = seg.wrench_sem;
+      pose.attitude_sem_rad = seg.attitude_sem_rad;
+      break;
+    }
+  }
+  return out;
 }
 
 void CalibrationCollector::CheckMarkersAndLegs(const std::string& phases) const {
@@ -390,29 +431,21 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
                                                      : "segmented from the STANDING spans");
   CalibrationRun run;
   try {
-    run = Calibrate(hanging, poses, config);
+    CalibrateOptions co;
+    co.accept_mass_mismatch = options.accept_mass_mismatch;
+    if (collector.tare()) {
+      co.has_naive_tare = true;
+      co.naive_tare = *collector.tare();
+    }
+    run = Calibrate(hanging, poses, config, co);
   } catch (const CalibrationStageError& e) {
     throw CalibratorInputError(e.what());
   }
   spdlog::info("calibration done: model {}", StandingModelName(run.standing.selected));
-  // A config for another robot (another total mass) leaves the standing poses' total vertical
-  // force off by the difference after the full calibration: the hanging offsets are fixed and
-  // no standing parameter absorbs a uniform fz bias, so the fit completes with a wrong
-  // calibration unless this is checked. 5% of G is far above noise (mm-level poses: < 0.1 N)
-  // and far below a config for another robot; a mass wrong by less goes unnoticed.
-  if (!run.standing.residual_full.empty()) {
-    double mean_fz = 0.0;
-    for (const Vec6& r : run.standing.residual_full) mean_fz += r[2];
-    mean_fz /= static_cast<double>(run.standing.residual_full.size());
-    const double weight_n = config.robot().total_mass_kg() * config.robot().g0_m_s2();
-    if (std::abs(mean_fz) > 0.05 * weight_n) {
-      throw CalibratorInputError(fmt::format(
-          "the standing poses' total vertical force differs from the config's weight "
-          "(total_mass_kg {} kg * g0 = {:.2f} N) by {:.2f} N on average after calibration: "
-          "is the config (total_mass_kg) this robot's?",
-          config.robot().total_mass_kg(), weight_n, mean_fz));
-    }
-  }
+  // The configured total mass is checked against the data's inside Calibrate() (a
+  // MassMismatchError unless accepted): a config for another robot is refused there.
+  for (const std::string& w : run.warnings) spdlog::warn("{}", w);
+  AddResultRmse({}, nullptr, &run);  // the standing poses; offline adds the walk
 
   calibration::Provenance* p = run.proto.mutable_provenance();
   for (const std::string& path : options.log_paths) SetInputFile(path, p->add_input());
@@ -549,11 +582,25 @@ std::string SummaryTable(const CalibrationRun& run) {
   o += fmt::format("Calibration of {} ({} standing poses, model {})\n", c.robot_name(),
                    c.standing_poses(), calibration::StandingModel_Name(c.model()));
   const calibration::SolverInfo& m = c.solver();
-  o += fmt::format("Method: step-2 solver {}; hanging rotations {}; hanging gravity prior {}; "
-                   "leg-aware CoM {}\n",
-                   m.solver(), m.exact_hanging_rotations() ? "exact" : "first-order (report)",
-                   m.hanging_gravity_prior() ? "on" : "off (report)",
-                   m.leg_aware_com() ? "on" : "off (report)");
+  o += fmt::format("Method: profile {}; step-2 solver {}; hanging rotations {}; hanging gravity "
+                   "prior {}; robot CoM {} ({})\n",
+                   m.profile(), m.solver(),
+                   m.exact_hanging_rotations() ? "exact" : "first-order (report)",
+                   m.hanging_gravity_prior() ? "on" : "off",
+                   m.leg_aware_com() ? "leg-aware" : "fixed (report)", m.com_model_source());
+  if (c.has_mass_check()) {
+    const calibration::MassCheck& mc = c.mass_check();
+    o += fmt::format("Total mass: configured {:.4f} kg, implied by the data {:.4f} +- {:.4f} kg "
+                     "(allowed difference {:.4f} kg): {}\n",
+                     mc.configured_kg(), mc.implied_kg(), mc.sigma_kg(), mc.allowed_kg(),
+                     mc.consistent() ? "consistent" : "MISMATCH (accepted)");
+  }
+  if (c.has_noise_floor() && c.noise_floor().has_residual_to_floor()) {
+    o += fmt::format("Standing residual: {:.2f} times the noise floor of the poses (warn above "
+                     "{:g})\n",
+                     c.noise_floor().residual_to_floor(), c.noise_floor().warn_factor());
+  }
+  for (const std::string& w : c.warning()) o += "WARNING: " + w + "\n";
   o += fmt::format("{:<4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}\n",
                    "leg", "fo_x N", "fo_y N", "fo_z N", "to_x Nm", "to_y Nm", "to_z Nm", "mg N",
                    "+-", "rx deg", "ry deg", "rz deg", "p~'x mm", "p~'y mm");
@@ -572,12 +619,36 @@ std::string SummaryTable(const CalibrationRun& run) {
     o += fmt::format("p^C_B = ({:.2f}, {:.2f}, {:.2f}) mm\n", 1e3 * c.p_c_b_m().x(),
                      1e3 * c.p_c_b_m().y(), 1e3 * c.p_c_b_m().z());
   }
-  o += "\nModel selection (lowest BIC selected):\n";
-  o += fmt::format("  {:<28} {:>4} {:>12} {:>12} {:>12}\n", "model", "DOF", "CV MSE", "RSS", "BIC");
+  o += fmt::format("\nModel selection (lowest BIC selected; solver {}):\n", m.solver());
+  o += fmt::format("  {:<26} {:<10} {:>4} {:>12} {:>12} {:>12} {:>10}\n", "model", "robot CoM",
+                   "DOF", "CV MSE", "RSS", "BIC", "dBIC");
   for (const auto& row : c.model_selection()) {
-    o += fmt::format("{} {:<28} {:>4} {:>12.5g} {:>12.5g} {:>12.5g}\n", row.selected() ? "*" : " ",
-                     calibration::StandingModel_Name(row.model()), row.dof(), row.cv_mse(),
-                     row.rss(), row.bic());
+    o += fmt::format("{} {:<26} {:<10} {:>4} {:>12.5g} {:>12.5g} {:>12.5g} {:>10.1f}\n",
+                     row.selected() ? "*" : " ", calibration::StandingModel_Name(row.model()),
+                     row.leg_aware_com() ? "leg-aware" : "fixed", row.dof(), row.cv_mse(),
+                     row.rss(), row.bic(), row.delta_bic());
+  }
+  if (m.has_bic_margin()) {
+    o += fmt::format("  selected by a BIC margin of {:.1f} over {}", m.bic_margin(), m.runner_up());
+    if (m.has_com_bic_margin()) {
+      o += fmt::format("; {:.1f} over the best {} robot-CoM candidate", m.com_bic_margin(),
+                       m.leg_aware_com() ? "fixed" : "leg-aware");
+    }
+    o += "\n";
+  }
+  if (c.result_rmse_size() > 0) {
+    o += "\nGround-contact RMSE, naive tare -> calibrated (the journal's terms):\n";
+    o += fmt::format("  {:<15} {:<6} {:<15} {:>7} {:>20} {:>22}\n", "samples", "wrench",
+                     "against", "count", "force N", "torque N*m");
+    for (const auto& r : c.result_rmse()) {
+      auto pct = [](double a, double b) { return a > 0 ? 100.0 * (b - a) / a : 0.0; };
+      o += fmt::format("  {:<15} {:<6} {:<15} {:>7} {:>7.3f} -> {:<6.3f}{:>+5.0f}% {:>7.4f} -> "
+                       "{:<6.4f}{:>+5.0f}%\n",
+                       r.samples(), r.wrench(), r.reference(), r.count(), r.force_naive_n(),
+                       r.force_calibrated_n(), pct(r.force_naive_n(), r.force_calibrated_n()),
+                       r.torque_naive_nm(), r.torque_calibrated_nm(),
+                       pct(r.torque_naive_nm(), r.torque_calibrated_nm()));
+    }
   }
   o += "\nResidual of the total wrench at the CoM in W (rms per component):\n";
   o += fmt::format("  {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}\n", "variant", "fx N", "fy N",
@@ -588,6 +659,91 @@ std::string SummaryTable(const CalibrationRun& run) {
     o += "\n";
   }
   return o;
+}
+
+namespace {
+
+RobotCalibration NaiveTareCalibration(const CalibrationRun& run) {
+  RobotCalibration naive = run.step1;
+  for (int k = 0; k < kNumLegs; ++k) {
+    naive.leg[k].offset = run.hanging.leg[k].naive_offset;
+    naive.leg[k].weight_n = 0.0;
+  }
+  naive.p_C_B = Vec3::Zero();
+  return naive;
+}
+
+struct RmsAccumulator {
+  double f2 = 0.0, t2 = 0.0;
+  uint32_t n = 0;
+  void Add(const Vec6& d) {
+    f2 += d.head<3>().squaredNorm();
+    t2 += d.tail<3>().squaredNorm();
+    ++n;
+  }
+  double F() const { return n ? std::sqrt(f2 / n) : 0.0; }
+  double T() const { return n ? std::sqrt(t2 / n) : 0.0; }
+};
+
+void AddRow(const std::string& samples, const std::string& wrench, const std::string& reference,
+            const RmsAccumulator& naive, const RmsAccumulator& cal, calibration::Calibration* out) {
+  calibration::ResultRmse* r = out->add_result_rmse();
+  r->set_samples(samples);
+  r->set_wrench(wrench);
+  r->set_reference(reference);
+  r->set_count(cal.n);
+  r->set_force_naive_n(naive.F());
+  r->set_force_calibrated_n(cal.F());
+  r->set_torque_naive_nm(naive.T());
+  r->set_torque_calibrated_nm(cal.T());
+}
+
+}  // namespace
+
+void AddResultRmse(const std::vector<SyncSample>& walk, const RobotCalibration* truth,
+                   CalibrationRun* run) {
+  calibration::Calibration& out = run->proto;
+  out.clear_result_rmse();
+  {
+    RmsAccumulator naive, cal;
+    for (const Vec6& r : run->standing.residual_naive) naive.Add(r);
+    for (const Vec6& r : run->standing.residual_full) cal.Add(r);
+    AddRow("standing poses", "total", "balance target", naive, cal, &out);
+  }
+  if (walk.empty()) return;
+  const RobotCalibration naive_cal = NaiveTareCalibration(*run);
+  const bool leg_aware = run->standing.selected_leg_aware_com;
+  const double G = run->calibration.TotalWeightN();
+  RmsAccumulator total_naive, total_cal;
+  std::array<RmsAccumulator, kNumLegs> leg_naive, leg_cal;
+  for (const SyncSample& s : walk) {
+    if (!s.attitude_ok) continue;
+    Vec6 target;
+    target << 0, 0, G, 0, 0, 0;
+    if (leg_aware) {
+      target.tail<3>() = (s.R_WC * ComShiftC(run->calibration, s.angle_rad)).cross(Vec3(0, 0, G));
+    }
+    Vec6 sum_naive = Vec6::Zero(), sum_cal = Vec6::Zero();
+    for (int k = 0; k < kNumLegs; ++k) {
+      const Vec6 wn = GroundWrenchW(naive_cal, k, s.wrench[k], s.angle_rad[k], s.R_WC);
+      const Vec6 wc = GroundWrenchW(run->calibration, k, s.wrench[k], s.angle_rad[k], s.R_WC);
+      sum_naive += wn;
+      sum_cal += wc;
+      if (truth != nullptr) {
+        const Vec6 wt = GroundWrenchW(*truth, k, s.wrench[k], s.angle_rad[k], s.R_WC);
+        leg_naive[k].Add(wn - wt);
+        leg_cal[k].Add(wc - wt);
+      }
+    }
+    total_naive.Add(sum_naive - target);
+    total_cal.Add(sum_cal - target);
+  }
+  AddRow("walk", "total", "balance target", total_naive, total_cal, &out);
+  if (truth != nullptr) {
+    for (int k = 0; k < kNumLegs; ++k) {
+      AddRow("walk", std::string(kLegNames[k]), "true parameters", leg_naive[k], leg_cal[k], &out);
+    }
+  }
 }
 
 std::string ResidualsCsv(const StandingResult& standing) {

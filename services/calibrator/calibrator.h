@@ -97,6 +97,10 @@ class CalibrationCollector {
   static constexpr size_t kMaxWalkingSamples = 60000;
   const std::vector<SyncSample>& walking_samples() const { return walking_; }
 
+  // The naive tare of the last completed TARE phase (mean reading per leg; upright, feet in the
+  // air, shafts at 0), when there was one.
+  const std::optional<std::array<Vec6, kNumLegs>>& tare() const { return tare_; }
+
   // Steady tripod stances of the completed TRIPOD phases, with their unloaded legs.
   const std::vector<LoadSample>& unloaded_samples() const { return unloaded_; }
 
@@ -126,6 +130,9 @@ class CalibrationCollector {
   std::vector<SyncSample> walking_;
   std::vector<LoadSample> current_unloaded_;
   std::vector<LoadSample> unloaded_;
+  std::array<Vec6, kNumLegs> tare_sum_;
+  int64_t tare_count_ = 0;
+  std::optional<std::array<Vec6, kNumLegs>> tare_;
 
   std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
   std::vector<StandingPose> segmented_poses_;
@@ -142,6 +149,8 @@ struct CalibratorOptions {
   std::vector<std::string> log_paths;  // provenance inputs (empty live)
   std::string config_path;
   std::string command_line;
+  // --accept-mass-mismatch: calibrate when the configured total mass disagrees with the data.
+  bool accept_mass_mismatch = false;
 };
 
 // Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.
@@ -206,6 +215,13 @@ std::string OffsetSummaryTable(const OffsetReestimationRun& run);
 
 // Writes the calibration file and <out>.residuals.csv beside it, both atomically.
 void WriteCalibrationOutputs(const CalibrationRun& run, const std::string& out_path);
+
+// Results in the journal's terms (docs/method.md): the RMSE of the summed ground-contact force
+// and torque against the balance target, naive tare vs calibration, over the standing poses
+// and (when given) the walk; per leg against the true parameters when `truth` is given. Into
+// run->proto.result_rmse.
+void AddResultRmse(const std::vector<SyncSample>& walk, const RobotCalibration* truth,
+                   CalibrationRun* run);
 
 // The software version recorded in provenance: PROJECT_VERSION (+ git describe at build time).
 std::string SoftwareVersion();

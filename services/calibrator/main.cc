@@ -51,6 +51,8 @@ struct Args {
   std::string config_path;
   std::string lcm_url;
   std::string log_level;
+  std::string profile;
+  bool accept_mass_mismatch = false;
   std::string command_line;
 };
 
@@ -165,25 +167,27 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
   options.log_paths = args.logs;
   options.config_path = args.config_path;
   options.command_line = args.command_line;
+  options.accept_mass_mismatch = args.accept_mass_mismatch;
   return options;
 }
 
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
-  const ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, OptionsOf(args));
+  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, OptionsOf(args));
+  std::optional<ftcal::RobotCalibration> truth;
+  if (!args.truth.empty()) {
+    try {
+      truth = ftcal::CalibrationFromProto(ftcal::ReadCalibrationFile(args.truth), config.robot());
+    } catch (const std::exception& e) {
+      throw CalibratorInputError("--truth '" + args.truth + "': " + e.what());
+    }
+  }
+  ftcal::AddResultRmse(collector.walking_samples(), truth ? &*truth : nullptr, &run);
   ftcal::WriteCalibrationOutputs(run, args.out);
   spdlog::info("wrote {} and {}", args.out, ftcal::ResidualsPathFor(args.out));
   std::string walking;
   if (!collector.walking_samples().empty()) {
-    std::optional<ftcal::RobotCalibration> truth;
-    if (!args.truth.empty()) {
-      try {
-        truth = ftcal::CalibrationFromProto(ftcal::ReadCalibrationFile(args.truth), config.robot());
-      } catch (const std::exception& e) {
-        throw CalibratorInputError("--truth '" + args.truth + "': " + e.what());
-      }
-    }
     walking = ftcal::WalkingPathFor(args.out);
     ftcal::WriteFileAtomic(walking, ftcal::WalkingCsv(collector.walking_samples(), run,
                                                       truth ? &*truth : nullptr));
@@ -212,6 +216,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibratorOptions options;
   options.config_path = args.config_path;
   options.command_line = args.command_line;
+  options.accept_mass_mismatch = args.accept_mass_mismatch;
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
@@ -279,6 +284,14 @@ int main(int argc, char** argv) {
                                                    " built in");
   cli.add_option("--lcm-url", args.lcm_url, "live: LCM URL; overrides the config's lcm_url");
   ftcal::AddLogLevelOption(cli, &args.log_level);
+  cli.add_option("--profile", args.profile,
+                 "ftcal (the model the data supports) or report (the report's procedure: "
+                 "first-order hanging rotations, fixed CoM, no gravity prior); overrides the "
+                 "config's calibrator.profile")
+      ->check(CLI::IsMember({"ftcal", "report"}));
+  cli.add_flag("--accept-mass-mismatch", args.accept_mass_mismatch,
+               "calibrate even when the configured total mass disagrees with the mass the data "
+               "implies (recorded in the calibration file as a warning); refused otherwise");
   cli.footer(ftcal::ExitCodeTable());
   if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
@@ -291,6 +304,10 @@ int main(int argc, char** argv) {
   } catch (const ftcal::ConfigError& e) {
     spdlog::critical("{}", e.what());
     return ftcal::kExitConfig;
+  }
+  if (!args.profile.empty()) {
+    config.mutable_calibrator()->set_profile(args.profile == "report" ? ftcal::config::REPORT
+                                                                      : ftcal::config::FTCAL);
   }
   if (!args.reestimate_base.empty() && (args.logs.empty() || !args.report_dir.empty())) {
     spdlog::critical("--reestimate-offsets needs --log (the drift session) and takes no --report");

@@ -342,6 +342,7 @@ std::string PhaseName(int phase) {
     case experiment_marker_t::STANDING: return "STANDING";
     case experiment_marker_t::WALKING: return "WALKING";
     case experiment_marker_t::TRIPOD: return "TRIPOD";
+    case experiment_marker_t::TARE: return "TARE";
     default: return "phase " + std::to_string(phase);
   }
 }

@@ -285,6 +285,10 @@ double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLo
                         false, gravity_b, note);
     t = end + plan.gap_s;
   };
+  if (plan.tare) {
+    run(ExperimentPhase::kTare, Vec3::Zero(), "naive tare: upright, feet in the air, shafts at 0",
+        [&](const RunOptions& r) { return twin.Tare(r, sink); });
+  }
   if (plan.hanging) {
     static const char* kNotes[kNumHangSeries] = {"hanging, body +x down", "hanging, body -x down",
                                                  "hanging, body +z down", "hanging, body -z down"};

@@ -133,6 +133,7 @@ class SimLogWriter {
 // stated gravity_b), with `gap_s` of silence between scenarios (the robot being re-hung or set
 // down).
 struct ExperimentPlan {
+  bool tare = true;  // the naive tare phase (TARE), before the hanging series
   bool hanging = true;
   bool standing = true;
   bool tripod = true;

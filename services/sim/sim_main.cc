@@ -406,7 +406,7 @@ int main(int argc, char** argv) {
   ftcal::ExperimentPlan plan;
   double noise_scale = 1.0;
   bool physical_com = false, no_mounting_errors = false;
-  std::vector<std::string> scenarios = {"hang", "stand", "tripod", "walk"};
+  std::vector<std::string> scenarios = {"tare", "hang", "stand", "tripod", "walk"};
   int hang_cycles = -1;
   log->add_option("--out", out_path, "output LCM log (written atomically)")->required();
   log->add_option("--truth", truth_path,
@@ -424,11 +424,18 @@ int main(int argc, char** argv) {
   log->add_option("--noise-scale", noise_scale, "multiplies every noise sigma of the twin")
       ->capture_default_str()
       ->check(CLI::Range(0.0, 1000.0));
-  log->add_flag("--physical-com", physical_com, "the CoM moves with the legs");
+  std::string com = "fixed";
+  log->add_option("--com", com,
+                  "the robot's CoM: fixed (at C, the report's assumption; a rig whose CoM does "
+                  "not move) or leg-aware (moves with the legs, which carry nearly half the mass)")
+      ->check(CLI::IsMember({"fixed", "leg-aware"}))
+      ->capture_default_str();
+  log->add_flag("--physical-com", physical_com, "the same as --com leg-aware");
   log->add_flag("--no-mounting-errors", no_mounting_errors, "true mounting equals the nominal");
-  log->add_option("--scenarios", scenarios, "comma-separated subset of hang,stand,tripod,walk")
+  log->add_option("--scenarios", scenarios,
+                  "comma-separated subset of tare,hang,stand,tripod,walk")
       ->delimiter(',')
-      ->check(CLI::IsMember({"hang", "stand", "tripod", "walk"}))
+      ->check(CLI::IsMember({"tare", "hang", "stand", "tripod", "walk"}))
       ->capture_default_str();
   log->add_option("--drifted-truth", drifted_truth_path,
                   "with --drift-at-s: the truth with the drifted offsets (default: next to the "
@@ -469,7 +476,7 @@ int main(int argc, char** argv) {
     const ftcal::config::Config config = ftcal::LoadConfigOrDefault(config_path);
     ftcal::TwinOptions twin_options;
     twin_options.seed = seed;
-    twin_options.physical_com = physical_com;
+    twin_options.physical_com = physical_com || com == "leg-aware";
     twin_options.mounting_errors = !no_mounting_errors;
     twin_options.force_noise_n *= noise_scale;
     twin_options.torque_noise_nm *= noise_scale;
@@ -478,8 +485,9 @@ int main(int argc, char** argv) {
     if (hang_cycles > 0) twin_options.hang_cycles = hang_cycles;
     const ftcal::BigAntTwin twin(config, twin_options);
 
-    plan.hanging = plan.standing = plan.tripod = plan.walking = false;
+    plan.tare = plan.hanging = plan.standing = plan.tripod = plan.walking = false;
     for (const std::string& s : scenarios) {
+      if (s == "tare") plan.tare = true;
       if (s == "hang") plan.hanging = true;
       if (s == "stand") plan.standing = true;
       if (s == "tripod") plan.tripod = true;

@@ -9,6 +9,7 @@
 
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
+#include "ftcal/segmenter.h"
 
 namespace ftcal {
 namespace {
@@ -45,6 +46,7 @@ enum ScenarioTag : uint64_t {
   kTagWalk = 22,
   kTagDriven = 23,
   kTagDrivenInternal = 24,
+  kTagTare = 25,
 };
 
 class Random {
@@ -518,6 +520,23 @@ double BigAntTwin::Hanging(HangSeries series, const RunOptions& run, const Frame
   return run.t0_s + n * gen.Dt();
 }
 
+double BigAntTwin::Tare(const RunOptions& run, const FrameSink& sink) const {
+  // The naive tare as an operator records it: the robot hangs upright and level (no ground
+  // contact), every shaft at 0, for tare_s.
+  Generator gen(*this, run, sink, kTagTare);
+  const long n = std::lround(options_.tare_s * options_.sample_rate_hz);
+  StanceState st;
+  st.R_WC = Mat3::Identity();
+  for (int k = 0; k < kNumLegs; ++k) st.ground_w_C[k].setZero();
+  const Vec3 p_GC = origin_G_m_ + Vec3(0.0, 0.0, 1.2);
+  const std::array<double, kNumLegs> angle{};
+  if (options_.physical_com) st.com_shift_C = ComShiftC(truth_, angle);
+  for (long i = 0; i < n; ++i) {
+    gen.Emit(run.t0_s + i * gen.Dt(), ExperimentPhase::kTare, 0, true, angle, st, p_GC, yaw0_rad_);
+  }
+  return run.t0_s + n * gen.Dt();
+}
+
 namespace {
 
 // Random self-balancing horizontal forces (before projection) for a new contact epoch.
@@ -748,6 +767,7 @@ struct SteadyAccumulator {
   std::array<std::vector<double>, kNumLegs> angle;
   std::array<std::vector<double>, 9> attitude;
   std::vector<double> t;
+  std::vector<SyncSample> samples;  // for the within-pose scatter
   std::array<bool, kNumLegs> contact{};
   bool markers_ok = true;
 
@@ -759,6 +779,11 @@ struct SteadyAccumulator {
     const Mat3 R_WC = RemoveHeading(f.R_GC);
     for (int i = 0; i < 9; ++i) attitude[i].push_back(R_WC(i / 3, i % 3));
     t.push_back(f.t_s);
+    SyncSample sample;
+    sample.wrench = f.reading;
+    sample.angle_rad = f.angle_rad;
+    sample.R_WC = R_WC;
+    samples.push_back(sample);
     contact = f.in_contact;
     for (bool tracked : f.marker_tracked) markers_ok = markers_ok && tracked;
   }
@@ -786,6 +811,7 @@ std::vector<StandingPose> BigAntTwin::MakeSteadyPoses(int num_poses) const {
       StandingPose pose;
       pose.t_s = Median(&acc.t);
       acc.Fill(&pose.wrench, &pose.angle_rad, &pose.R_WC);
+      SetWithinPoseScatter(acc.samples, &pose);
       poses.push_back(pose);
     }
     acc.Clear();

@@ -56,6 +56,7 @@ enum class ExperimentPhase : int8_t {
   kStanding = 5,
   kWalking = 6,
   kTripod = 7,
+  kTare = 8,  // naive tare: upright, feet in the air, shaft angles 0
 };
 
 inline constexpr int kNumChassisMarkers = 12;
@@ -101,6 +102,8 @@ struct TwinOptions {
   double foot_stiffness_horizontal_n_m = 1000.0;
   double internal_force_n = 3.0;  // rms per foot and horizontal axis before projection
 
+  // Naive tare phase (upright, feet in the air, shaft angles 0).
+  double tare_s = 2.0;
   // Hanging: ten slow leg cycles.
   double hang_cycle_s = 20.0;
   int hang_cycles = 10;
@@ -202,6 +205,7 @@ class BigAntTwin {
                           const std::array<Vec3, kNumLegs>& internal_h) const;
 
   // Scenarios: each emits 100 Hz frames in time order from run.t0_s and returns the end time.
+  double Tare(const RunOptions& run, const FrameSink& sink) const;
   double Hanging(HangSeries series, const RunOptions& run, const FrameSink& sink) const;
   double Standing(int num_poses, const RunOptions& run, const FrameSink& sink) const;
   double TripodStances(int num_stances, const RunOptions& run, const FrameSink& sink) const;

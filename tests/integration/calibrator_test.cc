@@ -188,6 +188,22 @@ class CalibratorTest : public ::testing::Test {
   }
 };
 
+// --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
+// four candidates; the file says so.
+TEST_F(CalibratorTest, ReportProfileFromTheCommandLine) {
+  const std::string out = fx->dir + "/cal-report.pbtxt";
+  const Result r =
+      Run({"--log", fx->log, "--config", kConfig, "--out", out, "--profile", "report"}, "report");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const calibration::Calibration cal = ReadCalibrationFile(out);
+  EXPECT_EQ(cal.solver().profile(), "REPORT");
+  EXPECT_FALSE(cal.solver().exact_hanging_rotations());
+  EXPECT_FALSE(cal.solver().hanging_gravity_prior());
+  EXPECT_FALSE(cal.solver().leg_aware_com());
+  EXPECT_EQ(cal.model_selection_size(), 4);
+  EXPECT_NE(r.out.find("profile REPORT"), std::string::npos) << r.out;
+}
+
 TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport) {
   const std::string out = fx->dir + "/cal.pbtxt";
   const std::string report = fx->dir + "/report";
@@ -237,6 +253,21 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   EXPECT_FALSE(cal.provenance().software_version().empty());
   // The summary table is printed, with the selected model's name.
   EXPECT_NE(r.out.find(calibration::StandingModel_Name(cal.model())), std::string::npos) << r.out;
+  // The default: eight candidates (four mounting models x fixed / leg-aware robot CoM), the
+  // margin it won by, the mass check and the journal's RMSE, naive tare against calibrated.
+  EXPECT_EQ(cal.model_selection_size(), 8);
+  EXPECT_EQ(cal.solver().profile(), "FTCAL");
+  EXPECT_NE(r.out.find("selected by a BIC margin of"), std::string::npos) << r.out;
+  ASSERT_TRUE(cal.has_mass_check());
+  EXPECT_TRUE(cal.mass_check().consistent());
+  EXPECT_NE(r.out.find("Total mass: configured"), std::string::npos) << r.out;
+  ASSERT_GE(cal.result_rmse_size(), 2);  // standing poses and the walk (+ legs with --truth)
+  for (const auto& row : cal.result_rmse()) {
+    EXPECT_GT(row.count(), 0u) << row.samples() << " " << row.wrench();
+    EXPECT_LT(row.force_calibrated_n(), row.force_naive_n()) << row.samples() << " " << row.wrench();
+    EXPECT_LT(row.torque_calibrated_nm(), row.torque_naive_nm()) << row.samples() << " " << row.wrench();
+  }
+  EXPECT_NE(r.out.find("Ground-contact RMSE"), std::string::npos) << r.out;
 
   // Residuals: one row per pose and variant.
   const std::string csv = ReadFile(ResidualsPathFor(out));

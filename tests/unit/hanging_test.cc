@@ -111,8 +111,13 @@ TEST(HangingOptions, FromConfigDefaults) {
   EXPECT_EQ(o.phase_bins, 200);
   EXPECT_EQ(o.smoother_transition_var_m2, 0.01);
   EXPECT_EQ(o.smoother_observation_var_nm2, 0.01);
-  EXPECT_FALSE(o.exact_rotations);
+  EXPECT_TRUE(o.exact_rotations);  // the default: exact rotations, never worse
   EXPECT_NEAR(o.axis_tolerance_rad, 10.0 * M_PI / 180.0, 1e-15);
+  // The report's profile is the report's first-order I + [s], whatever the switch says.
+  config::Calibrator report;
+  report.set_profile(config::REPORT);
+  report.set_exact_hanging_rotations(true);
+  EXPECT_FALSE(HangingOptionsFromConfig(report, config::Mocap()).exact_rotations);
 }
 
 // ------------------------------------------------------------ the whole step, noise-free

@@ -134,6 +134,7 @@ Expected MakeExpected(const BigAntTwin& twin, const ExperimentPlan& plan) {
     t = run(RunOptions{t, plan.drift_at_s}) + plan.gap_s;
     x.phases.push_back({phase, first, x.frames.size()});
   };
+  add(ExperimentPhase::kTare, [&](const RunOptions& r) { return twin.Tare(r, sink); });
   for (int s = 0; s < kNumHangSeries; ++s) {
     add(static_cast<ExperimentPhase>(1 + s), [&](const RunOptions& r) {
       return twin.Hanging(static_cast<HangSeries>(s), r, sink);
@@ -324,7 +325,7 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
   const auto& frames = expected_->frames;
   ASSERT_EQ(log_->markers.size(), 2 * phases.size());
   const std::vector<ExperimentPhase> order = {
-      ExperimentPhase::kHangXPos, ExperimentPhase::kHangXNeg, ExperimentPhase::kHangZPos,
+      ExperimentPhase::kTare, ExperimentPhase::kHangXPos, ExperimentPhase::kHangXNeg, ExperimentPhase::kHangZPos,
       ExperimentPhase::kHangZNeg, ExperimentPhase::kStanding, ExperimentPhase::kTripod,
       ExperimentPhase::kWalking};
   ASSERT_EQ(phases.size(), order.size());
@@ -337,8 +338,8 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
     EXPECT_FALSE(stop.start);
     EXPECT_EQ(start.session_id, "sim-log-test");
     Vec3 g_expected = Vec3::Zero();
-    if (p < kNumHangSeries) {
-      g_expected = twin_->StatedGravityB(static_cast<HangSeries>(p));
+    if (p >= 1 && p <= kNumHangSeries) {  // after the TARE phase
+      g_expected = twin_->StatedGravityB(static_cast<HangSeries>(p - 1));
       EXPECT_NEAR(g_expected.norm(), 1.0, 1e-12);
     }
     for (int a = 0; a < 3; ++a) {

@@ -330,11 +330,22 @@ TEST(Standing, OptionsFromConfig) {
   EXPECT_EQ(o.robust_loss, StandingLoss::kNone);
   EXPECT_EQ(o.cv_folds, 5);
   EXPECT_EQ(o.min_poses, 30);
+  // The default lets the data choose the robot-CoM target; the report's profile is fixed C.
   EXPECT_FALSE(o.leg_aware_com);
+  EXPECT_TRUE(o.select_com);
+  c.set_profile(config::REPORT);
+  o = StandingOptionsFromConfig(c);
+  EXPECT_FALSE(o.leg_aware_com);
+  EXPECT_FALSE(o.select_com);
+  c.set_profile(config::FTCAL);
+  c.set_com_model(config::COM_FIXED);
+  o = StandingOptionsFromConfig(c);
+  EXPECT_FALSE(o.leg_aware_com);
+  EXPECT_FALSE(o.select_com);
   c.set_solver(config::ALTERNATING);
   c.set_robust_loss(config::CAUCHY);
   c.set_robust_loss_scale(0.5);
-  c.set_leg_aware_com(true);
+  c.set_com_model(config::COM_LEG_AWARE);
   c.set_cv_folds(4);
   for (double w : {2.0, 2.0, 2.0, 5.0, 5.0, 5.0}) c.add_k_weights(w);
   o = StandingOptionsFromConfig(c);
@@ -343,6 +354,7 @@ TEST(Standing, OptionsFromConfig) {
   EXPECT_EQ(o.robust_loss, StandingLoss::kCauchy);
   EXPECT_EQ(o.robust_loss_scale, 0.5);
   EXPECT_TRUE(o.leg_aware_com);
+  EXPECT_FALSE(o.select_com);
   EXPECT_EQ(o.cv_folds, 4);
 }
 
@@ -351,12 +363,23 @@ TEST(Standing, ConfiguredAlternatingSolverGivesTheSelectedModelsParameters) {
   const auto poses = MakePoses(truth, GridSubset(150, 82), kReportNoise, false, 83);
   StandingOptions options;
   options.solver = StandingSolver::kAlternating;
-  const StandingResult r = CalibrateStanding(Step1Of(truth), poses, {}, options);
-  EXPECT_EQ(r.selected, StandingModel::kFull);  // selection compares the models' optima
+  std::array<Vec6, kNumLegs> naive;  // Eigen leaves {} uninitialised
+  for (Vec6& v : naive) v.setZero();
+  const StandingResult r = CalibrateStanding(Step1Of(truth), poses, naive, options);
+  EXPECT_EQ(r.selected, StandingModel::kFull);
   EXPECT_EQ(r.fit.solver, "alternating");
-  EXPECT_GE(r.fit.rss, r.fits[0].rss * (1.0 - 1e-9));
+  // The joint solve is the optimum of the same cost; the alternating scheme stops short of it.
+  const StandingFit joint =
+      FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, StandingOptions());
+  EXPECT_GE(r.fit.rss, joint.rss * (1.0 - 1e-9));
+  // The model-selection table describes the parameters that are written: every row is an
+  // alternating fit, and the selected row's RSS is the written fit's.
+  for (const StandingFit& f : r.fits) EXPECT_EQ(f.solver, "alternating");
   calibration::Calibration proto;
   FillStandingProto(r, &proto);
+  for (const auto& row : proto.model_selection()) {
+    if (row.selected()) EXPECT_DOUBLE_EQ(row.rss(), r.fit.rss);
+  }
   EXPECT_EQ(proto.solver().solver(), "alternating");
   EXPECT_EQ(proto.solver().iterations(), static_cast<uint32_t>(r.fit.iterations));
 }

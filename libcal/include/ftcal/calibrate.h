@@ -3,9 +3,15 @@
 //
 // Order: step 1 (RunHanging) on the four hanging series gives offsets, leg weights and CoM
 // curves; those are applied to the nominal robot (config) and held fixed while step 2
-// (CalibrateStanding) fits the four mounting models jointly, selects the one with the lowest
-// BIC (5-fold CV MSE reported beside it) and makes its parameters the calibration. Optionally
-// the report's alternating scheme is run on the selected model too, for comparison only.
+// (CalibrateStanding) fits the four mounting models, with both robot-CoM targets (fixed C and
+// leg-aware) unless the config fixes one, by the configured solver, selects the candidate with
+// the lowest BIC (5-fold CV MSE reported beside it) and makes its parameters the calibration.
+// Optionally the report's alternating scheme is run on the selected model too, for comparison.
+//
+// Profiles (config calibrator.profile, docs/method.md): FTCAL (default) uses exact hanging
+// rotations, lets the data choose the robot-CoM model and uses the hanging gravity prior when
+// every hanging series carries motion capture (skipped with a warning otherwise, never a
+// refusal); REPORT is the report's procedure: first-order rotations, fixed C, no prior.
 #pragma once
 
 #include <array>
@@ -29,7 +35,21 @@ class CalibrationStageError : public std::invalid_argument {
   using std::invalid_argument::invalid_argument;
 };
 
+// The configured total mass disagrees with the data's (CalibrationRun's mass check); what()
+// names both masses.
+class MassMismatchError : public CalibrationStageError {
+ public:
+  using CalibrationStageError::CalibrationStageError;
+};
+
 struct CalibrateOptions {
+  // Calibrate even when the configured total mass disagrees with the data (the mismatch is
+  // recorded in the file and as a warning) instead of throwing MassMismatchError.
+  bool accept_mass_mismatch = false;
+  // The naive tare baseline from a TARE phase (mean reading per leg: upright, feet in the air,
+  // shafts at 0); without it, step 1's (the upright hanging series near theta = 0).
+  bool has_naive_tare = false;
+  std::array<Vec6, kNumLegs> naive_tare;
   // Also run the report's alternating scheme on the selected model (StandingRun.alternating);
   // the calibration stays the configured solver's.
   bool compare_alternating = false;
@@ -43,6 +63,8 @@ struct CalibrationRun {
   StandingFit alternating;         // the report's scheme on the selected model
   RobotCalibration calibration;    // step 1 + the selected model: the parameters of eq. 3
   calibration::Calibration proto;  // everything, as written to the calibration file
+  // What the user should know (also proto.warning): e.g. the gravity prior skipped.
+  std::vector<std::string> warnings;
 };
 
 // The nominal robot of the config (X_B_ft, total mass, g0) with no calibration applied.

@@ -38,6 +38,13 @@ struct StandingPose {
   std::array<double, kNumLegs> angle_rad; // median shaft angles
   Mat3 R_WC = Mat3::Identity();           // median attitude
   double t_s = 0.0;
+  // Within-pose scatter: the standard error of the medians above (readings per component;
+  // attitude as a rotation vector about W's axes, rad), from the samples' robust spread. The
+  // pose's noise floor (docs/method.md "Uncertainty"); valid only when samples > 0 (a
+  // STEADY_POSE message carries none).
+  int samples = 0;
+  std::array<Vec6, kNumLegs> wrench_sem;
+  Vec3 attitude_sem_rad = Vec3::Zero();
 };
 
 // A sample with some legs unloaded (tripod stance or swing), for offset re-estimation.

@@ -9,6 +9,7 @@
 #pragma once
 
 #include <array>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -20,6 +21,12 @@
 #include "proto/config.pb.h"
 
 namespace ftcal {
+
+inline std::array<Vec6, kNumLegs> UnlimitedRatedRange() {
+  std::array<Vec6, kNumLegs> r;
+  for (Vec6& v : r) v.setConstant(std::numeric_limits<double>::infinity());
+  return r;
+}
 
 struct HangingOptions {
   // Phase grid for matching the two series of a pair: bins per leg cycle.
@@ -43,7 +50,15 @@ struct HangingOptions {
   double naive_tare_max_angle_rad = 5.0 * M_PI / 180.0;
   // Refine s+ by minimising the report's objective (Ceres, L-BFGS) after the closed form.
   bool refine_s_plus = true;
+  // Per leg, the transducer's rated range per component [f; tau] (config ati.rated_range): a
+  // sample with any |component| beyond it is saturated and left out of every fit (its phase
+  // bins then fall out of the match like any gap). Infinite: no limit.
+  std::array<Vec6, kNumLegs> rated_range = UnlimitedRatedRange();
 };
+
+// The rated ranges of the config's transducers (robot.leg[k].ati.rated_range; a leg without
+// one keeps no limit).
+void SetRatedRanges(const config::Robot& robot, HangingOptions* options);
 
 // Options from the config (Calibrator: phase_bins, smoother variances,
 // exact_hanging_rotations; Mocap: hang_axis_tolerance_deg).
@@ -121,6 +136,8 @@ struct LegHangingResult {
   ComFitResult com;
   ComBins com_bins;
   Vec6 naive_offset = Vec6::Zero();  // baseline: mean upright reading near theta = 0
+  // Samples beyond the rated range left out, over the four series (HangingOptions.rated_range).
+  int saturated_samples = 0;
   WrenchResidualStats naive_residual;
 };
 

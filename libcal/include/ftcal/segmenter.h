@@ -101,5 +101,10 @@ class PoseSegmenter {
 // Median of each component over the samples of a run (rotations: component-wise median of
 // sign-aligned quaternions, normalised).
 StandingPose MedianPose(const std::vector<SyncSample>& samples);
+// The within-pose scatter of `samples` as the standard error of `pose`'s medians (its
+// wrench_sem, attitude_sem_rad, samples): 1.4826 MAD per component (a stray sample does not
+// move it) times sqrt(pi / 2) / sqrt(n), the standard error of a median of n independent
+// Gaussian samples. Samples correlated in time make this an underestimate (a floor).
+void SetWithinPoseScatter(const std::vector<SyncSample>& samples, StandingPose* pose);
 
 }  // namespace ftcal

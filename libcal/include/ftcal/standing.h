@@ -51,6 +51,8 @@ inline constexpr std::array<StandingModel, 4> kStandingModels = {
     StandingModel::kTranslationsOnly, StandingModel::kOneTranslation};
 int StandingModelDof(StandingModel model);
 const char* StandingModelName(StandingModel model);
+// "FULL, fixed CoM", "ONE_TRANSLATION, leg-aware CoM", ...
+std::string CandidateName(StandingModel model, bool leg_aware_com);
 
 enum class StandingSolver { kJoint, kAlternating };
 enum class StandingLoss { kNone, kHuber, kCauchy };
@@ -63,7 +65,11 @@ struct StandingOptions {
   StandingLoss robust_loss = StandingLoss::kNone;
   double robust_loss_scale = 1.0;
   int cv_folds = 5;
+  // The robot-CoM target of a fit: false the report's fixed C, true the leg-aware CoM.
   bool leg_aware_com = false;
+  // CalibrateStanding: fit the four mounting models with both robot-CoM targets and let model
+  // selection choose (leg_aware_com is then ignored there).
+  bool select_com = false;
   int min_poses = 30;
   int max_iterations = 200;  // Levenberg-Marquardt iterations per joint solve
   // ftcal's extension (config calibrator.hanging_gravity_prior): the hanging series' gravity
@@ -84,7 +90,8 @@ struct StandingFit {
   std::array<Vec3, kNumLegs> p_tilde_prime;   // m; R~^T p^C_B in models 2 and 4
   bool has_p_C_B = false;                     // models 2 and 4
   Vec3 p_C_B = Vec3::Zero();                  // m
-  // 1-sigma from ceres::Covariance scaled by RSS / (6 P - DOF); zero for what the model fixes.
+  // 1-sigma from the sandwich covariance with per-component residual variances (standing.cc,
+  // AddCovariance); zero for what the model fixes.
   // Rotations: sigma of the left rotation-vector perturbation R~ = Exp(dv) R~_hat, in degrees.
   bool has_covariance = false;
   std::array<Vec3, kNumLegs> sigma_rotation_deg;
@@ -93,6 +100,7 @@ struct StandingFit {
   double rss = 0.0;                 // sum_p ||r_p||^2_K at the solution (robust loss or not)
   double residual_variance = 0.0;   // rss / (6 P - dof)
   int poses = 0;
+  bool leg_aware_com = false;       // the robot-CoM target it was fitted with
   std::string solver;               // "joint" or "alternating"
   int iterations = 0;               // LM iterations (joint) or sweeps (alternating)
   double initial_cost = 0.0, final_cost = 0.0;  // Ceres cost (1/2 sum of squares, robustified)
@@ -129,11 +137,19 @@ RobotCalibration ApplyStandingFit(const RobotCalibration& step1, const StandingF
 std::vector<Vec6> NaiveTareResiduals(const RobotCalibration& step1,
                                      const std::array<Vec6, kNumLegs>& naive_offset,
                                      const std::vector<StandingPose>& poses);
+// The noise floor of each pose's residual r_p: 1-sigma per component [fx fy fz tx ty tz] from
+// the pose's within-pose scatter (StandingPose::wrench_sem, attitude_sem_rad) propagated through
+// the nominal transform (each leg's force and torque into C, the attitude error tilting the
+// weight G); a pose without scatter (samples == 0) gives NaN.
+std::vector<Vec6> PoseNoiseFloor(const RobotCalibration& step1,
+                                 const std::vector<StandingPose>& poses);
+
 // sum_p ||r_p||^2_K.
 double WeightedRss(const std::vector<Vec6>& residuals, const Vec6& k_weights);
 
 struct ModelSelectionRow {
   StandingModel model = StandingModel::kFull;
+  bool leg_aware_com = false;
   int dof = 0;
   double cv_mse = 0.0;  // mean over folds of the test poses' mean ||r_p||^2_K
   double rss = 0.0;     // over all poses
@@ -141,24 +157,39 @@ struct ModelSelectionRow {
   bool selected = false;
 };
 
-// k-fold cross-validation on poses (pose i in fold i % folds), each fold warm-started from
-// `full_data_fit`; returns the mean test MSE.
+// k-fold cross-validation on poses (pose i in fold i % folds) with the solver that made
+// `full_data_fit` (options.solver): the joint solve warm-started from it, the alternating scheme
+// from R~ = I as the report runs it; returns the mean test MSE.
 double CrossValidationMse(const RobotCalibration& step1, const std::vector<StandingPose>& poses,
                           const StandingFit& full_data_fit, const StandingOptions& options);
 
 struct StandingResult {
-  std::vector<StandingFit> fits;                     // joint fit of each model, Table I order
-  std::vector<ModelSelectionRow> model_selection;    // Table I
+  // Every candidate fitted by the configured solver, Table I order, the fixed-CoM rows first
+  // (only the configured robot-CoM target's rows without select_com).
+  std::vector<StandingFit> fits;
+  std::vector<ModelSelectionRow> model_selection;    // Table I, same order as fits
   StandingModel selected = StandingModel::kFull;     // lowest BIC
-  StandingFit fit;               // the selected model, by the configured solver
+  bool selected_leg_aware_com = false;               // ... and its robot-CoM target
+  bool com_selected_by_data = false;                 // both robot-CoM targets were candidates
+  StandingFit fit;               // the selected candidate (a copy of its entry in fits)
+  // The candidate of `model` with the given robot-CoM target; throws when it was not fitted.
+  const StandingFit& FitOf(StandingModel model, bool leg_aware_com) const;
   RobotCalibration calibration;  // step 1 + the selected fit
   std::vector<Vec6> residual_naive, residual_without, residual_full;  // per pose
   int poses = 0;
-  StandingOptions options;
+  StandingOptions options;  // as given, with leg_aware_com set to the selected target
+  // The noise floor (PoseNoiseFloor) and the selected fit's residual against it:
+  // residual_to_floor = sqrt((RSS / (6 P - DOF)) / floor_variance), floor_variance the mean over
+  // poses and components of K_i floor_i^2; 0 when some pose has no within-pose scatter.
+  int poses_with_scatter = 0;
+  Vec6 floor_rms = Vec6::Zero();  // rms over poses of the floor per component
+  double floor_variance = 0.0;
+  double residual_to_floor = 0.0;
 };
 
-// The whole of step 2: every model fitted jointly, model selection by BIC (with CV MSE), the
-// selected model fitted by the configured solver, residuals of the three variants.
+// The whole of step 2: every candidate (four mounting models, times the two robot-CoM targets
+// with select_com) fitted by the configured solver and cross-validated by the same solver,
+// model selection by BIC (with CV MSE), residuals of the three variants for the selected one.
 StandingResult CalibrateStanding(const RobotCalibration& step1,
                                  const std::vector<StandingPose>& poses,
                                  const std::array<Vec6, kNumLegs>& naive_offset,
