@@ -32,7 +32,8 @@ config::Robot SimRobot() {
 
 RobotCalibration RandomCalibration(std::mt19937& rng, const config::Robot& robot) {
   std::uniform_real_distribution<double> u(-1.0, 1.0);
-  auto vec = [&](double scale) { return Vec3(u(rng), u(rng), u(rng)) * scale; };
+  // -> Vec3: returning the Eigen expression would refer to a temporary that is gone.
+  auto vec = [&](double scale) -> Vec3 { return Vec3(u(rng), u(rng), u(rng)) * scale; };
   RobotCalibration cal;
   cal.X_B_ft = NominalTransducerPoses(robot);
   cal.g0 = 9.80665 + 0.01 * u(rng);
