@@ -437,8 +437,12 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
     }
     ASSERT_GT(corrupted, 5);
     // (The bridge waits out its reply timeout in each cycle with a reply missing: fewer cycles.)
-    ASSERT_GT(missing3, 5) << "servo 3 was missing for 1 s";
-    ASSERT_GT(silent, 30) << "the bus was silent for 0.5 s";
+    // Servo 3 is missing for 1 s; the bridge asks it in the first missed cycles only and then
+    // marks it lost (--lost-after 5) and re-probes it with PINGs, which are not present-block
+    // reads: a handful of missing replies, not a second's worth.
+    ASSERT_GE(missing3, 3) << "servo 3 was missing for 1 s";
+    // The same for the silent bus: six servos for the first missed cycles, then re-probes.
+    ASSERT_GE(silent, 20) << "the bus was silent for 0.5 s";
     std::map<int, int> leg_of_id;
     for (int k = 0; k < kNumLegs; ++k) leg_of_id[config.robot().leg(k).servo().id()] = k;
     // The bridge's cycles after the last one with a fresh value are those after ftcal-sim
@@ -515,9 +519,12 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
       }
     }
     std::cout << "dynamixel: worst |angle - twin angle| " << worst_counts << " counts\n";
-    // Every published cycle made one request of six replies, each sent or lost: the truth and
-    // the bridge's count of cycles agree exactly.
-    EXPECT_EQ(6 * last.msgs_out, present_sent + present_lost);
+    // Every published cycle asked each servo not marked lost for one reply, sent or lost; a
+    // lost servo is left out of the request (counted lost_cycles): the truth and the bridge's
+    // count of cycles agree exactly.
+    const std::int64_t lost_cycles = CounterOr0(last, "lost_cycles");
+    std::cout << "dynamixel: " << lost_cycles << " servo-cycles skipped as lost\n";
+    EXPECT_EQ(6 * last.msgs_out, present_sent + present_lost + lost_cycles);
     // Every reply lost is a stale servo; so is a reply made after the bridge's deadline, which
     // the bridge counts as late, as a repeated tick, or, when it lands in the next transaction
     // (the hardware-error read), as unexpected there, that read's own replies then arriving in
@@ -527,7 +534,7 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
                               CounterOr0(last, "unexpected_replies") + CounterOr0(last, "malformed");
     EXPECT_LE(mispaired, late) << "a tick paired with another reply's values without a late reply";
     EXPECT_GE(Counter(last, "stale"), present_lost);
-    EXPECT_LE(Counter(last, "stale"), present_lost + late + 6);
+    EXPECT_LE(Counter(last, "stale"), present_lost + late + lost_cycles + 6);
     EXPECT_GE(Counter(last, "stale"), stale + stale_tail);
     EXPECT_GE(present_sent, fresh);
     EXPECT_GE(Counter(last, "crc_errors"), corrupted);
