@@ -41,7 +41,7 @@ double Buehler(double clock, double duty, double sweep) {
 class Builder {
  public:
   Builder(const config::Config& config, const config::ExperimentPlan& plan)
-      : config_(config), plan_(plan), seq_(config.sequencer()) {
+      : plan_(plan), seq_(config.sequencer()) {
     const auto& legs = config.robot().leg();
     for (int k = 0; k < kNumLegs; ++k) {
       const config::Servo& s = legs[k].servo();
@@ -95,14 +95,12 @@ class Builder {
   // A smooth move to `to`, timed so that no shaft's peak speed exceeds the limit.
   void Move(int phase, int8_t marker, const Angles& to, int unit = -1, bool resume = false) {
     CheckLimits(phase, to);
-    double longest = 0.0;
-    for (int k = 0; k < kNumLegs; ++k) longest = std::max(longest, std::abs(to[k] - current_[k]));
+    if (to == current_ && !resume) return;
     Step s = Base(phase, marker, StepKind::kMove);
     s.to = to;
-    s.duration_s = std::max(kMinMoveS, kBlendPeakFactor * longest / seq_.max_velocity_rad_s());
+    s.duration_s = MoveDurationS(current_, to, seq_.max_velocity_rad_s());
     s.unit = unit;
     s.resume_point = resume;
-    if (longest == 0.0 && !resume) return;
     Push(s);
     current_ = to;
   }
@@ -275,7 +273,6 @@ class Builder {
     }
   }
 
-  const config::Config& config_;
   const config::ExperimentPlan& plan_;
   const config::Sequencer& seq_;
   Angles lo_{}, hi_{};
@@ -340,6 +337,12 @@ std::vector<Angles> GrayGrid(const std::vector<double>& angles_rad) {
     poses.push_back(a);
   }
   return poses;
+}
+
+double MoveDurationS(const Angles& from, const Angles& to, double max_velocity_rad_s) {
+  double longest = 0.0;
+  for (int k = 0; k < kNumLegs; ++k) longest = std::max(longest, std::abs(to[k] - from[k]));
+  return std::max(kMinMoveS, kBlendPeakFactor * longest / max_velocity_rad_s);
 }
 
 Angles GoalAt(const Step& step, double t) {

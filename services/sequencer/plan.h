@@ -75,6 +75,10 @@ struct Schedule {
 // limit.
 Schedule Expand(const config::Config& config, const std::string& plan_name);
 
+// How long a smooth move from `from` to `to` takes so that no shaft's peak speed exceeds
+// `max_velocity_rad_s` (never shorter than the servos' profile needs).
+double MoveDurationS(const Angles& from, const Angles& to, double max_velocity_rad_s);
+
 // The goals of `step` at `t` seconds into it (clamped to [0, duration]).
 Angles GoalAt(const Step& step, double t);
 

@@ -311,24 +311,19 @@ void Sequencer::Tick() {
     if (!step_started_) {
       step_started_ = true;
       step_start_utime_ = now;
-      if (s.kind == StepKind::kMove || s.kind == StepKind::kTurn || s.kind == StepKind::kWalk ||
-          s.kind == StepKind::kHold) {
-        // Moves start where the servos were last sent (or are, before the first command), so
-        // that a resumed or re-timed move never jumps.
-        if (s.kind == StepKind::kMove) {
-          if (have_goals_) {
-            s.from = goals_;
-          } else if (inputs_.servo) {
-            s.from = inputs_.servo->angle_rad;
-          } else {
-            step_started_ = false;  // no servo state yet: wait for one
-            return;
-          }
-          double longest = 0.0;
-          for (int k = 0; k < kNumLegs; ++k) longest = std::max(longest, std::abs(s.to[k] - s.from[k]));
-          s.duration_s = std::max(s.duration_s, 0.5 * M_PI * longest /
-                                                    config_.sequencer().max_velocity_rad_s());
+      // Moves start where the servos were last sent (or are, before the first command), so
+      // that a resumed or re-timed move never jumps.
+      if (s.kind == StepKind::kMove) {
+        if (have_goals_) {
+          s.from = goals_;
+        } else if (inputs_.servo) {
+          s.from = inputs_.servo->angle_rad;
+        } else {
+          step_started_ = false;  // no servo state yet: wait for one
+          return;
         }
+        s.duration_s = std::max(s.duration_s, MoveDurationS(s.from, s.to,
+                                                            config_.sequencer().max_velocity_rad_s()));
       }
     }
     const double t = (now - step_start_utime_) * 1e-6;

@@ -7,6 +7,8 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <map>
 #include <set>
 #include <unistd.h>
@@ -28,17 +30,14 @@ namespace {
 
 constexpr double kDeg = M_PI / 180.0;
 
+std::string ShippedConfigText(const std::string& name) {
+  std::ifstream in(std::string(FTCAL_SOURCE_DIR) + "/config/" + name, std::ios::binary);
+  EXPECT_TRUE(in.good()) << name;
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
 config::Config SimConfig(const std::string& extra = "") {
-  std::string text;
-  {
-    FILE* f = std::fopen(FTCAL_SOURCE_DIR "/config/sim.pbtxt", "rb");
-    EXPECT_NE(f, nullptr);
-    char buf[4096];
-    size_t n;
-    while ((n = std::fread(buf, 1, sizeof buf, f)) > 0) text.append(buf, n);
-    std::fclose(f);
-  }
-  return LoadConfigText(text + extra, "sim.pbtxt+test");
+  return LoadConfigText(ShippedConfigText("sim.pbtxt") + extra, "sim.pbtxt+test");
 }
 
 // ---- plan -> schedule ----
@@ -142,16 +141,7 @@ plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_Z_NEG cycles: 2 c
 }
 
 TEST(Expand, BigAntsReportPlanIsTheReportsExperiment) {
-  std::string text;
-  {
-    FILE* f = std::fopen(FTCAL_SOURCE_DIR "/config/bigant.pbtxt", "rb");
-    ASSERT_NE(f, nullptr);
-    char buf[4096];
-    size_t n;
-    while ((n = std::fread(buf, 1, sizeof buf, f)) > 0) text.append(buf, n);
-    std::fclose(f);
-  }
-  config::Config c = LoadConfigText(text, "bigant.pbtxt");
+  config::Config c = LoadConfigText(ShippedConfigText("bigant.pbtxt"), "bigant.pbtxt");
   // As shipped (single-turn position mode), the full cycles do not fit the servo limits.
   EXPECT_THROW(Expand(c, ""), std::invalid_argument);
   for (auto& leg : *c.mutable_robot()->mutable_leg()) {
