@@ -78,6 +78,8 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
 
 void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
+  // Each input log's signers count their sequences afresh: logs may be given in any order.
+  verifier_ = auth::Verifier::FromConfig(config_);
   bus.SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) {
     channels_seen_.insert(info.channel);
   });
@@ -89,8 +91,11 @@ void CalibrationCollector::Attach(Bus& bus) {
                                [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
   bus.Subscribe<mocap_body_t>(ch.mocap_body(),
                               [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
-  bus.Subscribe<experiment_marker_t>(
-      ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
+  // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
+  // signature and the rising sequence still hold.
+  bus.SubscribeSigned<experiment_marker_t>(
+      ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   bus.Subscribe<steady_pose_t>(ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) {
     OnSteadyPose(m);
   });
@@ -101,10 +106,9 @@ void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, in
   for (int k = 0; k < kNumLegs; ++k) {
     if (info.channel != inputs_.FtChannel(k)) continue;
     ft_sample_t msg;
-    const int used = msg.decode(data, 0, size);
-    if (used != size) {
-      throw BadInput("undecodable ftcal.ft_sample_t on " + info.channel,
-                     std::to_string(size) + " bytes do not decode");
+    if (auto refused = wire::Decode(data, size, &msg)) {
+      throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
+                     refused->detail);
     }
     aligner_.AddFt(inputs_.FromFt(k, msg));
     return;
@@ -413,7 +417,11 @@ void LiveCalibrator::CalibrateNow() {
   msg.content_sha256 = Sha256Hex(bytes);
   msg.data.assign(bytes.begin(), bytes.end());
   msg.size = static_cast<int32_t>(msg.data.size());
-  bus_.Publish(config_.channels().calibration(), msg);
+  if (signer_ != nullptr) {
+    bus_.PublishSigned(config_.channels().calibration(), msg, *signer_);
+  } else {
+    bus_.Publish(config_.channels().calibration(), msg);
+  }
   spdlog::info("wrote {}; published calibration version {} on {}", out_path_, version_,
                config_.channels().calibration());
   if (on_calibrated_) on_calibrated_(run);

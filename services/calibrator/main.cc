@@ -50,6 +50,7 @@ struct Args {
   std::string lcm_url;
   std::string log_level;
   std::string command_line;
+  std::string signing_key;
 };
 
 // Runs scripts/report; returns its exit status (its messages go to our stderr).
@@ -213,6 +214,21 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
+  // CALIBRATION is a signed channel: without a key, receivers refuse what this publishes
+  // unless their config allows unsigned (the loopback twin's does).
+  std::optional<ftcal::auth::Signer> signer;
+  if (!args.signing_key.empty()) {
+    try {
+      signer.emplace(ftcal::auth::Signer::FromSeedFile(args.signing_key));
+    } catch (const std::exception& e) {
+      spdlog::critical("{}", e.what());
+      return 2;
+    }
+    live.SetSigner(&*signer);
+  } else {
+    spdlog::warn("no --signing-key: {} goes out unsigned (refused unless auth.allow_unsigned)",
+                 config.channels().calibration());
+  }
   ftcal::InstallShutdownHandlers();
   spdlog::info("listening on {} for EXPERIMENT markers", url);
   // The 1 Hz FTCAL_STATUS every process publishes (ServiceApp's, which this mode does not use:
@@ -276,6 +292,9 @@ int main(int argc, char** argv) {
                                                    ftcal::ServiceApp::DefaultConfigPath());
   cli.add_option("--lcm-url", args.lcm_url, "live: LCM URL; overrides the config's lcm_url");
   cli.add_option("--log-level", args.log_level, "log level (trace..off); default info");
+  cli.add_option("--signing-key", args.signing_key,
+                 "live: sign CALIBRATION with the Ed25519 seed in this file (owner-only; "
+                 "ftcal-keygen makes one)");
   CLI11_PARSE(cli, argc, argv);
 
   spdlog::set_default_logger(spdlog::stderr_color_mt("ftcal-calibrator"));

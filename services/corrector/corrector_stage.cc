@@ -40,8 +40,10 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
                                [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
   bus.Subscribe<mocap_body_t>(ch.mocap_body(),
                               [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
-  bus.Subscribe<calibration_t>(ch.calibration(),
-                               [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
+  // Signed; no time window, so a calibration replayed from a recording still applies.
+  bus.SubscribeSigned<calibration_t>(
+      ch.calibration(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
   set_state_(service_status_t::DEGRADED);
   UpdateCounters();
 }

@@ -51,6 +51,8 @@ class CorrectorStage {
   void UpdateCounters();
 
   const config::Config& config_;
+  // CALIBRATION is a signed channel (common/envelope.h).
+  auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
   Bus& bus_;
   StateSink set_state_;
   StageInputs inputs_;

@@ -53,8 +53,11 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
                                [this](const MessageInfo&, const servo_state_t& m) { OnServo(m); });
   bus.Subscribe<mocap_body_t>(ch.mocap_body(),
                               [this](const MessageInfo&, const mocap_body_t& m) { OnMocap(m); });
-  bus.Subscribe<experiment_marker_t>(
-      ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
+  // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
+  // signature and the rising sequence still hold.
+  bus.SubscribeSigned<experiment_marker_t>(
+      ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   PublishCounters();
 }
 

@@ -1,0 +1,6 @@
+# Signed channels (services/common/envelope) on memq:// and ftcal-keygen (no network).
+ftcal_add_gtest(envelope_test integration TIMEOUT 60
+  SOURCES "${CMAKE_CURRENT_LIST_DIR}/envelope_test.cc"
+  LIBS ftcal_common ftcal_child_process)
+target_compile_definitions(envelope_test PRIVATE FTCAL_KEYGEN="$<TARGET_FILE:ftcal-keygen>")
+add_dependencies(envelope_test ftcal-keygen)
