@@ -162,13 +162,23 @@ servo_command_t CommandGate::HoldMeasured() {
 std::optional<servo_command_t> CommandGate::Tick(double now_s, bool degraded) {
   const double dt = last_tick_s_ < 0 ? 0.0 : std::clamp(now_s - last_tick_s_, 0.0, 0.1);
   last_tick_s_ = now_s;
-  if (degraded) {
+  // One stale cycle (a late reply on a loaded bus) is not a fault; a servo silent or in error,
+  // or the port down, for longer than the dead-man time is.
+  if (!degraded) {
+    degraded_since_s_ = -1;
+  } else if (degraded_since_s_ < 0) {
+    degraded_since_s_ = now_s;
+  }
+  if (degraded_since_s_ >= 0 && now_s - degraded_since_s_ > deadman_s_) {
     // Nothing moves further; the goals already written stay (they are inside the limits).
     hold_pending_ = false;
-    SetMode(Mode::kFault, "the bridge is degraded");
+    SetMode(Mode::kFault, "the bridge degraded for more than dynamixel.deadman_s");
     return std::nullopt;
   }
-  if (mode_ == Mode::kFault) SetMode(Mode::kDisarmed, "the bridge recovered; ARM again");
+  if (mode_ == Mode::kFault) {
+    if (degraded) return std::nullopt;
+    SetMode(Mode::kDisarmed, "the bridge recovered; ARM again");
+  }
   if (mode_ == Mode::kArmed && now_s - last_contact_s_ > deadman_s_) {
     ++stats_.Counter("deadman_holds");
     hold_pending_ = true;

@@ -13,8 +13,9 @@
 //   - dead-man: while armed, a MOVE or HEARTBEAT from the commander at least every
 //     dynamixel.deadman_s, or the gate writes the measured positions as goals and goes to
 //     HOLD (a new ARM resumes); torque stays on, since torque off drops a standing robot;
-//   - while the bridge is degraded (a servo silent or in hardware error, the port down) the
-//     gate is in FAULT: nothing is moved until it clears and a commander arms again.
+//   - while the bridge has been degraded (a servo silent or in hardware error, the port down)
+//     for longer than dynamixel.deadman_s the gate is in FAULT: nothing is moved until it
+//     clears and a commander arms again (one stale cycle on a loaded bus is not a fault).
 // Mode and refusal counts are counters of the process's FTCAL_STATUS.
 #pragma once
 
@@ -75,6 +76,7 @@ class CommandGate {
   double last_tick_s_ = -1;
   bool torque_enable_ = true;
   bool hold_pending_ = false;  // write the measured positions at the next tick
+  double degraded_since_s_ = -1;
 };
 
 }  // namespace ftcal

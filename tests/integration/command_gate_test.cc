@@ -182,8 +182,21 @@ TEST_F(CommandGateTest, ADegradedBridgeIsAFaultUntilItRecoversAndIsArmedAgain) {
   double t = kStartS + 2;
   ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
   ASSERT_EQ(Send("op", Cmd(servo_command_t::MOVE, 0.9), t), "");
-  EXPECT_FALSE(gate_.Tick(t += 0.01, true));
-  EXPECT_EQ(gate_.mode(), Mode::kFault);
+  EXPECT_FALSE(gate_.Tick(t, false));  // the first tick starts the clock
+  // One degraded cycle (a late reply) is not a fault: the motion goes on.
+  EXPECT_TRUE(gate_.Tick(t += 0.01, true));
+  EXPECT_EQ(gate_.mode(), Mode::kArmed);
+  EXPECT_TRUE(gate_.Tick(t += 0.01, false));
+  // Degraded for longer than deadman_s is (the commander still talking).
+  const double degraded_from = t + 0.01;
+  while (gate_.mode() != Mode::kFault) {
+    ASSERT_EQ(Send("op", Cmd(servo_command_t::HEARTBEAT), t), "");
+    gate_.Tick(t += 0.01, true);
+    ASSERT_LT(t, degraded_from + 0.5);
+  }
+  EXPECT_GT(t - degraded_from, 0.25 - 1e-9);
+  EXPECT_LT(t - degraded_from, 0.25 + 0.02);
+  EXPECT_FALSE(gate_.Tick(t += 0.01, true));  // nothing moves in FAULT
   EXPECT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "servo command in_fault");
   EXPECT_FALSE(gate_.Tick(t += 0.01, false));
   EXPECT_EQ(gate_.mode(), Mode::kDisarmed);
