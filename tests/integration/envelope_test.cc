@@ -9,9 +9,13 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 #include <thread>
 
+#include <sys/wait.h>
+
 #include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
@@ -293,6 +297,57 @@ TEST(KeygenTest, WritesAnOwnerOnlySeedWhosePublicKeyItPrints) {
   EXPECT_NE(*status2, 0);
   EXPECT_EQ(auth::ToHex(Signer::FromSeedFile(key).public_key().data(), 32), printed);
   std::filesystem::remove_all(dir);
+}
+
+// ftcal-envelopes opens a log's envelopes: signer by name, verdict, the inner message's fields.
+TEST(EnvelopesToolTest, PrintsEachEnvelopeOpenedAndFlagsABadSignature) {
+  const std::string dir = testing::MakeTempDir();
+  Signer op = MakeSigner(1);
+  {
+    lcm::LogFile log(dir + "/in.lcmlog", "w");
+    ASSERT_TRUE(log.good());
+    auto write = [&](const signed_envelope_t& e, int64_t t) {
+      auto bytes = Encode(e);
+      lcm::LogEvent ev{};
+      ev.timestamp = t;
+      ev.channel = "SERVO_CMD";
+      ev.datalen = static_cast<int32_t>(bytes.size());
+      ev.data = bytes.data();
+      ASSERT_EQ(log.writeEvent(&ev), 0);
+    };
+    write(op.Seal("SERVO_CMD", Command(0.5), 1'000'000), 1'000'100);
+    signed_envelope_t tampered = op.Seal("SERVO_CMD", Command(0.25), 2'000'000);
+    tampered.payload[30] ^= 0x40;
+    write(tampered, 2'000'100);
+  }
+  std::ofstream(dir + "/config.pbtxt")
+      << testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt")
+      << "\nauth { trusted_key { name: \"operator\" public_key_hex: \""
+      << auth::ToHex(op.public_key().data(), 32) << "\" channel: \"SERVO_CMD\" } }\n";
+  // sim.pbtxt has an auth section already: merge by replacing it.
+  std::string text = testing::ReadFile(dir + "/config.pbtxt");
+  const auto first = text.find("auth {\n  allow_unsigned: true\n}\n");
+  ASSERT_NE(first, std::string::npos);
+  text.erase(first, std::string("auth {\n  allow_unsigned: true\n}\n").size());
+  std::ofstream(dir + "/config.pbtxt") << text;
+  testing::Child tool({FTCAL_ENVELOPES, "--config", dir + "/config.pbtxt", dir + "/in.lcmlog"},
+                      dir + "/out", dir + "/err");
+  const auto status = tool.Wait(30);
+  ASSERT_TRUE(status.has_value());
+  const std::string out = testing::ReadFile(dir + "/out");
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 1) << testing::ReadFile(dir + "/err");
+  std::istringstream lines(out);
+  std::string good, bad;
+  std::getline(lines, good);
+  std::getline(lines, bad);
+  EXPECT_NE(good.find("SERVO_CMD signer=operator"), std::string::npos) << out;
+  EXPECT_NE(good.find("signature-ok trusted"), std::string::npos) << out;
+  EXPECT_NE(good.find("ftcal.servo_command_t: utime=0 action=0 num_servos=2 id=[1,2] "
+                      "goal_angle_rad=[0.5,-0.5] torque_enable=1"),
+            std::string::npos)
+      << out;
+  EXPECT_NE(bad.find("BAD-SIGNATURE"), std::string::npos) << out;
+  testing::RemoveTree(dir);
 }
 
 }  // namespace
