@@ -204,8 +204,10 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
     if (std::memcmp(keys_[i].key.data(), e.signer, kPublicKeyBytes) == 0) key = i;
   }
   if (key == keys_.size()) {
-    const std::string who = ToHex(e.signer, kPublicKeyBytes);
-    return refuse("untrusted signer " + who.substr(0, 16), "signer " + who + " is not in auth");
+    // One kind for every unknown key: a kind per key would let anyone grow the counts (and the
+    // log) by signing with fresh keys. The first one is logged with its key.
+    return refuse("untrusted signer", "signer " + ToHex(e.signer, kPublicKeyBytes) +
+                                          " is not in the config's auth.trusted_key");
   }
   const std::string& name = keys_[key].name;
   if (keys_[key].channels.count(channel) == 0) {

@@ -99,7 +99,9 @@ class Verifier {
 
   // Checks `data` received on `channel` at `recv_utime` as an envelope of an inner message
   // with `inner_fingerprint`; `window_us` > 0 also requires |recv_utime - utime| <= window_us.
-  // The refusal's kind names the sender where it is known ("bad signature from operator").
+  // The refusal's kind names the sender when it is a trusted key ("bad signature from
+  // operator"); every unknown key is one kind, "untrusted signer", so fresh keys cannot grow
+  // the counts.
   std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Open(
       const std::string& channel, const void* data, int size, uint64_t inner_fingerprint,
       int64_t recv_utime, int64_t window_us);

@@ -80,9 +80,7 @@ TEST(SignedCalibration, AForgedCalibrationIsNotAppliedAndTheCalibratorsIs) {
   send(Encode(calibrator.Seal("EXPERIMENT", cal, NowUs())));      // moved between channels
   EXPECT_FALSE(stage.has_calibration());
   EXPECT_EQ(kind("unsigned on CALIBRATION"), 1);
-  EXPECT_EQ(kind("untrusted signer " + auth::ToHex(intruder.public_key().data(), 8) +
-                 " on CALIBRATION"),
-            1);
+  EXPECT_EQ(kind("untrusted signer on CALIBRATION"), 1);
   EXPECT_EQ(kind("bad signature from calibrator on CALIBRATION"), 1);
 
   const auto good = Encode(calibrator.Seal("CALIBRATION", cal, NowUs()));
