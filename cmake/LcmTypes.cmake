@@ -54,3 +54,19 @@ if(Java_FOUND AND LCM_JAR)
 else()
   message(STATUS "No JDK or lcm.jar: the lcm-spy jar is not built (scripts/spy will say so)")
 endif()
+
+# Wire schemas for services/common/wire_guard (the checks before LCM's decoder runs):
+# ftcal_wire_schemas(FUNCTION OUT_CC FILES...) writes OUT_CC defining
+# `const std::vector<const ftcal::wire::Schema*>& FUNCTION()` from the .lcm FILES.
+set(FTCAL_WIRE_SCHEMA_PY "${CMAKE_CURRENT_LIST_DIR}/lcm_wire_schema.py")
+function(ftcal_wire_schemas function out_cc)
+  add_custom_command(
+    OUTPUT "${out_cc}"
+    COMMAND "${FTCAL_PYTHON}" "${FTCAL_WIRE_SCHEMA_PY}" ${function} "${out_cc}" ${ARGN}
+    DEPENDS ${ARGN} "${FTCAL_WIRE_SCHEMA_PY}"
+    COMMENT "wire schemas: ${function}"
+    VERBATIM)
+endfunction()
+ftcal_wire_schemas(FtcalSchemas "${PROJECT_BINARY_DIR}/wire_schemas.cc" ${FTCAL_LCM_FILES})
+# The rule lives in this directory; services/common compiles the file (CMP0118) after this.
+add_custom_target(ftcal_wire_schemas_gen DEPENDS "${PROJECT_BINARY_DIR}/wire_schemas.cc")

@@ -7,6 +7,8 @@
 #include <cmath>
 #include <cstring>
 #include <fstream>
+#include <map>
+#include <set>
 #include <memory>
 #include <sstream>
 #include <string_view>
@@ -458,6 +460,14 @@ void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus) {
   if (bus.baud() == 0) node.Error("baud", "must be > 0");
   node.Positive("rate_hz", bus.rate_hz());
   node.Positive("reply_timeout_s", bus.reply_timeout_s());
+  if (node.Finite("start_quiet_s", bus.start_quiet_s()) && bus.start_quiet_s() < 0) {
+    node.Error("start_quiet_s", "must be >= 0, got " + FormatNumber(bus.start_quiet_s()));
+  }
+  node.Positive("deadman_s", bus.deadman_s());
+  if (node.Finite("limit_margin_rad", bus.limit_margin_rad()) && bus.limit_margin_rad() < 0) {
+    node.Error("limit_margin_rad", "must be >= 0, got " + FormatNumber(bus.limit_margin_rad()));
+  }
+  node.Positive("max_velocity_rad_s", bus.max_velocity_rad_s());
 }
 
 void ValidateSegmenter(const Node& node, const config::Segmenter& s) {
@@ -676,6 +686,46 @@ void ValidateSequencer(const Node& node, const config::Sequencer& s) {
   }
 }
 
+void ValidateAuth(const Node& node, const config::Auth& auth, const config::Channels& channels) {
+  const std::set<std::string> signed_channels = {channels.servo_cmd(), channels.experiment(),
+                                                 channels.calibration(),
+                                                 channels.sequencer_control()};
+  std::map<std::string, int> keys_per_channel;
+  std::set<std::string> names, keys;
+  for (int i = 0; i < auth.trusted_key_size(); ++i) {
+    const config::TrustedKey& key = auth.trusted_key(i);
+    const Node key_node = node.Child("trusted_key", i, key);
+    if (key.name().empty()) key_node.Missing("name");
+    if (!names.insert(key.name()).second) {
+      key_node.Error("name", "duplicate trusted key name '" + key.name() + "'");
+    }
+    const std::string& hex = key.public_key_hex();
+    if (hex.size() != 64 || hex.find_first_not_of("0123456789abcdefABCDEF") != std::string::npos) {
+      key_node.Error("public_key_hex",
+                     "must be 64 hex digits (an Ed25519 public key, as ftcal-keygen prints it)");
+    } else if (!keys.insert(hex).second) {
+      key_node.Error("public_key_hex", "the same key is listed twice");
+    }
+    if (key.channel_size() == 0) key_node.Error("channel", "name at least one signed channel");
+    for (const std::string& channel : key.channel()) {
+      if (signed_channels.count(channel) == 0) {
+        key_node.Error("channel", "'" + channel + "' is not a signed channel (" +
+                                      channels.servo_cmd() + ", " + channels.experiment() +
+                                      ", " + channels.calibration() + ", " +
+                                      channels.sequencer_control() + ")");
+      } else if (++keys_per_channel[channel] == 3) {
+        key_node.Error("channel", "more than two trusted keys for '" + channel +
+                                      "' (two at once, for rotation)");
+      }
+    }
+  }
+  if (node.Finite("servo_cmd_window_s", auth.servo_cmd_window_s()) &&
+      !(auth.servo_cmd_window_s() > 0 && auth.servo_cmd_window_s() <= 10)) {
+    node.Error("servo_cmd_window_s",
+               "must be in (0, 10] s, got " + FormatNumber(auth.servo_cmd_window_s()));
+  }
+}
+
 void Validate(const config::Config& config, const ParseInfoTree* tree, const std::string& source,
               std::vector<std::string>* errors) {
   const Node root(config, tree, "", Location{1, 1}, &source, errors);
@@ -696,6 +746,17 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
   if (config.lcm_url().empty()) root.Error("lcm_url", "must not be empty");
   ValidatePlans(root, config);
   ValidateSequencer(root.Child("sequencer", config.sequencer()), config.sequencer());
+  if (config.has_dynamixel() &&
+      config.sequencer().max_velocity_rad_s() > config.dynamixel().max_velocity_rad_s()) {
+    // The bridge rate-limits every goal: a plan timed faster would lag and be called stuck.
+    root.Child("sequencer", config.sequencer())
+        .Error("max_velocity_rad_s",
+               "must not exceed dynamixel.max_velocity_rad_s (" +
+                   FormatNumber(config.dynamixel().max_velocity_rad_s()) +
+                   " rad/s, the bridge's own limit), got " +
+                   FormatNumber(config.sequencer().max_velocity_rad_s()));
+  }
+  ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
 }
 
 std::string ReadWholeFile(const std::string& path, const char* what) {

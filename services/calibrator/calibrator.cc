@@ -63,6 +63,8 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
 
 void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
+  // Each input log's signers count their sequences afresh: logs may be given in any order.
+  verifier_ = auth::Verifier::FromConfig(config_);
   bus.SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) {
     channels_seen_.insert(info.channel);
   });
@@ -72,8 +74,11 @@ void CalibrationCollector::Attach(Bus& bus) {
                                                  int size) { OnFtRaw(info, data, size); });
   inputs_.Subscribe(bus, {nullptr, [this](const ServoInput& in) { aligner_.AddServo(in); },
                           [this](const MocapInput& in) { aligner_.AddMocap(in); }});
-  bus.Subscribe<experiment_marker_t>(
-      ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
+  // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
+  // signature and the rising sequence still hold.
+  bus.SubscribeSigned<experiment_marker_t>(
+      ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   bus.Subscribe<steady_pose_t>(ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) {
     OnSteadyPose(m);
   });
@@ -84,10 +89,9 @@ void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, in
   for (int k = 0; k < kNumLegs; ++k) {
     if (info.channel != inputs_.FtChannel(k)) continue;
     ft_sample_t msg;
-    const int used = msg.decode(data, 0, size);
-    if (used != size) {
-      throw BadInput("undecodable ftcal.ft_sample_t on " + info.channel,
-                     std::to_string(size) + " bytes do not decode");
+    if (auto refused = wire::Decode(data, size, &msg)) {
+      throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
+                     refused->detail);
     }
     aligner_.AddFt(inputs_.FromFt(k, msg));
     return;
@@ -408,7 +412,12 @@ void LiveCalibrator::CalibrateNow() {
   run.proto.set_version(static_cast<uint64_t>(version_ + 1));
   WriteCalibrationOutputs(run, out_path_);  // the file first: a published version exists on disk
   ++version_;
-  bus_.Publish(config_.channels().calibration(), ToLcm(run.proto, version_, bus_.NowUtime()));
+  const calibration_t msg = ToLcm(run.proto, version_, bus_.NowUtime());
+  if (signer_ != nullptr) {
+    bus_.PublishSigned(config_.channels().calibration(), msg, *signer_);
+  } else {
+    bus_.Publish(config_.channels().calibration(), msg);
+  }
   spdlog::info("wrote {}; published calibration version {} on {}", out_path_, version_,
                config_.channels().calibration());
   if (on_calibrated_) on_calibrated_(run);

@@ -116,6 +116,8 @@ class CalibrationCollector {
   void EndPhase(bool completed);
 
   const config::Config& config_;
+  // EXPERIMENT is a signed channel (common/envelope.h).
+  auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
   DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;
   Aligner aligner_;
@@ -175,6 +177,8 @@ class LiveCalibrator {
                  CalibratorOptions options, Callback on_calibrated);
   // Call periodically (the bus loop's tick): ends a wait for late poses.
   void Tick();
+  // Publish CALIBRATION signed by `signer` (outlives this); unsigned without one.
+  void SetSigner(auth::Signer* signer) { signer_ = signer; }
   int64_t version() const { return version_; }
   int64_t refused() const { return refused_; }
   const std::string& last_refusal() const { return last_refusal_; }
@@ -193,6 +197,7 @@ class LiveCalibrator {
   int64_t refused_ = 0;
   std::string last_refusal_;
   int64_t waiting_since_utime_ = -1;  // STANDING stopped, the segmenter's last poses not all in
+  auth::Signer* signer_ = nullptr;
 };
 
 // Offset drift (docs/method.md "Offset drift"): the offsets of `base` re-estimated from the

@@ -54,6 +54,7 @@ struct Args {
   std::string profile;
   bool accept_mass_mismatch = false;
   std::string command_line;
+  std::string signing_key;
 };
 
 // Runs scripts/report; returns its exit status (its messages go to our stderr).
@@ -220,6 +221,21 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
+  // CALIBRATION is a signed channel: without a key, receivers refuse what this publishes
+  // unless their config allows unsigned (the loopback twin's does).
+  std::optional<ftcal::auth::Signer> signer;
+  if (!args.signing_key.empty()) {
+    try {
+      signer.emplace(ftcal::auth::Signer::FromSeedFile(args.signing_key));
+    } catch (const std::exception& e) {
+      spdlog::critical("--signing-key: {}", e.what());
+      return ftcal::kExitConfig;
+    }
+    live.SetSigner(&*signer);
+  } else {
+    spdlog::warn("no --signing-key: {} goes out unsigned (refused unless auth.allow_unsigned)",
+                 config.channels().calibration());
+  }
   ftcal::InstallShutdownHandlers();
   spdlog::info("listening on {} for EXPERIMENT markers", url);
   // The 1 Hz FTCAL_STATUS every process publishes (ServiceApp's, which this mode does not use:
@@ -292,6 +308,9 @@ int main(int argc, char** argv) {
   cli.add_flag("--accept-mass-mismatch", args.accept_mass_mismatch,
                "calibrate even when the configured total mass disagrees with the mass the data "
                "implies (recorded in the calibration file as a warning); refused otherwise");
+  cli.add_option("--signing-key", args.signing_key,
+                 "live: sign CALIBRATION with the Ed25519 seed in this file (owner-only; "
+                 "ftcal-keygen makes one)");
   cli.footer(ftcal::ExitCodeTable());
   if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 

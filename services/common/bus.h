@@ -9,8 +9,9 @@
 // Handlers never let an exception escape into LCM's C callback: the Bus catches it and counts
 // it (BadInput as a drop, anything else as an error), logging once per kind. Typed
 // subscriptions decode the bytes themselves instead of using LCM 1.3.1's typed subscribe, which
-// drops a message whose fingerprint does not match with only a line on stderr: here a message
-// that does not decode is counted as a drop.
+// drops a message whose fingerprint does not match with only a line on stderr and whose decoder
+// trusts length fields: here the bytes pass the wire guard (common/wire_guard.h) first, and a
+// message that does not pass or does not decode is counted as a drop.
 #pragma once
 
 #include <cstdint>
@@ -26,7 +27,9 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "common/atomic_log.h"
+#include "common/envelope.h"
 #include "common/service_stats.h"
+#include "common/wire_guard.h"
 
 namespace ftcal {
 
@@ -62,15 +65,29 @@ class Bus {
 
   // `channel` is a regular expression matched against the whole channel name (LCM's rule).
   void SubscribeRaw(const std::string& channel, RawHandler handler);
-  // Decodes to Msg; a message that does not decode (wrong type, truncated, trailing bytes) is
-  // counted as a drop.
+  // Decodes to Msg after the wire guard's checks; a message refused by them or by the decoder
+  // (wrong type, a length field past its cap or the bytes, truncated, trailing bytes) is counted
+  // as a drop under "undecodable <type> on <channel>: <kind>".
   template <class Msg>
   void Subscribe(const std::string& channel, Handler<Msg> handler);
+
+  // A signed channel (common/envelope.h): the envelope is checked by `verifier` before the
+  // inner Msg is decoded (through the wire guard as in Subscribe). `window_us` > 0 refuses
+  // envelopes signed further than that from the receive time (live: this host's clock; replay:
+  // the logged receive time). With `allow_unsigned`, a bare Msg is accepted too and counted
+  // as `unsigned_accepted`. Refusals are drops of kind "<refusal> on <channel>", the refusal
+  // naming the sender, so each sender's first one is logged. `verifier` must outlive the bus.
+  template <class Msg>
+  void SubscribeSigned(const std::string& channel, auth::Verifier* verifier, int64_t window_us,
+                       bool allow_unsigned, Handler<Msg> handler);
 
   // `count` false leaves msgs_out alone (the heartbeat does not count itself).
   void PublishRaw(const std::string& channel, const void* data, int size, bool count = true);
   template <class Msg>
   void Publish(const std::string& channel, const Msg& msg, bool count = true);
+  // Msg in an envelope signed by `signer` at NowUtime().
+  template <class Msg>
+  void PublishSigned(const std::string& channel, const Msg& msg, auth::Signer& signer);
 
   // Now on the bus's clock (us since the epoch): the wall clock live, the current input
   // event's timestamp on replay. Stamp outputs with this, not with the wall clock.
@@ -194,19 +211,52 @@ class LogReplayBus : public Bus {
 
 template <class Msg>
 void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
-  SubscribeRaw(channel, [this, handler = std::move(handler)](const MessageInfo& info,
-                                                             const void* data, int size) {
+  SubscribeRaw(channel, [handler = std::move(handler)](const MessageInfo& info, const void* data,
+                                                        int size) {
     Msg msg;
-    const int used = msg.decode(data, 0, size);
-    if (used < 0 || used != size) {
-      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel,
-                     used < 0 ? std::to_string(size) + " bytes do not decode (wrong type or "
-                                                       "truncated)"
-                              : std::to_string(size - used) + " trailing bytes after a " +
-                                    std::to_string(used) + "-byte message");
+    if (auto refused = wire::Decode(data, size, &msg)) {
+      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
+                         refused->kind,
+                     refused->detail);
     }
     handler(info, msg);
   });
+}
+
+template <class Msg>
+void Bus::SubscribeSigned(const std::string& channel, auth::Verifier* verifier, int64_t window_us,
+                          bool allow_unsigned, Handler<Msg> handler) {
+  SubscribeRaw(channel, [this, verifier, window_us, allow_unsigned,
+                         handler = std::move(handler)](const MessageInfo& info, const void* data,
+                                                       int size) {
+    const auto fingerprint = static_cast<uint64_t>(Msg::getHash());
+    auto [opened, refused] =
+        verifier->Open(info.channel, data, size, fingerprint, info.recv_utime, window_us);
+    Msg msg;
+    if (refused && refused->kind == "unsigned" && allow_unsigned) {
+      if (auto bad = wire::Decode(data, size, &msg)) {
+        throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel +
+                           ": " + bad->kind,
+                       bad->detail);
+      }
+      ++stats_.Counter("unsigned_accepted");
+      handler(info, msg);
+      return;
+    }
+    if (refused) throw BadInput(refused->kind + " on " + info.channel, refused->detail);
+    if (auto bad = wire::Decode(opened->payload, opened->size, &msg)) {
+      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel +
+                         " from " + *opened->signer + ": " + bad->kind,
+                     bad->detail);
+    }
+    handler(info, msg);
+  });
+}
+
+template <class Msg>
+void Bus::PublishSigned(const std::string& channel, const Msg& msg, auth::Signer& signer) {
+  const signed_envelope_t envelope = signer.Seal(channel, msg, NowUtime());
+  Publish(channel, envelope);
 }
 
 template <class Msg>

@@ -30,8 +30,10 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
   inputs_.Subscribe(bus, {[this](const FtInput& in) { OnFt(in); },
                           [this](const ServoInput& in) { OnServo(in); },
                           [this](const MocapInput& in) { OnMocap(in); }});
-  bus.Subscribe<calibration_t>(ch.calibration(),
-                               [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
+  // Signed; no time window, so a calibration replayed from a recording still applies.
+  bus.SubscribeSigned<calibration_t>(
+      ch.calibration(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
   set_state_(service_status_t::DEGRADED);
   UpdateCounters();
 }

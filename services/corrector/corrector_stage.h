@@ -59,6 +59,8 @@ class CorrectorStage {
   void PublishReused(const std::string& channel, const Msg& msg);
 
   const config::Config& config_;
+  // CALIBRATION is a signed channel (common/envelope.h).
+  auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
   Bus& bus_;
   StateSink set_state_;
   DeviceInputs inputs_;

@@ -13,6 +13,7 @@
 #include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
+#include "dynamixel_bridge/command_gate.h"
 #include "dynamixel_bridge/dynamixel_bridge.h"
 
 namespace {
@@ -21,25 +22,36 @@ using Clock = std::chrono::steady_clock;
 
 // LCM 1.3.1 subscribes member functions, not closures. The bridge needs the LCM socket's fd in
 // its own poll() (ServiceApp's bus does not expose it), so SERVO_CMD arrives on an lcm::LCM of
-// its own; decoding and counting follow Bus::Subscribe.
+// its own; the envelope is verified (common/envelope.h) and the inner command passes the wire
+// guard as on Bus::SubscribeSigned, then the CommandGate decides whether to act on it.
 struct CommandSink {
-  ftcal::DynamixelBridge* bridge;
+  ftcal::CommandGate* gate;
+  ftcal::auth::Verifier* verifier;
   ftcal::ServiceStats* stats;
+  int64_t window_us;
   void OnMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     stats->CountIn();
     try {
+      const int size = static_cast<int>(rbuf->data_size);
+      auto [opened, refused] =
+          verifier->Open(channel, rbuf->data, size,
+                         static_cast<uint64_t>(ftcal::servo_command_t::getHash()),
+                         rbuf->recv_utime, window_us);
+      if (refused) throw ftcal::BadInput(refused->kind + " on " + channel, refused->detail);
       ftcal::servo_command_t cmd;
-      const int used = cmd.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size));
-      if (used < 0 || used != static_cast<int>(rbuf->data_size)) {
-        throw ftcal::BadInput("undecodable ftcal.servo_command_t on " + channel,
-                              std::to_string(rbuf->data_size) + " bytes do not decode");
+      if (auto bad = ftcal::wire::Decode(opened->payload, opened->size, &cmd)) {
+        throw ftcal::BadInput("undecodable servo_command_t on " + channel + ": " + bad->kind,
+                              bad->detail);
       }
-      bridge->OnCommand(cmd);
+      gate->OnCommand(*opened->signer, cmd, SteadyS());
     } catch (const ftcal::BadInput& e) {
       stats->Drop(e.kind(), e.what());
     } catch (const std::exception& e) {
       stats->Error("handler for " + channel, e.what());
     }
+  }
+  static double SteadyS() {
+    return std::chrono::duration<double>(Clock::now().time_since_epoch()).count();
   }
 };
 
@@ -53,8 +65,11 @@ int main(int argc, char** argv) {
        "publishes SERVO_STATE (servo_state_t: shaft angles in rad, 0 = leg straight down, "
        "velocity, current, hardware error, unwrapped device tick, STALE/HW_ERROR/TORQUE_OFF "
        "flags; LOST for a servo silent for --lost-after cycles, which is then only PINGed "
-       "every --reprobe-every s). Reads SERVO_CMD (servo_command_t) and writes torque enable and goal positions, "
-       "clamped to the config's angle limits. DEGRADED while a servo is silent or faulty or the "
+       "every --reprobe-every s). Reads SERVO_CMD (servo_command_t in a signed envelope from a key the config's "
+       "auth trusts for it) and, once armed by one commander, writes torque enable and goal "
+       "positions clamped to the angle limits minus dynamixel.limit_margin_rad and rate-limited "
+       "to dynamixel.max_velocity_rad_s; holds the measured position when the armed commander "
+       "is silent for dynamixel.deadman_s. DEGRADED while a servo is silent or faulty or the "
        "port is down (it is reopened with back-off).",
        /*replayable=*/false});
   ftcal::DynamixelBridgeOptions options;
@@ -87,9 +102,16 @@ int main(int argc, char** argv) {
   if (auto* opt = app.cli().get_option("--lcm-url"); opt->count() > 0) url = opt->as<std::string>();
 
   try {
+    ftcal::CommandGate gate(config, app.stats(), CommandSink::SteadyS());
+    ftcal::auth::Verifier verifier = ftcal::auth::Verifier::FromConfig(config);
+    if (!verifier.Trusts(config.channels().servo_cmd())) {
+      app.log().warn("no key in the config's auth is trusted on {}: every command is refused",
+                     config.channels().servo_cmd());
+    }
     ftcal::DynamixelBridge bridge(
         config, options, app.stats(),
         [&](const ftcal::servo_state_t& msg) {
+          gate.OnState(msg);
           app.bus().Publish(config.channels().servo_state(), msg);
         },
         [&] { return app.bus().NowUtime(); });
@@ -99,7 +121,8 @@ int main(int argc, char** argv) {
       app.log().critical("cannot open LCM at {}", url);
       return ftcal::kExitDeviceIo;
     }
-    CommandSink sink{&bridge, &app.stats()};
+    CommandSink sink{&gate, &verifier, &app.stats(),
+                     static_cast<int64_t>(config.auth().servo_cmd_window_s() * 1e6)};
     cmd_lcm.subscribe(config.channels().servo_cmd(), &CommandSink::OnMessage, &sink);
 
     auto publish_status = [&] {
@@ -133,6 +156,13 @@ int main(int argc, char** argv) {
         if (next_status <= now) next_status = now + std::chrono::seconds(1);
       }
       if (now >= next_cycle) {
+        if (auto cmd = gate.Tick(CommandSink::SteadyS(), bridge.Degraded())) {
+          try {
+            bridge.OnCommand(*cmd);
+          } catch (const ftcal::BadInput& e) {
+            app.stats().Drop(e.kind(), e.what());
+          }
+        }
         bridge.Cycle();
         next_cycle += period;
         now = Clock::now();

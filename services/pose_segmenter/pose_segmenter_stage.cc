@@ -25,8 +25,11 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
   inputs_.Subscribe(bus, {[this](const FtInput& in) { OnFt(in); },
                           [this](const ServoInput& in) { OnServo(in); },
                           [this](const MocapInput& in) { OnMocap(in); }});
-  bus.Subscribe<experiment_marker_t>(
-      ch.experiment(), [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
+  // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
+  // signature and the rising sequence still hold.
+  bus.SubscribeSigned<experiment_marker_t>(
+      ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   PublishCounters();
 }
 

@@ -44,6 +44,8 @@ class PoseSegmenterStage {
   void PublishCounters();
 
   const config::Config& config_;
+  // EXPERIMENT is a signed channel (common/envelope.h).
+  auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
   Bus& bus_;
   DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;

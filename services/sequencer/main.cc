@@ -2,6 +2,7 @@
 #include <atomic>
 #include <exception>
 #include <iostream>
+#include <optional>
 #include <string>
 #include <thread>
 
@@ -23,7 +24,8 @@ int main(int argc, char** argv) {
   ftcal::ServiceApp app(
       {"ftcal-sequencer",
        "Runs an experiment plan (config `plan`, docs/architecture.md): publishes SERVO_CMD "
-       "(servo_command_t) and EXPERIMENT (experiment_marker_t) and watches FT_<LEG>, "
+       "(servo_command_t) and EXPERIMENT (experiment_marker_t), both signed with --signing-key, "
+       "arming the Dynamixel bridge first, and watches FT_<LEG>, "
        "SERVO_STATE, MOCAP_BODY, FTCAL_STATUS and SEQUENCER_CONTROL (sequencer_control_t: "
        "CONFIRM, STOP). Phases that need the operator (hanging, tare) wait for a line on the "
        "terminal, a CONFIRM, or --yes. Pre-checks and limits are the config's `sequencer` "
@@ -38,11 +40,25 @@ int main(int argc, char** argv) {
   app.cli().add_option("--progress", options.progress_file,
                        "progress file for resuming (default: sequencer.progress_file)");
   app.cli().add_option("--session", options.session_id, "session id for the EXPERIMENT markers");
+  std::string signing_key;
+  app.cli()
+      .add_option("--signing-key", signing_key,
+                  "Ed25519 seed file (owner-only; ftcal-keygen makes one) that signs SERVO_CMD "
+                  "and EXPERIMENT; its public key must be in the config's auth.trusted_key for "
+                  "both channels")
+      ->required();
   if (auto rc = app.Init(argc, argv)) return *rc;
 
+  std::optional<ftcal::auth::Signer> signer;
+  try {
+    signer.emplace(ftcal::auth::Signer::FromSeedFile(signing_key));
+  } catch (const std::exception& e) {
+    app.log().critical("--signing-key: {}", e.what());
+    return kBadPlan;
+  }
   std::unique_ptr<ftcal::sequencer::Sequencer> seq;
   try {
-    seq = std::make_unique<ftcal::sequencer::Sequencer>(app.config(), app.bus(), options);
+    seq = std::make_unique<ftcal::sequencer::Sequencer>(app.config(), app.bus(), *signer, options);
   } catch (const std::exception& e) {
     app.log().critical("{}", e.what());
     return kBadPlan;

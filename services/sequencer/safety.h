@@ -32,6 +32,9 @@ struct StatusReading {
   int64_t utime = 0;
   int8_t state = 0;  // service_status_t state
   std::string last_error;
+  // The Dynamixel bridge's command gate mode (its `mode` counter: CommandGate::Mode), -1 when
+  // the status carries none.
+  int mode = -1;
 };
 
 // The latest of every input, as the sequencer last saw it.

@@ -23,6 +23,20 @@ std::string Clock(double s) {
 // How long a pre-check waits for every input to be fresh before it fails.
 constexpr double kInputWaitS = 5.0;
 
+// The Dynamixel bridge's command gate modes, as its `mode` counter gives them (README, "The
+// servo side"; services/dynamixel_bridge/command_gate.h).
+constexpr int kGateArmed = 1;
+constexpr const char* kGateModeNames[] = {"disarmed", "armed", "hold", "fault"};
+constexpr const char kServoBridge[] = "ftcal-dynamixel-bridge";
+// ARM again when the bridge's status (1 Hz) has not said armed this long after an ARM, and give
+// up after this many ARMs.
+constexpr double kArmRetryS = 2.5;
+constexpr int kArmAttempts = 4;
+
+std::string GateModeName(int mode) {
+  return mode >= 0 && mode < 4 ? kGateModeNames[mode] : "unknown (" + std::to_string(mode) + ")";
+}
+
 bool Timed(StepKind k) {
   return k == StepKind::kMove || k == StepKind::kHold || k == StepKind::kTurn ||
          k == StepKind::kWalk;
@@ -72,9 +86,11 @@ void SaveProgress(const std::string& path, const Progress& p) {
                             "\nsession " + p.session_id + "\n");
 }
 
-Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
+Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signer,
+                     Options options)
     : config_(config),
       bus_(bus),
+      signer_(signer),
       options_(std::move(options)),
       device_inputs_(config),
       safety_(config),
@@ -154,8 +170,9 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
   bus_.Subscribe<service_status_t>(ch.status(), [this](const MessageInfo& i, const service_status_t& m) {
     OnStatus(i, m);
   });
-  bus_.Subscribe<sequencer_control_t>(
-      ch.sequencer_control(),
+  // No time window: a CONFIRM names the step it confirms, and the sequence must rise.
+  bus_.SubscribeSigned<sequencer_control_t>(
+      ch.sequencer_control(), &verifier_, /*window_us=*/0, config.auth().allow_unsigned(),
       [this](const MessageInfo& i, const sequencer_control_t& m) { OnControl(i, m); });
   if (steps_.empty()) state_ = State::kDone;
 }
@@ -163,7 +180,16 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, Options options)
 void Sequencer::OnStatus(const MessageInfo&, const service_status_t& msg) {
   // Only the bridges gate the motion: the sequencer cannot move safely without their data.
   if (msg.name.find("bridge") == std::string::npos) return;
-  inputs_.status[msg.name] = StatusReading{msg.utime, msg.state, msg.last_error};
+  StatusReading st{msg.utime, msg.state, msg.last_error};
+  for (int i = 0; i < msg.num_counters && i < static_cast<int>(msg.counter_name.size()); ++i) {
+    if (msg.counter_name[i] == "mode") st.mode = static_cast<int>(msg.counter_value[i]);
+  }
+  inputs_.status[msg.name] = st;
+}
+
+const StatusReading* Sequencer::ServoBridgeStatus() const {
+  const auto it = inputs_.status.find(kServoBridge);
+  return it == inputs_.status.end() ? nullptr : &it->second;
 }
 
 void Sequencer::OnControl(const MessageInfo&, const sequencer_control_t& msg) {
@@ -204,6 +230,14 @@ std::optional<std::string> Sequencer::SafetyViolation() const {
   if (PhaseNeedsMocap(phase)) {
     if (auto e = safety_.Tilted(inputs_)) return e;
   }
+  // Armed, the bridge's own word counts: a dead-man hold or a fault there stops the run here.
+  if (armed_) {
+    const StatusReading* st = ServoBridgeStatus();
+    if (st != nullptr && st->utime > arm_utime_ && st->mode != kGateArmed) {
+      return std::string(kServoBridge) + " left armed mode: it is in " + GateModeName(st->mode) +
+             (st->last_error.empty() ? std::string() : " (" + st->last_error + ")");
+    }
+  }
   return std::nullopt;
 }
 
@@ -224,10 +258,59 @@ void Sequencer::Publish(const Angles& goals, bool torque) {
   cmd.id.assign(servo_ids_.begin(), servo_ids_.end());
   cmd.goal_angle_rad.assign(goals.begin(), goals.end());
   cmd.torque_enable = torque;
-  bus_.Publish(config_.channels().servo_cmd(), cmd);
+  cmd.action = servo_command_t::MOVE;
+  bus_.PublishSigned(config_.channels().servo_cmd(), cmd, signer_);
   goals_ = goals;
   have_goals_ = true;
   last_command_utime_ = cmd.utime;
+}
+
+void Sequencer::SendAction(int8_t action) {
+  servo_command_t cmd{};
+  cmd.utime = bus_.NowUtime();
+  cmd.action = action;
+  cmd.num_servos = 0;
+  cmd.torque_enable = true;
+  bus_.PublishSigned(config_.channels().servo_cmd(), cmd, signer_);
+  last_command_utime_ = cmd.utime;
+}
+
+bool Sequencer::EnsureArmed(int64_t now) {
+  if (armed_) return true;
+  const StatusReading* st = ServoBridgeStatus();
+  if (arm_utime_ > 0 && st != nullptr && st->utime > arm_utime_ && st->mode == kGateArmed) {
+    armed_ = true;
+    bus_.stats().log().info("{} armed after {} ARM(s)", kServoBridge, arm_attempts_);
+    return true;
+  }
+  if (arm_utime_ == 0 || (now - arm_utime_) * 1e-6 >= kArmRetryS) {
+    if (arm_attempts_ >= kArmAttempts) {
+      Stop(std::string(kServoBridge) + " did not arm after " + std::to_string(arm_attempts_) +
+           " ARMs " + std::to_string(kArmRetryS) + " s apart: " +
+           (st == nullptr ? std::string("no FTCAL_STATUS from it")
+                          : "its status says " + GateModeName(st->mode) +
+                                (st->last_error.empty() ? "" : " (" + st->last_error + ")")) +
+           "; is this sequencer's key trusted for " + config_.channels().servo_cmd() +
+           " (auth.trusted_key)?");
+      return false;
+    }
+    SendAction(servo_command_t::ARM);
+    arm_utime_ = now;
+    ++arm_attempts_;
+  } else if ((now - last_command_utime_) * 1e-6 >= 1.0 / config_.sequencer().command_rate_hz()) {
+    SendAction(servo_command_t::HEARTBEAT);  // the ARM may have been taken: keep it alive
+  }
+  return false;
+}
+
+void Sequencer::KeepAlive(int64_t now) {
+  if (!armed_ || state_ == State::kDone || state_ == State::kStopped) return;
+  if ((now - last_command_utime_) * 1e-6 < 1.0 / config_.sequencer().command_rate_hz()) return;
+  if (have_goals_) {
+    Publish(goals_, true);
+  } else {
+    SendAction(servo_command_t::HEARTBEAT);
+  }
 }
 
 void Sequencer::PublishMarker(int phase, bool start) {
@@ -238,7 +321,7 @@ void Sequencer::PublishMarker(int phase, bool start) {
   m.start = start;
   for (int i = 0; i < 3; ++i) m.gravity_b[i] = schedule_.phase_gravity_b[phase][i];
   m.note = "ftcal-sequencer plan " + schedule_.plan_name + ": " + schedule_.phase_names[phase];
-  bus_.Publish(config_.channels().experiment(), m);
+  bus_.PublishSigned(config_.channels().experiment(), m, signer_);
   open_marker_phase_ = start ? phase : -1;
   bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
 }
@@ -295,6 +378,7 @@ void Sequencer::Advance() {
                    Progress{schedule_.plan_name, static_cast<int>(schedule_.steps.size()), session_id_});
     }
     bus_.stats().log().info("plan '{}' done", schedule_.plan_name);
+    if (arm_utime_ > 0) SendAction(servo_command_t::DISARM);  // the bridge holds the last pose
     return;
   }
   if (unit_done) {
@@ -304,6 +388,11 @@ void Sequencer::Advance() {
 }
 
 void Sequencer::Tick() {
+  TickSteps();
+  KeepAlive(bus_.NowUtime());
+}
+
+void Sequencer::TickSteps() {
   // Several steps can finish at the same instant (markers, checks): run them in one call.
   for (int guard = 0; guard < 64 && state_ != State::kDone && state_ != State::kStopped; ++guard) {
     const int64_t now = bus_.NowUtime();
@@ -338,9 +427,6 @@ void Sequencer::Tick() {
           const std::string prompt = s.prompt + (waiting_reason_.empty() ? "" : " (" + waiting_reason_ + ")");
           bus_.stats().log().info("waiting for the operator: {}", prompt);
           if (on_prompt_) on_prompt_(prompt);
-        }
-        if (have_goals_ && (now - last_command_utime_) * 1e-6 >= 1.0 / config_.sequencer().command_rate_hz()) {
-          Publish(goals_, true);
         }
         return;
       case StepKind::kPrecheck: {
@@ -391,6 +477,10 @@ void Sequencer::Tick() {
       Stop(*e);
       return;
     }
+    if (!EnsureArmed(now)) {
+      step_start_utime_ = now;  // the step's clock starts once the bridge takes commands
+      return;
+    }
     if (!have_goals_ ||
         (now - last_command_utime_) * 1e-6 >= 1.0 / config_.sequencer().command_rate_hz()) {
       Publish(GoalAt(s, t), true);
@@ -423,12 +513,19 @@ void Sequencer::Stop(const std::string& reason) {
   ++bus_.stats().Counter("stops");
   bus_.stats().Error("sequencer stopped", reason);
   bus_.stats().log().error("stopping the motion: {}", reason);
-  // Hold where the legs are, not where they were going.
-  if (inputs_.servo) {
-    Publish(inputs_.servo->angle_rad, true);
-    if (config_.sequencer().safe_action() == config::SAFE_TORQUE_OFF) Publish(goals_, false);
-  } else if (have_goals_) {
-    Publish(goals_, config_.sequencer().safe_action() != config::SAFE_TORQUE_OFF);
+  // Hold where the legs are, not where they were going; then DISARM, on which the bridge holds
+  // the measured angles itself. (Torque off is not disarmed: the bridge's DISARM and dead-man
+  // holds power the servos again.)
+  if (arm_utime_ > 0) {
+    if (inputs_.servo) {
+      Publish(inputs_.servo->angle_rad, true);
+      if (config_.sequencer().safe_action() == config::SAFE_TORQUE_OFF) Publish(goals_, false);
+    } else if (have_goals_) {
+      Publish(goals_, config_.sequencer().safe_action() != config::SAFE_TORQUE_OFF);
+    }
+    if (config_.sequencer().safe_action() != config::SAFE_TORQUE_OFF) {
+      SendAction(servo_command_t::DISARM);
+    }
   }
   if (open_marker_phase_ >= 0) PublishMarker(open_marker_phase_, false);
   try {

@@ -11,6 +11,13 @@
 // action), closes the open marker and saves the progress, so that the next run of the same plan
 // with the same progress file continues at the first unfinished standing pose or tripod stance
 // (plan.h, "Resuming").
+//
+// SERVO_CMD, EXPERIMENT (and the operator's SEQUENCER_CONTROL) are signed channels
+// (common/envelope.h). The Dynamixel bridge moves the legs only for one armed commander that
+// keeps talking (README, "The servo side"): before the first motion the sequencer sends ARM
+// and waits until the bridge's FTCAL_STATUS says it is armed; while armed it sends a command
+// at least every 1/command_rate_hz (the bridge's dead-man); a bridge that leaves armed mode
+// (hold, fault) stops the run; at the end, or stopping, it holds and sends DISARM.
 #pragma once
 
 #include <cstdint>
@@ -19,6 +26,7 @@
 #include <string>
 
 #include "common/bus.h"
+#include "common/envelope.h"
 #include "ftcal/sequencer_control_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "common/messages.h"
@@ -51,8 +59,8 @@ class Sequencer {
   };
 
   // Throws std::invalid_argument for a plan that cannot run (plan.h) or a progress file of
-  // another plan.
-  Sequencer(const config::Config& config, Bus& bus, Options options);
+  // another plan. `signer` signs every SERVO_CMD and EXPERIMENT; it must outlive the sequencer.
+  Sequencer(const config::Config& config, Bus& bus, auth::Signer& signer, Options options);
 
   // Advances the schedule to the bus's now: call from the loop's tick; SERVO_STATE calls it too.
   void Tick();
@@ -77,6 +85,13 @@ class Sequencer {
   void Begin(int index);
   void Advance();
   void Publish(const Angles& goals, bool torque);
+  void SendAction(int8_t action);
+  // Arms the bridge (ARM, then HEARTBEAT until its status says armed); false while waiting.
+  bool EnsureArmed(int64_t now);
+  // While armed, a command at least every 1/command_rate_hz, whatever the step does.
+  void KeepAlive(int64_t now);
+  void TickSteps();
+  const StatusReading* ServoBridgeStatus() const;
   void PublishMarker(int phase, bool start);
   bool Arrived(const Angles& goals) const;
   std::optional<std::string> SafetyViolation() const;
@@ -87,6 +102,9 @@ class Sequencer {
 
   const config::Config& config_;
   Bus& bus_;
+  auth::Signer& signer_;
+  // SEQUENCER_CONTROL is signed: a CONFIRM moves the robot.
+  auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
   Options options_;
   DeviceInputs device_inputs_;
   Safety safety_;
@@ -102,6 +120,10 @@ class Sequencer {
   Angles goals_{};
   bool have_goals_ = false;
   int64_t last_command_utime_ = 0;
+  // ARM sent at arm_utime_ (0: not yet), arm_attempts_ times; armed_ once the bridge said so.
+  int64_t arm_utime_ = 0;
+  int arm_attempts_ = 0;
+  bool armed_ = false;
   int open_marker_phase_ = -1;
   std::string session_id_;
   Inputs inputs_;

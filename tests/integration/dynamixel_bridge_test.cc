@@ -24,6 +24,7 @@
 #include <spdlog/sinks/null_sink.h>
 
 #include "child_process.h"
+#include "signed_commander.h"
 #include "common/bus.h"
 #include "dynamixel_bridge.h"
 #include "dynamixel_emulator.h"
@@ -681,33 +682,140 @@ TEST_F(DynamixelBridgeProcesses, RestartAndVanishingPortResumeWithAVisibleGap) {
   EXPECT_GE(Counter(statuses.back(), "reopens"), 1);
 }
 
-TEST_F(DynamixelBridgeProcesses, ServoCommandsOverLcmMoveTheEmulatedServos) {
+TEST_F(DynamixelBridgeProcesses, SignedServoCommandsOverLcmMoveTheEmulatedServos) {
   Listener listener(t0_);
   ASSERT_TRUE(listener.good());
+  testing::SignedCommander commander(kUrl);
+  std::ofstream(config_path_) << commander.Trusted(TestConfigText(link_, 1.0, 0.05));
   auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
   auto bridge = StartBridge("");
-  SleepS(0.7);
-  servo_command_t cmd;
-  cmd.num_servos = 6;
-  cmd.id = {1, 2, 3, 4, 5, 6};
-  cmd.goal_angle_rad = {0.3, -0.4, 2.0, 0.1, -0.2, -3.0};
-  cmd.torque_enable = true;
-  listener.Publish(cmd);
-  SleepS(1.0);
+  SleepS(1.5);  // past dynamixel.start_quiet_s (1 s)
+  const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
+  commander.Arm();
+  commander.StartHeartbeat(0.05);
+  SleepS(0.1);
+  commander.Move(ids, {0.3, -0.4, 2.0, 0.1, -0.2, -3.0});
+  SleepS(2.0);  // 0.95 rad at dynamixel.max_velocity_rad_s (1 rad/s), then settling
+  commander.StopHeartbeat();
   Stop(*bridge, "bridge");
   Stop(*emu, "emulator");
   const auto heard = listener.States();
   ASSERT_FALSE(heard.empty());
   const auto& m = heard.back().msg;
-  const std::vector<double> want = {0.3, -0.4, 1.0, 0.1, -0.2, -1.0};  // limits +-1 rad
+  // Limits +-1 rad minus dynamixel.limit_margin_rad (0.05).
+  const std::vector<double> want = {0.3, -0.4, 0.95, 0.1, -0.2, -0.95};
   for (int k = 0; k < 6; ++k) {
     EXPECT_NEAR(m.angle_rad[k], want[k], 1.01 * kOneCountRad) << "servo " << m.id[k];
     EXPECT_EQ(m.flags[k], 0) << "servo " << m.id[k];
   }
+  // The velocity limit: no servo went faster than 1 rad/s (plus one count per sample).
+  for (size_t i = 1; i < heard.size(); ++i) {
+    for (int k = 0; k < 6; ++k) {
+      const double dt = heard[i].t_s - heard[i - 1].t_s;
+      if (dt < 0.02) continue;  // receive-time jitter dominates short gaps
+      EXPECT_LT(std::abs(heard[i].msg.angle_rad[k] - heard[i - 1].msg.angle_rad[k]),
+                1.0 * dt * 1.5 + 2 * kOneCountRad)
+          << "servo " << m.id[k] << " at " << heard[i].t_s;
+    }
+  }
   const auto statuses = listener.Statuses();
   ASSERT_FALSE(statuses.empty());
-  EXPECT_EQ(Counter(statuses.back(), "commands"), 1);
-  EXPECT_EQ(Counter(statuses.back(), "goals_clamped"), 2);
+  EXPECT_EQ(Counter(statuses.back(), "arms"), 1);
+  EXPECT_EQ(Counter(statuses.back(), "moves"), 1);
+  EXPECT_EQ(Counter(statuses.back(), "goals_clamped_to_margin"), 2);
+  EXPECT_EQ(Counter(statuses.back(), "mode"), 1);  // armed
+  EXPECT_EQ(statuses.back().drops, 0) << testing::ReadFile(dir_ + "/bridge.err");
+}
+
+// The attack of issue 12: a bare SERVO_CMD from anyone on the network, and a signed one from a
+// key the config does not trust. Neither writes a goal nor turns the torque on.
+TEST_F(DynamixelBridgeProcesses, UnsignedAndUntrustedCommandsWriteNoGoal) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  testing::SignedCommander trusted(kUrl), intruder(kUrl);
+  std::ofstream(config_path_) << trusted.Trusted(TestConfigText(link_, 1.0, 0.05));
+  auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
+  auto bridge = StartBridge("");
+  SleepS(1.5);
+  const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
+  const std::vector<double> goals = {0.5, 0.5, 0.5, 0.5, 0.5, 0.5};
+  for (int i = 0; i < 5; ++i) {
+    for (int8_t action : {servo_command_t::ARM, servo_command_t::MOVE}) {
+      servo_command_t bare{};
+      bare.action = action;
+      bare.num_servos = 6;
+      bare.id = {1, 2, 3, 4, 5, 6};
+      bare.goal_angle_rad = goals;
+      bare.torque_enable = true;
+      listener.Publish(bare);
+      intruder.Send(action, ids, goals);
+    }
+    SleepS(0.1);
+  }
+  SleepS(1.0);
+  Stop(*bridge, "bridge");
+  Stop(*emu, "emulator");
+  const auto heard = listener.States();
+  ASSERT_FALSE(heard.empty());
+  for (const auto& h : heard) {
+    for (int k = 0; k < h.msg.num_servos; ++k) {
+      if (h.msg.flags[k] & servo_state_t::FLAG_STALE) continue;
+      EXPECT_TRUE(h.msg.flags[k] & servo_state_t::FLAG_TORQUE_OFF) << "servo " << h.msg.id[k];
+      EXPECT_NEAR(h.msg.angle_rad[k], 0.0, 0.05) << "servo " << h.msg.id[k];
+    }
+  }
+  const auto statuses = listener.Statuses();
+  ASSERT_FALSE(statuses.empty());
+  EXPECT_GE(statuses.back().drops, 20) << testing::ReadFile(dir_ + "/bridge.err");
+  EXPECT_EQ(Counter(statuses.back(), "arms"), 0);
+  EXPECT_EQ(Counter(statuses.back(), "mode"), 0);  // disarmed
+  const std::string err = testing::ReadFile(dir_ + "/bridge.err");
+  EXPECT_NE(err.find("unsigned on SERVO_CMD"), std::string::npos) << err;
+  EXPECT_NE(err.find("untrusted signer"), std::string::npos) << err;
+}
+
+// The commander is killed mid-motion: the bridge holds the measured position within
+// dynamixel.deadman_s instead of running on to the last goal.
+TEST_F(DynamixelBridgeProcesses, TheDeadManHoldsTheServosWhenTheCommanderStops) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  testing::SignedCommander commander(kUrl);
+  std::ofstream(config_path_) << commander.Trusted(TestConfigText(link_, 1.0, 0.05));
+  auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
+  auto bridge = StartBridge("");
+  SleepS(1.5);
+  const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
+  commander.Arm();
+  commander.StartHeartbeat(0.05);
+  SleepS(0.1);
+  commander.Move(ids, {0.9, 0.9, 0.9, 0.9, 0.9, 0.9});  // 0.9 s at 1 rad/s
+  SleepS(0.3);
+  commander.StopHeartbeat();  // silent from here
+  const double silent_at = Now();
+  SleepS(1.5);
+  Stop(*bridge, "bridge");
+  Stop(*emu, "emulator");
+  const auto heard = listener.States();
+  ASSERT_FALSE(heard.empty());
+  // Where the legs were when the dead-man fired (deadman_s 0.25 after the last heartbeat,
+  // plus a cycle and the servo's lag), and that they stayed there, far short of 0.9 rad.
+  const auto& last = heard.back().msg;
+  for (int k = 0; k < 6; ++k) {
+    EXPECT_GT(last.angle_rad[k], 0.1) << "servo " << last.id[k] << " never moved";
+    EXPECT_LT(last.angle_rad[k], 0.75) << "servo " << last.id[k] << " was not held";
+  }
+  for (const auto& h : heard) {
+    if (h.t_s < silent_at + 0.6) continue;
+    for (int k = 0; k < 6; ++k) {
+      EXPECT_NEAR(h.msg.angle_rad[k], last.angle_rad[k], 2 * kOneCountRad)
+          << "servo " << h.msg.id[k] << " moved while held, at " << h.t_s;
+      EXPECT_FALSE(h.msg.flags[k] & servo_state_t::FLAG_TORQUE_OFF);  // held, not dropped
+    }
+  }
+  const auto statuses = listener.Statuses();
+  ASSERT_FALSE(statuses.empty());
+  EXPECT_EQ(Counter(statuses.back(), "deadman_holds"), 1);
+  EXPECT_EQ(Counter(statuses.back(), "mode"), 2);  // hold
 }
 
 }  // namespace

@@ -27,10 +27,12 @@
 #include "child_process.h"
 #include "ftcal/config.h"
 #include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/signed_envelope_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
 #include "sequencer/plan.h"
+#include "signed_commander.h"
 
 namespace ftcal {
 namespace {
@@ -101,7 +103,11 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
   auto path = [&](const std::string& name) { return dir + "/" + name; };
   const std::string link = path("tty");
   const std::string config_path = path("config.pbtxt");
-  std::ofstream(config_path) << TestConfigText(link);
+  // The sequencer signs SERVO_CMD and EXPERIMENT with a key made now; the config trusts it.
+  const std::string key_path = path("sequencer.key");
+  std::ofstream(config_path) << testing::TrustKey(TestConfigText(link), "sequencer",
+                                                  testing::WriteKeyFile(key_path),
+                                                  {"SERVO_CMD", "EXPERIMENT"});
   const config::Config config = LoadConfigFile(config_path);
 
   Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--truth-dir", dir,
@@ -131,7 +137,8 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
 
   const std::vector<std::string> seq_argv = {FTCAL_SEQUENCER, "--config", config_path, "--lcm-url",
                                              kUrl, "--plan", "live", "--yes", "--progress",
-                                             path("progress"), "--session", "live1"};
+                                             path("progress"), "--session", "live1",
+                                             "--signing-key", key_path};
   // ---- first run: killed bridge mid-grid ----
   Child seq1(seq_argv, path("seq1.out"), path("seq1.err"));
   ASSERT_TRUE(WaitFor([&] { return Contains(path("seq1.err"), "STANDING_GRID 4/8") || seq1.Wait(0).has_value(); }, 90))
@@ -181,8 +188,11 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
   while (const lcm::LogEvent* e = log.readNextEvent()) {
     const double t = e->timestamp * 1e-6;
     if (e->channel == "EXPERIMENT") {
+      // Signed by the sequencer: the marker is inside the envelope.
+      signed_envelope_t env;
+      ASSERT_TRUE(Decode(e, &env));
       experiment_marker_t m;
-      ASSERT_TRUE(Decode(e, &m));
+      ASSERT_EQ(m.decode(env.payload.data(), 0, env.size), env.size);
       markers.emplace_back(t, m);
     } else if (e->channel == "STEADY_POSE") {
       steady_pose_t m;

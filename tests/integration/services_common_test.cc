@@ -213,8 +213,8 @@ TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
   EXPECT_EQ(stats.errors(), 1);
   EXPECT_EQ(stats.last_error(), "handler for FT_.*: boom");
   EXPECT_EQ(stats.kinds().at("unknown leg"), 1);
-  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_HL"), 1);
-  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_ML"), 1);
+  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_HL: truncated"), 1);
+  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_ML: wrong fingerprint"), 1);
 }
 
 TEST(LcmBusTest, BadUrlIsAClearError) {

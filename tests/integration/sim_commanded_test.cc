@@ -1,7 +1,7 @@
 // ftcal-sim live --scenario commanded with the real ATI and Dynamixel bridges and lcm-logger, as
 // real processes over UDP, a pseudo-terminal and LCM multicast inside a private network
 // namespace (ctest runs this binary through scripts/netns-exec). The test publishes SERVO_CMD
-// (torque on, two poses in turn) and checks the loop the twin closes:
+// (signed: arm, then torque on and two poses in turn, with heartbeats) and checks the loop the twin closes:
 //   - SERVO_STATE: each servo leaves its start only after the command, approaches the goal as a
 //     first-order response (log-linear fit of the remaining error against the servos' own
 //     Realtime Tick: the time constant given to ftcal-sim, a third of the way left one time
@@ -27,9 +27,11 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "signed_commander.h"
 #include "ftcal/config.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/servo_command_t.hpp"
+#include "ftcal/signed_envelope_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "protocol2.h"
 #include "sim/live.h"
@@ -63,7 +65,9 @@ void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double
 std::string TestConfigText(const std::string& device) {
   std::string text = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
   text = std::regex_replace(text, std::regex("device: \"[^\"]*\""), "device: \"" + device + "\"");
-  text = std::regex_replace(text, std::regex("reply_timeout_s: [0-9.]+"), "reply_timeout_s: 0.05");
+  // A goal is a step, as the first-order fit below assumes: no velocity limit to speak of.
+  text = std::regex_replace(text, std::regex("reply_timeout_s: [0-9.]+"),
+                            "reply_timeout_s: 0.05\n  max_velocity_rad_s: 1000");
   return text;
 }
 
@@ -125,9 +129,15 @@ Recorded ReadLog(const std::string& path) {
     } else if (ch == "SERVO_STATE") {
       servo_state_t m;
       if (!Decode(e, &m)) ++r.undecodable; else r.servo.push_back({t, m});
-    } else if (ch == "SERVO_CMD") {
+    } else if (ch == "SERVO_CMD") {  // signed envelopes; the goals are in the MOVEs
+      signed_envelope_t envelope;
       servo_command_t m;
-      if (!Decode(e, &m)) ++r.undecodable; else r.cmd.push_back({t, m});
+      if (!Decode(e, &envelope) ||
+          m.decode(envelope.payload.data(), 0, envelope.size) != envelope.size) {
+        ++r.undecodable;
+      } else if (m.action == servo_command_t::MOVE) {
+        r.cmd.push_back({t, m});
+      }
     }
   }
   return r;
@@ -149,7 +159,9 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
   auto path = [&](const std::string& name) { return dir + "/" + name; };
   const std::string link = path("tty");
   const std::string config_path = path("config.pbtxt");
-  std::ofstream(config_path) << TestConfigText(link);
+  testing::SignedCommander commander(kUrl);
+  ASSERT_TRUE(commander.good());
+  std::ofstream(config_path) << commander.Trusted(TestConfigText(link));
   const config::Config config = LoadConfigFile(config_path);
   std::array<int, kNumLegs> id{}, zero{}, direction{};
   for (int k = 0; k < kNumLegs; ++k) {
@@ -183,25 +195,18 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
             path("dxl.err"));
   SleepS(2.5);  // the bridges start; the last second of it is the start pose's window
 
-  lcm::LCM lcm(kUrl);
-  ASSERT_TRUE(lcm.good());
+  std::vector<int> ids(id.begin(), id.end());
   auto command = [&](const std::array<double, kNumLegs>& goal) {
-    servo_command_t c;
-    c.utime = std::chrono::duration_cast<std::chrono::microseconds>(
-                  std::chrono::system_clock::now().time_since_epoch())
-                  .count();
-    c.num_servos = kNumLegs;
-    for (int k = 0; k < kNumLegs; ++k) {
-      c.id.push_back(id[k]);
-      c.goal_angle_rad.push_back(goal[k]);
-    }
-    c.torque_enable = true;
-    ASSERT_EQ(lcm.publish(config.channels().servo_cmd(), &c), 0);
+    ASSERT_EQ(commander.Move(ids, std::vector<double>(goal.begin(), goal.end())), 0);
   };
+  ASSERT_EQ(commander.Arm(), 0);
+  commander.StartHeartbeat(0.05);  // the bridge's dead-man
+  SleepS(0.05);
   command(kPoseA);
   SleepS(kHoldS);
   command(kPoseB);
   SleepS(kHoldS);
+  commander.StopHeartbeat();
   sim.Signal(SIGTERM);
   SleepS(0.3);
   Terminate(ati, "ftcal-ati-bridge", path("ati.err"));

@@ -5,7 +5,7 @@
 if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridge)
   add_executable(sim_commanded_test "${CMAKE_CURRENT_LIST_DIR}/sim_commanded_test.cc")
   target_link_libraries(sim_commanded_test PRIVATE
-    ftcal_sim_live ftcal_lcmtypes ftcal_child_process libcal
+    ftcal_sim_live ftcal_lcmtypes ftcal_child_process libcal ftcal_common
     GTest::gtest GTest::gtest_main Threads::Threads)
   target_compile_definitions(sim_commanded_test PRIVATE
     FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"

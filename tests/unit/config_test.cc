@@ -243,6 +243,12 @@ TEST(Config, RangeChecks) {
        "channels.contact_wrench: channel 'SYNC_SAMPLE' is also channels.sync_sample"},
       {"\n}\n", "\n}\nchannels { ft_prefix: \"SERVO_\" servo_state: \"SERVO_HL\" }\n",
        "channels.servo_state: channel 'SERVO_HL' is also channels.ft_prefix (SERVO_HL)"},
+      {"\n}\n", "\n}\nauth { trusted_key { name: \"op\" public_key_hex: \"abc\" channel: \"SERVO_CMD\" } }\n", "auth.trusted_key[0].public_key_hex: must be 64 hex digits"},
+      {"\n}\n", "\n}\nauth { trusted_key { name: \"op\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"FT_HL\" } }\n", "auth.trusted_key[0].channel: 'FT_HL' is not a signed channel"},
+      {"\n}\n", "\n}\nauth { trusted_key { name: \"a\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"b\" public_key_hex: \"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"c\" public_key_hex: \"20112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } }\n", "auth.trusted_key[2].channel: more than two trusted keys for 'SERVO_CMD'"},
+      {"\n}\n", "\n}\nauth { trusted_key { name: \"a\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"a\" public_key_hex: \"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"EXPERIMENT\" } }\n", "auth.trusted_key[1].name: duplicate trusted key name 'a'"},
+      {"\n}\n", "\n}\nauth { servo_cmd_window_s: 0 }\n", "auth.servo_cmd_window_s: must be in (0, 10] s"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" deadman_s: 0 }\n", "dynamixel.deadman_s: must be > 0"},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.to);

@@ -3,7 +3,9 @@
 // servos follow the commands (first-order), the transducers and motion capture are the twin's
 // standing frames (BigAntTwin::Driven). The bus here is a manual clock: publications loop back
 // to the subscribers, and the test decides what time it is (holds of seconds in microseconds of
-// test time, and the abort rules at exact times).
+// test time, and the abort rules at exact times). The commands pass through the Dynamixel
+// bridge's own command gate (signed envelopes opened with the config's trusted keys, ARM, the
+// dead-man), so the sequencer is tested against the rules the real bridge enforces.
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -14,10 +16,14 @@
 #include <unistd.h>
 
 #include <gtest/gtest.h>
+#include <sodium.h>
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "common/envelope.h"
+#include "dynamixel_bridge/command_gate.h"
 #include "ftcal/config.h"
+#include "ftcal/service_status_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 #include "sequencer/plan.h"
@@ -36,8 +42,30 @@ std::string ShippedConfigText(const std::string& name) {
   return std::string(std::istreambuf_iterator<char>(in), {});
 }
 
-config::Config SimConfig(const std::string& extra = "") {
-  return LoadConfigText(ShippedConfigText("sim.pbtxt") + extra, "sim.pbtxt+test");
+// The sequencer's key for these tests: made at test time, never a committed one.
+auth::Signer& TestSigner() {
+  static auth::Signer signer = [] {
+    auth::InitSodium();
+    std::array<uint8_t, auth::kSeedBytes> seed{};
+    randombytes_buf(seed.data(), seed.size());
+    return auth::Signer::FromSeed(seed);
+  }();
+  return signer;
+}
+
+// sim.pbtxt with `extra` and the test key trusted on SERVO_CMD and EXPERIMENT.
+config::Config SimConfig(const std::string& extra = "", bool allow_unsigned = true) {
+  const auth::PublicKey& key = TestSigner().public_key();
+  std::string text = ShippedConfigText("sim.pbtxt") + extra;
+  const std::string open = "\nauth {\n";
+  const size_t at = text.find(open);
+  EXPECT_NE(at, std::string::npos) << "sim.pbtxt has no auth section";
+  text.insert(at + open.size(), "  trusted_key { name: \"sequencer\" public_key_hex: \"" +
+                                    auth::ToHex(key.data(), key.size()) +
+                                    "\" channel: \"SERVO_CMD\" channel: \"EXPERIMENT\" }\n");
+  config::Config c = LoadConfigText(text, "sim.pbtxt+test");
+  c.mutable_auth()->set_allow_unsigned(allow_unsigned);
+  return c;
 }
 
 // ---- plan -> schedule ----
@@ -390,19 +418,36 @@ class ManualBus : public Bus {
 };
 
 template <class Msg>
-Msg Decode(const ManualBus::Publication& p) {
+Msg Decode(const uint8_t* data, int size) {
   Msg m;
-  EXPECT_EQ(m.decode(p.bytes.data(), 0, static_cast<int>(p.bytes.size())),
-            static_cast<int>(p.bytes.size()));
+  EXPECT_EQ(m.decode(data, 0, size), size);
   return m;
 }
+// The message inside a signed publication (every SERVO_CMD and EXPERIMENT is one).
+template <class Msg>
+Msg Decode(const ManualBus::Publication& p) {
+  const auto e = Decode<signed_envelope_t>(p.bytes.data(), static_cast<int>(p.bytes.size()));
+  EXPECT_EQ(e.inner_fingerprint, static_cast<int64_t>(Msg::getHash())) << p.channel;
+  return Decode<Msg>(e.payload.data(), e.size);
+}
+bool IsMove(const ManualBus::Publication& p) {
+  return p.channel == "SERVO_CMD" && Decode<servo_command_t>(p).action == servo_command_t::MOVE;
+}
 
-// The robot: servos that follow the last command as a first-order lag, and the twin's standing
-// frames at those angles, every 10 ms.
+// The robot: the Dynamixel bridge's command gate takes the signed commands, the servos follow
+// the goals it writes as a first-order lag, the twin's standing frames at those angles every
+// 10 ms, and the bridge's FTCAL_STATUS (its gate mode) once a second.
 class Robot {
  public:
-  Robot(const config::Config& config, ManualBus& bus)
-      : config_(config), bus_(bus), twin_(config, TwinOptions{}), driven_(twin_) {}
+  // `bridge_up_s`: how long the bridge has been running at t = 0 (its start_quiet_s applies).
+  Robot(const config::Config& config, ManualBus& bus, double bridge_up_s = 5.0)
+      : config_(config),
+        bus_(bus),
+        twin_(config, TwinOptions{}),
+        driven_(twin_),
+        bridge_stats_(QuietBridgeLog()),
+        verifier_(auth::Verifier::FromConfig(config)),
+        gate_(config, bridge_stats_, -bridge_up_s) {}
 
   // Runs `seconds` of robot time; `sequencer` ticks every 20 ms as the loop would.
   void Run(Sequencer& sequencer, double seconds, const std::function<void(double)>& each = {}) {
@@ -411,13 +456,28 @@ class Robot {
       t_ += kDt;
       bus_.SetNow(t0_ + std::llround(t_ * 1e6));
       if (each) each(t_);
-      // Servos follow the latest command.
+      // The bridge: commands through the gate, the goals it writes followed by the servos.
       for (size_t j = seen_; j < bus_.published.size(); ++j) {
-        if (bus_.published[j].channel != "SERVO_CMD") continue;
-        const auto cmd = Decode<servo_command_t>(bus_.published[j]);
-        for (int k = 0; k < kNumLegs; ++k) goal_[k] = cmd.goal_angle_rad[k];
+        const auto& p = bus_.published[j];
+        if (p.channel != "SERVO_CMD" || cut_) continue;
+        auto [opened, refused] =
+            verifier_.Open(p.channel, p.bytes.data(), static_cast<int>(p.bytes.size()),
+                           static_cast<uint64_t>(servo_command_t::getHash()), p.utime, 250'000);
+        if (refused) {
+          ++refusals_[refused->kind];
+          continue;
+        }
+        try {
+          gate_.OnCommand(*opened->signer, Decode<servo_command_t>(opened->payload, opened->size),
+                          t_);
+        } catch (const BadInput& e) {
+          ++refusals_[e.what()];
+        }
       }
       seen_ = bus_.published.size();
+      if (const auto written = gate_.Tick(t_, /*degraded=*/false)) {
+        for (int k = 0; k < kNumLegs; ++k) goal_[k] = written->goal_angle_rad[k];
+      }
       for (int k = 0; k < kNumLegs; ++k) angle_[k] += (goal_[k] - angle_[k]) * (kDt / kTau);
       const TwinFrame& f = driven_.Frame(t_, angle_);
       for (int k = 0; k < kNumLegs; ++k) {
@@ -449,7 +509,18 @@ class Robot {
         s.device_tick_ms.push_back(0);
         s.flags.push_back(0);
       }
+      gate_.OnState(s);
       bus_.Deliver("SERVO_STATE", s);
+      if (i % 100 == 0) {
+        service_status_t st{};
+        st.utime = bus_.NowUtime();
+        st.name = "ftcal-dynamixel-bridge";
+        st.state = service_status_t::RUNNING;
+        st.counter_name = {"mode"};
+        st.counter_value = {static_cast<int64_t>(gate_.mode())};
+        st.num_counters = 1;
+        bus_.Deliver("FTCAL_STATUS", st);
+      }
       if (i % 2 == 0) sequencer.Tick();
       if (sequencer.state() == Sequencer::State::kDone ||
           sequencer.state() == Sequencer::State::kStopped) {
@@ -458,8 +529,13 @@ class Robot {
     }
   }
   void Silence(int leg) { silent_leg_ = leg; }
+  // The link from the sequencer to the bridge is cut (commands lost) or mended.
+  void Cut(bool cut) { cut_ = cut; }
   const Angles& angles() const { return angle_; }
   double t() const { return t_; }
+  CommandGate& gate() { return gate_; }
+  // Commands the bridge did not act on, by reason.
+  const std::map<std::string, int>& refusals() const { return refusals_; }
 
  private:
   static constexpr double kDt = 0.01, kTau = 0.05;
@@ -467,9 +543,19 @@ class Robot {
   ManualBus& bus_;
   BigAntTwin twin_;
   BigAntTwin::Driven driven_;
+  static std::shared_ptr<spdlog::logger> QuietBridgeLog() {
+    static auto log = std::make_shared<spdlog::logger>(
+        "bridge", std::make_shared<spdlog::sinks::null_sink_mt>());
+    return log;
+  }
+  ServiceStats bridge_stats_;
+  auth::Verifier verifier_;
+  CommandGate gate_;
+  std::map<std::string, int> refusals_;
   Angles angle_{}, goal_{};
   size_t seen_ = 0;
   int silent_leg_ = -1;
+  bool cut_ = false;
   double t_ = 0.0;
   const int64_t t0_ = 1'700'000'000'000'000;
 };
@@ -496,7 +582,7 @@ Markers MarkersOf(const ManualBus& bus) {
 std::vector<Angles> HeldPoses(const ManualBus& bus) {
   std::vector<Angles> poses;
   for (const auto& p : bus.published) {
-    if (p.channel != "SERVO_CMD") continue;
+    if (!IsMove(p)) continue;
     const auto cmd = Decode<servo_command_t>(p);
     Angles a;
     for (int k = 0; k < kNumLegs; ++k) a[k] = cmd.goal_angle_rad[k];
@@ -519,7 +605,7 @@ TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
   ServiceStats stats(QuietLog());
   ManualBus bus(stats);
   Robot robot(c, bus);
-  Sequencer seq(c, bus, Sequencer::Options{"grid", /*yes=*/true, "", "s1"});
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", /*yes=*/true, "", "s1"});
   robot.Run(seq, 120.0);
   ASSERT_EQ(seq.state(), Sequencer::State::kDone) << seq.stop_reason();
   const Markers m = MarkersOf(bus);
@@ -538,7 +624,7 @@ TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
   double fastest = 0.0;
   std::optional<std::pair<int64_t, Angles>> last;
   for (const auto& p : bus.published) {
-    if (p.channel != "SERVO_CMD") continue;
+    if (!IsMove(p)) continue;
     const auto cmd = Decode<servo_command_t>(p);
     Angles a;
     for (int k = 0; k < kNumLegs; ++k) a[k] = cmd.goal_angle_rad[k];
@@ -563,7 +649,7 @@ TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThat
   int interrupted_pose = -1;
   double silenced_at = -1.0;
   {
-    Sequencer seq(c, bus, Sequencer::Options{"grid", true, progress, "s2"});
+    Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, progress, "s2"});
     robot.Run(seq, 120.0, [&](double t) {
       // Silence the ATI of ML in the middle of the fourth pose's dwell.
       if (silenced_at < 0 && seq.ProgressLine().find("STANDING_GRID 4/") != std::string::npos &&
@@ -583,7 +669,7 @@ TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThat
   // The last command holds the measured angles; the marker is closed.
   const auto last_cmd = [&] {
     for (auto it = bus.published.rbegin(); it != bus.published.rend(); ++it) {
-      if (it->channel == "SERVO_CMD") return Decode<servo_command_t>(*it);
+      if (IsMove(*it)) return Decode<servo_command_t>(*it);
     }
     return servo_command_t{};
   }();
@@ -602,7 +688,7 @@ TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThat
   ServiceStats stats2(QuietLog());
   ManualBus bus2(stats2);
   Robot robot2(c, bus2);
-  Sequencer again(c, bus2, Sequencer::Options{"grid", true, progress, ""});
+  Sequencer again(c, bus2, TestSigner(), Sequencer::Options{"grid", true, progress, ""});
   robot2.Run(again, 120.0);
   ASSERT_EQ(again.state(), Sequencer::State::kDone) << again.stop_reason();
   const Markers m2 = MarkersOf(bus2);
@@ -626,7 +712,7 @@ plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_X_POS cycles: 1 c
   ServiceStats stats(QuietLog());
   ManualBus bus(stats);
   Robot robot(c, bus);  // the twin stands on its six feet
-  Sequencer seq(c, bus, Sequencer::Options{"hang", true, "", "s3"});
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"hang", true, "", "s3"});
   robot.Run(seq, 5.0);
   ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
   EXPECT_NE(seq.stop_reason().find("PHASE_HANG HANG_X_POS cannot start: the robot is not in the air"),
@@ -644,7 +730,7 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride:
   ManualBus bus(stats);
   Robot robot(c, bus);
   std::vector<std::string> prompts;
-  Sequencer seq(c, bus, Sequencer::Options{"grid", /*yes=*/false, "", "s4"});
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", /*yes=*/false, "", "s4"});
   seq.OnPrompt([&](const std::string& p) { prompts.push_back(p); });
   robot.Run(seq, 3.0);
   EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
@@ -667,6 +753,104 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride:
   EXPECT_NE(seq.stop_reason().find("hand on the e-stop"), std::string::npos);
   ASSERT_EQ(MarkersOf(bus).all.size(), 2u);
   EXPECT_FALSE(MarkersOf(bus).all.back().start);
+}
+
+// ---- the servo side: the sequencer against the bridge's command gate ----
+
+TEST(SequencerRun, ArmsTheBridgeBeforeTheFirstMoveAndDisarmsAtTheEnd) {
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  // The bridge started just now: the first ARM falls in its start_quiet_s and is ignored, so
+  // the sequencer must ARM again before anything moves.
+  Robot robot(c, bus, /*bridge_up_s=*/0.0);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "s5"});
+  robot.Run(seq, 120.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kDone) << seq.stop_reason();
+  std::vector<int8_t> actions;
+  for (const auto& p : bus.published) {
+    if (p.channel != "SERVO_CMD") continue;
+    const int8_t a = Decode<servo_command_t>(p).action;
+    if (actions.empty() || actions.back() != a) actions.push_back(a);
+  }
+  ASSERT_GE(actions.size(), 3u);
+  EXPECT_EQ(actions.front(), servo_command_t::ARM);
+  EXPECT_EQ(actions.back(), servo_command_t::DISARM);
+  EXPECT_EQ(std::count(actions.begin(), actions.end(), +servo_command_t::ARM), 1)
+      << "ARMs repeat only while the bridge has not said armed";
+  EXPECT_GE(robot.refusals().count("servo command ignored_at_start"), 1u);
+  EXPECT_EQ(robot.gate().mode(), CommandGate::Mode::kDisarmed);
+  // Every MOVE the bridge received was taken: none refused as not armed or from a stranger.
+  for (const auto& [why, n] : robot.refusals()) {
+    EXPECT_TRUE(why == "servo command ignored_at_start" || why == "servo command not_armed")
+        << why << " x" << n;
+  }
+  // The poses were reached through the gate: the run ends at the last pose of the plan.
+  const auto all = GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
+  for (int k = 0; k < kNumLegs; ++k) EXPECT_NEAR(robot.angles()[k], all[700][k], 0.02) << k;
+}
+
+TEST(SequencerRun, ABridgeThatHoldsStopsTheRun) {
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "s6"});
+  double cut_at = -1.0;
+  robot.Run(seq, 120.0, [&](double t) {
+    if (cut_at < 0 && seq.ProgressLine().find("STANDING_GRID 3/") != std::string::npos) {
+      cut_at = t;
+      robot.Cut(true);  // the bridge's dead-man holds after dynamixel.deadman_s
+    }
+  });
+  ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("ftcal-dynamixel-bridge left armed mode: it is in hold"),
+            std::string::npos)
+      << seq.stop_reason();
+  EXPECT_EQ(robot.gate().mode(), CommandGate::Mode::kHold);
+  // Seen at the bridge's next status (1 Hz) after the dead-man (0.25 s).
+  EXPECT_LE(robot.t() - cut_at, c.dynamixel().deadman_s() + 1.0 + 0.05);
+  const Markers m = MarkersOf(bus);
+  ASSERT_EQ(m.all.size(), 2u);
+  EXPECT_FALSE(m.all.back().start);
+}
+
+TEST(SequencerRun, AnUntrustedKeyNeverMovesTheRobot) {
+  const config::Config trusted = SimConfig(kGridPlan);
+  config::Config c = trusted;
+  c.mutable_auth()->clear_trusted_key();  // the bridge trusts nobody on SERVO_CMD
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "s7"});
+  robot.Run(seq, 30.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("did not arm after 4 ARMs"), std::string::npos)
+      << seq.stop_reason();
+  EXPECT_NE(seq.stop_reason().find("auth.trusted_key"), std::string::npos) << seq.stop_reason();
+  EXPECT_GE(robot.refusals().count("untrusted signer"), 1u);
+  for (int k = 0; k < kNumLegs; ++k) EXPECT_DOUBLE_EQ(robot.angles()[k], 0.0);
+  EXPECT_TRUE(MarkersOf(bus).all.empty() || !MarkersOf(bus).all.back().start);
+}
+
+TEST(SequencerRun, AnUnsignedConfirmIsRefusedOnALabNetwork) {
+  const config::Config c = SimConfig(R"(
+plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride: 100 dwell_s: 1.5 } }
+)",
+                                     /*allow_unsigned=*/false);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", /*yes=*/false, "", "s8"});
+  robot.Run(seq, 2.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  sequencer_control_t confirm{};
+  confirm.action = sequencer_control_t::CONFIRM;
+  confirm.step = 0;
+  bus.Deliver("SEQUENCER_CONTROL", confirm);
+  robot.Run(seq, 2.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  EXPECT_EQ(stats.kinds().count("unsigned on SEQUENCER_CONTROL"), 1u);
 }
 
 }  // namespace

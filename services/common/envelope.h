@@ -1,0 +1,121 @@
+// Signed channels: SERVO_CMD, EXPERIMENT and CALIBRATION travel in a signed_envelope_t.
+//
+// Ed25519 (libsodium's crypto_sign_*), so a receiver holds public keys only and can verify but
+// never forge; the config says which key may sign which channel, so reading a channel never
+// grants writing it (LCMsec's group keys give both to every member). The signature covers a
+// domain tag, the channel, the signer, a sequence number, the signing time, the inner type's
+// fingerprint and the inner bytes. A receiver checks, in this order and before the inner
+// message is decoded: the envelope's shape (wire guard), that the signer is trusted on this
+// channel, the inner type, the signature, that the sequence rises (per signer and channel: a
+// replayed envelope is refused however recent), and, where the channel has one, the time window
+// against the receive time. Only a good envelope advances the sequence, so a forgery cannot
+// block its signer.
+//
+// Sequence numbers rise across restarts without state on disk: a signer starts at its clock in
+// us and counts up from max(last + 1, now), so a restarted signer continues above what it sent
+// before unless its clock stepped back (README, "Signed channels": keep clocks synchronised).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "common/wire_guard.h"
+#include "ftcal/signed_envelope_t.hpp"
+#include "proto/config.pb.h"
+
+namespace ftcal::auth {
+
+constexpr char kDomainTag[] = "ftcal.signed_envelope.v1";
+constexpr size_t kSeedBytes = 32;
+constexpr size_t kPublicKeyBytes = 32;
+
+using PublicKey = std::array<uint8_t, kPublicKeyBytes>;
+
+std::string ToHex(const uint8_t* bytes, size_t n);
+// 64 hex digits; throws std::invalid_argument naming `what` otherwise.
+PublicKey PublicKeyFromHex(const std::string& hex, const std::string& what);
+
+// Makes sure libsodium is initialised; throws std::runtime_error when it cannot be.
+void InitSodium();
+
+class Signer {
+ public:
+  // The seed file: 64 hex digits (and an optional newline), a regular file owned by this user
+  // with no permission for group or others. Throws std::runtime_error naming the file and what
+  // is wrong (missing, readable by others, not 32 bytes of hex, ...).
+  static Signer FromSeedFile(const std::string& path);
+  static Signer FromSeed(const std::array<uint8_t, kSeedBytes>& seed);
+  Signer(const Signer&) = delete;
+  Signer& operator=(const Signer&) = delete;
+  Signer(Signer&& other) noexcept;
+  Signer& operator=(Signer&&) = delete;
+  ~Signer();
+
+  const PublicKey& public_key() const { return public_key_; }
+  // The envelope of `inner` (LCM-encoded, fingerprint first) for `channel`, signed at `utime`.
+  signed_envelope_t Seal(const std::string& channel, const uint8_t* inner, int size,
+                         int64_t utime);
+  template <class Msg>
+  signed_envelope_t Seal(const std::string& channel, const Msg& msg, int64_t utime) {
+    std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+    msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+    return Seal(channel, bytes.data(), static_cast<int>(bytes.size()), utime);
+  }
+
+ private:
+  Signer() = default;
+  std::array<uint8_t, 64> secret_key_{};  // libsodium's: seed then public key
+  PublicKey public_key_{};
+  int64_t last_sequence_ = 0;
+};
+
+struct TrustedKey {
+  std::string name;
+  PublicKey key{};
+  std::set<std::string> channels;
+};
+
+// What a receiver got out of a good envelope.
+struct Opened {
+  const uint8_t* payload;
+  int size;
+  const std::string* signer;  // the trusted key's name
+  int64_t sequence;
+  int64_t utime;
+};
+
+// Checks envelopes for one process. Not thread-safe (one bus loop).
+class Verifier {
+ public:
+  explicit Verifier(std::vector<TrustedKey> keys);
+  // From the config's `auth` section.
+  static Verifier FromConfig(const config::Config& config);
+
+  // Checks `data` received on `channel` at `recv_utime` as an envelope of an inner message
+  // with `inner_fingerprint`; `window_us` > 0 also requires |recv_utime - utime| <= window_us.
+  // The refusal's kind names the sender when it is a trusted key ("bad signature from
+  // operator"); every unknown key is one kind, "untrusted signer", so fresh keys cannot grow
+  // the counts.
+  std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Open(
+      const std::string& channel, const void* data, int size, uint64_t inner_fingerprint,
+      int64_t recv_utime, int64_t window_us);
+
+  // True when some trusted key may sign `channel`.
+  bool Trusts(const std::string& channel) const;
+
+ private:
+  std::vector<TrustedKey> keys_;
+  signed_envelope_t envelope_;  // reused: decoding allocates the payload
+  std::map<std::pair<size_t, std::string>, int64_t> last_sequence_;  // (key, channel)
+};
+
+// The bytes the signature covers.
+std::vector<uint8_t> SignedBytes(const std::string& channel, const signed_envelope_t& e);
+
+}  // namespace ftcal::auth

@@ -1,0 +1,244 @@
+#include "common/wire_guard.h"
+
+#include <cstring>
+#include <string>
+
+namespace ftcal::wire {
+namespace {
+
+std::vector<const Schema*>& Registered() {
+  static std::vector<const Schema*> schemas;
+  return schemas;
+}
+
+int64_t WireBytes(Prim p) {
+  switch (p) {
+    case Prim::kInt8:
+    case Prim::kByte:
+    case Prim::kBoolean:
+      return 1;
+    case Prim::kInt16:
+      return 2;
+    case Prim::kInt32:
+    case Prim::kFloat:
+      return 4;
+    case Prim::kInt64:
+    case Prim::kDouble:
+      return 8;
+    case Prim::kString:
+      return 5;  // the shortest: a length of 1 and the NUL
+  }
+  return 1;
+}
+
+// Memory of one decoded element (a string's characters are added per string).
+int64_t DecodedBytes(Prim p) {
+  return p == Prim::kString ? static_cast<int64_t>(sizeof(std::string)) : WireBytes(p);
+}
+
+bool IsInteger(Prim p) {
+  return p == Prim::kInt8 || p == Prim::kInt16 || p == Prim::kInt32 || p == Prim::kInt64;
+}
+
+int64_t ReadSigned(const uint8_t* p, int64_t n) {
+  uint64_t v = 0;
+  for (int64_t i = 0; i < n; ++i) v = v << 8 | p[i];
+  const int shift = static_cast<int>(64 - 8 * n);
+  return static_cast<int64_t>(v << shift) >> shift;  // sign-extends
+}
+
+}  // namespace
+
+const Schema* FindSchema(uint64_t fingerprint) {
+  for (const Schema* s : FtcalSchemas()) {
+    if (s->fingerprint == fingerprint) return s;
+  }
+  for (const Schema* s : Registered()) {
+    if (s->fingerprint == fingerprint) return s;
+  }
+  return nullptr;
+}
+
+void Register(const std::vector<const Schema*>& schemas) {
+  Registered().insert(Registered().end(), schemas.begin(), schemas.end());
+}
+
+std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
+  const auto* bytes = static_cast<const uint8_t*>(data);
+  const int64_t total = size;
+  if (total < 8) {
+    return Refusal{"truncated", std::to_string(total) + " bytes: shorter than a fingerprint"};
+  }
+  const uint64_t fingerprint = static_cast<uint64_t>(ReadSigned(bytes, 8));
+  if (fingerprint != schema.fingerprint) {
+    char text[80];
+    std::snprintf(text, sizeof text, "fingerprint %016llx, not %s's %016llx",
+                  static_cast<unsigned long long>(fingerprint), schema.name,
+                  static_cast<unsigned long long>(schema.fingerprint));
+    return Refusal{"wrong fingerprint", text};
+  }
+  const int64_t decoded_bound = kMaxDecodedBytesPerByte * total + kDecodedSlackBytes;
+  int64_t pos = 8;
+  int64_t decoded = 0;
+  std::vector<int64_t> values(static_cast<size_t>(schema.num_fields), 0);
+  for (int i = 0; i < schema.num_fields; ++i) {
+    const Field& f = schema.fields[i];
+    auto where = [&] {
+      return std::string(schema.name) + "." + f.name + " at byte " + std::to_string(pos);
+    };
+    // Elements, and the vector headers of the outer levels, multiplied out level by level;
+    // each level is at most kMaxLength (2^24), so three levels fit in 128 bits.
+    unsigned __int128 count = 1;
+    unsigned __int128 headers = 0;
+    for (int d = 0; d < f.ndims; ++d) {
+      const Dim& dim = f.dims[d];
+      const int64_t n = dim.member < 0 ? dim.fixed : values[static_cast<size_t>(dim.member)];
+      if (n < 0) {
+        return Refusal{"negative length", where() + ": dimension " + std::to_string(d) +
+                                              " is " + std::to_string(n)};
+      }
+      if (n > kMaxLength) {
+        return Refusal{"length over cap", where() + ": dimension " + std::to_string(d) + " is " +
+                                              std::to_string(n) + " (cap " +
+                                              std::to_string(kMaxLength) + ")"};
+      }
+      if (d + 1 < f.ndims) headers += count * static_cast<unsigned>(n);
+      count *= static_cast<unsigned>(n);
+    }
+    const int64_t remaining = total - pos;
+    const int64_t elem = WireBytes(f.type);
+    // (A single string is checked below, with a more precise complaint.)
+    if ((f.ndims > 0 || f.type != Prim::kString) &&
+        count * static_cast<unsigned>(elem) > static_cast<unsigned __int128>(remaining)) {
+      return Refusal{"array past the end",
+                     where() + ": needs at least " +
+                         std::to_string(static_cast<unsigned long long>(
+                             count * static_cast<unsigned>(elem))) +
+                         " bytes, " + std::to_string(remaining) + " remain"};
+    }
+    // Both now fit in int64: count <= remaining, headers <= count per level.
+    if (headers > static_cast<unsigned __int128>(decoded_bound)) {
+      return Refusal{"decoded size over bound",
+                     where() + ": " + std::to_string(static_cast<long long>(headers)) +
+                         " empty inner arrays"};
+    }
+    const int64_t n = static_cast<int64_t>(count);
+    decoded += static_cast<int64_t>(headers) * static_cast<int64_t>(sizeof(std::vector<char>)) +
+               n * DecodedBytes(f.type);
+    if (f.type == Prim::kString) {
+      for (int64_t k = 0; k < n; ++k) {
+        if (total - pos < 4) return Refusal{"string past the end", where()};
+        const int64_t len = ReadSigned(bytes + pos, 4);
+        if (len < 1) {
+          return Refusal{"bad string length",
+                         where() + ": length " + std::to_string(len) + " (at least 1: the NUL)"};
+        }
+        if (len > total - pos - 4) {
+          return Refusal{"string past the end", where() + ": length " + std::to_string(len) +
+                                                    ", " + std::to_string(total - pos - 4) +
+                                                    " bytes remain"};
+        }
+        if (bytes[pos + 4 + len - 1] != 0) {
+          return Refusal{"string without NUL", where()};
+        }
+        // LCM decodes the bytes before the last, but encodes up to the first NUL: a string
+        // with a NUL inside would mean one thing here and another re-published or logged.
+        if (std::memchr(bytes + pos + 4, 0, static_cast<size_t>(len - 1)) != nullptr) {
+          return Refusal{"string with a NUL inside", where()};
+        }
+        pos += 4 + len;
+        decoded += len;
+      }
+    } else {
+      if (f.type == Prim::kBoolean) {
+        for (int64_t k = 0; k < n; ++k) {
+          if (bytes[pos + k] > 1) {
+            return Refusal{"bad boolean", where() + ": element " + std::to_string(k) + " is " +
+                                              std::to_string(bytes[pos + k])};
+          }
+        }
+      }
+      if (f.ndims == 0 && IsInteger(f.type)) {
+        values[static_cast<size_t>(i)] = ReadSigned(bytes + pos, elem);
+      }
+      pos += n * elem;
+    }
+    if (decoded > decoded_bound) {
+      return Refusal{"decoded size over bound",
+                     where() + ": would decode into " + std::to_string(decoded) + " bytes from " +
+                         std::to_string(total)};
+    }
+  }
+  if (pos != total) {
+    return Refusal{"trailing bytes", std::to_string(total - pos) + " bytes after a " +
+                                         std::to_string(pos) + "-byte " + schema.name};
+  }
+  return std::nullopt;
+}
+
+std::string Describe(const Schema& schema, const void* data, int size) {
+  if (auto refused = Check(schema, data, size)) return "<" + refused->kind + ">";
+  const auto* bytes = static_cast<const uint8_t*>(data);
+  int64_t pos = 8;
+  std::vector<int64_t> values(static_cast<size_t>(schema.num_fields), 0);
+  std::string out;
+  auto element = [&](Prim type) {
+    char text[64];
+    const int64_t n = WireBytes(type);
+    switch (type) {
+      case Prim::kString: {
+        const int64_t len = ReadSigned(bytes + pos, 4);
+        std::string s = "\"" + std::string(reinterpret_cast<const char*>(bytes + pos + 4),
+                                            static_cast<size_t>(len - 1)) + "\"";
+        pos += 4 + len;
+        return s;
+      }
+      case Prim::kFloat:
+      case Prim::kDouble: {
+        const uint64_t bits = static_cast<uint64_t>(ReadSigned(bytes + pos, n));
+        double v;
+        if (type == Prim::kFloat) {
+          float f;
+          const auto b32 = static_cast<uint32_t>(bits);
+          std::memcpy(&f, &b32, 4);
+          v = f;
+        } else {
+          std::memcpy(&v, &bits, 8);
+        }
+        std::snprintf(text, sizeof text, "%.9g", v);
+        break;
+      }
+      default:
+        std::snprintf(text, sizeof text, "%lld", static_cast<long long>(ReadSigned(bytes + pos, n)));
+    }
+    pos += n;
+    return std::string(text);
+  };
+  for (int i = 0; i < schema.num_fields; ++i) {
+    const Field& f = schema.fields[i];
+    if (i > 0) out += " ";
+    out += f.name;
+    out += "=";
+    if (f.ndims == 0) {
+      if (IsInteger(f.type)) values[static_cast<size_t>(i)] = ReadSigned(bytes + pos, WireBytes(f.type));
+      out += element(f.type);
+      continue;
+    }
+    int64_t count = 1;
+    for (int d = 0; d < f.ndims; ++d) {
+      const Dim& dim = f.dims[d];
+      count *= dim.member < 0 ? dim.fixed : values[static_cast<size_t>(dim.member)];
+    }
+    if (f.type == Prim::kByte) {
+      out += "<" + std::to_string(count) + " bytes>";
+      pos += count;
+      continue;
+    }
+    out += "[";
+    for (int64_t k = 0; k < count; ++k) out += (k ? "," : "") + element(f.type);
+    out += "]";
+  }
+  return out;
+}
+
+}  // namespace ftcal::wire
