@@ -311,9 +311,10 @@ int Launcher::Down() {
         if (p.host() == h) hs.Ctl({"stop", group.name() + ":" + p.name()});
       }
       // The listener last, so the recording holds the processes' STOPPED events.
-      hs.Ctl({"stop", group.name() + "-events"});
+      hs.Ctl({"stop", group.name() + "-events", group.name() + "-pacer"});
       hs.Ctl({"remove", group.name()});
       hs.Ctl({"remove", group.name() + "-events"});
+      hs.Ctl({"remove", group.name() + "-pacer"});
       hs.RemoveFile("groups/" + group.name() + ".conf");
       if (hs.Status().empty()) {
         hs.Ctl({"shutdown"});
