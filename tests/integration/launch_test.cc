@@ -383,6 +383,14 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
                                                        std::to_string(new_pid))))
       << status.out;
 
+  // restart NAME: a new corrector behind its gate, the rest untouched.
+  const Ran restart = Launch({"--config", config, "restart", "corrector"});
+  EXPECT_EQ(restart.rc, 0) << restart.out;
+  auto restarted = SupervisorStatus(run);
+  EXPECT_EQ(restarted["sim:corrector"].state, "RUNNING");
+  EXPECT_NE(restarted["sim:corrector"].pid, after["sim:corrector"].pid);
+  EXPECT_EQ(restarted["sim:segmenter"].pid, after["sim:segmenter"].pid);
+
   const Ran down = Launch({"--config", config, "down", "sim"});
   EXPECT_EQ(down.rc, 0) << down.out;
   EXPECT_FALSE(std::filesystem::exists(run + "/supervisor.sock")) << down.out;
