@@ -9,7 +9,10 @@
 #include <fcntl.h>
 #include <sched.h>
 #include <signal.h>
+#include <poll.h>
+#include <sys/socket.h>
 #include <sys/stat.h>
+#include <sys/un.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -457,6 +460,48 @@ TEST_F(LaunchTest, FailingGateStopsTheStartAndNamesProcessGateAndFigure) {
   EXPECT_EQ(Launch({"--config", config, "down", "sim"}).rc, 0);
 }
 
+
+// systemd's notify protocol, as systemd would receive it: a datagram socket at NOTIFY_SOCKET.
+TEST_F(LaunchTest, AServiceSaysReadyFeedsTheWatchdogAndSaysStoppingUnderSystemd) {
+  const std::string socket_path = dir_ + "/notify.sock";
+  const int fd = ::socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+  ASSERT_GE(fd, 0);
+  sockaddr_un addr{};
+  addr.sun_family = AF_UNIX;
+  std::snprintf(addr.sun_path, sizeof(addr.sun_path), "%s", socket_path.c_str());
+  ASSERT_EQ(::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)), 0);
+  ::setenv("NOTIFY_SOCKET", socket_path.c_str(), 1);
+  ::setenv("WATCHDOG_USEC", "3000000", 1);
+  testing::Child corrector({FTCAL_CORRECTOR}, dir_ + "/corrector.out", dir_ + "/corrector.err");
+  ::unsetenv("NOTIFY_SOCKET");
+  ::unsetenv("WATCHDOG_USEC");
+  std::vector<std::string> heard;
+  const auto t0 = Clock::now();
+  bool sent_term = false;
+  while (Since(t0) < 8) {
+    if (!sent_term && Since(t0) > 3.5) {
+      corrector.Signal(SIGTERM);
+      sent_term = true;
+    }
+    pollfd p{fd, POLLIN, 0};
+    if (::poll(&p, 1, 100) <= 0) continue;
+    char buf[512];
+    const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
+    if (n > 0) heard.emplace_back(buf, static_cast<std::size_t>(n));
+    if (sent_term && heard.back().find("STOPPING=1") != std::string::npos) break;
+  }
+  ::close(fd);
+  int ready = 0, watchdog = 0, stopping = 0;
+  for (const auto& m : heard) {
+    ready += m.find("READY=1") != std::string::npos;
+    watchdog += m == "WATCHDOG=1";
+    stopping += m == "STOPPING=1";
+  }
+  EXPECT_EQ(ready, 1);
+  EXPECT_GE(watchdog, 2) << "one per heartbeat for ~3 s";
+  EXPECT_EQ(stopping, 1);
+  EXPECT_TRUE(corrector.Wait(5).has_value());
+}
 
 // ---- Two hosts: network namespaces "robot" and "workstation" joined by a veth pair ----
 
