@@ -126,11 +126,12 @@ TEST(WireGuardTest, WellFormedMessagesPassAndDecodeAsSent) {
   EXPECT_EQ(got.body, "chassis");
   EXPECT_TRUE(std::isnan(got.residual_m));
 
+  // Fixed-size arrays only (one leg per message): nothing to cap, the size is the type's.
   contact_wrench_t cw{};
-  cw.num_legs = 2;
-  cw.leg = {"HL", ""};
-  cw.wrench_w = {{1, 2, 3, 4, 5, 6}, {7, 8, 9, 10, 11, 12}};
-  cw.ft_age_s = {0.001, 0.002};
+  cw.leg = 1;
+  for (int i = 0; i < 6; ++i) cw.wrench_w[i] = i + 1;
+  cw.servo_age_s = 0.001f;
+  cw.mocap_age_s = -1.0f;
   EXPECT_FALSE(Guard<contact_wrench_t>(Encode(cw)));
 
   service_status_t st{};
