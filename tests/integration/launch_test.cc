@@ -397,6 +397,23 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
   const Ran down = Launch({"--config", config, "down", "sim"});
   EXPECT_EQ(down.rc, 0) << down.out;
   EXPECT_FALSE(std::filesystem::exists(run + "/supervisor.sock")) << down.out;
+
+  // The recording holds the process health beside the data: the kill and the restart.
+  lcm::LogFile log_file(run + "/session.lcmlog.00", "r");
+  ASSERT_TRUE(log_file.good());
+  bool exited = false, back = false;
+  int ft_events = 0;
+  while (const lcm::LogEvent* e = log_file.readNextEvent()) {
+    if (e->channel.rfind("FT_", 0) == 0) ++ft_events;
+    if (e->channel != "PROCESS_STATE") continue;
+    process_state_t m;
+    if (m.decode(e->data, 0, e->datalen) != e->datalen || m.name != "ati-bridge") continue;
+    exited |= m.to_state == "EXITED" && m.pid == victim;
+    back |= m.to_state == "RUNNING" && m.pid == new_pid;
+  }
+  EXPECT_TRUE(exited) << "no PROCESS_STATE EXITED of the killed pid in the recording";
+  EXPECT_TRUE(back) << "no PROCESS_STATE RUNNING of the new pid in the recording";
+  EXPECT_GT(ft_events, 0);
 }
 
 TEST_F(LaunchTest, ProcessThatKeepsDyingEndsFatalNotRestartedForever) {
