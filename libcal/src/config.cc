@@ -3,10 +3,12 @@
 #include <arpa/inet.h>
 #include <openssl/evp.h>
 
+#include <cctype>
 #include <cerrno>
 #include <cmath>
 #include <cstring>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <set>
 #include <memory>
@@ -726,6 +728,179 @@ void ValidateAuth(const Node& node, const config::Auth& auth, const config::Chan
   }
 }
 
+// ---- Launch groups ----
+
+bool IsProgramName(const std::string& name) {
+  // supervisor's section names and systemd unit names both accept these; ':' would split a
+  // supervisor "group:name".
+  if (name.empty() || name.size() > 64) return false;
+  return name.find_first_not_of("abcdefghijklmnopqrstuvwxyz0123456789_-") == std::string::npos;
+}
+
+void ValidateRestart(const Node& node, const config::RestartPolicy& r) {
+  if (node.Finite("startsecs_s", r.startsecs_s()) &&
+      !(r.startsecs_s() == 0 || (r.startsecs_s() >= 2 && r.startsecs_s() <= 3600))) {
+    // supervisord may notice an exit a second late: below 2 s a process that dies at once can
+    // pass as started, and is then restarted forever instead of ending FATAL.
+    node.Error("startsecs_s", "must be 0 (no start check) or in 2..3600 s, got " +
+                                  FormatNumber(r.startsecs_s()));
+  }
+  if (r.startretries() > 100) {
+    node.Error("startretries", "must be at most 100 (a process that keeps dying should end "
+                               "FATAL), got " + std::to_string(r.startretries()));
+  }
+  static const std::set<std::string> kSignals = {"TERM", "INT", "QUIT", "KILL", "HUP",
+                                                 "USR1", "USR2"};
+  if (kSignals.count(r.stopsignal()) == 0) {
+    node.Error("stopsignal", "must be one of TERM INT QUIT KILL HUP USR1 USR2, got '" +
+                                 r.stopsignal() + "'");
+  }
+  if (node.Finite("stopwaitsecs_s", r.stopwaitsecs_s()) &&
+      !(r.stopwaitsecs_s() > 0 && r.stopwaitsecs_s() <= 3600)) {
+    node.Error("stopwaitsecs_s", "must be in (0, 3600] s, got " + FormatNumber(r.stopwaitsecs_s()));
+  }
+  if (node.Finite("watchdog_s", r.watchdog_s()) &&
+      !(r.watchdog_s() == 0 || (r.watchdog_s() >= 2 && r.watchdog_s() <= 3600))) {
+    // The heartbeat pings the watchdog once a second: below 2 s one late tick kills it.
+    node.Error("watchdog_s", "must be 0 (none) or in 2..3600 s (the heartbeat is 1 Hz), got " +
+                                 FormatNumber(r.watchdog_s()));
+  }
+}
+
+void ValidateGate(const Node& node, const config::HealthGate& g) {
+  if (g.kind() == config::HealthGate::KIND_UNSPECIFIED) {
+    node.Missing("kind");
+    return;
+  }
+  if (g.kind() == config::HealthGate::RATE || g.kind() == config::HealthGate::FRESH) {
+    const std::string& ch = g.channel();
+    if (ch.empty() || ch == "*") {
+      node.Error("channel", "name a channel (or a prefix ending in '*')");
+    } else if (ch.find('*') != std::string::npos && ch.find('*') != ch.size() - 1) {
+      node.Error("channel", "'*' may only end a prefix, got '" + ch + "'");
+    }
+  } else if (g.has_channel()) {
+    node.Error("channel", "a STATUS_RUNNING gate reads the process's own heartbeat: no channel");
+  }
+  if (g.kind() == config::HealthGate::RATE) {
+    if (!g.has_rate_hz()) {
+      node.Missing("rate_hz");
+    } else if (node.Finite("rate_hz", g.rate_hz()) && !(g.rate_hz() > 0 && g.rate_hz() <= 1e5)) {
+      node.Error("rate_hz", "must be in (0, 1e5] Hz, got " + FormatNumber(g.rate_hz()));
+    }
+    if (node.Finite("min_fraction", g.min_fraction()) &&
+        !(g.min_fraction() > 0 && g.min_fraction() <= 1)) {
+      node.Error("min_fraction", "must be in (0, 1], got " + FormatNumber(g.min_fraction()));
+    }
+    if (node.Finite("window_s", g.window_s()) && !(g.window_s() >= 0.1 && g.window_s() <= 60)) {
+      node.Error("window_s", "must be in 0.1..60 s, got " + FormatNumber(g.window_s()));
+    }
+  }
+  if (g.kind() == config::HealthGate::FRESH && node.Finite("max_age_s", g.max_age_s()) &&
+      !(g.max_age_s() > 0 && g.max_age_s() <= 60)) {
+    node.Error("max_age_s", "must be in (0, 60] s, got " + FormatNumber(g.max_age_s()));
+  }
+  if (node.Finite("within_s", g.within_s()) && !(g.within_s() > 0 && g.within_s() <= 600)) {
+    node.Error("within_s", "must be in (0, 600] s, got " + FormatNumber(g.within_s()));
+  }
+  if (g.kind() == config::HealthGate::RATE && g.window_s() > g.within_s()) {
+    node.Error("window_s", "the rate window (" + FormatNumber(g.window_s()) +
+                               " s) must fit in within_s (" + FormatNumber(g.within_s()) + " s)");
+  }
+}
+
+void ValidateLaunch(const Node& node, const config::Launch& launch) {
+  std::set<std::string> hosts;
+  for (int h = 0; h < launch.host_size(); ++h) {
+    const config::LaunchHost& host = launch.host(h);
+    const Node host_node = node.Child("host", h, host);
+    if (!IsProgramName(host.name())) {
+      host_node.Error("name", "must be 1..64 of [a-z0-9_-], got '" + host.name() + "'");
+    } else if (!hosts.insert(host.name()).second) {
+      host_node.Error("name", "duplicate host '" + host.name() + "'");
+    }
+    if (host.address().empty()) host_node.Missing("address");
+    for (int i = 0; i < host.shell_size(); ++i) {
+      if (host.shell(i).empty()) host_node.Error("shell", "an empty word", i);
+    }
+  }
+  std::set<std::string> groups;
+  for (int gi = 0; gi < launch.group_size(); ++gi) {
+    const config::LaunchGroup& group = launch.group(gi);
+    const Node group_node = node.Child("group", gi, group);
+    if (!IsProgramName(group.name())) {
+      group_node.Error("name", "must be 1..64 of [a-z0-9_-], got '" + group.name() + "'");
+    } else if (!groups.insert(group.name()).second) {
+      group_node.Error("name", "duplicate group '" + group.name() + "'");
+    }
+    if (group.process_size() == 0) group_node.Error("process", "a group needs a process");
+    std::map<std::string, int> index;
+    for (int p = 0; p < group.process_size(); ++p) {
+      const config::LaunchProcess& proc = group.process(p);
+      const Node proc_node = group_node.Child("process", p, proc);
+      if (!IsProgramName(proc.name())) {
+        proc_node.Error("name", "must be 1..64 of [a-z0-9_-], got '" + proc.name() + "'");
+      } else if (!index.emplace(proc.name(), p).second) {
+        proc_node.Error("name", "duplicate process '" + proc.name() + "' in group '" +
+                                    group.name() + "'");
+      }
+      if (proc.host().empty()) {
+        proc_node.Missing("host");
+      } else if (hosts.count(proc.host()) == 0) {
+        proc_node.Error("host", "no host '" + proc.host() + "' in launch.host");
+      }
+      if (proc.command().empty()) proc_node.Missing("command");
+      for (int i = 0; i < proc.env_size(); ++i) {
+        const std::string& e = proc.env(i);
+        const auto eq = e.find('=');
+        if (eq == 0 || eq == std::string::npos || std::isdigit(static_cast<unsigned char>(e[0])) ||
+            e.substr(0, eq).find_first_not_of("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz"
+                                              "0123456789_") != std::string::npos) {
+          proc_node.Error("env", "must be NAME=VALUE, got '" + e + "'", i);
+        }
+      }
+      ValidateRestart(proc_node.Child("restart", proc.restart()), proc.restart());
+      for (int k = 0; k < proc.gate_size(); ++k) {
+        ValidateGate(proc_node.Child("gate", k, proc.gate(k)), proc.gate(k));
+      }
+    }
+    // Dependencies name processes of the group, and admit an order (no cycle).
+    for (int p = 0; p < group.process_size(); ++p) {
+      const config::LaunchProcess& proc = group.process(p);
+      const Node proc_node = group_node.Child("process", p, proc);
+      for (int i = 0; i < proc.after_size(); ++i) {
+        if (index.count(proc.after(i)) == 0) {
+          proc_node.Error("after", "no process '" + proc.after(i) + "' in group '" +
+                                       group.name() + "'", i);
+        } else if (proc.after(i) == proc.name()) {
+          proc_node.Error("after", "a process cannot wait for itself", i);
+        }
+      }
+    }
+    std::vector<int> state(group.process_size(), 0);  // 0 new, 1 on the path, 2 done
+    std::function<bool(int)> acyclic = [&](int p) {
+      if (state[p] == 1) return false;
+      if (state[p] == 2) return true;
+      state[p] = 1;
+      for (const std::string& dep : group.process(p).after()) {
+        const auto it = index.find(dep);
+        if (it != index.end() && it->second != p && !acyclic(it->second)) return false;
+      }
+      state[p] = 2;
+      return true;
+    };
+    for (int p = 0; p < group.process_size(); ++p) {
+      if (!acyclic(p)) {
+        group_node.Child("process", p, group.process(p))
+            .Error("after", "the dependencies form a cycle through '" +
+                                group.process(p).name() + "'");
+        break;
+      }
+    }
+  }
+  if (launch.process_state_channel().empty()) node.Error("process_state_channel", "must not be empty");
+}
+
 void Validate(const config::Config& config, const ParseInfoTree* tree, const std::string& source,
               std::vector<std::string>* errors) {
   const Node root(config, tree, "", Location{1, 1}, &source, errors);
@@ -757,6 +932,7 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
                    FormatNumber(config.sequencer().max_velocity_rad_s()));
   }
   ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
+  if (config.has_launch()) ValidateLaunch(root.Child("launch", config.launch()), config.launch());
 }
 
 std::string ReadWholeFile(const std::string& path, const char* what) {

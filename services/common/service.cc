@@ -9,6 +9,7 @@
 #include <optional>
 
 #include <spdlog/cfg/env.h>
+#include <systemd/sd-daemon.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -191,10 +192,22 @@ int ServiceApp::Run() {
   if (state_ == service_status_t::STARTING) state_ = service_status_t::RUNNING;
   if (!replaying()) {
     PublishStatus();
-    AddPeriodic(kHeartbeatPeriodS, [this] { PublishStatus(); });
+    // systemd's notify protocol (a no-op without NOTIFY_SOCKET, i.e. not under systemd), so a
+    // host can run this process as a Type=notify unit with WatchdogSec=: ready once the bus is
+    // open and the handlers are subscribed, and the watchdog fed by the heartbeat, which stops
+    // when the loop hangs.
+    sd_notifyf(0, "READY=1\nMAINPID=%lu\nSTATUS=%s", static_cast<unsigned long>(::getpid()),
+               spec_.name.c_str());
+    uint64_t watchdog_us = 0;
+    const bool watchdog = sd_watchdog_enabled(0, &watchdog_us) > 0;
+    AddPeriodic(kHeartbeatPeriodS, [this, watchdog] {
+      PublishStatus();
+      if (watchdog) sd_notify(0, "WATCHDOG=1");
+    });
   }
   bus_->Run([this] { Tick(); }, kLoopTickUs);
   state_ = service_status_t::STOPPING;
+  if (!replaying()) sd_notify(0, "STOPPING=1");
 
   int rc = 0;
   if (auto* replay = dynamic_cast<LogReplayBus*>(bus_.get())) {

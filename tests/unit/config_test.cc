@@ -311,3 +311,37 @@ TEST(Config, Sha256KnownVectors) {
 
 }  // namespace
 }  // namespace ftcal
+
+namespace ftcal {
+namespace {
+
+// The launch section: errors name the field path of the offending process or gate.
+TEST(ConfigLaunch, UnknownHostCycleAndBadGateAreRefusedByPath) {
+  const std::string sim = ReadFile(kSourceDir / "config/sim.pbtxt");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"(name: "corrector" host: "local")",
+                                    R"(name: "corrector" host: "robot")")),
+                  "launch.group[0].process[7].host: no host 'robot' in launch.host");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"(name: "twin" host: "local" command: "ftcal-sim")",
+                                    R"(name: "twin" host: "local" command: "ftcal-sim" after: "corrector")")),
+                  "the dependencies form a cycle");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"("${run_dir}/calibration.pbtxt"]
+      after: ["segmenter"])",
+                                    R"("${run_dir}/calibration.pbtxt"]
+      after: ["segmenter", "sequencer"])")),
+                  "launch.group[0].process[6].after[1]: no process 'sequencer' in group 'sim'");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"(channel: "FT_*" rate_hz: 500)",
+                                    R"(channel: "FT_*" rate_hz: -5)")),
+                  "launch.group[0].process[2].gate[1].rate_hz: must be in (0, 1e5] Hz, got -5");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"(channel: "FT_*" rate_hz: 500)",
+                                    R"(channel: "F*T_" rate_hz: 500)")),
+                  "'*' may only end a prefix");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"(restart { startsecs_s: 2 })",
+                                    R"(restart { startsecs_s: 2 stopsignal: "STOP" })")),
+                  "launch.group[0].process[1].restart.stopsignal: must be one of TERM");
+  EXPECT_CONTAINS(TextError(Replace(sim, R"(name: "segmenter" host: "local")",
+                                    R"(name: "segmenter" host: "local" env: "1X=2")")),
+                  "launch.group[0].process[5].env[0]: must be NAME=VALUE");
+}
+
+}  // namespace
+}  // namespace ftcal
