@@ -18,11 +18,13 @@
 #include "common/bus.h"
 #include "common/wire_guard.h"
 #include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/service_status_t.hpp"
+#include "ftcal/sequencer_control_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
@@ -94,9 +96,11 @@ TEST(WireSchemaTest, EveryMessageTypeHasASchemaWithLcmGensFingerprint) {
   ExpectSchemaMatches<steady_pose_t>();
   ExpectSchemaMatches<sync_sample_t>();
   ExpectSchemaMatches<signed_envelope_t>();
+  ExpectSchemaMatches<contact_wrench_sum_t>();
+  ExpectSchemaMatches<sequencer_control_t>();
   ExpectSchemaMatches<ftcal_test::crafted_t>();
   // One schema per .lcm file, none left over: a type the guard does not know is refused.
-  EXPECT_EQ(wire::FtcalSchemas().size(), 11u);
+  EXPECT_EQ(wire::FtcalSchemas().size(), 13u);
 }
 
 // ---- well-formed messages pass, and decode to what was sent ----
