@@ -23,6 +23,7 @@
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
+#include "ftcal/process_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "ftcal/sequencer_control_t.hpp"
 #include "ftcal/servo_command_t.hpp"
@@ -98,9 +99,10 @@ TEST(WireSchemaTest, EveryMessageTypeHasASchemaWithLcmGensFingerprint) {
   ExpectSchemaMatches<signed_envelope_t>();
   ExpectSchemaMatches<contact_wrench_sum_t>();
   ExpectSchemaMatches<sequencer_control_t>();
+  ExpectSchemaMatches<process_state_t>();
   ExpectSchemaMatches<ftcal_test::crafted_t>();
   // One schema per .lcm file, none left over: a type the guard does not know is refused.
-  EXPECT_EQ(wire::FtcalSchemas().size(), 13u);
+  EXPECT_EQ(wire::FtcalSchemas().size(), 14u);
 }
 
 // ---- well-formed messages pass, and decode to what was sent ----
