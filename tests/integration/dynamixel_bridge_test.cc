@@ -917,7 +917,13 @@ TEST_F(DynamixelBridgeProcesses, TheDeadManHoldsTheServosWhenTheCommanderStops) 
   Listener listener(t0_);
   ASSERT_TRUE(listener.good());
   testing::SignedCommander commander(kUrl);
-  std::ofstream(config_path_) << commander.Trusted(TestConfigText(link_, 1.0, 0.05));
+  // 1 rad/s (the default is 3): the legs are still on their way when the commander falls silent.
+  // The sequencer's limit may not exceed the bridge's.
+  std::string text = std::regex_replace(TestConfigText(link_, 1.0, 0.05),
+                                        std::regex("(reply_timeout_s: [0-9.]+)"),
+                                        "$1\n  max_velocity_rad_s: 1.0");
+  text = std::regex_replace(text, std::regex("max_velocity_rad_s: 2\\.0"), "max_velocity_rad_s: 1.0");
+  std::ofstream(config_path_) << commander.Trusted(text);
   auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
   auto bridge = StartBridge("");
   SleepS(1.5);
