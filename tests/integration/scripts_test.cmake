@@ -7,3 +7,8 @@ add_test(NAME scripts_spy_without_a_display_names_the_reason
 set_tests_properties(scripts_spy_without_a_display_names_the_reason PROPERTIES
   LABELS integration TIMEOUT 30
   PASS_REGULAR_EXPRESSION "spy: no display \\(DISPLAY and WAYLAND_DISPLAY are unset\\)")
+
+# The README's by-hand package list is scripts/setup's (they had drifted apart).
+add_test(NAME scripts_readme_package_list_matches_setup
+  COMMAND bash "${CMAKE_CURRENT_LIST_DIR}/readme_packages_test.sh" "${PROJECT_SOURCE_DIR}")
+set_tests_properties(scripts_readme_package_list_matches_setup PROPERTIES LABELS integration TIMEOUT 30)
