@@ -32,6 +32,10 @@ constexpr const char kServoBridge[] = "ftcal-dynamixel-bridge";
 // up after this many ARMs.
 constexpr double kArmRetryS = 2.5;
 constexpr int kArmAttempts = 4;
+// The open phase's start marker goes out again this often: markers are edges, and a stage
+// (re)started inside a phase learns from the repeat that it is in one (the stages take a
+// repeated start of the same phase and session as the same phase).
+constexpr double kMarkerRepeatS = 1.0;
 
 std::string GateModeName(int mode) {
   return mode >= 0 && mode < 4 ? kGateModeNames[mode] : "unknown (" + std::to_string(mode) + ")";
@@ -304,7 +308,11 @@ bool Sequencer::EnsureArmed(int64_t now) {
 }
 
 void Sequencer::KeepAlive(int64_t now) {
-  if (!armed_ || state_ == State::kDone || state_ == State::kStopped) return;
+  if (state_ == State::kDone || state_ == State::kStopped) return;
+  if (open_marker_phase_ >= 0 && (now - last_marker_utime_) * 1e-6 >= kMarkerRepeatS) {
+    PublishMarker(open_marker_phase_, true);
+  }
+  if (!armed_) return;
   if ((now - last_command_utime_) * 1e-6 < 1.0 / config_.sequencer().command_rate_hz()) return;
   if (have_goals_) {
     Publish(goals_, true);
@@ -322,8 +330,10 @@ void Sequencer::PublishMarker(int phase, bool start) {
   for (int i = 0; i < 3; ++i) m.gravity_b[i] = schedule_.phase_gravity_b[phase][i];
   m.note = "ftcal-sequencer plan " + schedule_.plan_name + ": " + schedule_.phase_names[phase];
   bus_.PublishSigned(config_.channels().experiment(), m, signer_);
+  last_marker_utime_ = m.utime;
+  const bool repeat = start && open_marker_phase_ == phase;
   open_marker_phase_ = start ? phase : -1;
-  bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
+  if (!repeat) bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
 }
 
 void Sequencer::Save() {

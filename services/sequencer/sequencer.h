@@ -10,7 +10,8 @@
 // STOP or SIGINT/SIGTERM stops the motion (hold the measured angles, then the configured safe
 // action), closes the open marker and saves the progress, so that the next run of the same plan
 // with the same progress file continues at the first unfinished standing pose or tripod stance
-// (plan.h, "Resuming").
+// (plan.h, "Resuming"). While a phase runs its start marker is repeated once a second, so that
+// a stage restarted inside the phase picks it up.
 //
 // SERVO_CMD, EXPERIMENT (and the operator's SEQUENCER_CONTROL) are signed channels
 // (common/envelope.h). The Dynamixel bridge moves the legs only for one armed commander that
@@ -125,6 +126,7 @@ class Sequencer {
   int arm_attempts_ = 0;
   bool armed_ = false;
   int open_marker_phase_ = -1;
+  int64_t last_marker_utime_ = 0;
   std::string session_id_;
   Inputs inputs_;
   State state_ = State::kRunning;

@@ -419,7 +419,7 @@ TEST_F(BadLogsTest, CalibratorRefusesACorruptPayload) {
   PatchFile(fx->session_log, log, payload, {0xff});
   ExpectCalibratorRefuses(log, "cal_payload",
                           {"damaged or truncated", "1 undecodable messages",
-                           "undecodable ftcal.ft_sample_t on FT_HL"});
+                           "undecodable ft_sample_t on FT_HL"});
 }
 
 TEST_F(BadLogsTest, CalibratorRefusesABrokenSyncWord) {
@@ -441,7 +441,7 @@ TEST_F(BadLogsTest, CalibratorRefusesAWrongTypeOnAnFtChannel) {
   const std::string log = Path("session_wrong_type.lcmlog");
   WriteLog(log, ev);
   ExpectCalibratorRefuses(log, "cal_wrong_type",
-                          {"damaged or truncated", "undecodable ftcal.ft_sample_t on FT_HL"});
+                          {"damaged or truncated", "undecodable ft_sample_t on FT_HL"});
 }
 
 // A log from a robot whose leg HL is called XL: the config's legs are not the log's.

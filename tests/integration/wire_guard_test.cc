@@ -18,11 +18,13 @@
 #include "common/bus.h"
 #include "common/wire_guard.h"
 #include "ftcal/calibration_t.hpp"
+#include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/service_status_t.hpp"
+#include "ftcal/sequencer_control_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
@@ -94,9 +96,11 @@ TEST(WireSchemaTest, EveryMessageTypeHasASchemaWithLcmGensFingerprint) {
   ExpectSchemaMatches<steady_pose_t>();
   ExpectSchemaMatches<sync_sample_t>();
   ExpectSchemaMatches<signed_envelope_t>();
+  ExpectSchemaMatches<contact_wrench_sum_t>();
+  ExpectSchemaMatches<sequencer_control_t>();
   ExpectSchemaMatches<ftcal_test::crafted_t>();
   // One schema per .lcm file, none left over: a type the guard does not know is refused.
-  EXPECT_EQ(wire::FtcalSchemas().size(), 11u);
+  EXPECT_EQ(wire::FtcalSchemas().size(), 13u);
 }
 
 // ---- well-formed messages pass, and decode to what was sent ----
@@ -126,11 +130,12 @@ TEST(WireGuardTest, WellFormedMessagesPassAndDecodeAsSent) {
   EXPECT_EQ(got.body, "chassis");
   EXPECT_TRUE(std::isnan(got.residual_m));
 
+  // Fixed-size arrays only (one leg per message): nothing to cap, the size is the type's.
   contact_wrench_t cw{};
-  cw.num_legs = 2;
-  cw.leg = {"HL", ""};
-  cw.wrench_w = {{1, 2, 3, 4, 5, 6}, {7, 8, 9, 10, 11, 12}};
-  cw.ft_age_s = {0.001, 0.002};
+  cw.leg = 1;
+  for (int i = 0; i < 6; ++i) cw.wrench_w[i] = i + 1;
+  cw.servo_age_s = 0.001f;
+  cw.mocap_age_s = -1.0f;
   EXPECT_FALSE(Guard<contact_wrench_t>(Encode(cw)));
 
   service_status_t st{};

@@ -477,7 +477,7 @@ class Robot {
           gate_.OnCommand(*opened->signer, Decode<servo_command_t>(opened->payload, opened->size),
                           t_);
         } catch (const BadInput& e) {
-          ++refusals_[e.what()];
+          ++refusals_[e.kind()];
         }
       }
       seen_ = bus_.published.size();
@@ -572,13 +572,25 @@ std::shared_ptr<spdlog::logger> QuietLog() {
   return log;
 }
 
+// The marker edges (a start repeated while its phase is open is not an edge), and the times of
+// the repeats.
 struct Markers {
   std::vector<experiment_marker_t> all;
+  std::vector<int64_t> repeat_utimes;
 };
 Markers MarkersOf(const ManualBus& bus) {
   Markers m;
+  bool open = false;
   for (const auto& p : bus.published) {
-    if (p.channel == "EXPERIMENT") m.all.push_back(Decode<experiment_marker_t>(p));
+    if (p.channel != "EXPERIMENT") continue;
+    const auto marker = Decode<experiment_marker_t>(p);
+    if (open && marker.start && marker.phase == m.all.back().phase &&
+        marker.session_id == m.all.back().session_id) {
+      m.repeat_utimes.push_back(marker.utime);
+      continue;
+    }
+    open = marker.start;
+    m.all.push_back(marker);
   }
   return m;
 }
@@ -620,6 +632,15 @@ TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
   EXPECT_TRUE(m.all[0].start);
   EXPECT_FALSE(m.all[1].start);
   EXPECT_EQ(m.all[0].session_id, "s1");
+  // While the phase ran, its start went out again once a second (a restarted stage learns it
+  // is inside the phase from the repeat).
+  const double phase_s = (m.all[1].utime - m.all[0].utime) * 1e-6;
+  EXPECT_NEAR(static_cast<double>(m.repeat_utimes.size()), std::floor(phase_s), 1.0) << phase_s;
+  int64_t previous = m.all[0].utime;
+  for (int64_t t : m.repeat_utimes) {
+    EXPECT_NEAR((t - previous) * 1e-6, 1.0, 0.021);
+    previous = t;
+  }
   // Every 100th pose of the Gray order, each held: the commands dwell on exactly those goals.
   const auto all = GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
   const auto held = HeldPoses(bus);
@@ -773,6 +794,7 @@ TEST(SequencerRun, ArmsTheBridgeBeforeTheFirstMoveAndDisarmsAtTheEnd) {
   Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "s5"});
   robot.Run(seq, 120.0);
   ASSERT_EQ(seq.state(), Sequencer::State::kDone) << seq.stop_reason();
+  robot.Run(seq, 0.1);  // the bridge takes the last command (DISARM)
   std::vector<int8_t> actions;
   for (const auto& p : bus.published) {
     if (p.channel != "SERVO_CMD") continue;
@@ -782,18 +804,30 @@ TEST(SequencerRun, ArmsTheBridgeBeforeTheFirstMoveAndDisarmsAtTheEnd) {
   ASSERT_GE(actions.size(), 3u);
   EXPECT_EQ(actions.front(), +servo_command_t::ARM);
   EXPECT_EQ(actions.back(), +servo_command_t::DISARM);
-  EXPECT_EQ(std::count(actions.begin(), actions.end(), +servo_command_t::ARM), 1)
-      << "ARMs repeat only while the bridge has not said armed";
+  // The first ARM fell in the bridge's start_quiet_s; the second was taken, and the sequencer
+  // saw it taken in the bridge's status: no third.
+  EXPECT_EQ(std::count(actions.begin(), actions.end(), +servo_command_t::ARM), 2);
   EXPECT_GE(robot.refusals().count("servo command ignored_at_start"), 1u);
   EXPECT_EQ(robot.gate().mode(), CommandGate::Mode::kDisarmed);
-  // Every MOVE the bridge received was taken: none refused as not armed or from a stranger.
+  // Nothing else was refused: no MOVE before the bridge was armed, none from a stranger. (The
+  // HEARTBEATs sent while waiting for the status after the first ARM are refused as not armed.)
   for (const auto& [why, n] : robot.refusals()) {
     EXPECT_TRUE(why == "servo command ignored_at_start" || why == "servo command not_armed")
         << why << " x" << n;
   }
-  // The poses were reached through the gate: the run ends at the last pose of the plan.
+  // The poses were reached through the gate: every pose of the plan was held, and the legs end
+  // where the last MOVE sent them.
   const auto all = GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
-  for (int k = 0; k < kNumLegs; ++k) EXPECT_NEAR(robot.angles()[k], all[700][k], 0.02) << k;
+  const auto held = HeldPoses(bus);
+  for (size_t j = 0; j * 100 < all.size(); ++j) {
+    EXPECT_NE(std::find(held.begin(), held.end(), all[j * 100]), held.end()) << "pose " << j;
+  }
+  ASSERT_FALSE(held.empty());
+  // (The plan ends when the legs are within arrival_tolerance_rad of the last goal; on DISARM the
+  // bridge holds them where they are measured.)
+  for (int k = 0; k < kNumLegs; ++k) {
+    EXPECT_NEAR(robot.angles()[k], held.back()[k], c.sequencer().arrival_tolerance_rad()) << k;
+  }
 }
 
 TEST(SequencerRun, ABridgeThatHoldsStopsTheRun) {
