@@ -933,6 +933,27 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
   }
   ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
   if (config.has_launch()) ValidateLaunch(root.Child("launch", config.launch()), config.launch());
+  if (config.has_dynamixel() && config.has_robot() &&
+      config.dynamixel().operating_mode() == config::EXTENDED_POSITION_MODE) {
+    // Extended Position mode takes goals within +-1,048,575 counts (+-256 turns,
+    // docs/device-protocols.md §2.7): a limit beyond them could not be commanded.
+    constexpr double kMaxExtendedCount = 1048575.0;
+    const Node robot = root.Child("robot", config.robot());
+    for (int i = 0; i < config.robot().leg_size(); ++i) {
+      const config::Servo& servo = config.robot().leg(i).servo();
+      const Node node = robot.Child("leg", i, config.robot().leg(i)).Child("servo", servo);
+      for (const auto& [name, angle] : {std::pair<const char*, double>{"min_angle_rad",
+                                                                         servo.min_angle_rad()},
+                                        {"max_angle_rad", servo.max_angle_rad()}}) {
+        const double count = servo.zero_count() + servo.direction() * angle * 4096.0 / (2 * M_PI);
+        if (std::isfinite(count) && std::abs(count) > kMaxExtendedCount) {
+          node.Error(name, "is encoder count " + FormatNumber(count) +
+                               ", outside the +-1048575 of Extended Position mode (dynamixel."
+                               "operating_mode), got " + FormatNumber(angle));
+        }
+      }
+    }
+  }
 }
 
 std::string ReadWholeFile(const std::string& path, const char* what) {

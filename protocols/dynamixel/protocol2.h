@@ -45,6 +45,7 @@ enum Instruction : std::uint8_t {
 };
 
 // MX-106(2.0) control-table addresses the bridge uses (§2.7).
+constexpr std::uint16_t kAddrOperatingMode = 11;  // EEPROM: written only while torque is off
 constexpr std::uint16_t kAddrTorqueEnable = 64;
 constexpr std::uint16_t kAddrHardwareErrorStatus = 70;
 constexpr std::uint16_t kAddrGoalPosition = 116;
@@ -179,6 +180,14 @@ struct PresentState {
 // Throws DxlError unless `n` is exactly kPresentBlockBytes.
 PresentState DecodePresentBlock(const std::uint8_t* data, std::size_t n);
 std::vector<std::uint8_t> EncodePresentBlock(const PresentState& s);
+
+// Operating Mode values (address 11) and the goal range each takes (§2.7): Position mode within
+// the Min/Max Position Limits (0-4095 by default), Extended Position mode +-256 turns.
+constexpr std::uint8_t kPositionMode = 3;
+constexpr std::uint8_t kExtendedPositionMode = 4;
+constexpr std::int32_t kPositionModeMinCount = 0;
+constexpr std::int32_t kPositionModeMaxCount = 4095;
+constexpr std::int32_t kExtendedModeMaxCount = 1048575;  // and -1048575
 
 // Unit conversions (§2.7).
 constexpr double kCountsPerRev = 4096.0;

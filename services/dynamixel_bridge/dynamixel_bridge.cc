@@ -17,9 +17,6 @@ namespace {
 // Addresses 64-70 in one SYNC READ: Torque Enable (64) ... Hardware Error Status (70).
 constexpr std::uint16_t kErrorBlockAddress = dxl::kAddrTorqueEnable;
 constexpr std::uint16_t kErrorBlockBytes = dxl::kAddrHardwareErrorStatus - dxl::kAddrTorqueEnable + 1;
-// Position mode (3) keeps goals inside the default position limits (§2.7).
-constexpr std::int32_t kMinGoalCount = 0;
-constexpr std::int32_t kMaxGoalCount = 4095;
 // Past half a wrap of the 15-bit tick the direction of a change is ambiguous: the next tick
 // is taken as it comes and the unwrapper starts again.
 constexpr double kTickUnwrapMaxGapS = 16.0;
@@ -57,6 +54,22 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
   if (options_.lost_after_misses < 1) throw std::invalid_argument("lost_after_misses must be >= 1");
   if (!(options_.reprobe_every_s > 0)) throw std::invalid_argument("reprobe_every_s must be > 0");
   if (baud_ == 0) throw std::invalid_argument("config: dynamixel.baud is 0");
+  switch (config_.dynamixel().operating_mode()) {
+    case config::POSITION_MODE:
+      operating_mode_ = dxl::kPositionMode;
+      min_goal_count_ = dxl::kPositionModeMinCount;
+      max_goal_count_ = dxl::kPositionModeMaxCount;
+      break;
+    case config::EXTENDED_POSITION_MODE:
+      operating_mode_ = dxl::kExtendedPositionMode;
+      min_goal_count_ = -dxl::kExtendedModeMaxCount;
+      max_goal_count_ = dxl::kExtendedModeMaxCount;
+      break;
+    default:
+      throw std::invalid_argument("config: dynamixel.operating_mode " +
+                                  std::to_string(config_.dynamixel().operating_mode()) +
+                                  " is not POSITION_MODE or EXTENDED_POSITION_MODE");
+  }
   for (const auto& leg : config_.robot().leg()) {
     ServoSlot s;
     s.leg = leg.name();
@@ -153,6 +166,9 @@ bool DynamixelBridge::Connect() {
     }
   }
   ReadReturnDelays(ActiveSlots());
+  if (!port_) return false;
+  for (auto& s : servos_) s.mode_checked = false;  // a new session: what was read may be old
+  CheckOperatingModes(ActiveSlots());
   if (!port_) return false;
   if (missing_at_start_.empty()) {
     stats_.log().info("all {} servos answer PING", servos_.size());
@@ -261,6 +277,83 @@ void DynamixelBridge::ReadReturnDelays(const std::vector<std::size_t>& slots) {
   }
 }
 
+std::optional<std::uint8_t> DynamixelBridge::ReadByte(std::size_t i, std::uint16_t address) {
+  std::optional<std::uint8_t> value;
+  Transact(dxl::BuildRead(servos_[i].id, address, 1), {i}, 1,
+           [&](std::size_t, const dxl::StatusPacket& p) {
+             if (p.error_number() != 0) return false;
+             value = p.params[0];
+             return true;
+           });
+  return value;
+}
+
+void DynamixelBridge::CheckOperatingModes(const std::vector<std::size_t>& slots) {
+  const std::string want = std::to_string(operating_mode_) + " (" +
+                           config::DynamixelOperatingMode_Name(config_.dynamixel().operating_mode()) +
+                           ", dynamixel.operating_mode)";
+  for (const std::size_t i : slots) {
+    ServoSlot& s = servos_[i];
+    if (s.mode_checked) continue;
+    const std::optional<std::uint8_t> mode = ReadByte(i, dxl::kAddrOperatingMode);
+    if (!port_) return;
+    if (!mode) continue;  // no answer: tried again next cycle
+    s.mode_checked = true;
+    s.mode = *mode;
+    s.mode_ok = *mode == operating_mode_;
+    if (s.mode_ok) continue;
+    const std::string name = ServoName(s.id, s.leg);
+    // Operating Mode is EEPROM, writable only with torque off; switching a servo that holds a
+    // leg would drop it, so a servo with torque on is left alone (and not commanded).
+    const std::optional<std::uint8_t> torque = ReadByte(i, dxl::kAddrTorqueEnable);
+    if (!port_) return;
+    if (!torque || *torque != 0) {
+      ++stats_.Counter("wrong_operating_mode");
+      stats_.Error(name + " in the wrong operating mode",
+                   name + " is in Operating Mode " + std::to_string(*mode) + ", not " + want +
+                       (torque ? ", with torque on: not switched (it would drop the leg); its "
+                                 "goals are refused until torque is off and the bridge restarts"
+                               : ", and its Torque Enable cannot be read: not switched; its goals "
+                                 "are refused"));
+      continue;
+    }
+    bool written = false;
+    Transact(dxl::BuildWrite(s.id, dxl::kAddrOperatingMode, {operating_mode_}), {i}, 0,
+             [&](std::size_t, const dxl::StatusPacket& p) {
+               written = p.error_number() == 0;
+               if (!written) {
+                 stats_.Error(name + " refused its operating mode",
+                              name + " refused Operating Mode " + want + ": " +
+                                  dxl::DescribeStatusError(p.error));
+               }
+               return true;
+             });
+    if (!port_) return;
+    const std::optional<std::uint8_t> now = written ? ReadByte(i, dxl::kAddrOperatingMode)
+                                                    : std::nullopt;
+    if (!port_) return;
+    s.mode = now ? *now : -1;
+    s.mode_ok = now && *now == operating_mode_;
+    if (s.mode_ok) {
+      ++stats_.Counter("operating_mode_writes");
+      stats_.log().info("{}: Operating Mode {} -> {}", name, *mode, want);
+    } else {
+      ++stats_.Counter("wrong_operating_mode");
+      stats_.Error(name + " in the wrong operating mode",
+                   name + " is in Operating Mode " + std::to_string(*mode) +
+                       " and could not be set to " + want + ": its goals are refused");
+    }
+  }
+}
+
+std::vector<std::uint8_t> DynamixelBridge::wrong_mode() const {
+  std::vector<std::uint8_t> ids;
+  for (const auto& s : servos_) {
+    if (s.mode_checked && !s.mode_ok) ids.push_back(s.id);
+  }
+  return ids;
+}
+
 void DynamixelBridge::Reprobe() {
   const auto now = Clock::now();
   for (std::size_t i = 0; i < servos_.size(); ++i) {
@@ -295,6 +388,8 @@ bool DynamixelBridge::ProbeAnswered(const dxl::StatusPacket& status) {
   s->consecutive_misses = 0;
   // Its tick goes on from where it was unless it was gone too long to tell (ReadPresent).
   s->tick_known = false;
+  // It may have been swapped or reflashed while it was gone: its mode is read again.
+  s->mode_checked = false;
   force_error_read_ = true;
   ++stats_.Counter("servos_found");
   stats_.log().info("{} answers again: read each cycle", ServoName(s->id, s->leg));
@@ -455,6 +550,15 @@ void DynamixelBridge::Cycle() {
   }
   ++cycles_;
   ++stats_.Counter("cycles");
+  {
+    std::vector<std::size_t> unchecked;
+    for (const std::size_t i : ActiveSlots()) {
+      if (!servos_[i].mode_checked) unchecked.push_back(i);
+    }
+    // Before any goal: a servo found again must not take a goal in a mode not checked.
+    if (!unchecked.empty()) CheckOperatingModes(unchecked);
+    if (!port_) return;
+  }
   SendPendingWrites();
   std::vector<bool> fresh;
   ReadPresent(&fresh);
@@ -546,11 +650,20 @@ void DynamixelBridge::OnCommand(const servo_command_t& cmd) {
         stats_.log().debug("goal {} rad for {} clamped to {}", goal, ServoName(s->id, s->leg),
                            clamped);
       }
+      if (s->mode_checked && !s->mode_ok) {
+        throw BadInput("servo_command_t servo in the wrong operating mode",
+                       "SERVO_CMD goal for " + ServoName(s->id, s->leg) + ": the servo is in "
+                       "Operating Mode " + std::to_string(s->mode) + ", not the configured " +
+                           std::to_string(operating_mode_));
+      }
       count = dxl::RadToPosition(clamped, s->zero_count, s->direction);
-      if (*count < kMinGoalCount || *count > kMaxGoalCount) {
+      if (*count < min_goal_count_ || *count > max_goal_count_) {
         throw BadInput("servo_command_t goal outside the encoder range",
                        "SERVO_CMD goal for " + ServoName(s->id, s->leg) + " is count " +
-                           std::to_string(*count) + ", outside 0-4095 of position mode");
+                           std::to_string(*count) + ", outside " +
+                           std::to_string(min_goal_count_) + ".." +
+                           std::to_string(max_goal_count_) + " of Operating Mode " +
+                           std::to_string(operating_mode_));
       }
     }
     plan.emplace_back(s, count);
@@ -576,6 +689,10 @@ bool DynamixelBridge::Degraded(std::string* why) const {
         reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " not answering";
       } else if (s.hardware_error != 0 || s.alert) {
         reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " hardware error";
+      } else if (s.mode_checked && !s.mode_ok) {
+        reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) +
+                  " in Operating Mode " + std::to_string(s.mode) + ", not " +
+                  std::to_string(operating_mode_);
       }
     }
   }

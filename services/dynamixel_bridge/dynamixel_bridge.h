@@ -13,6 +13,14 @@
 // errors, timeouts, malformed packets, status errors and hardware errors are counted and logged
 // once per kind; a port that vanishes is reopened with back-off. Nothing a servo did not say
 // is ever published as a value.
+//
+// Operating Mode (dynamixel.operating_mode): each servo's address 11 is read when it is first
+// found (at start, after a reopen, after a lost servo answers again) and written, with torque
+// off, when it differs (it is EEPROM: the servo keeps it). A servo whose mode cannot be set
+// (torque on, which switching would drop, or a refused write) is logged and its goals are
+// refused until the bridge restarts. In Extended Position mode Present Position is multi-turn,
+// so the published shaft angle is unbounded (a turn is 2 pi, never wrapped); goals stay within
+// the configured angle limits either way, and within the mode's count range.
 #pragma once
 
 #include <chrono>
@@ -75,6 +83,8 @@ class DynamixelBridge {
   // Ids that did not answer the start-up PING.
   const std::vector<std::uint8_t>& missing_at_start() const { return missing_at_start_; }
   std::int64_t cycles() const { return cycles_; }
+  // Servos whose Operating Mode is checked and not the configured one (their goals are refused).
+  std::vector<std::uint8_t> wrong_mode() const;
 
  private:
   struct ServoSlot {
@@ -102,6 +112,10 @@ class DynamixelBridge {
     // Pending from SERVO_CMD.
     std::optional<bool> pending_torque;
     std::optional<std::int32_t> goal_count;
+    // Operating Mode: checked since this servo was last found; and whether it is the configured.
+    bool mode_checked = false;
+    bool mode_ok = false;
+    int mode = -1;  // as read, -1 unknown
   };
 
   // Sends `packet` and collects one status per servo in `slots` (indices into servos_) until
@@ -119,6 +133,10 @@ class DynamixelBridge {
   std::vector<std::size_t> ActiveSlots() const;
   std::vector<std::uint8_t> IdsOf(const std::vector<std::size_t>& slots) const;
   void ReadReturnDelays(const std::vector<std::size_t>& slots);
+  // Reads (and when needed writes) the Operating Mode of each of `slots` not yet checked.
+  void CheckOperatingModes(const std::vector<std::size_t>& slots);
+  // One byte of slot i's control table; nullopt when it did not answer or answered an error.
+  std::optional<std::uint8_t> ReadByte(std::size_t i, std::uint16_t address);
   // Sends a PING to at most one lost servo whose probe is due (without waiting for it).
   void Reprobe();
   // True when `status` answers an outstanding probe: that servo is found (read again).
@@ -142,6 +160,8 @@ class DynamixelBridge {
   std::string device_;
   std::uint32_t baud_;
   double reply_timeout_s_;
+  std::uint8_t operating_mode_;  // dynamixel.operating_mode's code
+  std::int32_t min_goal_count_, max_goal_count_;  // the mode's range
 
   std::unique_ptr<dxl::SerialPort> port_;
   dxl::PacketParser parser_;

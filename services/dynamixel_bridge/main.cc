@@ -125,9 +125,16 @@ int main(int argc, char** argv) {
                      static_cast<int64_t>(config.auth().servo_cmd_window_s() * 1e6)};
     cmd_lcm.subscribe(config.channels().servo_cmd(), &CommandSink::OnMessage, &sink);
 
+    // The heartbeat says DEGRADED once the bus has been degraded for longer than
+    // dynamixel.deadman_s, the rule the gate's FAULT follows: one stale cycle on a loaded bus
+    // is not a degraded bridge, and a commander that stops on DEGRADED (the sequencer) must not
+    // stop on it. A lost servo or a port down stays degraded, so it is reported within that.
+    const double degraded_after_s = config.dynamixel().deadman_s();
+    double degraded_since_s = -1.0;
     auto publish_status = [&] {
       std::string why;
-      const bool degraded = bridge.Degraded(&why);
+      const bool degraded = bridge.Degraded(&why) && degraded_since_s >= 0.0 &&
+                            CommandSink::SteadyS() - degraded_since_s >= degraded_after_s;
       const int8_t state =
           degraded ? ftcal::service_status_t::DEGRADED : ftcal::service_status_t::RUNNING;
       if (state != app.state()) {
@@ -164,6 +171,11 @@ int main(int argc, char** argv) {
           }
         }
         bridge.Cycle();
+        if (!bridge.Degraded()) {
+          degraded_since_s = -1.0;
+        } else if (degraded_since_s < 0.0) {
+          degraded_since_s = CommandSink::SteadyS();
+        }
         next_cycle += period;
         now = Clock::now();
         if (next_cycle <= now) {  // the cycle overran its slot: skip ahead, do not burst

@@ -231,6 +231,7 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   }
   TwinOptions twin_options;
   twin_options.seed = options_.seed;
+  twin_options.physical_com = options_.physical_com;
   twin_options.counts_per_force = options_.counts_per_force;
   twin_options.counts_per_torque = options_.counts_per_torque;
   // Enough cycles for the loop (a hanging series is hang_cycles slow leg cycles).
@@ -495,6 +496,18 @@ std::shared_ptr<const TwinFrame> LiveSim::LatestFrame() const {
   return latest_;
 }
 
+void LiveSim::SetSupport(Support support, HangSeries series) {
+  if (!commanded_) throw std::logic_error("LiveSim::SetSupport: only the commanded scenario");
+  const int s = static_cast<int>(series);
+  if (s < 0 || s >= kNumHangSeries) {
+    throw std::invalid_argument("LiveSim::SetSupport: unknown hanging series " + std::to_string(s));
+  }
+  std::lock_guard<std::mutex> lock(support_mutex_);
+  support_ = support;
+  support_series_ = series;
+  ++supports_requested_;
+}
+
 void LiveSim::RunTwin() {
   // Frame i at i / rate on the twin's clock; a thread that fell behind skips to the present.
   const double period_s = 1.0 / twin_->Options().sample_rate_hz;
@@ -504,11 +517,18 @@ void LiveSim::RunTwin() {
     std::this_thread::sleep_until(t0_ + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
                                              std::chrono::duration<double>(t_s)));
     if (stop_.load()) break;
+    std::int64_t requested;
+    {
+      std::lock_guard<std::mutex> lock(support_mutex_);
+      driven_->SetSupport(support_, support_series_);
+      requested = supports_requested_;
+    }
     auto frame = std::make_shared<const TwinFrame>(driven_->Frame(t_s, ServoAngles()));
     {
       std::lock_guard<std::mutex> lock(frame_mutex_);
       latest_ = std::move(frame);
     }
+    supports_applied_.store(requested);
     i = std::max(i + 1, static_cast<std::int64_t>(std::floor(Now() / period_s)));
   }
 }

@@ -22,7 +22,9 @@
 // advances them between requests too and publishes their exact positions; a twin thread makes a
 // frame every 1/100 s from those positions (counts -> rad as DxlAngleFromCounts) with
 // BigAntTwin::Driven (standing on all six feet), and the ATI and QTM threads report the latest
-// such frame. The truth CSVs record what each device sent, as in every scenario.
+// such frame. The truth CSVs record what each device sent, as in every scenario. SetSupport
+// is the operator: it hangs the robot (the four hanging attitudes), lifts it upright, or sets it
+// down, for the sequencer's hanging series, tare and standing phases.
 #pragma once
 
 #include <array>
@@ -111,6 +113,8 @@ double ParseFlagNumber(const std::string& text, const std::string& flag);
 struct LiveOptions {
   std::string scenario = "walk";
   std::uint64_t seed = 1;
+  // The twin's robot CoM: moving with the legs (TwinOptions::physical_com) or fixed.
+  bool physical_com = false;
   // Length of the generated scenario before it repeats.
   double loop_s = 120.0;
 
@@ -182,8 +186,17 @@ class LiveSim {
   int ati_boxes() const { return static_cast<int>(ati_.size()); }
   std::size_t ati_truth_rows() const { return ati_truth_.size(); }
   bool commanded() const { return commanded_; }
+  // The twin behind the devices (its Truth() is what a calibration must recover).
+  const BigAntTwin& twin() const { return *twin_; }
   // "commanded": the latest twin frame the devices report (any thread); null otherwise.
   std::shared_ptr<const TwinFrame> LatestFrame() const;
+  // "commanded": the operator's hands (any thread). The robot hangs in `series`' attitude, is
+  // lifted upright with its feet in the air, or stands, from the twin's next frame on (the
+  // twin's own physics: BigAntTwin::Driven::SetSupport). Throws std::logic_error otherwise.
+  using Support = BigAntTwin::Driven::Support;
+  void SetSupport(Support support, HangSeries series = HangSeries::kXPos);
+  // How many SetSupport calls the twin's frames reflect (the latest frame was made after them).
+  std::int64_t supports_applied() const { return supports_applied_.load(); }
 
  private:
   void RunAti();
@@ -230,6 +243,12 @@ class LiveSim {
   std::array<double, 6> servo_counts_{};
   mutable std::mutex frame_mutex_;
   std::shared_ptr<const TwinFrame> latest_;
+  // The operator's latest request, taken by the twin thread before its next frame.
+  std::mutex support_mutex_;
+  Support support_ = Support::kStanding;
+  HangSeries support_series_ = HangSeries::kXPos;
+  std::int64_t supports_requested_ = 0;
+  std::atomic<std::int64_t> supports_applied_{0};
 
   std::thread ati_thread_, dxl_thread_, qtm_thread_, twin_thread_;
 };

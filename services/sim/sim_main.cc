@@ -11,7 +11,8 @@
 // pseudo-terminal linked at PATH, the QTM RT server (or with --mocap natnet OptiTrack Motive's
 // NatNet server, --natnet-version, --natnet-transport) at the config's address; the bridges run
 // against it unchanged. With --scenario commanded the servos follow the goals a bridge writes
-// (first-order, --servo-tau) and the twin's legs follow the servos. At the end (SIGINT, SIGTERM or --duration) the truth series of every
+// (first-order, --servo-tau) and the twin's legs follow the servos; --control PATH is then the
+// operator's FIFO (hang, lift, stand: services/sim/operator_fifo.h). At the end (SIGINT, SIGTERM or --duration) the truth series of every
 // device, with the faults injected, goes to --truth-dir.
 #include <signal.h>
 
@@ -22,6 +23,7 @@
 #include <cstdio>
 #include <exception>
 #include <limits>
+#include <memory>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -34,6 +36,7 @@
 #include "ftcal/calibration_io.h"
 #include "ftcal/legs.h"
 #include "sim/live.h"
+#include "sim/operator_fifo.h"
 #include "sim/log_writer.h"
 #include "sim/twin.h"
 
@@ -58,7 +61,8 @@ void OnSignal(int) { g_stop = 1; }
 // The flags of `ftcal-sim live`, as given.
 struct LiveFlags {
   ftcal::sim::LiveOptions options;
-  std::string truth_dir, ready_path;
+  std::string truth_dir, ready_path, control_path;
+  std::string com = "fixed";
   double duration_s = 0;
   bool no_http = false;
   double ati_drop = 0, ati_duplicate = 0, ati_reorder = 0, ati_corrupt = 0;
@@ -82,16 +86,27 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
       ->check(CLI::IsMember(scenarios))
       ->capture_default_str();
   live->add_option("--seed", o.seed, "twin and fault seed")->capture_default_str();
+  live->add_option("--com", f->com,
+                   "the twin's robot CoM: fixed (the report's assumption) or leg-aware (moves "
+                   "with the legs)")
+      ->check(CLI::IsMember({"fixed", "leg-aware"}))
+      ->capture_default_str();
   live->add_option("--loop-s", o.loop_s, "scenario length before it repeats, s")
       ->check(CLI::Range(1.0, 3600.0))
       ->capture_default_str();
   live->add_option("--duration", f->duration_s, "seconds to run (default: until SIGINT/SIGTERM)")
       ->check(CLI::NonNegativeNumber);
   live->add_option("--truth-dir", f->truth_dir,
-                   "directory for the truth series at exit: ati.csv, dynamixel.csv, qtm.csv or "
+                   "directory for the twin's truth.pbtxt (its calibration parameters, at "
+                   "start) and the truth series at exit: ati.csv, dynamixel.csv, qtm.csv or "
                    "natnet.csv")
       ->check(CLI::ExistingDirectory);
   live->add_option("--ready", f->ready_path, "file written once every device is up");
+  live->add_option("--control", f->control_path,
+                   "commanded: the operator's hands, a FIFO created at this path taking lines "
+                   "'hang HANG_X_POS|HANG_X_NEG|HANG_Z_POS|HANG_Z_NEG', 'lift' (upright, feet in "
+                   "the air) and 'stand'; each applied line is acknowledged in PATH.state as "
+                   "'<lines applied> <support>'");
   live->add_option("--pty-link", o.pty_link,
                    "symlink to the Dynamixel bus' pseudo-terminal (the bridge's config device)")
       ->required();
@@ -325,7 +340,20 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
   ::sigaction(SIGINT, &sa, nullptr);
   ::sigaction(SIGTERM, &sa, nullptr);
 
+  flags.options.physical_com = flags.com == "leg-aware";
   ftcal::sim::LiveSim sim(config, flags.options);
+  // The parameters a calibration of this run must recover, at once (the devices' series follow
+  // at the end).
+  if (!flags.truth_dir.empty()) sim.twin().WriteTruthFile(flags.truth_dir + "/truth.pbtxt");
+  std::unique_ptr<ftcal::sim::OperatorFifo> control;
+  if (!flags.control_path.empty()) {
+    if (!sim.commanded()) {
+      throw std::invalid_argument("--control needs --scenario commanded (the recorded scenarios "
+                                  "play their own supports)");
+    }
+    control = std::make_unique<ftcal::sim::OperatorFifo>(flags.control_path);
+    control->WriteState(0, "STANDING");
+  }
   if (!flags.ready_path.empty()) ftcal::WriteFileAtomic(flags.ready_path, "ready\n");
   const std::string mocap =
       sim.natnet_command_port() != 0
@@ -338,8 +366,30 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
               sim.ati_boxes(), flags.options.ati_rate_hz, sim.pty_path().c_str(),
               flags.options.pty_link.c_str(), mocap.c_str());
   std::fflush(stdout);
+  std::int64_t requested = 0, acknowledged = 0;
+  std::string support = "STANDING";
   while (g_stop == 0 && !(flags.duration_s > 0 && sim.Now() >= flags.duration_s)) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (!control) continue;
+    for (const std::string& line : control->ReadLines()) {
+      std::string why;
+      const auto cmd = ftcal::sim::ParseOperatorLine(line, &why);
+      if (!cmd) {
+        std::fprintf(stderr, "ftcal-sim live: --control %s: %s; ignored\n",
+                     control->path().c_str(), why.c_str());
+        continue;
+      }
+      sim.SetSupport(cmd->support, cmd->series);
+      ++requested;
+      support = ftcal::sim::SupportName(*cmd);
+      std::printf("ftcal-sim live: t=%.2f s the operator: %s\n", sim.Now(), support.c_str());
+      std::fflush(stdout);
+    }
+    // Acknowledged once the devices report frames made after it.
+    if (requested != acknowledged && sim.supports_applied() >= requested) {
+      acknowledged = requested;
+      control->WriteState(acknowledged, support);
+    }
   }
   const double ran_s = sim.Now();
   sim.Stop();

@@ -499,23 +499,43 @@ StanceState BigAntTwin::Equilibrium(const std::array<double, kNumLegs>& angle_ra
   return st;
 }
 
+StanceState BigAntTwin::HangingState(HangSeries series,
+                                     const std::array<double, kNumLegs>& angle_rad) const {
+  const int s = static_cast<int>(series);
+  Require(s >= 0 && s < kNumHangSeries, "unknown hanging series " + std::to_string(s));
+  StanceState st = LiftedState(angle_rad);
+  st.R_WC = hang_R_WC_[s];
+  return st;
+}
+
+StanceState BigAntTwin::LiftedState(const std::array<double, kNumLegs>& angle_rad) const {
+  StanceState st;
+  st.R_WC = Mat3::Identity();
+  st.contact.fill(false);
+  for (int k = 0; k < kNumLegs; ++k) {
+    st.ground_w_C[k].setZero();
+    st.foot_C[k] = FootC(k, angle_rad[k]);
+    st.force_W[k].setZero();
+  }
+  if (options_.physical_com) st.com_shift_C = ComShiftC(truth_, angle_rad);
+  return st;
+}
+
+Vec3 BigAntTwin::HangingPositionG() const { return origin_G_m_ + Vec3(0.0, 0.0, 1.2); }
+
 double BigAntTwin::Hanging(HangSeries series, const RunOptions& run, const FrameSink& sink) const {
   const int s = static_cast<int>(series);
   Require(s >= 0 && s < kNumHangSeries, "unknown hanging series " + std::to_string(s));
   Generator gen(*this, run, sink, kTagHanging + s);
   const TwinOptions& o = options_;
   const long n = std::lround(o.hang_cycles * o.hang_cycle_s * o.sample_rate_hz);
-  StanceState st;
-  st.R_WC = hang_R_WC_[s];
-  for (int k = 0; k < kNumLegs; ++k) st.ground_w_C[k].setZero();
-  const Vec3 p_GC = origin_G_m_ + Vec3(0.0, 0.0, 1.2);
   const ExperimentPhase phase = static_cast<ExperimentPhase>(static_cast<int>(ExperimentPhase::kHangXPos) + s);
   std::array<double, kNumLegs> angle{};
   for (long i = 0; i < n; ++i) {
     const double tau = i * gen.Dt();
     angle.fill(2.0 * M_PI * tau / o.hang_cycle_s);
-    if (o.physical_com) st.com_shift_C = ComShiftC(truth_, angle);
-    gen.Emit(run.t0_s + tau, phase, s, true, angle, st, p_GC, yaw0_rad_);
+    gen.Emit(run.t0_s + tau, phase, s, true, angle, HangingState(series, angle),
+             HangingPositionG(), yaw0_rad_);
   }
   return run.t0_s + n * gen.Dt();
 }
@@ -525,14 +545,11 @@ double BigAntTwin::Tare(const RunOptions& run, const FrameSink& sink) const {
   // contact), every shaft at 0, for tare_s.
   Generator gen(*this, run, sink, kTagTare);
   const long n = std::lround(options_.tare_s * options_.sample_rate_hz);
-  StanceState st;
-  st.R_WC = Mat3::Identity();
-  for (int k = 0; k < kNumLegs; ++k) st.ground_w_C[k].setZero();
-  const Vec3 p_GC = origin_G_m_ + Vec3(0.0, 0.0, 1.2);
   const std::array<double, kNumLegs> angle{};
-  if (options_.physical_com) st.com_shift_C = ComShiftC(truth_, angle);
+  const StanceState st = LiftedState(angle);
   for (long i = 0; i < n; ++i) {
-    gen.Emit(run.t0_s + i * gen.Dt(), ExperimentPhase::kTare, 0, true, angle, st, p_GC, yaw0_rad_);
+    gen.Emit(run.t0_s + i * gen.Dt(), ExperimentPhase::kTare, 0, true, angle, st,
+             HangingPositionG(), yaw0_rad_);
   }
   return run.t0_s + n * gen.Dt();
 }
@@ -736,12 +753,36 @@ const TwinFrame& BigAntTwin::Driven::Frame(double t_s, const std::array<double, 
   const bool steady = first_ || angle_rad == last_angle_;
   first_ = false;
   last_angle_ = angle_rad;
-  std::array<bool, kNumLegs> all;
-  all.fill(true);
-  const StanceState st = twin_.Equilibrium(angle_rad, all, internal_);
-  gen_->Emit(t_s, ExperimentPhase::kStanding, -1, steady, angle_rad, st,
-             twin_.origin_G_m_ + Vec3(0.0, 0.0, st.height_m), twin_.yaw0_rad_);
+  switch (support_) {
+    case Support::kHanging: {
+      const int s = static_cast<int>(series_);
+      gen_->Emit(t_s,
+                 static_cast<ExperimentPhase>(static_cast<int>(ExperimentPhase::kHangXPos) + s), s,
+                 steady, angle_rad, twin_.HangingState(series_, angle_rad),
+                 twin_.HangingPositionG(), twin_.yaw0_rad_);
+      break;
+    }
+    case Support::kLifted:
+      gen_->Emit(t_s, ExperimentPhase::kTare, 0, steady, angle_rad, twin_.LiftedState(angle_rad),
+                 twin_.HangingPositionG(), twin_.yaw0_rad_);
+      break;
+    case Support::kStanding: {
+      std::array<bool, kNumLegs> all;
+      all.fill(true);
+      const StanceState st = twin_.Equilibrium(angle_rad, all, internal_);
+      gen_->Emit(t_s, ExperimentPhase::kStanding, -1, steady, angle_rad, st,
+                 twin_.origin_G_m_ + Vec3(0.0, 0.0, st.height_m), twin_.yaw0_rad_);
+      break;
+    }
+  }
   return frame_;
+}
+
+void BigAntTwin::Driven::SetSupport(Support support, HangSeries series) {
+  const int s = static_cast<int>(series);
+  Require(s >= 0 && s < kNumHangSeries, "unknown hanging series " + std::to_string(s));
+  support_ = support;
+  series_ = series;
 }
 
 HangingRecording BigAntTwin::MakeHangingRecording(HangSeries series) const {

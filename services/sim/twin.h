@@ -204,6 +204,13 @@ class BigAntTwin {
                           const std::array<bool, kNumLegs>& contact,
                           const std::array<Vec3, kNumLegs>& internal_h) const;
 
+  // The robot off the ground, as the hanging series and the tare hold it: hanging in `series`'
+  // attitude (HangingAttitude), or lifted upright and level; no foot touches anything, the CoM
+  // moves with the legs when physical_com. And where the chassis hangs in G (above the origin).
+  StanceState HangingState(HangSeries series, const std::array<double, kNumLegs>& angle_rad) const;
+  StanceState LiftedState(const std::array<double, kNumLegs>& angle_rad) const;
+  Vec3 HangingPositionG() const;
+
   // Scenarios: each emits 100 Hz frames in time order from run.t0_s and returns the end time.
   double Tare(const RunOptions& run, const FrameSink& sink) const;
   double Hanging(HangSeries series, const RunOptions& run, const FrameSink& sink) const;
@@ -216,14 +223,23 @@ class BigAntTwin {
 
  public:
   // Frames at shaft angles given from outside, e.g. the legs following commanded servos
-  // (`ftcal-sim live --scenario commanded`). The robot stands quasi-statically on all six feet
-  // (Equilibrium with every foot down and one set of self-balancing forces, drawn once from its
-  // own stream), the chassis over the twin's origin at its first heading; the readings and the
-  // motion capture are made as in every scenario (noise, quantization, marker dropouts, drift)
-  // from a random stream of their own. Deterministic for a seed and a sequence of calls; the
-  // internal forces do not depend on the noise options.
+  // (`ftcal-sim live --scenario commanded`). Standing (the start), the robot stands
+  // quasi-statically on all six feet (Equilibrium with every foot down and one set of
+  // self-balancing forces, drawn once from its own stream), the chassis over the twin's origin at
+  // its first heading. The operator can hang it in one of the four series' attitudes or lift it
+  // upright (HangingState, LiftedState: the physics of Hanging() and Tare()) and set it down
+  // again. The readings and the motion capture are made as in every scenario (noise,
+  // quantization, marker dropouts, drift) from a random stream of their own. Deterministic for
+  // a seed and a sequence of calls; the internal forces do not depend on the noise options.
   class Driven {
    public:
+    enum class Support { kStanding, kHanging, kLifted };
+    // Where the robot is from the next Frame() on (an operator's re-hang takes no twin time);
+    // `series` only for kHanging.
+    void SetSupport(Support support, HangSeries series = HangSeries::kXPos);
+    Support support() const { return support_; }
+    HangSeries hang_series() const { return series_; }
+
     // `twin` must outlive this object.
     explicit Driven(const BigAntTwin& twin, const RunOptions& run = RunOptions{});
     ~Driven();
@@ -247,6 +263,8 @@ class BigAntTwin {
     std::unique_ptr<Generator> gen_;
     std::array<double, kNumLegs> last_angle_{};
     bool first_ = true;
+    Support support_ = Support::kStanding;
+    HangSeries series_ = HangSeries::kXPos;
   };
 
   // Convenience for the method's tests.

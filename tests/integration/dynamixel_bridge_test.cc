@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <regex>
@@ -65,7 +66,7 @@ std::string TestConfigText(const std::string& device, double limit_rad, double t
   char limits[128];
   std::snprintf(limits, sizeof limits, " min_angle_rad: %.6f max_angle_rad: %.6f }", -limit_rad,
                 limit_rad);
-  text = std::regex_replace(text, std::regex("servo \\{ id: ([0-9]+) \\}"),
+  text = std::regex_replace(text, std::regex("servo \\{ id: ([0-9]+)[^}]*\\}"),
                             std::string("servo { id: $1") + limits);
   text = std::regex_replace(text, std::regex("reply_timeout_s: [0-9.]+"),
                             "reply_timeout_s: " + std::to_string(timeout_s));
@@ -132,6 +133,45 @@ TEST(DynamixelEmulator, GoalFollowsFirstOrderDynamicsOnlyWithTorque) {
   EXPECT_EQ(emu.TableI32(1, dxl::kAddrGoalPosition), 3072);
 }
 
+// docs/device-protocols.md §2.7: Operating Mode is EEPROM (torque off to write it), takes only
+// the MX-106's modes, and in Extended Position mode (4) goals span +-1,048,575 counts, past the
+// Min/Max Position Limits that bound position mode (3).
+TEST(DynamixelEmulator, ExtendedPositionModeTakesMultiTurnGoals) {
+  sim::DxlEmulatorOptions options;
+  options.time_constant_s = 0.05;
+  sim::DynamixelBusEmulator emu(options);
+  auto send = [&](const std::vector<std::uint8_t>& p, double t) {
+    const auto replies = ParseAll(emu.Receive(p.data(), p.size(), t));
+    EXPECT_EQ(replies.size(), 1u);
+    return replies.empty() ? 0xFF : replies[0].error;
+  };
+  auto goal = [](std::int32_t count) {
+    const auto u = static_cast<std::uint32_t>(count);
+    return std::vector<std::uint8_t>{static_cast<std::uint8_t>(u), static_cast<std::uint8_t>(u >> 8),
+                                     static_cast<std::uint8_t>(u >> 16),
+                                     static_cast<std::uint8_t>(u >> 24)};
+  };
+  EXPECT_EQ(emu.TableByte(1, dxl::kAddrOperatingMode), 3) << "the factory's position mode";
+  EXPECT_EQ(send(dxl::BuildTorqueEnable(1, true), 0.0), 0);
+  EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, goal(10000)), 0.0), 6)
+      << "position mode: beyond Max Position Limit 4095";
+  EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrOperatingMode, {4}), 0.0), 7)
+      << "EEPROM with torque on: Access Error";
+  EXPECT_EQ(send(dxl::BuildTorqueEnable(1, false), 0.0), 0);
+  EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrOperatingMode, {2}), 0.0), 4)
+      << "2 is no MX-106 mode: Data Range Error";
+  EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrOperatingMode, {4}), 0.0), 0);
+  EXPECT_EQ(emu.TableByte(1, dxl::kAddrOperatingMode), 4);
+  EXPECT_EQ(send(dxl::BuildTorqueEnable(1, true), 0.0), 0);
+  EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, goal(1048576)), 0.0), 6)
+      << "past 256 turns";
+  EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, goal(-20000)), 0.0), 0);
+  emu.Advance(2.0);  // 40 time constants
+  EXPECT_NEAR(emu.ExactPosition(1), -20000.0, 1e-6);
+  EXPECT_EQ(emu.TableI32(1, 132), -20000) << "Present Position counts the turns";
+  EXPECT_EQ(emu.TableByte(2, dxl::kAddrOperatingMode), 3) << "only servo 1 was switched";
+}
+
 TEST(DynamixelEmulator, OverloadCutsTorqueRaisesAlertAndNeedsReboot) {
   sim::DxlEmulatorOptions options;
   options.events.push_back({sim::DxlFaultKind::kHardwareError, 1.0, 0.0, 5, 0x20});
@@ -192,10 +232,15 @@ TEST(DynamixelEmulator, SeededFaultsAreRepeatableAndRecorded) {
 
 class DynamixelBridgePty : public ::testing::Test {
  protected:
-  void Start(sim::DxlEmulatorOptions options, double limit_rad = M_PI - 0.01) {
+  // `mode`: the config's dynamixel.operating_mode (sim.pbtxt's is EXTENDED_POSITION_MODE);
+  // `before`: run on the emulator before the bridge connects.
+  void Start(sim::DxlEmulatorOptions options, double limit_rad = M_PI - 0.01,
+             const std::string& mode = "",
+             const std::function<void(sim::DynamixelBusEmulator&)>& before = nullptr) {
     dir_ = testing::MakeTempDir();
     link_ = dir_ + "/tty";
     emu_ = std::make_unique<sim::DynamixelBusEmulator>(std::move(options));
+    if (before) before(*emu_);
     emu_->SetReplyObserver([this](const sim::DxlReplyRecord& r) {
       std::lock_guard<std::mutex> lock(mu_);
       records_.push_back(r);
@@ -210,7 +255,12 @@ class DynamixelBridgePty : public ::testing::Test {
             1, [this] { return std::chrono::duration<double>(Clock::now() - t0_).count(); });
       }
     });
-    config_ = LoadConfigText(TestConfigText(link_, limit_rad, 0.03), "test config");
+    std::string text = TestConfigText(link_, limit_rad, 0.03);
+    if (!mode.empty()) {
+      text = std::regex_replace(text, std::regex("operating_mode: [A-Z_]+"),
+                                "operating_mode: " + mode);
+    }
+    config_ = LoadConfigText(text, "test config");
     stats_ = std::make_unique<ServiceStats>(
         std::make_shared<spdlog::logger>("dxl-test", std::make_shared<spdlog::sinks::null_sink_mt>()));
     bridge_ = std::make_unique<DynamixelBridge>(
@@ -341,6 +391,93 @@ TEST_F(DynamixelBridgePty, CommandsAreClampedValidatedAndMoveTheServos) {
   bridge_->Cycle();
   for (int k = 0; k < 6; ++k) {
     EXPECT_TRUE(published_.back().flags[k] & servo_state_t::FLAG_TORQUE_OFF);
+  }
+}
+
+// Extended Position mode (dynamixel.operating_mode): the bridge finds the factory's position
+// mode, writes mode 4 (torque is off at power-up), and then moves the legs through more than a
+// turn; the published angle counts the turns (never wrapped), the configured limits still clamp.
+TEST_F(DynamixelBridgePty, ExtendedModeIsWrittenAtStartAndGoalsPassOneTurn) {
+  sim::DxlEmulatorOptions options;
+  options.time_constant_s = 0.02;
+  Start(options, 10.0);
+  ASSERT_TRUE(bridge_->Connect());
+  EXPECT_TRUE(bridge_->wrong_mode().empty());
+  EXPECT_EQ(stats_->counters().at("operating_mode_writes"), 6);
+  for (std::uint8_t id = 1; id <= 6; ++id) {
+    std::lock_guard<std::mutex> lock(emu_mu_);
+    EXPECT_EQ(emu_->TableByte(id, dxl::kAddrOperatingMode), dxl::kExtendedPositionMode);
+  }
+  servo_command_t cmd;
+  cmd.num_servos = 6;
+  cmd.id = {1, 2, 3, 4, 5, 6};
+  cmd.goal_angle_rad = {7.0, -7.0, 2 * M_PI + 0.5, 0.0, 12.0, -4 * M_PI};
+  cmd.torque_enable = true;
+  bridge_->OnCommand(cmd);
+  EXPECT_EQ(stats_->counters().at("goals_clamped"), 2);  // 12 and -4 pi beyond +-10 rad
+  for (int i = 0; i < 40; ++i) {
+    bridge_->Cycle();
+    SleepS(0.01);
+  }
+  const std::vector<double> want = {7.0, -7.0, 2 * M_PI + 0.5, 0.0, 10.0, -10.0};
+  const auto& last = published_.back();
+  for (int k = 0; k < 6; ++k) {
+    EXPECT_NEAR(last.angle_rad[k], want[k], 1.01 * kOneCountRad) << "servo " << last.id[k];
+    std::lock_guard<std::mutex> lock(emu_mu_);
+    EXPECT_NEAR(emu_->ExactPosition(last.id[k]), 2048 + want[k] / kOneCountRad, 1.0);
+  }
+  // Once set, the mode is not written again (EEPROM wears).
+  EXPECT_EQ(stats_->counters().at("operating_mode_writes"), 6);
+}
+
+// Operating Mode is EEPROM: a servo holding a leg (torque on) is not switched, since that would
+// drop it; the bridge says so and refuses its goals, and is degraded.
+TEST_F(DynamixelBridgePty, AServoHoldingItsLegIsNotSwitchedAndGetsNoGoals) {
+  Start(sim::DxlEmulatorOptions{}, 10.0, "", [](sim::DynamixelBusEmulator& emu) {
+    const auto on = dxl::BuildTorqueEnable(2, true);
+    emu.Receive(on.data(), on.size(), 0.0);
+  });
+  ASSERT_TRUE(bridge_->Connect());
+  EXPECT_EQ(bridge_->wrong_mode(), std::vector<std::uint8_t>{2});
+  {
+    std::lock_guard<std::mutex> lock(emu_mu_);
+    EXPECT_EQ(emu_->TableByte(2, dxl::kAddrOperatingMode), dxl::kPositionMode);
+    EXPECT_EQ(emu_->TableByte(1, dxl::kAddrOperatingMode), dxl::kExtendedPositionMode);
+  }
+  servo_command_t cmd;
+  cmd.num_servos = 6;
+  cmd.id = {1, 2, 3, 4, 5, 6};
+  cmd.goal_angle_rad = {0, 0, 0, 0, 0, 0};
+  cmd.torque_enable = true;
+  try {
+    bridge_->OnCommand(cmd);
+    FAIL() << "a goal for a servo in the wrong mode was taken";
+  } catch (const BadInput& e) {
+    EXPECT_NE(std::string(e.what()).find("servo 2 (ML)"), std::string::npos) << e.what();
+  }
+  bridge_->Cycle();
+  std::string why;
+  EXPECT_TRUE(bridge_->Degraded(&why));
+  EXPECT_NE(why.find("servo 2 (ML) in Operating Mode 3, not 4"), std::string::npos) << why;
+}
+
+// Position mode (3) keeps goals within one turn: a goal past count 4095 is refused whole, even
+// when the configured limits would allow it.
+TEST_F(DynamixelBridgePty, PositionModeRefusesGoalsPastOneTurn) {
+  Start(sim::DxlEmulatorOptions{}, 10.0, "POSITION_MODE");
+  ASSERT_TRUE(bridge_->Connect());
+  EXPECT_EQ(stats_->counters().count("operating_mode_writes"), 0u) << "already the factory's mode";
+  servo_command_t cmd;
+  cmd.num_servos = 6;
+  cmd.id = {1, 2, 3, 4, 5, 6};
+  cmd.goal_angle_rad = {0.5, 0, 0, 0, 4.0, 0};
+  cmd.torque_enable = true;
+  try {
+    bridge_->OnCommand(cmd);
+    FAIL() << "a goal past one turn was taken in position mode";
+  } catch (const BadInput& e) {
+    EXPECT_NE(std::string(e.what()).find("outside 0..4095 of Operating Mode 3"), std::string::npos)
+        << e.what();
   }
 }
 

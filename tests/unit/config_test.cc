@@ -5,6 +5,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <regex>
 #include <string>
 #include <vector>
 
@@ -192,6 +193,24 @@ TEST(Config, UnreadableFileNamed) {
   EXPECT_CONTAINS(e, "No such file or directory");
 }
 
+// Extended Position mode takes +-256 turns around the zero count (docs/device-protocols.md
+// §2.7): a servo limit beyond them could never be commanded, so it is refused by name.
+TEST(Config, ExtendedPositionModeLimitsStayWithinTheServosTurns) {
+  std::string text = ReadFile(kBadDir / "good_minimal.pbtxt");
+  text = std::regex_replace(text, std::regex("servo \\{ id: 6 \\}"),
+                            "servo { id: 6 max_angle_rad: 2000 }");
+  EXPECT_EQ(TextError(text), "") << "position mode: the limit is the config's business";
+  text += "dynamixel { device: \"/dev/null\" operating_mode: EXTENDED_POSITION_MODE }\n";
+  const std::string error = TextError(text);
+  EXPECT_NE(error.find("robot.leg[5].servo.max_angle_rad: is encoder count"), std::string::npos)
+      << error;
+  EXPECT_NE(error.find("outside the +-1048575 of Extended Position mode"), std::string::npos)
+      << error;
+  // 256 turns less a little: accepted.
+  text = std::regex_replace(text, std::regex("max_angle_rad: 2000"), "max_angle_rad: 1600");
+  EXPECT_EQ(TextError(text), "");
+}
+
 // Range checks on the minimal file, one edit each: the message names field and value.
 TEST(Config, RangeChecks) {
   const std::string good = ReadFile(kBadDir / "good_minimal.pbtxt");
@@ -230,6 +249,7 @@ TEST(Config, RangeChecks) {
       {"\n}\n", "\n}\nmocap { server_address: \"127.0.0.1\" port: 0 }\n", "mocap.port: port must be in 1..65535"},
       {"\n}\n", "\n}\nmocap { port: 22223 }\n", "mocap.server_address: required field is missing"},
       {"\n}\n", "\n}\ndynamixel { baud: 1000000 }\n", "dynamixel.device: required field is missing"},
+
       {"\n}\n", "\n}\nchannels { status: \"\" }\n", "channels.status: channel name must not be empty"},
       {"\n}\n", "\n}\nlcm_url: \"\"\n", "lcm_url: must not be empty"},
       // Absurd values a typo makes (issue 14): refused with the field named.

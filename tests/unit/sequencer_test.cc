@@ -170,13 +170,18 @@ plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_Z_NEG cycles: 2 c
 
 TEST(Expand, BigAntsReportPlanIsTheReportsExperiment) {
   config::Config c = LoadConfigText(ShippedConfigText("bigant.pbtxt"), "bigant.pbtxt");
-  // As shipped (single-turn position mode), the full cycles do not fit the servo limits.
-  EXPECT_THROW(Expand(c, ""), std::invalid_argument);
-  for (auto& leg : *c.mutable_robot()->mutable_leg()) {
-    leg.mutable_servo()->set_min_angle_rad(-100.0);
-    leg.mutable_servo()->set_max_angle_rad(100.0);
-  }
+  // As shipped: multi-turn mode with limits wide enough for the ten hanging cycles and the walk.
+  EXPECT_EQ(c.dynamixel().operating_mode(), config::EXTENDED_POSITION_MODE);
   const Schedule s = Expand(c, "");
+  {
+    // Single-turn limits (position mode's): the full cycles do not fit.
+    config::Config narrow = c;
+    for (auto& leg : *narrow.mutable_robot()->mutable_leg()) {
+      leg.mutable_servo()->set_min_angle_rad(-M_PI);
+      leg.mutable_servo()->set_max_angle_rad(M_PI);
+    }
+    EXPECT_THROW(Expand(narrow, ""), std::invalid_argument);
+  }
   EXPECT_EQ(s.plan_name, "report");
   std::vector<int8_t> phases;
   int standing_holds = 0, turns = 0, tripod_lifts = 0, walks = 0;
@@ -252,18 +257,19 @@ TEST(PlanConfig, BadPhasesAndLimitsAreRefusedWithTheFieldNamed) {
     }
     return "";
   };
+  // sim.pbtxt ships two plans (short, experiment): the one added here is plan[2].
   std::string e = error_of("plan { name: \"x\" phase { kind: PHASE_HANG } }");
-  EXPECT_NE(e.find("plan[1].phase[0].orientation: a hanging phase needs"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[2].phase[0].orientation: a hanging phase needs"), std::string::npos) << e;
   e = error_of("plan { name: \"short\" phase { kind: PHASE_TARE } }");
-  EXPECT_NE(e.find("plan[1].name: duplicate plan name 'short'"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[2].name: duplicate plan name 'short'"), std::string::npos) << e;
   e = error_of("plan { name: \"g\" phase { kind: PHASE_STANDING_GRID grid_angles_deg: [0, 120] } }");
-  EXPECT_NE(e.find("plan[1].phase[0].grid_angles_deg[1]: a standing angle must be within +-90 deg"),
+  EXPECT_NE(e.find("plan[2].phase[0].grid_angles_deg[1]: a standing angle must be within +-90 deg"),
             std::string::npos)
       << e;
   e = error_of("plan { name: \"w\" phase { kind: PHASE_TRIPOD_WALK duty: 1.5 } }");
-  EXPECT_NE(e.find("plan[1].phase[0].duty: must be in (0, 1), got 1.5"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[2].phase[0].duty: must be in (0, 1), got 1.5"), std::string::npos) << e;
   e = error_of("plan { name: \"empty\" }");
-  EXPECT_NE(e.find("plan[1]: a plan needs at least one phase"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[2]: a plan needs at least one phase"), std::string::npos) << e;
 }
 
 // ---- safety rules against the twin's own readings ----

@@ -590,3 +590,60 @@ TEST(Twin, BadOptionsAreRefusedByName) {
 
 }  // namespace
 }  // namespace ftcal
+
+namespace ftcal {
+namespace {
+
+// The operator's hands on the driven twin (ftcal-sim live --control): hung in a series' attitude
+// or lifted for the tare, a Driven frame is the frame the recorded scenario makes at the same
+// shaft angles (the same physics, Hanging() and Tare()); set down again, it stands.
+TEST(Twin, DrivenHangsAndLiftsAsTheRecordedHangingAndTare) {
+  for (const bool physical_com : {false, true}) {
+    TwinOptions o = NoiseFree(9);
+    o.physical_com = physical_com;
+    o.marker_dropout_rate_hz = 0.0;
+    o.hang_cycles = 1;
+    const BigAntTwin twin(SimConfig(), o);
+    BigAntTwin::Driven driven(twin);
+    for (int s = 0; s < kNumHangSeries; ++s) {
+      const HangSeries series = static_cast<HangSeries>(s);
+      std::vector<TwinFrame> recorded;
+      twin.Hanging(series, RunOptions{}, [&](const TwinFrame& f) { recorded.push_back(f); });
+      driven.SetSupport(BigAntTwin::Driven::Support::kHanging, series);
+      for (std::size_t i = 0; i < recorded.size(); i += 137) {
+        const TwinFrame& want = recorded[i];
+        const TwinFrame& got = driven.Frame(static_cast<double>(s) * 100 + i * 0.01, want.angle_rad);
+        EXPECT_EQ(static_cast<int>(got.phase), static_cast<int>(want.phase));
+        EXPECT_LT((got.R_WC - twin.HangingAttitude(series)).norm(), 1e-15);
+        EXPECT_LT((got.R_GC - want.R_GC).norm(), 1e-12);
+        EXPECT_LT((got.p_GB_m - want.p_GB_m).norm(), 1e-12);
+        for (int k = 0; k < kNumLegs; ++k) {
+          EXPECT_FALSE(got.in_contact[k]);
+          EXPECT_LT((got.reading[k] - want.reading[k]).norm(), 1e-9)
+              << "series " << s << " leg " << k << " frame " << i;
+        }
+      }
+    }
+    std::vector<TwinFrame> tare;
+    twin.Tare(RunOptions{}, [&](const TwinFrame& f) { tare.push_back(f); });
+    driven.SetSupport(BigAntTwin::Driven::Support::kLifted);
+    const TwinFrame& lifted = driven.Frame(1000.0, tare.front().angle_rad);
+    EXPECT_EQ(lifted.phase, ExperimentPhase::kTare);
+    for (int k = 0; k < kNumLegs; ++k) {
+      EXPECT_LT((lifted.reading[k] - tare.front().reading[k]).norm(), 1e-9) << "leg " << k;
+    }
+    // Set down: on its six feet again, carrying the robot's weight.
+    driven.SetSupport(BigAntTwin::Driven::Support::kStanding);
+    const TwinFrame& standing = driven.Frame(1001.0, std::array<double, kNumLegs>{});
+    EXPECT_EQ(standing.phase, ExperimentPhase::kStanding);
+    double fz = 0.0;
+    for (int k = 0; k < kNumLegs; ++k) {
+      EXPECT_TRUE(standing.in_contact[k]);
+      fz += standing.ground_w_C[k][2];
+    }
+    EXPECT_NEAR(fz, SimConfig().robot().total_mass_kg() * SimConfig().robot().g0_m_s2(), 0.5);
+  }
+}
+
+}  // namespace
+}  // namespace ftcal

@@ -50,6 +50,7 @@ constexpr int kIndirectCount = 28;
 
 // Status error numbers (§2.5).
 constexpr std::uint8_t kErrInstruction = 2;
+constexpr std::uint8_t kErrDataRange = 4;
 constexpr std::uint8_t kErrDataLength = 5;
 constexpr std::uint8_t kErrDataLimit = 6;
 constexpr std::uint8_t kErrAccess = 7;
@@ -102,6 +103,13 @@ DynamixelBusEmulator::DynamixelBusEmulator(DxlEmulatorOptions options)
       throw std::invalid_argument("Dynamixel emulator: a fault rate is outside [0, 1]");
     }
   }
+  {
+    const std::uint8_t m = options_.operating_mode;
+    if (m != 0 && m != 1 && m != 3 && m != 4 && m != 5 && m != 16) {
+      throw std::invalid_argument("Dynamixel emulator: operating_mode " + std::to_string(m) +
+                                  " is not an MX-106 mode (0, 1, 3, 4, 5, 16)");
+    }
+  }
   if (options_.rates.max_noise_bytes < 1) {
     throw std::invalid_argument("Dynamixel emulator: max_noise_bytes must be >= 1");
   }
@@ -131,7 +139,7 @@ DynamixelBusEmulator::DynamixelBusEmulator(DxlEmulatorOptions options)
     t[kAddrId] = id;
     t[kAddrBaud] = 3;  // 1 Mbit/s
     t[kAddrReturnDelay] = 250;
-    t[kAddrOperatingMode] = 3;
+    t[kAddrOperatingMode] = options_.operating_mode;
     t[kAddrProtocol] = 2;
     PutLe(t, kAddrMovingThreshold, 10, 4);
     t[kAddrTemperatureLimit] = 80;
@@ -278,13 +286,27 @@ std::uint8_t DynamixelBusEmulator::ApplyWrite(Servo& s, std::uint16_t address,
     // The emulated bus's wiring is fixed: renumbering or re-clocking a servo is not emulated.
     if (a == kAddrId || a == kAddrBaud) return kErrAccess;
   }
+  if (address <= kAddrOperatingMode && address + n > kAddrOperatingMode) {
+    const std::uint8_t mode = data[kAddrOperatingMode - address];
+    // The MX-106(2.0)'s modes: current, velocity, position, extended position,
+    // current-based position, PWM (§2.7).
+    if (mode != 0 && mode != 1 && mode != 3 && mode != 4 && mode != 5 && mode != 16) {
+      return kErrDataRange;
+    }
+  }
   if (address <= kAddrGoalPosition && address + n >= kAddrGoalPosition + 4u) {
     const std::size_t off = kAddrGoalPosition - address;
     const auto goal = static_cast<std::int32_t>(
         data[off] | (data[off + 1] << 8) | (data[off + 2] << 16) |
         (static_cast<std::uint32_t>(data[off + 3]) << 24));
-    const auto lo = static_cast<std::int32_t>(GetLe(t, kAddrMinPosition, 4));
-    const auto hi = static_cast<std::int32_t>(GetLe(t, kAddrMaxPosition, 4));
+    // Position mode keeps goals within the Min/Max Position Limits; the multi-turn modes (4, 5)
+    // ignore those limits and take +-256 turns (§2.7).
+    const std::uint8_t mode = t[kAddrOperatingMode];
+    const bool multi_turn = mode == dxl::kExtendedPositionMode || mode == 5;
+    const auto lo = multi_turn ? -dxl::kExtendedModeMaxCount
+                               : static_cast<std::int32_t>(GetLe(t, kAddrMinPosition, 4));
+    const auto hi = multi_turn ? dxl::kExtendedModeMaxCount
+                               : static_cast<std::int32_t>(GetLe(t, kAddrMaxPosition, 4));
     if (goal < lo || goal > hi) return kErrDataLimit;
   }
   if (address <= kAddrTorque && address + n > kAddrTorque && data[kAddrTorque - address] != 0 &&

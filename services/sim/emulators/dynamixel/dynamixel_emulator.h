@@ -62,6 +62,11 @@ struct DxlEmulatorOptions {
   std::int32_t initial_position = 2048;  // counts, for every servo
   // When given, one per id (same order): each servo's own initial position, counts.
   std::vector<std::int32_t> initial_positions;
+  // Operating Mode (address 11) at power-up: 3 (position) from the factory; a bridge writes 4
+  // (extended position, multi-turn) with torque off. In mode 3 Goal Position must lie within
+  // the Min/Max Position Limits (0-4095), in modes 4 and 5 within +-1,048,575 (Data Limit Error
+  // otherwise), and Present Position follows the shaft over any number of turns.
+  std::uint8_t operating_mode = 3;
   DxlFaultRates rates;
   std::vector<DxlFaultEvent> events;
 };
