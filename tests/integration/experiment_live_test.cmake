@@ -17,7 +17,7 @@ if(TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-sequencer-contro
   set_target_properties(experiment_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   gtest_discover_tests(experiment_live_test
-    PROPERTIES LABELS integration TIMEOUT 1200
+    PROPERTIES LABELS integration TIMEOUT 1200 RUN_SERIAL TRUE
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()
