@@ -154,8 +154,12 @@ TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthAndAsTheRecording) {
   const std::vector<std::string> live_counts = Collected(out + "/logs/calibrator.err");
   const std::vector<std::string> offline_counts = Collected(out + "/logs/calibrator-offline.err");
   ASSERT_EQ(live_counts.size(), 4u) << testing::ReadFile(out + "/logs/calibrator.err");
+  // Equal hanging counts do not mean equal data: a standing sample one receiver missed moves a
+  // pose's median (seen in a clean-clone run: the same hanging counts, rotations 2.1e-4 deg and
+  // p~' 1.5 um apart). No count here covers every standing sample, so the two always get the
+  // tolerance of a difference in messages.
   const bool same = live_counts == offline_counts;
-  const double tol = same ? 1e-6 : 0.3;
+  const double tol = 0.3;
   for (std::size_t i = 0; !same && i < live_counts.size() && i < offline_counts.size(); ++i) {
     if (live_counts[i] != offline_counts[i]) {
       std::cout << "collected differently: live '" << live_counts[i] << "', offline '"
@@ -169,18 +173,13 @@ TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthAndAsTheRecording) {
   EXPECT_LE(vs_offline.torque_nm, tol * 0.001);
   EXPECT_LE(vs_offline.com_m, tol * 0.2e-3);
   EXPECT_LE(vs_offline.rotation_deg, tol * 0.15);
-  if (same) {
-    EXPECT_LE(vs_offline.p_tilde_m, tol * 0.5e-3);
-    EXPECT_LE((live.p_C_B - offline.p_C_B).norm(), tol * 0.5e-3);
-  } else {
-    for (int k = 0; k < kNumLegs; ++k) {
-      const auto& e = live_proto.leg(k).mounting().p_tilde_prime_m();
-      const Vec3 sigma(e.sigma_x(), e.sigma_y(), e.sigma_z());
-      const Vec3 d = live.leg[k].p_tilde_prime - offline.leg[k].p_tilde_prime;
-      for (int i = 0; i < 3; ++i) {
-        EXPECT_LE(std::abs(d[i]), 0.1 * sigma[i])
-            << "leg " << live_proto.leg(k).name() << " p~' component " << i;
-      }
+  for (int k = 0; k < kNumLegs; ++k) {
+    const auto& e = live_proto.leg(k).mounting().p_tilde_prime_m();
+    const Vec3 sigma(e.sigma_x(), e.sigma_y(), e.sigma_z());
+    const Vec3 d = live.leg[k].p_tilde_prime - offline.leg[k].p_tilde_prime;
+    for (int i = 0; i < 3; ++i) {
+      EXPECT_LE(std::abs(d[i]), 0.1 * sigma[i])
+          << "leg " << live_proto.leg(k).name() << " p~' component " << i;
     }
   }
 
