@@ -22,11 +22,15 @@
 #include "child_process.h"
 #include "common/bus.h"
 #include "common/envelope.h"
+#include "signed_commander.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 
 namespace ftcal {
 namespace {
+
+using testing::Encode;
+using testing::NowUs;
 
 using auth::Signer;
 using auth::TrustedKey;
@@ -54,18 +58,7 @@ servo_command_t Command(double goal) {
   return c;
 }
 
-int64_t NowUs() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
-template <class Msg>
-std::vector<uint8_t> Encode(const Msg& msg) {
-  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
-  msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
-  return bytes;
-}
 
 class SignedChannelTest : public ::testing::Test {
  protected:

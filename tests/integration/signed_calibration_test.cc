@@ -12,6 +12,7 @@
 
 #include "common/bus.h"
 #include "common/envelope.h"
+#include "signed_commander.h"
 #include "corrector/corrector_stage.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
@@ -21,25 +22,12 @@
 namespace ftcal {
 namespace {
 
-auth::Signer NewSigner() {
-  auth::InitSodium();
-  std::array<uint8_t, auth::kSeedBytes> seed{};
-  randombytes_buf(seed.data(), seed.size());
-  return auth::Signer::FromSeed(seed);
-}
+using testing::Encode;
+using testing::NowUs;
+using testing::NewSigner;
 
-int64_t NowUs() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
-template <class Msg>
-std::vector<uint8_t> Encode(const Msg& msg) {
-  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
-  msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
-  return bytes;
-}
+
 
 TEST(SignedCalibration, AForgedCalibrationIsNotAppliedAndTheCalibratorsIs) {
   auth::Signer calibrator = NewSigner(), intruder = NewSigner();

@@ -23,6 +23,27 @@
 
 namespace ftcal::testing {
 
+inline int64_t NowUs() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+template <class Msg>
+std::vector<uint8_t> Encode(const Msg& msg) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+  msg.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+// A key made at test time (never a committed one).
+inline auth::Signer NewSigner() {
+  auth::InitSodium();
+  std::array<uint8_t, auth::kSeedBytes> seed{};
+  randombytes_buf(seed.data(), seed.size());
+  return auth::Signer::FromSeed(seed);
+}
+
 // A fresh Ed25519 seed written to `path` as ftcal-keygen writes one (64 hex digits, mode 600);
 // returns its public key in hex, for the config's auth.trusted_key.
 inline std::string WriteKeyFile(const std::string& path) {
@@ -103,19 +124,8 @@ class SignedCommander {
     if (heartbeat_.joinable()) heartbeat_.join();
   }
 
-  static int64_t NowUs() {
-    return std::chrono::duration_cast<std::chrono::microseconds>(
-               std::chrono::system_clock::now().time_since_epoch())
-        .count();
-  }
 
  private:
-  static auth::Signer NewSigner() {
-    auth::InitSodium();
-    std::array<uint8_t, auth::kSeedBytes> seed{};
-    randombytes_buf(seed.data(), seed.size());
-    return auth::Signer::FromSeed(seed);
-  }
 
   auth::Signer signer_;
   lcm::LCM lcm_;
