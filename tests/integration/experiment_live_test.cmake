@@ -1,18 +1,19 @@
-# scripts/experiment end to end: the short plan "experiment" of config/sim.pbtxt run live on the
-# twin through the real processes, the live calibration against the twin's truth and against
-# the offline calibration of the recording. About six minutes of real time. Multicast: its own
-# network namespace (scripts/netns-exec as the CROSSCOMPILING_EMULATOR; the script sees
-# FTCAL_NETNS=1 and does not make another).
+# scripts/experiment end to end, twice at once: the short plan "experiment" of config/sim.pbtxt
+# run live on the twin through the real processes, once with QTM and ftcal-mocap-bridge, once
+# with OptiTrack (NatNet) and ftcal-natnet-bridge; each live calibration against the twin's
+# truth and against the offline calibration of its recording, and the two against each other.
+# About six minutes of real time. Multicast: this test in its own network namespace
+# (scripts/netns-exec as the CROSSCOMPILING_EMULATOR), each run in one of its own inside it.
 if(TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-sequencer-control AND
-   TARGET ftcal-calibrator AND LCM_LOGGER)
+   TARGET ftcal-calibrator AND TARGET ftcal-natnet-bridge AND LCM_LOGGER)
   add_executable(experiment_live_test "${CMAKE_CURRENT_LIST_DIR}/experiment_live_test.cc")
   target_link_libraries(experiment_live_test PRIVATE
-    ftcal_child_process libcal GTest::gtest GTest::gtest_main)
+    ftcal_lcmtypes ftcal_child_process libcal GTest::gtest GTest::gtest_main)
   target_compile_definitions(experiment_live_test PRIVATE
     FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
     FTCAL_BUILD_DIR="${PROJECT_BINARY_DIR}")
   add_dependencies(experiment_live_test ftcal-sim ftcal-keygen ftcal-ati-bridge
-    ftcal-dynamixel-bridge ftcal-mocap-bridge ftcal-pose-segmenter ftcal-calibrator
+    ftcal-dynamixel-bridge ftcal-mocap-bridge ftcal-natnet-bridge ftcal-pose-segmenter ftcal-calibrator
     ftcal-corrector ftcal-sequencer ftcal-sequencer-control)
   set_target_properties(experiment_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")

@@ -6,8 +6,8 @@
 // by lcm-logger, go through ftcal-pose-segmenter --replay. Every MOCAP_BODY of the same twin
 // frame must be the same from either bridge to f32 rounding, and the steady poses the segmenter
 // keeps in both runs must be the same twin poses: the same shaft angles, attitude and wrenches.
-// (The calibrations are not compared: a live run long enough for a calibration, hanging
-// series included, is minutes of both runs; the messages being equal makes them equal.)
+// (The calibrations are compared by experiment_live_test, which runs the whole live experiment
+// through each bridge: minutes of real time, where this test takes seconds.)
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
