@@ -71,9 +71,11 @@ int main(int argc, char** argv) {
     app.stats().Counter("memory_locked") = granted.locked ? 1 : 0;
     app.stats().Counter("sched_slice") = granted.slice ? 1 : 0;
   } catch (const std::exception& e) {
-    log->critical("{}", e.what());
+    const std::string text = ftcal::UserText(e, "starting the bridge");
+    log->critical("{}", text);
     app.SetState(ftcal::service_status_t::FAILED);
-    app.stats().Error("start", e.what());
+    app.stats().Error("start", text);
+    if (ftcal::IsInternalError(e)) failure = ftcal::kExitInternal;
     try {
       bus.Publish(app.config().channels().status(), app.Status(), /*count=*/false);
     } catch (const std::exception&) {
@@ -102,7 +104,7 @@ int main(int argc, char** argv) {
     try {
       bridge->Poll(100);
     } catch (const std::exception& e) {
-      app.stats().Error("poll", e.what());
+      app.stats().Error("poll", ftcal::UserText(e, "reading the transducers"));
     }
     const int8_t state = bridge->AllUp() ? ftcal::service_status_t::RUNNING
                                          : ftcal::service_status_t::DEGRADED;

@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "common/shutdown.h"
+#include "common/user_errors.h"
 
 namespace ftcal {
 namespace {
@@ -69,7 +70,7 @@ void Bus::Guarded(const std::string& what, const std::function<void()>& fn) {
   } catch (const BadInput& e) {
     stats_.Drop(e.kind(), e.what());
   } catch (const std::exception& e) {
-    stats_.Error(what, e.what());
+    stats_.Error(what, UserText(e, what));
   } catch (...) {
     stats_.Error(what, "unknown exception");
   }
@@ -86,7 +87,7 @@ void Bus::Dispatch(size_t subscription, const std::string& channel, int64_t recv
   } catch (const BadInput& e) {
     stats_.Drop(e.kind(), e.what());
   } catch (const std::exception& e) {
-    stats_.Error("handler for " + sub.channel, e.what());
+    stats_.Error("handler for " + sub.channel, UserText(e, "handling a message on " + channel));
   } catch (...) {
     stats_.Error("handler for " + sub.channel, "unknown exception");
   }

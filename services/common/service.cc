@@ -1,4 +1,5 @@
 #include "common/service.h"
+#include "common/user_errors.h"
 
 #include <unistd.h>
 
@@ -120,6 +121,9 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
   log_ = MakeLogger(spec_.name);
   spdlog::cfg::load_env_levels();
   if (!log_level_.empty()) log_->set_level(spdlog::level::from_str(log_level_));
+  // Library code that logs through spdlog's default logger (common/user_errors.cc) speaks
+  // as this process, at its level.
+  spdlog::set_default_logger(log_);
   stats_ = std::make_unique<ServiceStats>(log_);
 
   try {
@@ -129,8 +133,9 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
     std::cerr << spec_.name << ": " << e.what() << "\n";
     return kExitConfig;
   } catch (const std::exception& e) {
-    std::cerr << spec_.name << ": " << config_path_ << ": " << e.what() << "\n";
-    return kExitConfig;
+    std::cerr << spec_.name << ": " << config_path_ << ": " << UserText(e, "reading the config")
+              << "\n";
+    return ExitCodeFor(e, kExitConfig);
   }
   if (lcm_url_.empty()) lcm_url_ = config_.lcm_url();
   if (!replay_in_.empty()) {
@@ -149,8 +154,8 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
     }
     InstallShutdownHandlers();
   } catch (const std::exception& e) {
-    log_->critical("{}", e.what());
-    return kExitDeviceIo;
+    log_->critical("{}", UserText(e, replay_in_.empty() ? "opening LCM" : "opening the replay"));
+    return ExitCodeFor(e, kExitDeviceIo);
   }
   log_->info("pid {} config {} {}", identity_.pid, config_path_,
              replaying() ? "replay " + replay_in_ + " -> " + replay_out_ : "lcm " + lcm_url_);
@@ -183,7 +188,7 @@ void ServiceApp::Tick() {
     try {
       task.fn();
     } catch (const std::exception& e) {
-      stats_->Error("periodic work", e.what());
+      stats_->Error("periodic work", UserText(e, "doing periodic work"));
     }
   }
 }
@@ -220,8 +225,8 @@ int ServiceApp::Run() {
         log_->info("replayed {} events from {} into {}", replay->events_read(), replay_in_,
                    replay_out_);
       } catch (const std::exception& e) {
-        log_->critical("{}", e.what());
-        rc = kExitDeviceIo;
+        log_->critical("{}", UserText(e, "writing the replay's output"));
+        rc = ExitCodeFor(e, kExitDeviceIo);
       }
     }
   } else {

@@ -27,7 +27,9 @@
 
 #include "common/bus.h"
 #include "common/heartbeat.h"
+#include "common/exit_codes.h"
 #include "common/service_stats.h"
+#include "common/user_errors.h"
 #include "proto/config.pb.h"
 
 namespace ftcal {

@@ -35,8 +35,9 @@ int main(int argc, char** argv) {
         proto.SerializeToString(&bytes);
         stage.UseCalibration(proto, static_cast<int64_t>(proto.version()), ftcal::Sha256Hex(bytes));
       } catch (const std::exception& e) {
-        app.log().critical("--calibration {}: {}", calibration_path, e.what());
-        return ftcal::kExitRefused;
+        app.log().critical("--calibration {}: {}", calibration_path,
+                           ftcal::UserText(e, "reading the calibration"));
+        return ftcal::ExitCodeFor(e, ftcal::kExitRefused);
       }
     }
     stage.ReportWaitingForCalibration();
@@ -45,7 +46,7 @@ int main(int argc, char** argv) {
                    stage.sums());
     return rc;
   } catch (const std::exception& e) {
-    app.log().critical("config: {}", e.what());
-    return ftcal::kExitConfig;
+    app.log().critical("config: {}", ftcal::UserText(e, "starting the corrector"));
+    return ftcal::ExitCodeFor(e, ftcal::kExitConfig);
   }
 }

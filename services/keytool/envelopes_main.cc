@@ -16,6 +16,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "common/envelope.h"
+#include "common/user_errors.h"
 #include "common/wire_guard.h"
 #include "ftcal/config.h"
 
@@ -82,7 +83,7 @@ int main(int argc, char** argv) {
                  static_cast<long long>(envelopes), static_cast<long long>(bad));
     return bad > 0 ? 1 : 0;
   } catch (const std::exception& e) {
-    std::cerr << "ftcal-envelopes: " << e.what() << "\n";
-    return 2;
+    std::cerr << "ftcal-envelopes: " << ftcal::UserText(e, "reading the envelopes") << "\n";
+    return ftcal::ExitCodeFor(e, 2);
   }
 }

@@ -22,6 +22,7 @@
 #include <CLI/CLI.hpp>
 
 #include "common/envelope.h"
+#include "common/user_errors.h"
 
 namespace {
 
@@ -82,7 +83,7 @@ int main(int argc, char** argv) {
     std::cerr << "ftcal-keygen: give --out FILE or --public FILE (--help)\n";
     return 2;
   } catch (const std::exception& e) {
-    std::cerr << "ftcal-keygen: " << e.what() << "\n";
-    return 2;
+    std::cerr << "ftcal-keygen: " << ftcal::UserText(e, "making the key pair") << "\n";
+    return ftcal::ExitCodeFor(e, 2);
   }
 }

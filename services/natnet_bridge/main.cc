@@ -63,6 +63,11 @@ int main(int argc, char** argv) {
     app.stats().Error("configuration", e.what());
     app.SetState(ftcal::service_status_t::FAILED);
     rc = 2;
+  } catch (const std::exception& e) {
+    // Anything else ends the bridge: said in its log and in its last heartbeat.
+    app.stats().Error("run", ftcal::UserText(e, "reading the motion capture"));
+    app.SetState(ftcal::service_status_t::FAILED);
+    rc = ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
   bus.Publish(channels.status(), app.Status(), /*count=*/false);
   app.stats().LogSummary();

@@ -21,7 +21,7 @@ int main(int argc, char** argv) {
     ftcal::PoseSegmenterStage stage(app.config(), app.bus());
     return app.Run();
   } catch (const std::exception& e) {
-    app.log().critical("config: {}", e.what());
-    return ftcal::kExitConfig;
+    app.log().critical("config: {}", ftcal::UserText(e, "running the segmenter"));
+    return ftcal::ExitCodeFor(e, ftcal::kExitConfig);
   }
 }

@@ -51,8 +51,8 @@ int main(int argc, char** argv) {
       app.bus().PublishSigned(channel, msg, signer);
     }
   } catch (const std::exception& e) {
-    app.log().critical("{}", e.what());
-    return ftcal::kExitDeviceIo;
+    app.log().critical("{}", ftcal::UserText(e, "sending the request"));
+    return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
   app.log().info("{} sent on {}{}", action, channel,
                  signing_key.empty() ? " (unsigned)" : "");

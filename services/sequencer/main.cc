@@ -53,15 +53,15 @@ int main(int argc, char** argv) {
   try {
     signer.emplace(ftcal::auth::Signer::FromSeedFile(signing_key));
   } catch (const std::exception& e) {
-    app.log().critical("--signing-key: {}", e.what());
+    app.log().critical("--signing-key: {}", ftcal::UserText(e, "reading the signing key"));
     return kBadPlan;
   }
   std::unique_ptr<ftcal::sequencer::Sequencer> seq;
   try {
     seq = std::make_unique<ftcal::sequencer::Sequencer>(app.config(), app.bus(), *signer, options);
   } catch (const std::exception& e) {
-    app.log().critical("{}", e.what());
-    return kBadPlan;
+    app.log().critical("{}", ftcal::UserText(e, "preparing the plan"));
+    return ftcal::IsInternalError(e) ? ftcal::kExitInternal : kBadPlan;
   }
   app.log().info("plan '{}': {} steps, {:.0f} s of motion", seq->schedule().plan_name,
                  seq->schedule().steps.size(), seq->schedule().duration_s);

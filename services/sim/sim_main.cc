@@ -517,7 +517,7 @@ int main(int argc, char** argv) {
     try {
       return RunLive(ftcal::LoadConfigOrDefault(config_path), live_flags);
     } catch (const std::exception& e) {
-      std::fprintf(stderr, "ftcal-sim live: %s\n", e.what());
+      std::fprintf(stderr, "ftcal-sim live: %s\n", ftcal::UserText(e, "running the twin").c_str());
       return 1;
     }
   }
@@ -577,7 +577,7 @@ int main(int argc, char** argv) {
                            plan.drift_at_s, drifted_truth_path.c_str());
     return 0;
   } catch (const std::exception& e) {
-    std::fprintf(stderr, "ftcal-sim log: %s\n", e.what());
+    std::fprintf(stderr, "ftcal-sim log: %s\n", ftcal::UserText(e, "writing the twin's log").c_str());
     return 1;
   }
 }

@@ -26,6 +26,8 @@
 #include "common/heartbeat.h"
 #include "common/service.h"
 #include "common/shutdown.h"
+#include "common/user_errors.h"
+#include "ftcal/config.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "status/status_board.h"
@@ -215,6 +217,84 @@ TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
   EXPECT_EQ(stats.kinds().at("unknown leg"), 1);
   EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_HL: truncated"), 1);
   EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_ML: wrong fingerprint"), 1);
+}
+
+// The standard library's texts for its own failures never reach a user; ftcal's texts do.
+// Each library exception is a real one, thrown by the call that throws it in a program.
+TEST(UserErrorsTest, LibraryTextsAreNamedAsWhatTheyAreAndFtcalTextsPassThrough) {
+  auto caught = [](auto&& fn) -> std::exception_ptr {
+    try {
+      fn();
+    } catch (...) {
+      return std::current_exception();
+    }
+    return nullptr;
+  };
+  auto text = [](std::exception_ptr p, const char* doing) {
+    try {
+      std::rethrow_exception(p);
+    } catch (const std::exception& e) {
+      return std::pair{UserText(e, doing), ExitCodeFor(e, kExitRefused)};
+    }
+    return std::pair{std::string(), -1};
+  };
+  struct Case {
+    std::exception_ptr thrown;
+    const char* library_text;  // what the library says, which must not be shown
+  };
+  std::string empty;
+  std::vector<int> six(6);
+  const Case internal[] = {
+      {caught([&] { empty.replace(5, 1, "x"); }), "basic_string"},
+      {caught([&] { (void)six.at(7); }), "_M_range_check"},
+      {caught([] { (void)std::stoi("abc"); }), "stoi"},
+      {caught([] { (void)std::stoi("99999999999999999999"); }), "stoi"},
+      {caught([&] { empty.reserve(empty.max_size() + 1); }), "basic_string"},
+      {caught([] { throw std::bad_alloc(); }), "bad_alloc"},
+      {caught([] { std::function<void()> f; f(); }), "bad_function_call"},
+  };
+  for (const Case& c : internal) {
+    ASSERT_TRUE(c.thrown) << c.library_text;
+    const auto [shown, rc] = text(c.thrown, "reading the logs");
+    EXPECT_EQ(shown.find(c.library_text), std::string::npos) << shown;
+    EXPECT_NE(shown.find("while reading the logs"), std::string::npos) << shown;
+    EXPECT_EQ(rc, kExitInternal) << shown;
+  }
+  EXPECT_EQ(text(caught([] { throw std::bad_alloc(); }), "reading the logs").first,
+            "out of memory while reading the logs");
+  const char* ours[] = {"robot.leg[2].servo.id: 300 is above 252",
+                        "channel pattern '[' is not a valid regular expression",
+                        "replay input '/x.lcmlog': No such file or directory"};
+  const std::exception_ptr ftcal_thrown[] = {
+      caught([&] { throw ConfigError(ours[0]); }),
+      caught([&] { throw std::invalid_argument(ours[1]); }),
+      caught([&] { throw std::runtime_error(ours[2]); })};
+  for (int i = 0; i < 3; ++i) {
+    const auto [shown, rc] = text(ftcal_thrown[i], "reading the logs");
+    EXPECT_EQ(shown, ours[i]);
+    EXPECT_EQ(rc, kExitRefused);
+  }
+}
+
+// A handler's bug reaches the status (what ftcal-status shows) as a bug, not as the library's
+// text.
+TEST(UserErrorsTest, AHandlersIndexOutOfRangeIsCountedAsAnInternalErrorInTheStatus) {
+  ServiceStats stats(QuietLogger());
+  LcmBus bus("memq://", stats);
+  bus.Subscribe<ft_sample_t>("FT_.*", [&](const MessageInfo&, const ft_sample_t& s) {
+    std::vector<double> three(3);
+    (void)three.at(static_cast<std::size_t>(s.status));
+  });
+  ft_sample_t bad = Sample("HL", 10, 1.0);
+  bad.status = 7;
+  bus.Publish("FT_HL", bad);
+  while (bus.HandleOnce(0) > 0) {
+  }
+  EXPECT_EQ(stats.errors(), 1);
+  EXPECT_EQ(stats.last_error().find("_M_range_check"), std::string::npos) << stats.last_error();
+  EXPECT_NE(stats.last_error().find("an internal error while handling a message on FT_HL"),
+            std::string::npos)
+      << stats.last_error();
 }
 
 TEST(LcmBusTest, BadUrlIsAClearError) {
