@@ -442,6 +442,7 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
   try {
     CalibrateOptions co;
     co.accept_mass_mismatch = options.accept_mass_mismatch;
+    co.accept_leg_map_mismatch = options.accept_leg_map_mismatch;
     if (collector.tare()) {
       co.has_naive_tare = true;
       co.naive_tare = *collector.tare();

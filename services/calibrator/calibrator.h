@@ -153,6 +153,8 @@ struct CalibratorOptions {
   std::string command_line;
   // --accept-mass-mismatch: calibrate when the configured total mass disagrees with the data.
   bool accept_mass_mismatch = false;
+  // --accept-leg-map-mismatch: calibrate when a transducer's data follows another leg's shaft.
+  bool accept_leg_map_mismatch = false;
 };
 
 // Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.

@@ -53,6 +53,7 @@ struct Args {
   std::string log_level;
   std::string profile;
   bool accept_mass_mismatch = false;
+  bool accept_leg_map_mismatch = false;
   std::string command_line;
   std::string signing_key;
 };
@@ -169,6 +170,7 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
   options.config_path = args.config_path;
   options.command_line = args.command_line;
   options.accept_mass_mismatch = args.accept_mass_mismatch;
+  options.accept_leg_map_mismatch = args.accept_leg_map_mismatch;
   return options;
 }
 
@@ -218,6 +220,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   options.config_path = args.config_path;
   options.command_line = args.command_line;
   options.accept_mass_mismatch = args.accept_mass_mismatch;
+  options.accept_leg_map_mismatch = args.accept_leg_map_mismatch;
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
@@ -308,6 +311,10 @@ int main(int argc, char** argv) {
   cli.add_flag("--accept-mass-mismatch", args.accept_mass_mismatch,
                "calibrate even when the configured total mass disagrees with the mass the data "
                "implies (recorded in the calibration file as a warning); refused otherwise");
+  cli.add_flag("--accept-leg-map-mismatch", args.accept_leg_map_mismatch,
+               "calibrate even when a transducer's standing data follows another leg's shaft "
+               "far better than its own (two legs' servo ids or transducer addresses swapped in "
+               "the config; recorded in the calibration file as a warning); refused otherwise");
   cli.add_option("--signing-key", args.signing_key,
                  "live: sign CALIBRATION with the Ed25519 seed in this file (owner-only; "
                  "ftcal-keygen makes one)");

@@ -188,6 +188,45 @@ class CalibratorTest : public ::testing::Test {
   }
 };
 
+// Two legs' servo ids swapped in the Dynamixel bridge's config: the bridge names each servo's
+// leg by its id, so SERVO_STATE says "ML" for the servo that turns HL and the other way round.
+// The calibrator's standing data says so and the calibration is refused, naming both legs,
+// unless --accept-leg-map-mismatch.
+TEST_F(CalibratorTest, RefusesALogWithTwoServoIdsSwapped) {
+  std::vector<Event> events = fx->events;
+  int swapped_states = 0;
+  for (Event& e : events) {
+    if (e.channel != "SERVO_STATE") continue;
+    servo_state_t m;
+    ASSERT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+              static_cast<int>(e.data.size()));
+    ASSERT_EQ(m.leg[0], "HL");
+    ASSERT_EQ(m.leg[1], "ML");
+    std::swap(m.leg[0], m.leg[1]);
+    e = Encode(e.utime, e.channel, m);
+    ++swapped_states;
+  }
+  ASSERT_GT(swapped_states, 0);
+  const std::string log = fx->dir + "/swapped_servos.lcmlog";
+  WriteLog(log, events);
+  const std::string out = fx->dir + "/swapped.pbtxt";
+  const Result r = Run({"--log", log, "--config", kConfig, "--out", out}, "swapped");
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_NE(r.err.find("data of legs HL, ML contradicts their configured position"),
+            std::string::npos)
+      << r.err;
+  EXPECT_NE(r.err.find("HL's transducer follows ML's shaft"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("--accept-leg-map-mismatch"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(out));
+  const Result anyway =
+      Run({"--log", log, "--config", kConfig, "--out", out, "--accept-leg-map-mismatch"},
+          "swapped_accepted");
+  ASSERT_EQ(anyway.exit_code, 0) << anyway.err;
+  const calibration::Calibration cal = ReadCalibrationFile(out);
+  EXPECT_FALSE(cal.leg_map_check().consistent());
+  EXPECT_TRUE(cal.leg_map_check().accepted_mismatch());
+}
+
 // --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
 // four candidates; the file says so.
 TEST_F(CalibratorTest, ReportProfileFromTheCommandLine) {
