@@ -330,6 +330,41 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   }
   // With --truth, the true values are beside the estimates.
   EXPECT_NE(html.find("truth"), std::string::npos);
+  // The correlation of the estimates: the report's strongest pair of HL is the file's.
+  ASSERT_TRUE(cal.has_correlation());
+  {
+    const auto& c = cal.correlation();
+    const int n = c.parameter_size();
+    ASSERT_EQ(c.value_size(), n * n);
+    auto of_hl = [&](int i) { return c.parameter(i).rfind("HL ", 0) == 0; };
+    int bi = -1, bj = -1;
+    for (int i = 0; i < n; ++i) {
+      for (int j = i + 1; j < n; ++j) {
+        if (!of_hl(i) && !of_hl(j)) continue;
+        if (bi < 0 || std::abs(c.value(n * i + j)) > std::abs(c.value(n * bi + bj))) {
+          bi = i;
+          bj = j;
+        }
+      }
+    }
+    ASSERT_GE(bi, 0);
+    auto esc = [](std::string t) {
+      for (size_t at = t.find('\''); at != std::string::npos; at = t.find('\'', at)) {
+        t.replace(at, 1, "&#x27;");
+      }
+      return t;
+    };
+    char rho[16];
+    std::snprintf(rho, sizeof rho, "%+.3f", c.value(n * bi + bj));
+    const std::string row = "<tr><td>HL</td><td>" + esc(c.parameter(bi)) + "</td><td>" +
+                            esc(c.parameter(bj)) + "</td><td>" + rho + "</td></tr>";
+    EXPECT_NE(html.find(row), std::string::npos) << row;
+    EXPECT_NE(html.find("correlation.png"), std::string::npos);
+  }
+  // The leg map check, with the config right: consistent, in the file and the report.
+  ASSERT_TRUE(cal.has_leg_map_check());
+  EXPECT_TRUE(cal.leg_map_check().consistent());
+  EXPECT_NE(html.find("Leg map check"), std::string::npos);
 
   // The walk corrected three ways, one sample per 0.04 s. Against the twin: with the true
   // parameters the six ground wrenches sum to (0, 0, G, 0, 0, 0) about the CoM (the twin's
