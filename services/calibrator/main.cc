@@ -8,6 +8,8 @@
 #include <cstdio>
 #include <exception>
 #include <filesystem>
+#include <future>
+#include <map>
 #include <iostream>
 #include <optional>
 #include <string>
@@ -176,8 +178,20 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
 
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
+  // Provenance hashes every input log: on the second core while the first reads them.
+  std::map<std::string, std::shared_future<std::string>> hashes;
+  for (const std::string& path : args.logs) {
+    std::error_code ec;
+    if (hashes.count(path) || !std::filesystem::is_regular_file(path, ec)) continue;
+    hashes[path] = std::async(std::launch::async, ftcal::Sha256File, path).share();
+  }
+  ftcal::CalibratorOptions options = OptionsOf(args);
+  options.sha256 = [&hashes](const std::string& path) {
+    const auto it = hashes.find(path);
+    return it != hashes.end() ? it->second.get() : ftcal::Sha256File(path);
+  };
   if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
-  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, OptionsOf(args));
+  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   std::optional<ftcal::RobotCalibration> truth;
   if (!args.truth.empty()) {
     try {
