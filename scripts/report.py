@@ -337,6 +337,67 @@ def plot_vs_truth(est, tru, outdir):
     return save(fig, outdir, "vs_truth.png")
 
 
+def correlation_of(cal):
+    """(names, n x n array) of the step-2 correlation in the calibration file, or None."""
+    if not cal.HasField("correlation"):
+        return None
+    c = cal.correlation
+    n = len(c.parameter)
+    if n == 0 or len(c.value) != n * n:
+        raise ReportError(f"correlation: {len(c.value)} values for {n} parameters "
+                          f"(expected {n * n})")
+    return list(c.parameter), np.array(c.value, dtype=float).reshape(n, n)
+
+
+def strongest_correlations(names, r, per_group=3):
+    """Per leg (and "shared" for p^C_B): the `per_group` off-diagonal pairs of largest |rho|
+    with at least one parameter of that leg, as [group, a, b, rho] rows, strongest first."""
+    groups = []
+    for n in names:
+        g = n.split(" ")[0] if not n.startswith("p^C_B") else "shared"
+        if g not in groups:
+            groups.append(g)
+    def group_of(n):
+        return "shared" if n.startswith("p^C_B") else n.split(" ")[0]
+    rows = []
+    for g in groups:
+        pairs = [(abs(r[i, j]), i, j) for i in range(len(names)) for j in range(i + 1, len(names))
+                 if g in (group_of(names[i]), group_of(names[j]))]
+        pairs.sort(key=lambda x: -x[0])
+        for _, i, j in pairs[:per_group]:
+            rows.append([g, names[i], names[j], f"{r[i, j]:+.3f}"])
+    return rows
+
+
+def plot_correlation(names, r, outdir):
+    fig, ax = plt.subplots(figsize=(9, 8))
+    im = ax.imshow(r, vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(len(names)))
+    ax.set_yticks(range(len(names)))
+    ax.set_xticklabels(names, rotation=90, fontsize=6)
+    ax.set_yticklabels(names, fontsize=6)
+    fig.colorbar(im, ax=ax, label="correlation")
+    ax.set_title("Correlation of the step-2 estimates (sandwich covariance)")
+    fig.tight_layout()
+    return save(fig, outdir, "correlation.png")
+
+
+def leg_map_rows(cal):
+    """Per transducer: the rms torque misfit against each leg's shaft (calibration's
+    leg_map_check), the own shaft first."""
+    m = cal.leg_map_check
+    n = len(cal.leg)
+    if len(m.rms_nm) != n * n:
+        return []
+    rows = []
+    for k, leg in enumerate(cal.leg):
+        rms = m.rms_nm[n * k:n * (k + 1)]
+        own = rms[k]
+        other = min(rms[j] for j in range(n) if j != k)
+        rows.append([leg.name] + [fmt(x, 3) for x in rms] + [f"{other / own:.1f}" if own > 0 else "-"])
+    return rows
+
+
 def table(header, rows):
     h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>"
@@ -368,6 +429,12 @@ def main():
 
     imgs = [plot_residual_violins(res, a.outdir), plot_hanging_residuals(cal, a.outdir)]
     com_imgs = plot_com(cal, truth, a.outdir)
+    try:
+        corr = correlation_of(cal)
+    except ReportError as e:
+        print(f"report: {a.calibration}: {e}", file=sys.stderr)
+        return 2
+    corr_img = plot_correlation(*corr, a.outdir) if corr is not None else None
     est = estimates(cal)
     tru = estimates(truth) if truth is not None else None
     vs = plot_vs_truth(est, tru, a.outdir) if tru is not None else None
@@ -448,7 +515,11 @@ def main():
         table(["samples", "wrench", "against", "count", "force naive (N)", "force calibrated (N)",
                "change", "torque naive (N m)", "torque calibrated (N m)", "change"], rmse_rows)
         if rmse_rows else "",
-        "<h2>Model selection</h2>",
+        "<h2>Model selection (the report's Table I)</h2>",
+        "<p>One table for the robot, not one per leg: the residual of step 2 is the summed "
+        "wrench of the six legs against the balance target, so its CV error and BIC do not "
+        "split into legs. The selected model gives every leg the parameters below (Table II); "
+        "how the legs' estimates depend on each other is in the correlation further down.</p>",
         table(["selected", "model", "robot CoM", "DOF", "CV MSE", "RSS", "BIC", "ΔBIC"],
               model_rows), margin,
         "<h2>Estimates per leg (the report's Table II; ± 1 σ)</h2>",
@@ -458,6 +529,25 @@ def main():
     ]
     if vs:
         parts.append(img(vs))
+    if corr is not None:
+        parts += ["<h2>Correlation of the estimates</h2>",
+                  "<p>From the sandwich covariance the step-2 σ come from, for the selected "
+                  "model's parameters (R~ as the rotation-vector perturbation, p~' or p^C_B). "
+                  "Step 1's σ are spreads over leg cycles and have no joint covariance. "
+                  "Strongest pairs per leg:</p>",
+                  table(["leg", "parameter", "parameter", "correlation"],
+                        strongest_correlations(*corr)),
+                  img(corr_img)]
+    if cal.HasField("leg_map_check") and leg_map_rows(cal):
+        m = cal.leg_map_check
+        parts += ["<h2>Leg map check</h2>",
+                  f"<p>Each transducer's standing torques fitted as those of a foot turning "
+                  f"with each leg's shaft, over {m.poses} poses: rms misfit (N m); the own "
+                  f"shaft must fit best (refused when another fits {m.ratio_limit:g} times "
+                  f"better). "
+                  + ("Consistent." if m.consistent else "<b>MISMATCH (accepted).</b>") + "</p>",
+                  table(["transducer"] + [f"shaft {leg.name}" for leg in cal.leg]
+                        + ["best other / own"], leg_map_rows(cal))]
     parts += ["<h2>Hanging residuals per leg (with and without s)</h2>", img(imgs[1]),
               table(["series", "samples"] + ["rms " + c for c in COMPONENTS], hang_rows),
               "<h2>Leg CoM against phase (bins and fit)</h2>"] + [img(n) for n in com_imgs]

@@ -9,7 +9,10 @@
 #include <string>
 #include <utility>
 
+#include <Eigen/QR>
+
 #include "ftcal/config.h"
+#include "ftcal/geometry.h"
 
 namespace ftcal {
 
@@ -51,7 +54,86 @@ calibration::MassCheck CheckTotalMass(const CalibrationRun& run, const config::C
   return m;
 }
 
+// rms of transducer k's standing torques against tau = p(theta_j) x f + c(theta_j), p and c of
+// the form u + v cos(theta) + w sin(theta): 18 unknowns by linear least squares over 3 P rows.
+// The leg gravity torque r(theta) x m g and the offsets' (p(theta) x (f_o + m g)) are of c's form
+// when the chassis is near level; the rest of the residual is noise and tilt.
+double LegMapRms(const std::vector<StandingPose>& poses, int k, int j) {
+  using Mat18 = Eigen::Matrix<double, 18, 18>;
+  using Vec18 = Eigen::Matrix<double, 18, 1>;
+  auto rows = [&](const StandingPose& pose) {
+    const Vec3 f = pose.wrench[k].head<3>();
+    const double c = std::cos(pose.angle_rad[j]), s = std::sin(pose.angle_rad[j]);
+    Eigen::Matrix<double, 3, 18> a;
+    const Mat3 mf = -Skew(f);  // p x f = -[f] p
+    a << mf, c * mf, s * mf, Mat3::Identity(), c * Mat3::Identity(), s * Mat3::Identity();
+    return a;
+  };
+  Mat18 h = Mat18::Zero();
+  Vec18 g = Vec18::Zero();
+  for (const StandingPose& pose : poses) {
+    const Eigen::Matrix<double, 3, 18> a = rows(pose);
+    h.noalias() += a.transpose() * a;
+    g.noalias() += a.transpose() * pose.wrench[k].tail<3>();
+  }
+  // Rank-revealing: a shaft that never moved leaves its cos and sin columns dependent.
+  const Vec18 x = h.completeOrthogonalDecomposition().solve(g);
+  double rss = 0.0;
+  for (const StandingPose& pose : poses) {
+    rss += (rows(pose) * x - pose.wrench[k].tail<3>()).squaredNorm();
+  }
+  return std::sqrt(rss / (3.0 * static_cast<double>(poses.size())));
+}
+
 }  // namespace
+
+bool LegMapResult::consistent() const {
+  for (bool c : contradicted) {
+    if (c) return false;
+  }
+  return true;
+}
+
+std::string LegMapResult::Describe() const {
+  std::string legs, detail;
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (!contradicted[k]) continue;
+    const int j = best_other[k];
+    legs += (legs.empty() ? "" : ", ") + std::string(kLegNames[k]);
+    char buf[200];
+    std::snprintf(buf, sizeof buf,
+                  "%s%s's transducer follows %s's shaft (rms torque misfit %.4f N m) better than "
+                  "its own (%.4f N m, %.1f times worse)",
+                  detail.empty() ? "" : "; ", std::string(kLegNames[k]).c_str(),
+                  std::string(kLegNames[j]).c_str(), rms_nm[k][j],
+                  rms_nm[k][k], rms_nm[k][k] / rms_nm[k][j]);
+    detail += buf;
+  }
+  if (legs.empty()) return "";
+  return "leg map check: over the " + std::to_string(poses) +
+         " standing poses the data of legs " + legs + " contradicts their configured position: " +
+         detail + " (allowed: " + std::to_string(static_cast<int>(kRatioLimit)) +
+         " times): were those legs' servo ids (robot.leg servo.id: the Dynamixel bridge names each "
+         "servo's leg by it) or transducer addresses (ati.address: the ATI bridge publishes each "
+         "box as its leg's FT channel) swapped in the config the bridges ran with?";
+}
+
+LegMapResult CheckLegMap(const std::vector<StandingPose>& poses) {
+  LegMapResult r;
+  r.poses = static_cast<int>(poses.size());
+  if (r.poses < LegMapResult::kMinLegMapPoses) return r;
+  r.checked = true;
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int j = 0; j < kNumLegs; ++j) r.rms_nm[k][j] = LegMapRms(poses, k, j);
+    int best = k == 0 ? 1 : 0;
+    for (int j = 0; j < kNumLegs; ++j) {
+      if (j != k && r.rms_nm[k][j] < r.rms_nm[k][best]) best = j;
+    }
+    r.best_other[k] = best;
+    r.contradicted[k] = r.rms_nm[k][k] > LegMapResult::kRatioLimit * r.rms_nm[k][best];
+  }
+  return r;
+}
 
 CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
                                     const std::vector<StandingPose>& poses,
@@ -192,8 +274,34 @@ CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
     }
     if (ok) kept.push_back(pose);
   }
+  // Before step 2: with two legs' shafts or transducers swapped every figure of it is wrong.
+  const LegMapResult leg_map = CheckLegMap(kept);
+  std::string leg_map_warning;
+  if (leg_map.checked && !leg_map.consistent()) {
+    if (!options.accept_leg_map_mismatch) {
+      throw LegMapMismatchError(leg_map.Describe() + " (--accept-leg-map-mismatch to calibrate "
+                                "anyway)");
+    }
+    leg_map_warning = leg_map.Describe() + "; calibrated anyway (--accept-leg-map-mismatch)";
+  }
   CalibrationRun run = CalibrateFromHanging(
       step1, kept, config, StandingOptionsFromConfig(config.calibrator()), options);
+  {
+    calibration::LegMapCheck* m = run.proto.mutable_leg_map_check();
+    m->set_poses(static_cast<uint32_t>(leg_map.poses));
+    m->set_ratio_limit(LegMapResult::kRatioLimit);
+    if (leg_map.checked) {
+      for (int k = 0; k < kNumLegs; ++k) {
+        for (int j = 0; j < kNumLegs; ++j) m->add_rms_nm(leg_map.rms_nm[k][j]);
+      }
+    }
+    m->set_consistent(leg_map.consistent());
+    m->set_accepted_mismatch(!leg_map_warning.empty());
+    if (!leg_map_warning.empty()) {
+      run.warnings.push_back(leg_map_warning);
+      run.proto.add_warning(leg_map_warning);
+    }
+  }
   std::string legs;
   for (int k = 0; k < kNumLegs; ++k) {
     run.proto.mutable_leg(k)->set_saturated_poses(static_cast<uint32_t>(saturated_poses[k]));

@@ -576,6 +576,27 @@ void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFi
   }
   const Eigen::MatrixXd Hinv = ldlt.solve(Eigen::MatrixXd::Identity(H.rows(), H.cols()));
   const Eigen::MatrixXd C = Hinv * M * Hinv;
+  fit->correlation = CorrelationOfCovariance(C);
+  fit->correlation_names.clear();
+  const char* axes[3] = {"x", "y", "z"};
+  if (HasRotations(fit->model)) {
+    for (int k = 0; k < kNumLegs; ++k) {
+      for (const char* a : axes) fit->correlation_names.push_back(std::string(kLegNames[k]) + " R~ " + a);
+    }
+  }
+  if (SharedTranslation(fit->model)) {
+    for (const char* a : axes) fit->correlation_names.push_back(std::string("p^C_B ") + a);
+  } else {
+    for (int k = 0; k < kNumLegs; ++k) {
+      for (const char* a : axes) fit->correlation_names.push_back(std::string(kLegNames[k]) + " p~' " + a);
+    }
+  }
+  if (static_cast<Eigen::Index>(fit->correlation_names.size()) != C.rows()) {
+    throw std::logic_error(std::string("standing step: covariance of model ") +
+                           StandingModelName(fit->model) +
+                           " has " + std::to_string(C.rows()) + " parameters, expected " +
+                           std::to_string(fit->correlation_names.size()));
+  }
   for (int k = 0; k < kNumLegs; ++k) {
     fit->sigma_rotation_deg[k].setZero();
     fit->sigma_p_tilde_prime_m[k].setZero();
@@ -1150,6 +1171,33 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
   return result;
 }
 
+Eigen::MatrixXd CorrelationOfCovariance(const Eigen::MatrixXd& covariance) {
+  const Eigen::Index n = covariance.rows();
+  if (covariance.cols() != n) {
+    throw std::invalid_argument("CorrelationOfCovariance: a " + std::to_string(n) + " x " +
+                                std::to_string(covariance.cols()) + " matrix is not square");
+  }
+  Eigen::VectorXd s(n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const double v = covariance(i, i);
+    if (!std::isfinite(v) || v < 0.0) {
+      throw std::invalid_argument("CorrelationOfCovariance: variance " + std::to_string(i) +
+                                  " is " + std::to_string(v));
+    }
+    s[i] = std::sqrt(v);
+  }
+  Eigen::MatrixXd r = Eigen::MatrixXd::Identity(n, n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    for (Eigen::Index j = 0; j < n; ++j) {
+      // Averaged with its transpose: H^-1 M H^-1 is symmetric only to rounding.
+      if (i != j && s[i] > 0.0 && s[j] > 0.0) {
+        r(i, j) = 0.5 * (covariance(i, j) + covariance(j, i)) / (s[i] * s[j]);
+      }
+    }
+  }
+  return r;
+}
+
 calibration::ResidualStats ResidualStatsOf(const std::string& label,
                                            const std::vector<Vec6>& residuals) {
   calibration::ResidualStats s;
@@ -1284,6 +1332,16 @@ void FillStandingProto(const StandingResult& result, calibration::Calibration* o
   *out->add_standing_residual() = ResidualStatsOf("full calibration", result.residual_full);
   out->set_standing_poses(static_cast<uint32_t>(result.poses));
   out->set_standing_uncertainty(calibration::SOLVER_COVARIANCE);
+  out->clear_correlation();
+  if (fit.has_covariance && fit.correlation.rows() > 0) {
+    calibration::ParameterCorrelation* c = out->mutable_correlation();
+    for (const std::string& name : fit.correlation_names) c->add_parameter(name);
+    const Eigen::Index n = fit.correlation.rows();
+    c->mutable_value()->Reserve(static_cast<int>(n * n));
+    for (Eigen::Index i = 0; i < n; ++i) {
+      for (Eigen::Index j = 0; j < n; ++j) c->add_value(fit.correlation(i, j));
+    }
+  }
 }
 
 }  // namespace ftcal

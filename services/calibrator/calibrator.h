@@ -27,7 +27,9 @@
 #include <optional>
 #include <set>
 #include <stdexcept>
+#include <regex>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "common/bus.h"
@@ -142,6 +144,15 @@ class CalibrationCollector {
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
+  // Per channel name heard: its leg index among the config's FT channels (-1: not a leg's, or
+  // not an FT channel). One hash lookup per event instead of a std::set insertion (two per FT
+  // event) and six name comparisons: a report-scale log has 4 M events on ten channels.
+  std::unordered_map<std::string, int> channel_leg_;
+  // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
+  // config's).
+  std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};
+  int LegOfChannel(const std::string& channel);
+  ft_sample_t ft_scratch_;
   std::function<void()> on_standing_stop_;
   std::function<void()> on_steady_pose_;
   CollectorCounters counters_;
@@ -153,6 +164,11 @@ struct CalibratorOptions {
   std::string command_line;
   // --accept-mass-mismatch: calibrate when the configured total mass disagrees with the data.
   bool accept_mass_mismatch = false;
+  // --accept-leg-map-mismatch: calibrate when a transducer's data follows another leg's shaft.
+  bool accept_leg_map_mismatch = false;
+  // The SHA-256 of an input log for provenance; empty: Sha256File. Offline runs hash the logs
+  // on another thread while they are read (a second pass over ~1 GB otherwise).
+  std::function<std::string(const std::string& path)> sha256;
 };
 
 // Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.

@@ -8,6 +8,8 @@
 #include <cstdio>
 #include <exception>
 #include <filesystem>
+#include <future>
+#include <map>
 #include <iostream>
 #include <optional>
 #include <string>
@@ -53,6 +55,7 @@ struct Args {
   std::string log_level;
   std::string profile;
   bool accept_mass_mismatch = false;
+  bool accept_leg_map_mismatch = false;
   std::string command_line;
   std::string signing_key;
 };
@@ -169,13 +172,26 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
   options.config_path = args.config_path;
   options.command_line = args.command_line;
   options.accept_mass_mismatch = args.accept_mass_mismatch;
+  options.accept_leg_map_mismatch = args.accept_leg_map_mismatch;
   return options;
 }
 
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
+  // Provenance hashes every input log: on the second core while the first reads them.
+  std::map<std::string, std::shared_future<std::string>> hashes;
+  for (const std::string& path : args.logs) {
+    std::error_code ec;
+    if (hashes.count(path) || !std::filesystem::is_regular_file(path, ec)) continue;
+    hashes[path] = std::async(std::launch::async, ftcal::Sha256File, path).share();
+  }
+  ftcal::CalibratorOptions options = OptionsOf(args);
+  options.sha256 = [&hashes](const std::string& path) {
+    const auto it = hashes.find(path);
+    return it != hashes.end() ? it->second.get() : ftcal::Sha256File(path);
+  };
   if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
-  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, OptionsOf(args));
+  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   std::optional<ftcal::RobotCalibration> truth;
   if (!args.truth.empty()) {
     try {
@@ -218,6 +234,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   options.config_path = args.config_path;
   options.command_line = args.command_line;
   options.accept_mass_mismatch = args.accept_mass_mismatch;
+  options.accept_leg_map_mismatch = args.accept_leg_map_mismatch;
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
@@ -308,6 +325,10 @@ int main(int argc, char** argv) {
   cli.add_flag("--accept-mass-mismatch", args.accept_mass_mismatch,
                "calibrate even when the configured total mass disagrees with the mass the data "
                "implies (recorded in the calibration file as a warning); refused otherwise");
+  cli.add_flag("--accept-leg-map-mismatch", args.accept_leg_map_mismatch,
+               "calibrate even when a transducer's standing data follows another leg's shaft "
+               "far better than its own (two legs' servo ids or transducer addresses swapped in "
+               "the config; recorded in the calibration file as a warning); refused otherwise");
   cli.add_option("--signing-key", args.signing_key,
                  "live: sign CALIBRATION with the Ed25519 seed in this file (owner-only; "
                  "ftcal-keygen makes one)");

@@ -211,9 +211,14 @@ class LogReplayBus : public Bus {
 
 template <class Msg>
 void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
-  SubscribeRaw(channel, [handler = std::move(handler)](const MessageInfo& info, const void* data,
-                                                        int size) {
-    Msg msg;
+  // One message object per subscription, decoded into again for every event: LCM's decoders
+  // assign every field and reuse the strings' and vectors' storage, so a replay of millions of
+  // messages does not allocate and free their strings and arrays each time. Handlers get it by
+  // const reference for the call only (dispatch is never re-entrant for one subscription).
+  auto scratch = std::make_shared<Msg>();
+  SubscribeRaw(channel, [handler = std::move(handler), scratch](const MessageInfo& info,
+                                                                 const void* data, int size) {
+    Msg& msg = *scratch;
     if (auto refused = wire::Decode(data, size, &msg)) {
       throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
                          refused->kind,

@@ -80,7 +80,16 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
   const int64_t decoded_bound = kMaxDecodedBytesPerByte * total + kDecodedSlackBytes;
   int64_t pos = 8;
   int64_t decoded = 0;
-  std::vector<int64_t> values(static_cast<size_t>(schema.num_fields), 0);
+  // The integer members' values (array sizes), on the stack for every ftcal type (the largest
+  // has a few dozen fields): this runs for every message received.
+  constexpr int kStackFields = 64;
+  int64_t stack_values[kStackFields] = {};
+  std::vector<int64_t> heap_values;
+  int64_t* values = stack_values;
+  if (schema.num_fields > kStackFields) {
+    heap_values.assign(static_cast<size_t>(schema.num_fields), 0);
+    values = heap_values.data();
+  }
   for (int i = 0; i < schema.num_fields; ++i) {
     const Field& f = schema.fields[i];
     auto where = [&] {

@@ -188,6 +188,45 @@ class CalibratorTest : public ::testing::Test {
   }
 };
 
+// Two legs' servo ids swapped in the Dynamixel bridge's config: the bridge names each servo's
+// leg by its id, so SERVO_STATE says "ML" for the servo that turns HL and the other way round.
+// The calibrator's standing data says so and the calibration is refused, naming both legs,
+// unless --accept-leg-map-mismatch.
+TEST_F(CalibratorTest, RefusesALogWithTwoServoIdsSwapped) {
+  std::vector<Event> events = fx->events;
+  int swapped_states = 0;
+  for (Event& e : events) {
+    if (e.channel != "SERVO_STATE") continue;
+    servo_state_t m;
+    ASSERT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+              static_cast<int>(e.data.size()));
+    ASSERT_EQ(m.leg[0], "HL");
+    ASSERT_EQ(m.leg[1], "ML");
+    std::swap(m.leg[0], m.leg[1]);
+    e = Encode(e.utime, e.channel, m);
+    ++swapped_states;
+  }
+  ASSERT_GT(swapped_states, 0);
+  const std::string log = fx->dir + "/swapped_servos.lcmlog";
+  WriteLog(log, events);
+  const std::string out = fx->dir + "/swapped.pbtxt";
+  const Result r = Run({"--log", log, "--config", kConfig, "--out", out}, "swapped");
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_NE(r.err.find("data of legs HL, ML contradicts their configured position"),
+            std::string::npos)
+      << r.err;
+  EXPECT_NE(r.err.find("HL's transducer follows ML's shaft"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("--accept-leg-map-mismatch"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(out));
+  const Result anyway =
+      Run({"--log", log, "--config", kConfig, "--out", out, "--accept-leg-map-mismatch"},
+          "swapped_accepted");
+  ASSERT_EQ(anyway.exit_code, 0) << anyway.err;
+  const calibration::Calibration cal = ReadCalibrationFile(out);
+  EXPECT_FALSE(cal.leg_map_check().consistent());
+  EXPECT_TRUE(cal.leg_map_check().accepted_mismatch());
+}
+
 // --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
 // four candidates; the file says so.
 TEST_F(CalibratorTest, ReportProfileFromTheCommandLine) {
@@ -291,6 +330,41 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   }
   // With --truth, the true values are beside the estimates.
   EXPECT_NE(html.find("truth"), std::string::npos);
+  // The correlation of the estimates: the report's strongest pair of HL is the file's.
+  ASSERT_TRUE(cal.has_correlation());
+  {
+    const auto& c = cal.correlation();
+    const int n = c.parameter_size();
+    ASSERT_EQ(c.value_size(), n * n);
+    auto of_hl = [&](int i) { return c.parameter(i).rfind("HL ", 0) == 0; };
+    int bi = -1, bj = -1;
+    for (int i = 0; i < n; ++i) {
+      for (int j = i + 1; j < n; ++j) {
+        if (!of_hl(i) && !of_hl(j)) continue;
+        if (bi < 0 || std::abs(c.value(n * i + j)) > std::abs(c.value(n * bi + bj))) {
+          bi = i;
+          bj = j;
+        }
+      }
+    }
+    ASSERT_GE(bi, 0);
+    auto esc = [](std::string t) {
+      for (size_t at = t.find('\''); at != std::string::npos; at = t.find('\'', at)) {
+        t.replace(at, 1, "&#x27;");
+      }
+      return t;
+    };
+    char rho[16];
+    std::snprintf(rho, sizeof rho, "%+.3f", c.value(n * bi + bj));
+    const std::string row = "<tr><td>HL</td><td>" + esc(c.parameter(bi)) + "</td><td>" +
+                            esc(c.parameter(bj)) + "</td><td>" + rho + "</td></tr>";
+    EXPECT_NE(html.find(row), std::string::npos) << row;
+    EXPECT_NE(html.find("correlation.png"), std::string::npos);
+  }
+  // The leg map check, with the config right: consistent, in the file and the report.
+  ASSERT_TRUE(cal.has_leg_map_check());
+  EXPECT_TRUE(cal.leg_map_check().consistent());
+  EXPECT_NE(html.find("Leg map check"), std::string::npos);
 
   // The walk corrected three ways, one sample per 0.04 s. Against the twin: with the true
   // parameters the six ground wrenches sum to (0, 0, G, 0, 0, 0) about the CoM (the twin's

@@ -625,6 +625,61 @@ void CheckSaturatedSamplesAreExcluded() {
   EXPECT_GT(com_bad, 0.2e-3);
 }
 
+// The data checks the config's leg map: two legs' servo ids swapped in the Dynamixel bridge's
+// config give each of them the other's shaft angles (the bridge names each servo's leg by its
+// id); two transducer addresses swapped in the ATI bridge's give each the other's readings. Both are refused naming the legs, unless
+// accepted; with the config right every transducer follows its own shaft.
+void CheckLegMapMismatchIsCaught() {
+  const Small& s = SmallScenario();
+  const CalibrationRun right = Calibrate(s.hanging, s.poses, FtcalConfig());
+  const calibration::LegMapCheck& ok = right.proto.leg_map_check();
+  ASSERT_EQ(ok.rms_nm_size(), kNumLegs * kNumLegs);
+  EXPECT_TRUE(ok.consistent());
+  EXPECT_EQ(ok.poses(), s.poses.size());
+  for (int k = 0; k < kNumLegs; ++k) {
+    double other = 1e300;
+    for (int j = 0; j < kNumLegs; ++j) {
+      if (j != k) other = std::min(other, ok.rms_nm(kNumLegs * k + j));
+    }
+    const double own = ok.rms_nm(kNumLegs * k + k);
+    std::printf("recovery: leg map, right config: %s own shaft rms %.4f N m, best other %.4f N m "
+                "(%.0f times worse)\n",
+                std::string(kLegNames[k]).c_str(), own, other, other / own);
+    EXPECT_LT(own * LegMapResult::kRatioLimit, other) << kLegNames[k];
+  }
+
+  auto expect_refused = [&](const std::vector<StandingPose>& poses, const char* what) {
+    try {
+      Calibrate(s.hanging, poses, FtcalConfig());
+      ADD_FAILURE() << what << ": accepted";
+    } catch (const LegMapMismatchError& e) {
+      const std::string msg = e.what();
+      std::printf("recovery: %s: %s\n", what, msg.c_str());
+      EXPECT_NE(msg.find("legs HL, ML contradicts"), std::string::npos) << msg;
+      EXPECT_NE(msg.find("HL's transducer follows ML's shaft"), std::string::npos) << msg;
+      EXPECT_NE(msg.find("ML's transducer follows HL's shaft"), std::string::npos) << msg;
+    }
+  };
+  std::vector<StandingPose> servos = s.poses;
+  for (StandingPose& p : servos) std::swap(p.angle_rad[0], p.angle_rad[1]);
+  expect_refused(servos, "HL and ML servo ids swapped");
+  std::vector<StandingPose> transducers = s.poses;
+  for (StandingPose& p : transducers) {
+    std::swap(p.wrench[0], p.wrench[1]);
+    std::swap(p.wrench_sem[0], p.wrench_sem[1]);
+  }
+  expect_refused(transducers, "HL and ML transducer addresses swapped");
+
+  CalibrateOptions accept;
+  accept.accept_leg_map_mismatch = true;
+  const CalibrationRun anyway = Calibrate(s.hanging, servos, FtcalConfig(), accept);
+  EXPECT_FALSE(anyway.proto.leg_map_check().consistent());
+  EXPECT_TRUE(anyway.proto.leg_map_check().accepted_mismatch());
+  bool warned = false;
+  for (const std::string& w : anyway.proto.warning()) warned |= w.find("leg map check") == 0;
+  EXPECT_TRUE(warned);
+}
+
 // One test per twin scenario: ctest runs every test in its own process, and the scenarios (twin
 // data and calibration) are the cost.
 TEST(Recovery, DefaultTwin) {
@@ -653,6 +708,8 @@ TEST(Recovery, DefaultChoosesTheCoMModelOfEachTwin) {
 TEST(Recovery, DefaultWithoutHangingMotionCapture) { CheckDefaultWithoutHangingMotionCapture(); }
 
 TEST(Recovery, MassMismatchIsCaught) { CheckMassMismatchIsCaught(); }
+
+TEST(Recovery, LegMapMismatchIsCaught) { CheckLegMapMismatchIsCaught(); }
 
 TEST(Recovery, SaturatedSamplesAreExcluded) { CheckSaturatedSamplesAreExcluded(); }
 

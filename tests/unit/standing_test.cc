@@ -253,6 +253,57 @@ TEST_F(NoisyGrid, FillsTheCalibrationProto) {
   EXPECT_FALSE(proto.has_p_c_b_m());
 }
 
+// The correlation written to the file is the selected fit's: the sandwich covariance scaled to
+// unit diagonal, named in the solver's parameter order.
+TEST_F(NoisyGrid, FillsTheCorrelationOfTheEstimates) {
+  calibration::Calibration proto;
+  FillStandingProto(*result_, &proto);
+  ASSERT_TRUE(proto.has_correlation());
+  const calibration::ParameterCorrelation& c = proto.correlation();
+  ASSERT_EQ(c.parameter_size(), 36);  // the full model: 18 rotations, 18 translations
+  ASSERT_EQ(c.value_size(), 36 * 36);
+  EXPECT_EQ(c.parameter(0), "HL R~ x");
+  EXPECT_EQ(c.parameter(17), "FR R~ z");
+  EXPECT_EQ(c.parameter(18), "HL p~' x");
+  double strongest = 0.0;
+  int si = 0, sj = 0;
+  for (int i = 0; i < 36; ++i) {
+    EXPECT_DOUBLE_EQ(c.value(37 * i), 1.0);
+    for (int j = 0; j < 36; ++j) {
+      EXPECT_DOUBLE_EQ(c.value(36 * i + j), c.value(36 * j + i));
+      EXPECT_LE(std::abs(c.value(36 * i + j)), 1.0 + 1e-12);
+      EXPECT_DOUBLE_EQ(c.value(36 * i + j), result_->fit.correlation(i, j));
+      if (i != j && std::abs(c.value(36 * i + j)) > strongest) {
+        strongest = std::abs(c.value(36 * i + j));
+        si = i;
+        sj = j;
+      }
+    }
+  }
+  std::printf("strongest correlation: %s / %s %.3f\n", c.parameter(si).c_str(),
+              c.parameter(sj).c_str(), c.value(36 * si + sj));
+  // docs/method.md: the yaw of R~ and the horizontal p~' are strongly coupled.
+  EXPECT_GT(strongest, 0.5);
+}
+
+TEST(Standing, CorrelationOfAHandBuiltCovariance) {
+  // sigmas 2, 3, 0 (fixed); cov(0, 1) = 0.5 * 2 * 3.
+  Eigen::MatrixXd cov(3, 3);
+  cov << 4.0, 3.0, 0.0,  //
+      3.0, 9.0, 0.0,     //
+      0.0, 0.0, 0.0;
+  const Eigen::MatrixXd r = CorrelationOfCovariance(cov);
+  Eigen::MatrixXd expected(3, 3);
+  expected << 1.0, 0.5, 0.0,  //
+      0.5, 1.0, 0.0,          //
+      0.0, 0.0, 1.0;
+  EXPECT_LT((r - expected).norm(), 1e-15) << r;
+  EXPECT_THROW(CorrelationOfCovariance(Eigen::MatrixXd::Zero(2, 3)), std::invalid_argument);
+  Eigen::MatrixXd negative = Eigen::MatrixXd::Identity(2, 2);
+  negative(1, 1) = -1.0;
+  EXPECT_THROW(CorrelationOfCovariance(negative), std::invalid_argument);
+}
+
 TEST(Standing, NoisyRotationsOneTranslationRecoversCoMOffset) {
   const RobotCalibration truth = MakeTruth(31, Mounting::kRotationsOnly);
   const auto poses = MakePoses(truth, Grid(), kReportNoise, false, 32);

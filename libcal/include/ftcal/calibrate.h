@@ -42,7 +42,41 @@ class MassMismatchError : public CalibrationStageError {
   using CalibrationStageError::CalibrationStageError;
 };
 
+// A transducer's standing data follows another leg's shaft far better than its own (the
+// config's servo ids or transducer addresses of those legs swapped); what() names the legs and
+// the figures.
+class LegMapMismatchError : public CalibrationStageError {
+ public:
+  using CalibrationStageError::CalibrationStageError;
+};
+
+// The leg map check (docs/method.md "The data checks the config"): rms_nm[k][j] the rms torque
+// misfit of transducer k's standing readings when its foot is taken to turn with shaft j (the
+// model of calibration.proto's LegMapCheck, linear least squares, 18 unknowns per pair). Needs
+// kMinLegMapPoses poses; fewer give checked = false.
+struct LegMapResult {
+  static constexpr int kMinLegMapPoses = 30;
+  // Another shaft fitting a transducer this many times better (rms) than its own is a
+  // contradiction. With the config right the own shaft fits 64-116 times better than any other
+  // on the twin (tests/unit/recovery_test.cc); swapped, the other way round by as much: a factor
+  // of 2 leaves margin both ways.
+  static constexpr double kRatioLimit = 2.0;
+  bool checked = false;
+  int poses = 0;
+  std::array<std::array<double, kNumLegs>, kNumLegs> rms_nm{};
+  // Per transducer: the best other shaft and whether it beats the own one by kRatioLimit.
+  std::array<int, kNumLegs> best_other{};
+  std::array<bool, kNumLegs> contradicted{};
+  bool consistent() const;
+  // "" when consistent, else the sentence naming the legs and figures.
+  std::string Describe() const;
+};
+LegMapResult CheckLegMap(const std::vector<StandingPose>& poses);
+
 struct CalibrateOptions {
+  // Calibrate even when a transducer's data follows another leg's shaft (LegMapMismatchError
+  // otherwise); recorded in the file and as a warning.
+  bool accept_leg_map_mismatch = false;
   // Calibrate even when the configured total mass disagrees with the data (the mismatch is
   // recorded in the file and as a warning) instead of throwing MassMismatchError.
   bool accept_mass_mismatch = false;

@@ -97,6 +97,11 @@ struct StandingFit {
   std::array<Vec3, kNumLegs> sigma_rotation_deg;
   std::array<Vec3, kNumLegs> sigma_p_tilde_prime_m;
   Vec3 sigma_p_C_B_m = Vec3::Zero();
+  // The correlation matrix of the same covariance, over the model's free parameters in the
+  // solver's order (rotations "HL R~ x".."FR R~ z" when the model has them, then "p^C_B x".."z"
+  // or "HL p~' x".."FR p~' z"), named in correlation_names. Empty without the covariance.
+  std::vector<std::string> correlation_names;
+  Eigen::MatrixXd correlation;
   double rss = 0.0;                 // sum_p ||r_p||^2_K at the solution (robust loss or not)
   double residual_variance = 0.0;   // rss / (6 P - dof)
   int poses = 0;
@@ -194,6 +199,11 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
                                  const std::vector<StandingPose>& poses,
                                  const std::array<Vec6, kNumLegs>& naive_offset,
                                  const StandingOptions& options);
+
+// C_ij / sqrt(C_ii C_jj) of a covariance matrix (C_ij averaged with C_ji); a parameter with zero variance (fixed) gets 0
+// off the diagonal and 1 on it. Throws std::invalid_argument for a non-square matrix or a
+// negative or non-finite variance.
+Eigen::MatrixXd CorrelationOfCovariance(const Eigen::MatrixXd& covariance);
 
 // Mean, std (sample), rms, 5th and 95th percentiles (linear interpolation) per component.
 calibration::ResidualStats ResidualStatsOf(const std::string& label,
