@@ -197,7 +197,8 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
     try {
       truth = ftcal::CalibrationFromProto(ftcal::ReadCalibrationFile(args.truth), config.robot());
     } catch (const std::exception& e) {
-      throw CalibratorInputError("--truth '" + args.truth + "': " + e.what());
+      throw CalibratorInputError("--truth '" + args.truth + "': " +
+                                 ftcal::UserText(e, "reading the truth file"));
     }
   }
   ftcal::AddResultRmse(collector.walking_samples(), truth ? &*truth : nullptr, &run);
@@ -245,7 +246,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
     try {
       signer.emplace(ftcal::auth::Signer::FromSeedFile(args.signing_key));
     } catch (const std::exception& e) {
-      spdlog::critical("--signing-key: {}", e.what());
+      spdlog::critical("--signing-key: {}", ftcal::UserText(e, "reading the signing key"));
       return ftcal::kExitConfig;
     }
     live.SetSigner(&*signer);
@@ -367,8 +368,9 @@ int main(int argc, char** argv) {
     spdlog::critical("refused: {}", e.what());
     return ftcal::kExitRefused;
   } catch (const std::exception& e) {
-    // What is left is a file that cannot be read or written (the calibration, its CSVs).
-    spdlog::critical("{}", e.what());
-    return ftcal::kExitDeviceIo;
+    // What is left is a file that cannot be read or written (the calibration, its CSVs), or
+    // an internal failure (out of memory, a bug), which is named as such.
+    spdlog::critical("{}", ftcal::UserText(e, "calibrating"));
+    return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
 }
