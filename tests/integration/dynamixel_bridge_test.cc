@@ -133,6 +133,84 @@ TEST(DynamixelEmulator, GoalFollowsFirstOrderDynamicsOnlyWithTorque) {
   EXPECT_EQ(emu.TableI32(1, dxl::kAddrGoalPosition), 3072);
 }
 
+// The limit registers (docs/device-protocols.md §2.7): each within its own range (Data Range
+// Error beyond), each profile within its limit (Data Limit Error), EEPROM locked while torque
+// is on (Access Error), and a refused write leaves the register as it was.
+TEST(DynamixelEmulator, LimitRegistersKeepTheirRangesAndEepromLocksWithTorque) {
+  sim::DynamixelBusEmulator emu({});
+  double t = 0;
+  auto write = [&](std::uint16_t address, std::uint32_t value, int size) {
+    std::vector<std::uint8_t> data;
+    for (int k = 0; k < size; ++k) data.push_back(static_cast<std::uint8_t>(value >> (8 * k)));
+    const auto p = dxl::BuildWrite(1, address, data);
+    const auto replies = ParseAll(emu.Receive(p.data(), p.size(), t += 0.001));
+    EXPECT_EQ(replies.size(), 1u);
+    return replies.empty() ? -1 : replies[0].error_number();
+  };
+  EXPECT_EQ(write(dxl::kAddrVelocityLimit, 1024, 4), 4);
+  EXPECT_EQ(write(dxl::kAddrVelocityLimit, 100, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrAccelerationLimit, 32768, 4), 4);
+  EXPECT_EQ(write(dxl::kAddrAccelerationLimit, 50, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrMaxPositionLimit, 4096, 4), 4);
+  EXPECT_EQ(write(dxl::kAddrProfileVelocity, 101, 4), 6);
+  EXPECT_EQ(write(dxl::kAddrProfileVelocity, 100, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrProfileAcceleration, 51, 4), 6);
+  EXPECT_EQ(write(dxl::kAddrProfileAcceleration, 50, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrBusWatchdog, 128, 1), 4);
+  EXPECT_EQ(write(dxl::kAddrBusWatchdog, 0xFF, 1), 4);
+  EXPECT_EQ(write(dxl::kAddrTorqueEnable, 1, 1), 0);
+  EXPECT_EQ(write(dxl::kAddrVelocityLimit, 90, 4), 7) << "EEPROM must be locked with torque on";
+  EXPECT_EQ(write(dxl::kAddrProfileVelocity, 90, 4), 0) << "RAM stays writable";
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrVelocityLimit), 100);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrAccelerationLimit), 50);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrMaxPositionLimit), 4095);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrProfileVelocity), 90);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrProfileAcceleration), 50);
+}
+
+// The Bus Watchdog (§2.7): with torque on and no instruction for its time, the servo stops
+// where it is (here, far short of its goal: it would have run on), the register reads -1, goal
+// writes answer Data Range Error and only 0 clears it. The truth is the closed-form first-order
+// curve from the goal's write to the last instruction plus the watchdog time.
+TEST(DynamixelEmulator, BusWatchdogStopsASilentServoAndRefusesGoalsUntilCleared) {
+  for (const bool armed : {false, true}) {
+    SCOPED_TRACE(armed ? "watchdog 5 x 20 ms" : "watchdog off");
+    sim::DxlEmulatorOptions options;
+    options.time_constant_s = 1.0;  // a servo lagging its goal under load
+    sim::DynamixelBusEmulator emu(options);
+    auto send = [&](const std::vector<std::uint8_t>& p, double t) {
+      return ParseAll(emu.Receive(p.data(), p.size(), t));
+    };
+    send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {static_cast<std::uint8_t>(armed ? 5 : 0)}), 0.0);
+    send(dxl::BuildTorqueEnable(1, true), 0.0);
+    send(dxl::BuildSyncWriteGoalPosition({{1, 2048 + 2000}}), 0.05);
+    for (double t = 0.1; t < 0.31; t += 0.05) send(dxl::BuildPing(1), t);  // the last at 0.3
+    emu.Advance(0.35);
+    emu.Advance(2.0);
+    const double curve_at_stop = 2048 + 2000 * (1 - std::exp(-(0.3 + 0.1 - 0.05) / 1.0));
+    const double curve_at_end = 2048 + 2000 * (1 - std::exp(-(2.0 - 0.05) / 1.0));
+    if (!armed) {
+      EXPECT_NEAR(emu.ExactPosition(1), curve_at_end, 1e-6);
+      EXPECT_EQ(emu.fault_counts().bus_watchdog_expiries, 0);
+      continue;
+    }
+    EXPECT_NEAR(emu.ExactPosition(1), curve_at_stop, 0.5);
+    EXPECT_NEAR(emu.LastWatchdogExpiry(1), 0.4, 1e-9);
+    EXPECT_EQ(emu.TableByte(1, dxl::kAddrBusWatchdog), dxl::kBusWatchdogExpired);
+    EXPECT_EQ(emu.TableByte(1, dxl::kAddrTorqueEnable), 1) << "it stops; torque stays on";
+    EXPECT_EQ(emu.fault_counts().bus_watchdog_expiries, 1);
+    const auto goal = send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0);
+    ASSERT_EQ(goal.size(), 1u);
+    EXPECT_EQ(goal[0].error_number(), 4);
+    EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {5}), 2.0).at(0).error_number(), 4);
+    EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {0}), 2.0).at(0).error_number(), 0);
+    EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0)
+                  .at(0).error_number(), 0);
+    emu.Advance(20.0);
+    EXPECT_NEAR(emu.ExactPosition(1), 2048, 1.0) << "cleared, it takes goals again";
+  }
+}
+
 // docs/device-protocols.md §2.7: Operating Mode is EEPROM (torque off to write it), takes only
 // the MX-106's modes, and in Extended Position mode (4) goals span +-1,048,575 counts, past the
 // Min/Max Position Limits that bound position mode (3).
@@ -960,6 +1038,7 @@ TEST_F(DynamixelBridgeProcesses, TheDeadManHoldsTheServosWhenTheCommanderStops) 
   EXPECT_EQ(Counter(statuses.back(), "deadman_holds"), 1);
   EXPECT_EQ(Counter(statuses.back(), "mode"), 2);  // hold
 }
+
 
 }  // namespace
 }  // namespace ftcal
