@@ -1251,8 +1251,9 @@ TEST_F(DynamixelBridgeOnEmulator, AServoWithOtherLimitsIsNotArmedAndTheStatusSay
 // Issue 12: a hung bridge stops the legs. The servos lag their goals (a 1 s time constant), so
 // they would run on for seconds after the bridge stops writing; the Bus Watchdog (0.1 s here)
 // stops them within its time of the bridge's last packet. After SIGCONT the bridge clears the
-// watchdogs and holds: MOVEs are refused until a new ARM. A bridge killed while stopped and
-// started again clears them the same way.
+// watchdogs and holds: MOVEs are refused until a new ARM (the dead-man is set longer than the
+// stop, so that the hold is the watchdog's doing). A bridge killed while stopped and started
+// again clears them the same way.
 TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThemAgain) {
   Listener listener(t0_);
   ASSERT_TRUE(listener.good());
@@ -1261,7 +1262,7 @@ TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThem
   options.time_constant_s = 1.0;
   const std::string text = std::regex_replace(TestConfigText(link_, 1.0, 0.05),
                                               std::regex("(reply_timeout_s: [0-9.]+)"),
-                                              "$1\n  bus_watchdog_s: 0.1");
+                                              "$1\n  bus_watchdog_s: 0.1\n  deadman_s: 2.0");
   Start(options, commander.Trusted(text));
   bridge_ = StartBridge("1");
   const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
@@ -1301,8 +1302,11 @@ TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThem
 
   bridge_->Signal(SIGCONT);
   SleepS(0.3);
-  for (int i = 0; i < 4; ++i) {  // the commander carries on as if nothing happened
-    commander.Move(ids, far);
+  // The commander carries on as if nothing happened, with goals the gate has not written yet
+  // (an unchanged goal is not written again, so it would show nothing).
+  const std::vector<double> other = {0.6, 0.6, 0.6, 0.6, 0.6, 0.6};
+  for (int i = 0; i < 4; ++i) {
+    commander.Move(ids, other);
     SleepS(0.25);
   }
   EXPECT_NEAR(Position(1), held_at, 1.0) << "moved again without a new ARM";
@@ -1335,7 +1339,7 @@ TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThem
   bridge_ = StartBridge("2");
   SleepS(1.5);
   for (int i = 0; i < 4; ++i) {
-    commander.Move(ids, far);
+    commander.Move(ids, other);
     SleepS(0.1);
   }
   EXPECT_NEAR(Position(1), held_again, 1.0) << "moved after a restart without a new ARM";
@@ -1351,10 +1355,12 @@ TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThem
   commander.Move(ids, far);
   SleepS(0.6);
   EXPECT_GT(Position(1) - held_again, 10.0) << "a new ARM did not move it";
+  // Two hangs of six servos, nothing in between (a bridge that stops here lets them expire
+  // again, as it should: counted before it stops).
+  EXPECT_EQ(WithEmulator([](auto& e) { return e.fault_counts().bus_watchdog_expiries; }), 12);
   commander.StopHeartbeat();
   bridge_->Signal(SIGTERM);
   bridge_->Wait(5.0);
-  EXPECT_EQ(WithEmulator([](auto& e) { return e.fault_counts().bus_watchdog_expiries; }), 12);
   const std::string err = testing::ReadFile(dir_ + "/bridge2.err");
   EXPECT_NE(err.find("Bus Watchdog had expired"), std::string::npos) << err;
 }
