@@ -469,7 +469,43 @@ void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus) {
   if (node.Finite("limit_margin_rad", bus.limit_margin_rad()) && bus.limit_margin_rad() < 0) {
     node.Error("limit_margin_rad", "must be >= 0, got " + FormatNumber(bus.limit_margin_rad()));
   }
+  // Each limit goes into a servo register (docs/device-protocols.md §2.7) whose 0 means "no
+  // limit": a value under one unit would switch the limit off. Above the register's range
+  // (1023 and 32767 units, five times the MX-106's no-load speed and more) the register holds
+  // its maximum and the bridge's own ramp is the limit.
+  constexpr double kVelocityUnitRadS = 0.229 * 2 * M_PI / 60;           // Velocity Limit (44)
+  constexpr double kAccelerationUnitRadS2 = 214.577 * 2 * M_PI / 3600;  // Acceleration Limit (40)
   node.Positive("max_velocity_rad_s", bus.max_velocity_rad_s());
+  if (std::isfinite(bus.max_velocity_rad_s()) && bus.max_velocity_rad_s() > 0 &&
+      bus.max_velocity_rad_s() < kVelocityUnitRadS) {
+    node.Error("max_velocity_rad_s", "must be at least one unit of the servos' Velocity Limit "
+                                     "(0.229 rpm = " + FormatNumber(kVelocityUnitRadS) +
+                                         " rad/s), got " + FormatNumber(bus.max_velocity_rad_s()));
+  }
+  node.Positive("max_acceleration_rad_s2", bus.max_acceleration_rad_s2());
+  if (std::isfinite(bus.max_acceleration_rad_s2()) && bus.max_acceleration_rad_s2() > 0 &&
+      bus.max_acceleration_rad_s2() < kAccelerationUnitRadS2) {
+    node.Error("max_acceleration_rad_s2",
+               "must be at least one unit of the servos' Acceleration Limit (214.577 rev/min^2 = " +
+                   FormatNumber(kAccelerationUnitRadS2) + " rad/s^2), got " +
+                   FormatNumber(bus.max_acceleration_rad_s2()));
+  }
+  node.Positive("bus_watchdog_s", bus.bus_watchdog_s());
+  if (std::isfinite(bus.bus_watchdog_s()) && bus.bus_watchdog_s() > 0) {
+    const double units = bus.bus_watchdog_s() / 0.02;
+    if (!(units >= 1 - 1e-9 && units <= 127 + 1e-9) ||
+        std::abs(units - std::round(units)) > 1e-6) {
+      node.Error("bus_watchdog_s", "must be a multiple of 0.02 s within 0.02-2.54 s (the Bus "
+                                   "Watchdog's 20 ms units, 1-127), got " +
+                                       FormatNumber(bus.bus_watchdog_s()));
+    } else if (std::isfinite(bus.rate_hz()) && bus.rate_hz() > 0 &&
+               bus.bus_watchdog_s() * bus.rate_hz() < 5) {
+      node.Error("bus_watchdog_s", "must span at least five bridge cycles (5 / rate_hz = " +
+                                       FormatNumber(5 / bus.rate_hz()) +
+                                       " s): the bridge's own reads feed it; got " +
+                                       FormatNumber(bus.bus_watchdog_s()));
+    }
+  }
 }
 
 void ValidateSegmenter(const Node& node, const config::Segmenter& s) {

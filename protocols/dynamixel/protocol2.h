@@ -51,6 +51,23 @@ constexpr std::uint16_t kAddrHardwareErrorStatus = 70;
 constexpr std::uint16_t kAddrGoalPosition = 116;
 constexpr std::uint16_t kAddrPresentBlock = 120;  // Realtime Tick ... Present Temperature
 constexpr std::uint16_t kPresentBlockBytes = 28;  // addresses 120-147
+// The servo's own limits (EEPROM, written only while torque is off; 4 bytes each) and the
+// profile that drives every position goal (RAM). Min/Max Position Limit bind only in Position
+// mode (3); Extended Position mode ignores them (docs/device-protocols.md §2.7).
+constexpr std::uint16_t kAddrAccelerationLimit = 40;  // 214.577 rev/min^2, 0-32767
+constexpr std::uint16_t kAddrVelocityLimit = 44;      // 0.229 rpm, 0-1023
+constexpr std::uint16_t kAddrMaxPositionLimit = 48;   // counts, 0-4095
+constexpr std::uint16_t kAddrMinPositionLimit = 52;   // counts, 0-4095
+constexpr std::uint16_t kAddrProfileAcceleration = 108;  // <= Acceleration Limit; 0 = none
+constexpr std::uint16_t kAddrProfileVelocity = 112;      // <= Velocity Limit; 0 = none
+constexpr std::int32_t kMaxVelocityLimit = 1023;
+constexpr std::int32_t kMaxAccelerationLimit = 32767;
+constexpr double kAccelerationUnitRevPerMin2 = 214.577;
+// Bus Watchdog (98, RAM, 1 byte): 1-127 in 20 ms units arms it, 0 disarms it and clears an
+// expiry, 0xFF (-1) is the expired state, in which goal writes answer Data Range Error.
+constexpr std::uint16_t kAddrBusWatchdog = 98;
+constexpr double kBusWatchdogUnitS = 0.02;
+constexpr std::uint8_t kBusWatchdogExpired = 0xFF;
 
 // Bytes on the wire of a status packet with `params` parameter bytes at most (header, id,
 // length, instruction, error, params, CRC; stuffing can add one byte per three of params).

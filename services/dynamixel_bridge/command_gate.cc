@@ -79,6 +79,7 @@ void CommandGate::OnCommand(const std::string& signer, const servo_command_t& cm
   switch (cmd.action) {
     case servo_command_t::ARM: {
       if (mode_ == Mode::kFault) Refuse("in_fault", "ARM from " + signer + " while in FAULT");
+      if (!arm_block_.empty()) Refuse("limits_unverified", "ARM from " + signer + ": " + arm_block_);
       if (mode_ == Mode::kArmed && signer != commander_) {
         Refuse("not_commander", "ARM from " + signer + " while armed by " + commander_);
       }
@@ -144,6 +145,13 @@ void CommandGate::OnCommand(const std::string& signer, const servo_command_t& cm
     if (s.target_rad != goal) ++stats_.Counter("goals_clamped_to_margin");
   }
   ++stats_.Counter("moves");
+}
+
+void CommandGate::Hold(const std::string& why) {
+  ++stats_.Counter("external_holds");
+  if (mode_ != Mode::kArmed) return;  // held, disarmed or in fault: nothing is moving already
+  hold_pending_ = true;
+  SetMode(Mode::kHold, why);
 }
 
 servo_command_t CommandGate::HoldMeasured() {

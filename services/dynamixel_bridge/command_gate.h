@@ -15,7 +15,10 @@
 //     HOLD (a new ARM resumes); torque stays on, since torque off drops a standing robot;
 //   - while the bridge has been degraded (a servo silent or in hardware error, the port down)
 //     for longer than dynamixel.deadman_s the gate is in FAULT: nothing is moved until it
-//     clears and a commander arms again (one stale cycle on a loaded bus is not a fault).
+//     clears and a commander arms again (one stale cycle on a loaded bus is not a fault);
+//   - ARM is refused while the bridge says the servos' own limits are not as configured (not
+//     yet read back, or different: SetArmBlock), and a servo whose Bus Watchdog expired (the
+//     bridge hung) takes the gate to HOLD (Hold): motion resumes only after a new ARM.
 // Mode and refusal counts are counters of the process's FTCAL_STATUS.
 #pragma once
 
@@ -47,6 +50,11 @@ class CommandGate {
   // Once per bridge cycle: the dead-man, the fault state and the velocity limit. Returns the
   // command to hand to the bridge this cycle, if any.
   std::optional<servo_command_t> Tick(double now_s, bool degraded);
+  // Why ARM must be refused now (the bridge's ArmBlocker); empty: it need not be.
+  void SetArmBlock(std::string why) { arm_block_ = std::move(why); }
+  // Something outside the commander stopped the servos (`why`): armed becomes HOLD, the
+  // measured positions are written at the next tick, and only a new ARM moves them again.
+  void Hold(const std::string& why);
 
   Mode mode() const { return mode_; }
   const std::string& commander() const { return commander_; }
@@ -77,6 +85,7 @@ class CommandGate {
   bool torque_enable_ = true;
   bool hold_pending_ = false;  // write the measured positions at the next tick
   double degraded_since_s_ = -1;
+  std::string arm_block_;
 };
 
 }  // namespace ftcal

@@ -14,9 +14,15 @@
 namespace ftcal {
 namespace {
 
-// Addresses 64-70 in one SYNC READ: Torque Enable (64) ... Hardware Error Status (70).
+// Addresses 64-98 in one SYNC READ: Torque Enable (64), Hardware Error Status (70) ... Bus
+// Watchdog (98), whose expiry is as much a reason to look as a hardware error.
 constexpr std::uint16_t kErrorBlockAddress = dxl::kAddrTorqueEnable;
-constexpr std::uint16_t kErrorBlockBytes = dxl::kAddrHardwareErrorStatus - dxl::kAddrTorqueEnable + 1;
+constexpr std::uint16_t kErrorBlockBytes = dxl::kAddrBusWatchdog - dxl::kAddrTorqueEnable + 1;
+// The limits' read: Acceleration Limit (40) ... Goal Position (116-119), one READ that covers
+// every register the bridge sets, and Torque Enable (64).
+constexpr std::uint16_t kLimitBlockAddress = dxl::kAddrAccelerationLimit;
+constexpr std::uint16_t kLimitBlockBytes = dxl::kAddrGoalPosition + 4 - kLimitBlockAddress;
+constexpr std::uint16_t kAddrPresentPosition = 132;
 // Past half a wrap of the 15-bit tick the direction of a change is ambiguous: the next tick
 // is taken as it comes and the unwrapper starts again.
 constexpr double kTickUnwrapMaxGapS = 16.0;
@@ -70,6 +76,23 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
                                   std::to_string(config_.dynamixel().operating_mode()) +
                                   " is not POSITION_MODE or EXTENDED_POSITION_MODE");
   }
+  // Register units (docs/device-protocols.md §2.7), rounded down so that the servo never goes
+  // faster than the config says; above a register's range it holds its maximum.
+  const double velocity_unit_rad_s = dxl::kVelocityUnitRpm * 2 * M_PI / 60;
+  const double acceleration_unit_rad_s2 = dxl::kAccelerationUnitRevPerMin2 * 2 * M_PI / 3600;
+  velocity_limit_ = static_cast<std::uint32_t>(std::clamp(
+      std::floor(config_.dynamixel().max_velocity_rad_s() / velocity_unit_rad_s + 1e-9), 1.0,
+      static_cast<double>(dxl::kMaxVelocityLimit)));
+  acceleration_limit_ = static_cast<std::uint32_t>(std::clamp(
+      std::floor(config_.dynamixel().max_acceleration_rad_s2() / acceleration_unit_rad_s2 + 1e-9),
+      1.0, static_cast<double>(dxl::kMaxAccelerationLimit)));
+  watchdog_s_ = config_.dynamixel().bus_watchdog_s();
+  const double units = std::round(watchdog_s_ / dxl::kBusWatchdogUnitS);
+  if (!(units >= 1 && units <= 127)) {
+    throw std::invalid_argument("config: dynamixel.bus_watchdog_s " + std::to_string(watchdog_s_) +
+                                " is not 1-127 units of 20 ms");
+  }
+  watchdog_units_ = static_cast<std::uint8_t>(units);
   for (const auto& leg : config_.robot().leg()) {
     ServoSlot s;
     s.leg = leg.name();
@@ -167,9 +190,16 @@ bool DynamixelBridge::Connect() {
   }
   ReadReturnDelays(ActiveSlots());
   if (!port_) return false;
-  for (auto& s : servos_) s.mode_checked = false;  // a new session: what was read may be old
+  for (auto& s : servos_) {  // a new session: what was read may be old
+    s.mode_checked = false;
+    s.limits_checked = false;
+  }
   CheckOperatingModes(ActiveSlots());
   if (!port_) return false;
+  for (const std::size_t i : ActiveSlots()) {
+    if (servos_[i].mode_checked) CheckLimits(i);
+    if (!port_) return false;
+  }
   if (missing_at_start_.empty()) {
     stats_.log().info("all {} servos answer PING", servos_.size());
   }
@@ -219,6 +249,7 @@ std::vector<bool> DynamixelBridge::Transact(
     // A reply that missed its deadline must not pass for the answer to this request.
     DrainLate();
     port_->WriteAll(packet.data(), packet.size(), 100);
+    last_traffic_ = Clock::now();
     std::size_t remaining = slots.size();
     std::uint8_t buf[1024];
     while (remaining > 0) {
@@ -346,6 +377,178 @@ void DynamixelBridge::CheckOperatingModes(const std::vector<std::size_t>& slots)
   }
 }
 
+std::optional<std::vector<std::uint8_t>> DynamixelBridge::ReadBlock(std::size_t i,
+                                                                    std::uint16_t address,
+                                                                    std::uint16_t length) {
+  std::optional<std::vector<std::uint8_t>> block;
+  Transact(dxl::BuildRead(servos_[i].id, address, length), {i}, length,
+           [&](std::size_t, const dxl::StatusPacket& p) {
+             if (p.error_number() != 0) return false;
+             block = p.params;
+             return true;
+           });
+  return block;
+}
+
+std::optional<std::uint8_t> DynamixelBridge::WriteItem(std::size_t i, std::uint16_t address,
+                                                       std::uint32_t value, int size) {
+  std::vector<std::uint8_t> data;
+  for (int k = 0; k < size; ++k) data.push_back(static_cast<std::uint8_t>(value >> (8 * k)));
+  std::optional<std::uint8_t> error;
+  Transact(dxl::BuildWrite(servos_[i].id, address, data), {i}, 0,
+           [&](std::size_t, const dxl::StatusPacket& p) {
+             error = p.error_number();
+             return true;
+           });
+  return error;
+}
+
+std::vector<DynamixelBridge::LimitItem> DynamixelBridge::LimitsFor(std::size_t i) const {
+  const ServoSlot& s = servos_[i];
+  std::vector<LimitItem> items = {
+      {"Acceleration Limit", dxl::kAddrAccelerationLimit, 4, true, acceleration_limit_},
+      {"Velocity Limit", dxl::kAddrVelocityLimit, 4, true, velocity_limit_},
+  };
+  // Only Position mode uses them; Extended Position mode ignores them (§2.7), so there they
+  // are left as they are and the bridge's clamp is the position limit.
+  if (operating_mode_ == dxl::kPositionMode) {
+    // Angle limits beyond one turn are the mode's range (goals past it are refused anyway).
+    const auto count = [&](double rad) {
+      return std::clamp(dxl::RadToPosition(rad, s.zero_count, s.direction),
+                        dxl::kPositionModeMinCount, dxl::kPositionModeMaxCount);
+    };
+    const std::int32_t a = count(s.min_angle_rad);
+    const std::int32_t b = count(s.max_angle_rad);
+    items.push_back({"Max Position Limit", dxl::kAddrMaxPositionLimit, 4, true,
+                     static_cast<std::uint32_t>(std::max(a, b))});
+    items.push_back({"Min Position Limit", dxl::kAddrMinPositionLimit, 4, true,
+                     static_cast<std::uint32_t>(std::min(a, b))});
+  }
+  items.push_back({"Profile Acceleration", dxl::kAddrProfileAcceleration, 4, false,
+                   acceleration_limit_});
+  items.push_back({"Profile Velocity", dxl::kAddrProfileVelocity, 4, false, velocity_limit_});
+  items.push_back({"Bus Watchdog", dxl::kAddrBusWatchdog, 1, false, watchdog_units_});
+  return items;
+}
+
+bool DynamixelBridge::ClearWatchdog(std::size_t i, std::string* why) {
+  ServoSlot& s = servos_[i];
+  const std::string name = ServoName(s.id, s.leg);
+  auto refused = [&](const std::string& step, const std::optional<std::uint8_t>& e) {
+    *why = name + ": " + step + (e ? " refused: " + dxl::DescribeStatusError(*e) : " not answered") +
+           "; its goals stay refused";
+    return false;
+  };
+  auto e = WriteItem(i, dxl::kAddrBusWatchdog, 0, 1);
+  if (!e || *e != 0) return refused("clearing the expired Bus Watchdog (98) with 0", e);
+  // Where it stopped, not where it was going: the clear must not set it moving again.
+  const auto present = ReadBlock(i, kAddrPresentPosition, 4);
+  if (!present) return refused("reading Present Position (132)", std::nullopt);
+  const std::uint32_t count = (*present)[0] | ((*present)[1] << 8) | ((*present)[2] << 16) |
+                              (static_cast<std::uint32_t>((*present)[3]) << 24);
+  e = WriteItem(i, dxl::kAddrGoalPosition, count, 4);
+  if (!e || *e != 0) return refused("holding Goal Position (116) at the present position", e);
+  e = WriteItem(i, dxl::kAddrBusWatchdog, watchdog_units_, 1);
+  if (!e || *e != 0) return refused("re-arming the Bus Watchdog (98)", e);
+  ++stats_.Counter("watchdog_expiries");
+  const std::string what = name + "'s Bus Watchdog had expired (no instruction for " +
+                           fmt::format("{}", watchdog_s_) +
+                           " s with torque on): it stopped where it was; cleared, held there, "
+                           "and commands wait for a new ARM";
+  stats_.Error(name + " Bus Watchdog expired", what);
+  watchdog_expiry_ = watchdog_expiry_ ? *watchdog_expiry_ + "; " + what : what;
+  return true;
+}
+
+void DynamixelBridge::CheckLimits(std::size_t i) {
+  ServoSlot& s = servos_[i];
+  const std::string name = ServoName(s.id, s.leg);
+  const auto value_of = [](const std::vector<std::uint8_t>& block, const LimitItem& item) {
+    std::uint32_t v = 0;
+    for (int k = 0; k < item.size; ++k) {
+      v |= static_cast<std::uint32_t>(block[item.address - kLimitBlockAddress + k]) << (8 * k);
+    }
+    return v;
+  };
+  const auto block = ReadBlock(i, kLimitBlockAddress, kLimitBlockBytes);
+  if (!block) return;  // no answer: tried again next cycle
+  std::vector<std::string> problems;
+  std::vector<std::uint16_t> reported;
+  if ((*block)[dxl::kAddrBusWatchdog - kLimitBlockAddress] == dxl::kBusWatchdogExpired) {
+    std::string why;
+    if (!ClearWatchdog(i, &why)) {
+      if (!port_) return;
+      problems.push_back(why);
+      reported.push_back(dxl::kAddrBusWatchdog);
+    }
+  }
+  const bool torque_on = (*block)[dxl::kAddrTorqueEnable - kLimitBlockAddress] != 0;
+  const std::vector<LimitItem> items = LimitsFor(i);
+  for (const LimitItem& item : items) {
+    if (value_of(*block, item) == item.value) continue;
+    if (item.eeprom && torque_on) {
+      // EEPROM is writable only with torque off (§2.7), and turning it off drops the leg.
+      problems.push_back(fmt::format(
+          "{}: {} ({}) is {}, the config wants {}, and torque is on (EEPROM is written only with "
+          "torque off): not rewritten",
+          name, item.name, item.address, value_of(*block, item), item.value));
+      reported.push_back(item.address);
+      continue;
+    }
+    const auto e = WriteItem(i, item.address, item.value, item.size);
+    if (!port_) return;
+    if (!e) return;  // no answer: all of it again next cycle
+    if (*e != 0) {
+      problems.push_back(fmt::format("{}: {} ({}) refused {}: {}", name, item.name, item.address,
+                                     item.value, dxl::DescribeStatusError(*e)));
+      reported.push_back(item.address);
+      continue;
+    }
+    ++stats_.Counter("limit_writes");
+  }
+  const auto back = ReadBlock(i, kLimitBlockAddress, kLimitBlockBytes);
+  if (!port_ || !back) return;
+  for (const LimitItem& item : items) {
+    const std::uint32_t read = value_of(*back, item);
+    if (read == item.value ||
+        std::find(reported.begin(), reported.end(), item.address) != reported.end()) {
+      continue;
+    }
+    problems.push_back(fmt::format("{}: {} ({}) written {}, read back {}", name, item.name,
+                                   item.address, item.value, read));
+  }
+  s.limits_checked = true;
+  s.limits_error.clear();
+  for (const std::string& p : problems) s.limits_error += (s.limits_error.empty() ? "" : "; ") + p;
+  if (!problems.empty()) {
+    ++stats_.Counter("limits_mismatch");
+    stats_.Error(name + " limits not as configured", s.limits_error + ": not armed");
+  } else {
+    stats_.log().info("{}: limits written and read back (velocity {}, acceleration {}, watchdog "
+                      "{} x 20 ms)", name, velocity_limit_, acceleration_limit_, watchdog_units_);
+  }
+}
+
+std::string DynamixelBridge::ArmBlocker() const {
+  std::string why;
+  for (const ServoSlot& s : servos_) {
+    std::string one;
+    if (!s.limits_checked) {
+      one = ServoName(s.id, s.leg) + ": limits not yet written and read back";
+    } else if (!s.limits_error.empty()) {
+      one = s.limits_error;
+    }
+    if (!one.empty()) why += (why.empty() ? "" : "; ") + one;
+  }
+  return why;
+}
+
+std::optional<std::string> DynamixelBridge::TakeWatchdogExpiry() {
+  std::optional<std::string> what;
+  what.swap(watchdog_expiry_);
+  return what;
+}
+
 std::vector<std::uint8_t> DynamixelBridge::wrong_mode() const {
   std::vector<std::uint8_t> ids;
   for (const auto& s : servos_) {
@@ -365,6 +568,7 @@ void DynamixelBridge::Reprobe() {
     try {
       DrainLate();
       port_->WriteAll(ping.data(), ping.size(), 100);
+      last_traffic_ = Clock::now();
     } catch (const dxl::SerialError& e) {
       PortLost(e.what());
       return;
@@ -388,8 +592,10 @@ bool DynamixelBridge::ProbeAnswered(const dxl::StatusPacket& status) {
   s->consecutive_misses = 0;
   // Its tick goes on from where it was unless it was gone too long to tell (ReadPresent).
   s->tick_known = false;
-  // It may have been swapped or reflashed while it was gone: its mode is read again.
+  // It may have been swapped, reflashed or power-cycled while it was gone: its mode and limits
+  // are read again.
   s->mode_checked = false;
+  s->limits_checked = false;
   force_error_read_ = true;
   ++stats_.Counter("servos_found");
   stats_.log().info("{} answers again: read each cycle", ServoName(s->id, s->leg));
@@ -421,6 +627,7 @@ void DynamixelBridge::SendPendingWrites() {
     if (!goals.empty()) {
       const auto p = dxl::BuildSyncWriteGoalPosition(goals);
       port_->WriteAll(p.data(), p.size(), 100);
+      last_traffic_ = Clock::now();
       stats_.Counter("goal_writes") += static_cast<std::int64_t>(goals.size());
     }
   } catch (const dxl::SerialError& e) {
@@ -529,7 +736,10 @@ void DynamixelBridge::ReadHardwareErrors() {
                return false;
              }
              s.torque_enable = p.params[0];
-             const int hw = p.params[kErrorBlockBytes - 1];
+             const int hw = p.params[dxl::kAddrHardwareErrorStatus - kErrorBlockAddress];
+             if (p.params[dxl::kAddrBusWatchdog - kErrorBlockAddress] == dxl::kBusWatchdogExpired) {
+               s.watchdog_expired = true;
+             }
              if (hw != 0 && hw != s.hardware_error) {
                stats_.Error(ServoName(s.id, s.leg) + " hardware error status",
                             ServoName(s.id, s.leg) + " reports Hardware Error Status " +
@@ -558,6 +768,17 @@ void DynamixelBridge::Cycle() {
     // Before any goal: a servo found again must not take a goal in a mode not checked.
     if (!unchecked.empty()) CheckOperatingModes(unchecked);
     if (!port_) return;
+    for (const std::size_t i : ActiveSlots()) {
+      if (servos_[i].mode_checked && !servos_[i].limits_checked) CheckLimits(i);
+      if (!port_) return;
+    }
+  }
+  // A gap in the bridge's own traffic (it was stopped, or a cycle stalled) long enough for a
+  // watchdog to have run out: look now, not at the next scheduled error read, so that the gate
+  // hears of it before it takes another command.
+  if (Clock::now() - last_traffic_ >
+      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(watchdog_s_ / 2))) {
+    force_error_read_ = true;
   }
   SendPendingWrites();
   std::vector<bool> fresh;
@@ -569,6 +790,15 @@ void DynamixelBridge::Cycle() {
   if (port_ && want_errors) {
     force_error_read_ = false;
     ReadHardwareErrors();
+  }
+  for (std::size_t i = 0; port_ && i < servos_.size(); ++i) {
+    if (!servos_[i].watchdog_expired) continue;
+    servos_[i].watchdog_expired = false;
+    std::string why;
+    if (!ClearWatchdog(i, &why) && port_) {
+      servos_[i].limits_error = why;
+      stats_.Error(ServoName(servos_[i].id, servos_[i].leg) + " Bus Watchdog not cleared", why);
+    }
   }
   if (port_) Reprobe();
   if (!port_) return;  // lost during the cycle: nothing trustworthy to publish
@@ -693,6 +923,8 @@ bool DynamixelBridge::Degraded(std::string* why) const {
         reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) +
                   " in Operating Mode " + std::to_string(s.mode) + ", not " +
                   std::to_string(operating_mode_);
+      } else if (!s.limits_error.empty()) {
+        reason += (reason.empty() ? "" : "; ") + s.limits_error;
       }
     }
   }

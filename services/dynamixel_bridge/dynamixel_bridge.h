@@ -21,6 +21,19 @@
 // refused until the bridge restarts. In Extended Position mode Present Position is multi-turn,
 // so the published shaft angle is unbounded (a turn is 2 pi, never wrapped); goals stay within
 // the configured angle limits either way, and within the mode's count range.
+//
+// The servos' own limits (docs/device-protocols.md §2.7), when a servo is found, after its
+// mode: Acceleration and Velocity Limit (EEPROM) from dynamixel.max_acceleration_rad_s2 and
+// max_velocity_rad_s, Min/Max Position Limit from the angle limits in Position mode (Extended
+// Position mode ignores them: there the bridge's clamp is the only position limit), then
+// Profile Acceleration and Velocity (RAM, at most the limits) and the Bus Watchdog
+// (dynamixel.bus_watchdog_s). Each is read first and written only when it differs, EEPROM
+// only with torque off (a servo holding its leg is not dropped to rewrite it), and all are
+// read back: a servo whose limits are not what the config says blocks arming, with the
+// servo, the register and the values named (ArmBlocker, Degraded). The bridge's every cycle
+// feeds the watchdog; a servo found with it expired (the bridge hung, or the port was gone
+// longer than it) is cleared (0, the goal set to where it stopped, then the watchdog again)
+// and reported once (TakeWatchdogExpiry), so that the gate holds until a new ARM.
 #pragma once
 
 #include <chrono>
@@ -78,6 +91,11 @@ class DynamixelBridge {
   // True while a servo is missing, stale, in hardware error, or the port is down; `why` says
   // which.
   bool Degraded(std::string* why = nullptr) const;
+  // Why arming must wait, empty when it need not: a servo whose limits are not yet written and
+  // read back, or read back different from the config.
+  std::string ArmBlocker() const;
+  // A servo's Bus Watchdog was found expired and cleared since the last call: what happened.
+  std::optional<std::string> TakeWatchdogExpiry();
   // Servos currently lost (left out of the reads, re-probed now and then).
   std::vector<std::uint8_t> lost() const;
   // Ids that did not answer the start-up PING.
@@ -116,6 +134,18 @@ class DynamixelBridge {
     bool mode_checked = false;
     bool mode_ok = false;
     int mode = -1;  // as read, -1 unknown
+    // Its limits (ServoLimits): written and read back since it was last found; what differs.
+    bool limits_checked = false;
+    std::string limits_error;
+    bool watchdog_expired = false;   // seen in the error block: cleared at the end of the cycle
+  };
+  // One register the bridge sets in every servo; the value comes from the config.
+  struct LimitItem {
+    const char* name;
+    std::uint16_t address;
+    int size;
+    bool eeprom;
+    std::uint32_t value;
   };
 
   // Sends `packet` and collects one status per servo in `slots` (indices into servos_) until
@@ -135,6 +165,20 @@ class DynamixelBridge {
   void ReadReturnDelays(const std::vector<std::size_t>& slots);
   // Reads (and when needed writes) the Operating Mode of each of `slots` not yet checked.
   void CheckOperatingModes(const std::vector<std::size_t>& slots);
+  // The registers for slot i, in the order they are written (EEPROM limits before the profile
+  // values they bound, the watchdog last).
+  std::vector<LimitItem> LimitsFor(std::size_t i) const;
+  // Reads, writes where they differ, and reads back slot i's limits (and clears an expired
+  // watchdog); sets limits_checked and limits_error.
+  void CheckLimits(std::size_t i);
+  // Clears slot i's expired Bus Watchdog: 0, the goal at its present position, the value.
+  // Returns false when the servo refused or did not answer.
+  bool ClearWatchdog(std::size_t i, std::string* why);
+  std::optional<std::vector<std::uint8_t>> ReadBlock(std::size_t i, std::uint16_t address,
+                                                     std::uint16_t length);
+  // WRITE to slot i; the status error byte, or nullopt without an answer.
+  std::optional<std::uint8_t> WriteItem(std::size_t i, std::uint16_t address, std::uint32_t value,
+                                        int size);
   // One byte of slot i's control table; nullopt when it did not answer or answered an error.
   std::optional<std::uint8_t> ReadByte(std::size_t i, std::uint16_t address);
   // Sends a PING to at most one lost servo whose probe is due (without waiting for it).
@@ -162,6 +206,11 @@ class DynamixelBridge {
   double reply_timeout_s_;
   std::uint8_t operating_mode_;  // dynamixel.operating_mode's code
   std::int32_t min_goal_count_, max_goal_count_;  // the mode's range
+  std::uint32_t velocity_limit_, acceleration_limit_;  // register units
+  std::uint8_t watchdog_units_;
+  double watchdog_s_;
+  std::optional<std::string> watchdog_expiry_;
+  Clock::time_point last_traffic_{};  // the last instruction packet sent
 
   std::unique_ptr<dxl::SerialPort> port_;
   dxl::PacketParser parser_;

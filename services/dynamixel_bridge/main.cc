@@ -69,8 +69,13 @@ int main(int argc, char** argv) {
        "auth trusts for it) and, once armed by one commander, writes torque enable and goal "
        "positions clamped to the angle limits minus dynamixel.limit_margin_rad and rate-limited "
        "to dynamixel.max_velocity_rad_s; holds the measured position when the armed commander "
-       "is silent for dynamixel.deadman_s. DEGRADED while a servo is silent or faulty or the "
-       "port is down (it is reopened with back-off).",
+       "is silent for dynamixel.deadman_s. When it finds a servo it writes the servo's own "
+       "limits (Velocity/Acceleration Limit and Profile from dynamixel.max_velocity_rad_s and "
+       "max_acceleration_rad_s2, Min/Max Position Limit in Position mode, Bus Watchdog from "
+       "dynamixel.bus_watchdog_s) and reads them back; ARM is refused while they differ, and a "
+       "servo whose watchdog expired is cleared and held until a new ARM. DEGRADED while a "
+       "servo is silent, faulty or not as configured, or the port is down (it is reopened with "
+       "back-off).",
        /*replayable=*/false});
   ftcal::DynamixelBridgeOptions options;
   app.cli().add_option("--device", options.device,
@@ -151,6 +156,7 @@ int main(int argc, char** argv) {
     };
 
     bridge.Connect();
+    gate.SetArmBlock(bridge.ArmBlocker());
     const auto period = std::chrono::duration_cast<Clock::duration>(
         std::chrono::duration<double>(1.0 / rate_hz));
     auto next_cycle = Clock::now();
@@ -171,6 +177,10 @@ int main(int argc, char** argv) {
           }
         }
         bridge.Cycle();
+        // Before the next command is taken: a servo stopped by its watchdog holds until a new
+        // ARM, and no ARM while the servos' own limits are not the config's.
+        gate.SetArmBlock(bridge.ArmBlocker());
+        if (auto why = bridge.TakeWatchdogExpiry()) gate.Hold(*why);
         if (!bridge.Degraded()) {
           degraded_since_s = -1.0;
         } else if (degraded_since_s < 0.0) {

@@ -203,5 +203,53 @@ TEST_F(CommandGateTest, ADegradedBridgeIsAFaultUntilItRecoversAndIsArmedAgain) {
   EXPECT_EQ(Send("op", Cmd(servo_command_t::MOVE, 0.9), t), "servo command not_armed");
 }
 
+
+// The servos' own limits not read back as configured (the bridge's ArmBlocker): ARM is refused
+// with the reason, and taken once it clears.
+TEST_F(CommandGateTest, NoArmWhileTheBridgeSaysTheLimitsAreWrong) {
+  const double t = kStartS + 2;
+  gate_.SetArmBlock("servo 3 (FL): Profile Velocity (112) written 125, read back 0");
+  try {
+    gate_.OnCommand("op", Cmd(servo_command_t::ARM), t);
+    FAIL() << "armed";
+  } catch (const BadInput& e) {
+    EXPECT_EQ(e.kind(), "servo command limits_unverified");
+    EXPECT_NE(std::string(e.what()).find("servo 3 (FL): Profile Velocity (112) written 125"),
+              std::string::npos) << e.what();
+  }
+  EXPECT_EQ(gate_.mode(), Mode::kDisarmed);
+  gate_.SetArmBlock("");
+  EXPECT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
+  EXPECT_EQ(gate_.mode(), Mode::kArmed);
+}
+
+// A servo stopped by its Bus Watchdog (the bridge hung): armed becomes HOLD at the measured
+// position, MOVEs and HEARTBEATs are refused, and only a new ARM moves the servos again.
+TEST_F(CommandGateTest, AnExpiredWatchdogHoldsUntilANewArm) {
+  double t = kStartS + 2;
+  ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
+  ASSERT_EQ(Send("op", Cmd(servo_command_t::MOVE, 0.5), t), "");
+  gate_.Tick(t, false);
+  t += 0.05;
+  ASSERT_TRUE(gate_.Tick(t, false).has_value());
+  measured_.assign(ids_.size(), 0.03);
+  Measure();
+  gate_.Hold("servo 1 (HL)'s Bus Watchdog had expired");
+  EXPECT_EQ(gate_.mode(), Mode::kHold);
+  t += 0.01;
+  const auto hold = gate_.Tick(t, false);
+  ASSERT_TRUE(hold.has_value());
+  for (double g : hold->goal_angle_rad) EXPECT_DOUBLE_EQ(g, 0.03);
+  EXPECT_EQ(Send("op", Cmd(servo_command_t::MOVE, 0.5), t), "servo command not_armed");
+  EXPECT_EQ(Send("op", Cmd(servo_command_t::HEARTBEAT), t), "servo command not_armed");
+  EXPECT_FALSE(gate_.Tick(t + 0.01, false).has_value());
+  ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t + 0.02), "");
+  EXPECT_EQ(gate_.mode(), Mode::kArmed);
+  // Disarmed, a hold changes nothing.
+  ASSERT_EQ(Send("op", Cmd(servo_command_t::DISARM), t + 0.03), "");
+  gate_.Tick(t + 0.04, false);
+  gate_.Hold("again");
+  EXPECT_EQ(gate_.mode(), Mode::kDisarmed);
+}
 }  // namespace
 }  // namespace ftcal

@@ -28,6 +28,7 @@
 #include "signed_commander.h"
 #include "common/bus.h"
 #include "dynamixel_bridge.h"
+#include "dynamixel_bridge/command_gate.h"
 #include "dynamixel_emulator.h"
 #include "ftcal/config.h"
 #include "ftcal/servo_command_t.hpp"
@@ -131,6 +132,84 @@ TEST(DynamixelEmulator, GoalFollowsFirstOrderDynamicsOnlyWithTorque) {
   ASSERT_EQ(bad.size(), 1u);
   EXPECT_EQ(bad[0].error_number(), 6);
   EXPECT_EQ(emu.TableI32(1, dxl::kAddrGoalPosition), 3072);
+}
+
+// The limit registers (docs/device-protocols.md §2.7): each within its own range (Data Range
+// Error beyond), each profile within its limit (Data Limit Error), EEPROM locked while torque
+// is on (Access Error), and a refused write leaves the register as it was.
+TEST(DynamixelEmulator, LimitRegistersKeepTheirRangesAndEepromLocksWithTorque) {
+  sim::DynamixelBusEmulator emu({});
+  double t = 0;
+  auto write = [&](std::uint16_t address, std::uint32_t value, int size) {
+    std::vector<std::uint8_t> data;
+    for (int k = 0; k < size; ++k) data.push_back(static_cast<std::uint8_t>(value >> (8 * k)));
+    const auto p = dxl::BuildWrite(1, address, data);
+    const auto replies = ParseAll(emu.Receive(p.data(), p.size(), t += 0.001));
+    EXPECT_EQ(replies.size(), 1u);
+    return replies.empty() ? -1 : replies[0].error_number();
+  };
+  EXPECT_EQ(write(dxl::kAddrVelocityLimit, 1024, 4), 4);
+  EXPECT_EQ(write(dxl::kAddrVelocityLimit, 100, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrAccelerationLimit, 32768, 4), 4);
+  EXPECT_EQ(write(dxl::kAddrAccelerationLimit, 50, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrMaxPositionLimit, 4096, 4), 4);
+  EXPECT_EQ(write(dxl::kAddrProfileVelocity, 101, 4), 6);
+  EXPECT_EQ(write(dxl::kAddrProfileVelocity, 100, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrProfileAcceleration, 51, 4), 6);
+  EXPECT_EQ(write(dxl::kAddrProfileAcceleration, 50, 4), 0);
+  EXPECT_EQ(write(dxl::kAddrBusWatchdog, 128, 1), 4);
+  EXPECT_EQ(write(dxl::kAddrBusWatchdog, 0xFF, 1), 4);
+  EXPECT_EQ(write(dxl::kAddrTorqueEnable, 1, 1), 0);
+  EXPECT_EQ(write(dxl::kAddrVelocityLimit, 90, 4), 7) << "EEPROM must be locked with torque on";
+  EXPECT_EQ(write(dxl::kAddrProfileVelocity, 90, 4), 0) << "RAM stays writable";
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrVelocityLimit), 100);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrAccelerationLimit), 50);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrMaxPositionLimit), 4095);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrProfileVelocity), 90);
+  EXPECT_EQ(emu.TableI32(1, dxl::kAddrProfileAcceleration), 50);
+}
+
+// The Bus Watchdog (§2.7): with torque on and no instruction for its time, the servo stops
+// where it is (here, far short of its goal: it would have run on), the register reads -1, goal
+// writes answer Data Range Error and only 0 clears it. The truth is the closed-form first-order
+// curve from the goal's write to the last instruction plus the watchdog time.
+TEST(DynamixelEmulator, BusWatchdogStopsASilentServoAndRefusesGoalsUntilCleared) {
+  for (const bool armed : {false, true}) {
+    SCOPED_TRACE(armed ? "watchdog 5 x 20 ms" : "watchdog off");
+    sim::DxlEmulatorOptions options;
+    options.time_constant_s = 1.0;  // a servo lagging its goal under load
+    sim::DynamixelBusEmulator emu(options);
+    auto send = [&](const std::vector<std::uint8_t>& p, double t) {
+      return ParseAll(emu.Receive(p.data(), p.size(), t));
+    };
+    send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {static_cast<std::uint8_t>(armed ? 5 : 0)}), 0.0);
+    send(dxl::BuildTorqueEnable(1, true), 0.0);
+    send(dxl::BuildSyncWriteGoalPosition({{1, 2048 + 2000}}), 0.05);
+    for (double t = 0.1; t < 0.31; t += 0.05) send(dxl::BuildPing(1), t);  // the last at 0.3
+    emu.Advance(0.35);
+    emu.Advance(2.0);
+    const double curve_at_stop = 2048 + 2000 * (1 - std::exp(-(0.3 + 0.1 - 0.05) / 1.0));
+    const double curve_at_end = 2048 + 2000 * (1 - std::exp(-(2.0 - 0.05) / 1.0));
+    if (!armed) {
+      EXPECT_NEAR(emu.ExactPosition(1), curve_at_end, 1e-6);
+      EXPECT_EQ(emu.fault_counts().bus_watchdog_expiries, 0);
+      continue;
+    }
+    EXPECT_NEAR(emu.ExactPosition(1), curve_at_stop, 0.5);
+    EXPECT_NEAR(emu.LastWatchdogExpiry(1), 0.4, 1e-9);
+    EXPECT_EQ(emu.TableByte(1, dxl::kAddrBusWatchdog), dxl::kBusWatchdogExpired);
+    EXPECT_EQ(emu.TableByte(1, dxl::kAddrTorqueEnable), 1) << "it stops; torque stays on";
+    EXPECT_EQ(emu.fault_counts().bus_watchdog_expiries, 1);
+    const auto goal = send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0);
+    ASSERT_EQ(goal.size(), 1u);
+    EXPECT_EQ(goal[0].error_number(), 4);
+    EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {5}), 2.0).at(0).error_number(), 4);
+    EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {0}), 2.0).at(0).error_number(), 0);
+    EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0)
+                  .at(0).error_number(), 0);
+    emu.Advance(20.0);
+    EXPECT_NEAR(emu.ExactPosition(1), 2048, 1.0) << "cleared, it takes goals again";
+  }
 }
 
 // docs/device-protocols.md §2.7: Operating Mode is EEPROM (torque off to write it), takes only
@@ -459,6 +538,115 @@ TEST_F(DynamixelBridgePty, AServoHoldingItsLegIsNotSwitchedAndGetsNoGoals) {
   std::string why;
   EXPECT_TRUE(bridge_->Degraded(&why));
   EXPECT_NE(why.find("servo 2 (ML) in Operating Mode 3, not 4"), std::string::npos) << why;
+}
+
+// The servos' own limits (§2.7) at start, from the config alone: Velocity Limit and Profile
+// Velocity from dynamixel.max_velocity_rad_s in 0.229 rpm, Acceleration Limit and Profile
+// Acceleration from max_acceleration_rad_s2 in 214.577 rev/min^2 (both rounded down), the Bus
+// Watchdog from bus_watchdog_s in 20 ms, Min/Max Position Limit from the angle limits in
+// Position mode only (Extended Position mode ignores them: left at the factory's). A second
+// bridge on the same servos finds them set and writes nothing.
+TEST_F(DynamixelBridgePty, LimitsAreWrittenAtStartAndReadBackAsTheConfigSays) {
+  for (const std::string mode : {"POSITION_MODE", "EXTENDED_POSITION_MODE"}) {
+    SCOPED_TRACE(mode);
+    TearDown();
+    stop_ = false;
+    records_.clear();
+    Start(sim::DxlEmulatorOptions{}, 1.5, mode);
+    ASSERT_TRUE(bridge_->Connect());
+    const auto& d = config_.dynamixel();
+    const auto velocity = static_cast<std::int32_t>(
+        std::floor(d.max_velocity_rad_s() / (0.229 * 2 * M_PI / 60)));
+    const auto acceleration = static_cast<std::int32_t>(
+        std::floor(d.max_acceleration_rad_s2() / (214.577 * 2 * M_PI / 3600)));
+    const auto watchdog = static_cast<int>(std::lround(d.bus_watchdog_s() / 0.02));
+    EXPECT_GT(velocity, 0);
+    EXPECT_GT(acceleration, 0);
+    for (const auto& leg : config_.robot().leg()) {
+      const auto id = static_cast<std::uint8_t>(leg.servo().id());
+      SCOPED_TRACE("servo " + std::to_string(id));
+      std::lock_guard<std::mutex> lock(emu_mu_);
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrVelocityLimit), velocity);
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrProfileVelocity), velocity);
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrAccelerationLimit), acceleration);
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrProfileAcceleration), acceleration);
+      EXPECT_EQ(emu_->TableByte(id, dxl::kAddrBusWatchdog), watchdog);
+      const double per_rad = 4096 / (2 * M_PI) * leg.servo().direction();
+      const long a = std::lround(leg.servo().zero_count() + per_rad * leg.servo().min_angle_rad());
+      const long b = std::lround(leg.servo().zero_count() + per_rad * leg.servo().max_angle_rad());
+      const bool single_turn = mode == "POSITION_MODE";
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrMinPositionLimit), single_turn ? std::min(a, b) : 0);
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrMaxPositionLimit), single_turn ? std::max(a, b) : 4095);
+    }
+    EXPECT_EQ(bridge_->ArmBlocker(), "");
+    EXPECT_EQ(stats_->counters().at("limit_writes"), mode == "POSITION_MODE" ? 6 * 7 : 6 * 5);
+    // A restarted bridge: the same registers, nothing to write.
+    ServiceStats stats2(std::make_shared<spdlog::logger>(
+        "dxl-test2", std::make_shared<spdlog::sinks::null_sink_mt>()));
+    bridge_.reset();
+    DynamixelBridge again(config_, DynamixelBridgeOptions{}, stats2, [](const servo_state_t&) {},
+                          [] { return std::int64_t{0}; });
+    ASSERT_TRUE(again.Connect());
+    EXPECT_EQ(again.ArmBlocker(), "");
+    EXPECT_EQ(stats2.counters().count("limit_writes"), 0u);
+  }
+}
+
+// A servo that acknowledges a write and keeps its old value (its Profile Velocity here) is
+// caught by the read-back: arming is refused with the servo, the register and both values
+// named, the bridge is degraded with the same words, and the gate refuses ARM with them.
+TEST_F(DynamixelBridgePty, AServoReportingOtherLimitsBlocksArmingAndIsNamed) {
+  sim::DxlEmulatorOptions options;
+  options.ignored_writes = {{3, dxl::kAddrProfileVelocity}};
+  Start(options);
+  ASSERT_TRUE(bridge_->Connect());
+  const auto velocity = static_cast<std::int32_t>(
+      std::floor(config_.dynamixel().max_velocity_rad_s() / (0.229 * 2 * M_PI / 60)));
+  const std::string want = "servo 3 (FL): Profile Velocity (112) written " +
+                           std::to_string(velocity) + ", read back 0";
+  EXPECT_EQ(bridge_->ArmBlocker(), want);
+  bridge_->Cycle();
+  std::string why;
+  EXPECT_TRUE(bridge_->Degraded(&why));
+  EXPECT_EQ(why, want);
+  CommandGate gate(config_, *stats_, -100.0);
+  gate.OnState(published_.back());
+  gate.SetArmBlock(bridge_->ArmBlocker());
+  servo_command_t arm{};
+  arm.action = servo_command_t::ARM;
+  try {
+    gate.OnCommand("commander", arm, 0.0);
+    FAIL() << "armed with servo 3's limits wrong";
+  } catch (const BadInput& e) {
+    EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(gate.mode(), CommandGate::Mode::kDisarmed);
+  EXPECT_EQ(stats_->counters().at("refused_limits_unverified"), 1);
+  // The other five are as configured.
+  std::lock_guard<std::mutex> lock(emu_mu_);
+  for (std::uint8_t id : {1, 2, 4, 5, 6}) {
+    EXPECT_EQ(emu_->TableI32(id, dxl::kAddrProfileVelocity), velocity) << "servo " << int(id);
+  }
+}
+
+// EEPROM is written only with torque off (§2.7): a servo found holding its leg with other
+// limits is not dropped to rewrite them; arming waits, and says why.
+TEST_F(DynamixelBridgePty, AServoHoldingItsLegWithOtherLimitsIsNotRewritten) {
+  Start(sim::DxlEmulatorOptions{}, M_PI - 0.01, "POSITION_MODE", [](sim::DynamixelBusEmulator& emu) {
+    const auto on = dxl::BuildTorqueEnable(4, true);
+    emu.Receive(on.data(), on.size(), 0.0);
+  });
+  ASSERT_TRUE(bridge_->Connect());
+  const std::string blocker = bridge_->ArmBlocker();
+  EXPECT_NE(blocker.find("servo 4 (HR): Acceleration Limit (40) is 32767, the config wants"),
+            std::string::npos) << blocker;
+  EXPECT_NE(blocker.find("Velocity Limit (44) is 210"), std::string::npos) << blocker;
+  EXPECT_NE(blocker.find("and torque is on (EEPROM is written only with torque off)"),
+            std::string::npos) << blocker;
+  EXPECT_EQ(blocker.find("servo 1 "), std::string::npos) << blocker;
+  std::lock_guard<std::mutex> lock(emu_mu_);
+  EXPECT_EQ(emu_->TableI32(4, dxl::kAddrVelocityLimit), 210) << "factory value, untouched";
+  EXPECT_EQ(emu_->TableByte(4, dxl::kAddrTorqueEnable), 1) << "the leg was not dropped";
 }
 
 // Position mode (3) keeps goals within one turn: a goal past count 4095 is refused whole, even
@@ -959,6 +1147,222 @@ TEST_F(DynamixelBridgeProcesses, TheDeadManHoldsTheServosWhenTheCommanderStops) 
   ASSERT_FALSE(statuses.empty());
   EXPECT_EQ(Counter(statuses.back(), "deadman_holds"), 1);
   EXPECT_EQ(Counter(statuses.back(), "mode"), 2);  // hold
+}
+
+
+// The real bridge process against the emulator in this process (on a pty), so that the test
+// sees the servos between the bridge's requests: what a hung bridge leaves them doing.
+class DynamixelBridgeOnEmulator : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    if (std::getenv("FTCAL_NETNS") == nullptr) {
+      GTEST_SKIP() << "uses LCM multicast: run inside scripts/netns-exec (ctest does)";
+    }
+    dir_ = testing::MakeTempDir();
+    link_ = dir_ + "/tty";
+    config_path_ = dir_ + "/config.pbtxt";
+    t0_ = Clock::now();
+  }
+  void Start(sim::DxlEmulatorOptions options, const std::string& config_text) {
+    std::ofstream(config_path_) << config_text;
+    emu_ = std::make_unique<sim::DynamixelBusEmulator>(std::move(options));
+    pty_ = std::make_unique<sim::PtyBus>(*emu_, link_);
+    pty_->Open();
+    server_ = std::thread([this] {
+      while (!stop_) {
+        std::lock_guard<std::mutex> lock(emu_mu_);
+        pty_->ServeOnce(1, [this] { return Now(); });
+        // The servos move whether asked or not (as in the twin): between requests too.
+        emu_->Advance(Now());
+      }
+    });
+  }
+  void TearDown() override {
+    bridge_.reset();
+    stop_ = true;
+    if (server_.joinable()) server_.join();
+    pty_.reset();
+    if (!dir_.empty()) testing::RemoveTree(dir_);
+  }
+  double Now() const { return std::chrono::duration<double>(Clock::now() - t0_).count(); }
+  std::unique_ptr<Child> StartBridge(const std::string& tag) {
+    return std::make_unique<Child>(
+        std::vector<std::string>{FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path_, "--lcm-url",
+                                 kUrl, "--log-level", "info"},
+        dir_ + "/bridge" + tag + ".out", dir_ + "/bridge" + tag + ".err");
+  }
+  double Position(std::uint8_t id) {
+    std::lock_guard<std::mutex> lock(emu_mu_);
+    return emu_->ExactPosition(id);
+  }
+  template <class F>
+  auto WithEmulator(F f) {
+    std::lock_guard<std::mutex> lock(emu_mu_);
+    return f(*emu_);
+  }
+
+  std::string dir_, link_, config_path_;
+  Clock::time_point t0_;
+  std::unique_ptr<sim::DynamixelBusEmulator> emu_;
+  std::unique_ptr<sim::PtyBus> pty_;
+  std::thread server_;
+  std::atomic<bool> stop_{false};
+  std::mutex emu_mu_;
+  std::unique_ptr<Child> bridge_;
+};
+
+// A servo that reports other limits than the config's (its Profile Velocity): the bridge
+// refuses ARM over LCM (at first because the limits are wrong, then because it is in FAULT:
+// degraded for longer than the dead-man time), and its heartbeat names the servo, the register
+// and both values.
+TEST_F(DynamixelBridgeOnEmulator, AServoWithOtherLimitsIsNotArmedAndTheStatusSaysWhy) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  testing::SignedCommander commander(kUrl);
+  sim::DxlEmulatorOptions options;
+  options.ignored_writes = {{5, dxl::kAddrProfileVelocity}};
+  Start(options, commander.Trusted(TestConfigText(link_, 1.0, 0.05)));
+  bridge_ = StartBridge("");
+  SleepS(1.5);
+  for (int i = 0; i < 3; ++i) {
+    commander.Arm();
+    commander.Move({1, 2, 3, 4, 5, 6}, {0.5, 0.5, 0.5, 0.5, 0.5, 0.5});
+    SleepS(0.2);
+  }
+  SleepS(1.0);
+  const auto statuses = listener.Statuses();
+  ASSERT_FALSE(statuses.empty());
+  const auto& last = statuses.back();
+  // Degraded for longer than dynamixel.deadman_s: FAULT, which refuses ARM as well.
+  EXPECT_EQ(Counter(last, "mode"), 3);
+  EXPECT_EQ(Counter(last, "arms"), 0);
+  EXPECT_GE(Counter(last, "refused_limits_unverified") + Counter(last, "refused_in_fault"), 3);
+  EXPECT_EQ(last.state, static_cast<int8_t>(service_status_t::DEGRADED));
+  EXPECT_NE(last.last_error.find("servo 5 (MR): Profile Velocity (112) written 125, read back 0"),
+            std::string::npos) << last.last_error;
+  WithEmulator([](sim::DynamixelBusEmulator& emu) {
+    for (std::uint8_t id = 1; id <= 6; ++id) {
+      EXPECT_EQ(emu.TableByte(id, dxl::kAddrTorqueEnable), 0) << "servo " << int(id);
+    }
+    return 0;
+  });
+}
+
+// Issue 12: a hung bridge stops the legs. The servos lag their goals (a 1 s time constant), so
+// they would run on for seconds after the bridge stops writing; the Bus Watchdog (0.1 s here)
+// stops them within its time of the bridge's last packet. After SIGCONT the bridge clears the
+// watchdogs and holds: MOVEs are refused until a new ARM (the dead-man is set longer than the
+// stop, so that the hold is the watchdog's doing). A bridge killed while stopped and started
+// again clears them the same way.
+TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThemAgain) {
+  Listener listener(t0_);
+  ASSERT_TRUE(listener.good());
+  testing::SignedCommander commander(kUrl);
+  sim::DxlEmulatorOptions options;
+  options.time_constant_s = 1.0;
+  const std::string text = std::regex_replace(TestConfigText(link_, 1.0, 0.05),
+                                              std::regex("(reply_timeout_s: [0-9.]+)"),
+                                              "$1\n  bus_watchdog_s: 0.1\n  deadman_s: 2.0");
+  Start(options, commander.Trusted(text));
+  bridge_ = StartBridge("1");
+  const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
+  const std::vector<double> far = {0.9, 0.9, 0.9, 0.9, 0.9, 0.9};
+  SleepS(1.5);
+  commander.Arm();
+  commander.StartHeartbeat(0.05);
+  SleepS(0.1);
+  commander.Move(ids, far);
+  SleepS(0.6);
+  // Normal operation: 2 s with a 0.1 s watchdog and torque on, and it never fired.
+  EXPECT_EQ(WithEmulator([](auto& e) { return e.fault_counts().bus_watchdog_expiries; }), 0);
+  const double moving_from = Position(1);
+
+  auto hang_and_check = [&](const std::string& when) {
+    SCOPED_TRACE(when);
+    bridge_->Signal(SIGSTOP);
+    const double stopped_at = Now();
+    SleepS(0.1 + 0.03);  // the watchdog time, and the emulator's 1 ms serving loop
+    std::vector<double> held;
+    for (std::uint8_t id = 1; id <= 6; ++id) held.push_back(Position(id));
+    SleepS(0.8);
+    for (std::uint8_t id = 1; id <= 6; ++id) {
+      EXPECT_NEAR(Position(id), held[id - 1], 0.5) << "servo " << int(id) << " ran on";
+      const double expired = WithEmulator([id](auto& e) { return e.LastWatchdogExpiry(id); });
+      // Its last packet came at most a few cycles before the stop (10 ms each, and a slow one).
+      EXPECT_GE(expired, stopped_at + 0.1 - 0.05) << "servo " << int(id);
+      EXPECT_LE(expired, stopped_at + 0.1 + 0.002) << "servo " << int(id);
+    }
+    // It was on its way (the lag would have carried it on) and stopped short of the goal.
+    const double goal_counts = 2048 + 0.9 / kOneCountRad;
+    EXPECT_LT(held[0], goal_counts - 100) << "it had nowhere left to go: the test shows nothing";
+  };
+  hang_and_check("SIGSTOP");
+  const double held_at = Position(1);
+  EXPECT_GT(held_at - moving_from, 10.0) << "it was not moving when the bridge hung";
+
+  bridge_->Signal(SIGCONT);
+  SleepS(0.3);
+  // The commander carries on as if nothing happened, with goals the gate has not written yet
+  // (an unchanged goal is not written again, so it would show nothing).
+  const std::vector<double> other = {0.6, 0.6, 0.6, 0.6, 0.6, 0.6};
+  for (int i = 0; i < 4; ++i) {
+    commander.Move(ids, other);
+    SleepS(0.25);
+  }
+  EXPECT_NEAR(Position(1), held_at, 1.0) << "moved again without a new ARM";
+  WithEmulator([](sim::DynamixelBusEmulator& e) {
+    for (std::uint8_t id = 1; id <= 6; ++id) {
+      EXPECT_EQ(e.TableByte(id, dxl::kAddrBusWatchdog), 5) << "cleared and set again";
+    }
+    return 0;
+  });
+  {
+    const auto statuses = listener.Statuses();
+    ASSERT_FALSE(statuses.empty());
+    EXPECT_EQ(Counter(statuses.back(), "mode"), 2);  // hold
+    EXPECT_EQ(Counter(statuses.back(), "watchdog_expiries"), 6);
+    EXPECT_GE(Counter(statuses.back(), "refused_not_armed"), 1);
+  }
+  commander.Arm();
+  SleepS(0.1);
+  commander.Move(ids, far);
+  SleepS(0.6);
+  const double resumed = Position(1);
+  EXPECT_GT(resumed - held_at, 10.0) << "a new ARM did not move it";
+
+  // Hung again, killed, and started anew: the new bridge clears the watchdogs, and holds.
+  hang_and_check("SIGSTOP again");
+  const double held_again = Position(1);
+  bridge_->Signal(SIGKILL);
+  bridge_->Wait(2.0);
+  commander.StopHeartbeat();
+  bridge_ = StartBridge("2");
+  SleepS(1.5);
+  for (int i = 0; i < 4; ++i) {
+    commander.Move(ids, other);
+    SleepS(0.1);
+  }
+  EXPECT_NEAR(Position(1), held_again, 1.0) << "moved after a restart without a new ARM";
+  WithEmulator([](sim::DynamixelBusEmulator& e) {
+    for (std::uint8_t id = 1; id <= 6; ++id) {
+      EXPECT_EQ(e.TableByte(id, dxl::kAddrBusWatchdog), 5) << "the new bridge cleared it";
+    }
+    return 0;
+  });
+  commander.Arm();
+  commander.StartHeartbeat(0.05);
+  SleepS(0.1);
+  commander.Move(ids, far);
+  SleepS(0.6);
+  EXPECT_GT(Position(1) - held_again, 10.0) << "a new ARM did not move it";
+  // Two hangs of six servos, nothing in between (a bridge that stops here lets them expire
+  // again, as it should: counted before it stops).
+  EXPECT_EQ(WithEmulator([](auto& e) { return e.fault_counts().bus_watchdog_expiries; }), 12);
+  commander.StopHeartbeat();
+  bridge_->Signal(SIGTERM);
+  bridge_->Wait(5.0);
+  const std::string err = testing::ReadFile(dir_ + "/bridge2.err");
+  EXPECT_NE(err.find("Bus Watchdog had expired"), std::string::npos) << err;
 }
 
 }  // namespace

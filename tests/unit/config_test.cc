@@ -269,6 +269,11 @@ TEST(Config, RangeChecks) {
       {"\n}\n", "\n}\nauth { trusted_key { name: \"a\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"a\" public_key_hex: \"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"EXPERIMENT\" } }\n", "auth.trusted_key[1].name: duplicate trusted key name 'a'"},
       {"\n}\n", "\n}\nauth { servo_cmd_window_s: 0 }\n", "auth.servo_cmd_window_s: must be in (0, 10] s"},
       {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" deadman_s: 0 }\n", "dynamixel.deadman_s: must be > 0"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_velocity_rad_s: 0.02 }\n", "dynamixel.max_velocity_rad_s: must be at least one unit of the servos' Velocity Limit (0.229 rpm = "},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_acceleration_rad_s2: 0.3 }\n", "dynamixel.max_acceleration_rad_s2: must be at least one unit of the servos' Acceleration Limit"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 0.05 }\n", "dynamixel.bus_watchdog_s: must be a multiple of 0.02 s within 0.02-2.54 s"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 2.56 }\n", "dynamixel.bus_watchdog_s: must be a multiple of 0.02 s within 0.02-2.54 s"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 0.04 }\n", "dynamixel.bus_watchdog_s: must span at least five bridge cycles (5 / rate_hz = 0.05 s)"},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.to);

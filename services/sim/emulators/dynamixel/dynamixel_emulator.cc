@@ -28,6 +28,7 @@ constexpr std::uint16_t kAddrTemperatureLimit = 31;
 constexpr std::uint16_t kAddrMaxVoltage = 32;
 constexpr std::uint16_t kAddrMinVoltage = 34;
 constexpr std::uint16_t kAddrCurrentLimit = 38;
+constexpr std::uint16_t kAddrAccelerationLimit = dxl::kAddrAccelerationLimit;
 constexpr std::uint16_t kAddrVelocityLimit = 44;
 constexpr std::uint16_t kAddrMaxPosition = 48;
 constexpr std::uint16_t kAddrMinPosition = 52;
@@ -36,6 +37,10 @@ constexpr std::uint16_t kAddrTorque = dxl::kAddrTorqueEnable;
 constexpr std::uint16_t kAddrLed = 65;
 constexpr std::uint16_t kAddrStatusReturnLevel = 68;
 constexpr std::uint16_t kAddrHwError = dxl::kAddrHardwareErrorStatus;
+constexpr std::uint16_t kAddrBusWatchdog = dxl::kAddrBusWatchdog;
+constexpr std::uint16_t kAddrGoalPwm = 100;  // the goal values: Goal PWM (100) ... Goal
+constexpr std::uint16_t kAddrProfileAcceleration = dxl::kAddrProfileAcceleration;
+constexpr std::uint16_t kAddrProfileVelocity = dxl::kAddrProfileVelocity;
 constexpr std::uint16_t kAddrGoalPosition = dxl::kAddrGoalPosition;
 constexpr std::uint16_t kAddrTick = 120;
 constexpr std::uint16_t kAddrMoving = 122;
@@ -146,6 +151,7 @@ DynamixelBusEmulator::DynamixelBusEmulator(DxlEmulatorOptions options)
     PutLe(t, kAddrMaxVoltage, 160, 2);
     PutLe(t, kAddrMinVoltage, 95, 2);
     PutLe(t, kAddrCurrentLimit, 2047, 2);
+    PutLe(t, kAddrAccelerationLimit, dxl::kMaxAccelerationLimit, 4);
     PutLe(t, kAddrVelocityLimit, 210, 4);
     PutLe(t, kAddrMaxPosition, 4095, 4);
     PutLe(t, kAddrMinPosition, 0, 4);
@@ -197,6 +203,19 @@ std::int32_t DynamixelBusEmulator::TableI32(std::uint8_t id, std::uint16_t addre
 }
 
 double DynamixelBusEmulator::ExactPosition(std::uint8_t id) const { return Get(id).position; }
+double DynamixelBusEmulator::LastInstruction(std::uint8_t id) const {
+  return Get(id).last_instruction_s;
+}
+double DynamixelBusEmulator::LastWatchdogExpiry(std::uint8_t id) const {
+  return Get(id).watchdog_expired_s;
+}
+
+double DynamixelBusEmulator::WatchdogDeadline(const Servo& s) const {
+  const std::uint8_t w = s.table[kAddrBusWatchdog];
+  // Watched only while torque is on (§2.7): a servo at rest with torque off has nothing to stop.
+  if (w == 0 || w == dxl::kBusWatchdogExpired || s.table[kAddrTorque] == 0) return -1.0;
+  return s.last_instruction_s + w * dxl::kBusWatchdogUnitS;
+}
 
 bool DynamixelBusEmulator::Present(std::uint8_t id, double now_s) const {
   for (const auto& e : options_.events) {
@@ -242,31 +261,52 @@ void DynamixelBusEmulator::Advance(double now_s) {
     s->table[kAddrTorque] = 0;
     ++counts_.hardware_errors;
   }
-  const double dt = now_s - last_advance_s_;
+  const double from_s = last_advance_s_;
   for (Servo& s : servos_) {
-    std::optional<DxlDrivenState> driven;
-    if (source_) driven = source_(s.id, now_s);
-    if (driven) {
-      s.position = driven->position_counts;
-      s.velocity = driven->velocity_counts_s;
-      s.current_a = driven->current_a;
-    } else if (dt > 0) {
-      if (s.table[kAddrTorque] != 0) {
-        const double goal = static_cast<std::int32_t>(GetLe(s.table, kAddrGoalPosition, 4));
-        const double alpha = 1.0 - std::exp(-dt / options_.time_constant_s);
-        const double next = s.position + (goal - s.position) * alpha;
-        s.velocity = (next - s.position) / dt;
-        // Holding torque grows with the position error; a stand-in, not a motor model.
-        s.current_a = std::clamp(0.002 * (goal - next), -5.0, 5.0);
-        s.position = next;
-      } else {
-        s.velocity = 0.0;
-        s.current_a = 0.0;
-      }
+    const double deadline = WatchdogDeadline(s);
+    // "larger than" its value (§2.7): a packet exactly at the deadline still feeds it.
+    if (deadline >= 0 && deadline < now_s) {
+      // It runs to the moment the watchdog ran out, then stops where it is: the goal becomes
+      // the present position (the profile applied as 0, an immediate stop), torque stays on,
+      // and goal writes are refused until the watchdog is written 0 (§2.7).
+      const double at = std::max(deadline, from_s);
+      Move(s, from_s, at);
+      s.table[kAddrBusWatchdog] = dxl::kBusWatchdogExpired;
+      PutLe(s.table, kAddrGoalPosition, static_cast<std::uint32_t>(RoundToI32(s.position)), 4);
+      s.velocity = 0.0;
+      s.watchdog_expired_s = at;
+      ++counts_.bus_watchdog_expiries;
+      Move(s, at, now_s);
+    } else {
+      Move(s, from_s, now_s);
     }
     UpdateTable(s, now_s);
   }
-  if (dt > 0) last_advance_s_ = now_s;
+  if (now_s > last_advance_s_) last_advance_s_ = now_s;
+}
+
+void DynamixelBusEmulator::Move(Servo& s, double from_s, double to_s) {
+  std::optional<DxlDrivenState> driven;
+  if (source_) driven = source_(s.id, to_s);
+  const double dt = to_s - from_s;
+  if (driven) {
+    s.position = driven->position_counts;
+    s.velocity = driven->velocity_counts_s;
+    s.current_a = driven->current_a;
+  } else if (dt > 0) {
+    if (s.table[kAddrTorque] != 0) {
+      const double goal = static_cast<std::int32_t>(GetLe(s.table, kAddrGoalPosition, 4));
+      const double alpha = 1.0 - std::exp(-dt / options_.time_constant_s);
+      const double next = s.position + (goal - s.position) * alpha;
+      s.velocity = (next - s.position) / dt;
+      // Holding torque grows with the position error; a stand-in, not a motor model.
+      s.current_a = std::clamp(0.002 * (goal - next), -5.0, 5.0);
+      s.position = next;
+    } else {
+      s.velocity = 0.0;
+      s.current_a = 0.0;
+    }
+  }
 }
 
 std::uint8_t DynamixelBusEmulator::AlertBit(const Servo& s) const {
@@ -293,6 +333,50 @@ std::uint8_t DynamixelBusEmulator::ApplyWrite(Servo& s, std::uint16_t address,
     if (mode != 0 && mode != 1 && mode != 3 && mode != 4 && mode != 5 && mode != 16) {
       return kErrDataRange;
     }
+  }
+  // The value an item of `size` bytes at `item` would hold after this write, for the range
+  // checks below; nullopt when the write does not touch it.
+  auto after = [&](std::uint16_t item, int size) -> std::optional<std::uint32_t> {
+    if (address >= item + size || address + n <= item) return std::nullopt;
+    std::uint32_t v = 0;
+    for (int i = 0; i < size; ++i) {
+      const std::size_t a = item + static_cast<std::size_t>(i);
+      const std::uint8_t byte = (a >= address && a < address + n) ? data[a - address] : t[a];
+      v |= static_cast<std::uint32_t>(byte) << (8 * i);
+    }
+    return v;
+  };
+  const bool watchdog_expired = t[kAddrBusWatchdog] == dxl::kBusWatchdogExpired;
+  if (const auto w = after(kAddrBusWatchdog, 1)) {
+    // 0 disarms (and clears an expiry), 1-127 arms; -1 is the servo's own state, not a value
+    // to write. While expired only the clearing 0 is taken (an assumption: §2.7).
+    if (*w > 127 || (watchdog_expired && *w != 0)) return kErrDataRange;
+  }
+  // An expired watchdog makes the goal values (Goal PWM 100 ... Goal Velocity 104, Goal
+  // Position 116) read-only: a write answers Data Range Error (§2.7).
+  if (watchdog_expired && address < kAddrGoalPosition + 4u && address + n > kAddrGoalPwm &&
+      !(address >= kAddrProfileAcceleration && address + n <= kAddrGoalPosition)) {
+    return kErrDataRange;
+  }
+  // Each limit within its register's range (Data Range Error), each profile within its limit
+  // (Data Limit Error: "value outside its limit item", §2.5).
+  if (const auto v = after(kAddrVelocityLimit, 4); v && *v > dxl::kMaxVelocityLimit) {
+    return kErrDataRange;
+  }
+  if (const auto v = after(kAddrAccelerationLimit, 4); v && *v > dxl::kMaxAccelerationLimit) {
+    return kErrDataRange;
+  }
+  for (const std::uint16_t item : {kAddrMaxPosition, kAddrMinPosition}) {
+    if (const auto v = after(item, 4); v && *v > static_cast<std::uint32_t>(dxl::kPositionModeMaxCount)) {
+      return kErrDataRange;
+    }
+  }
+  if (const auto v = after(kAddrProfileVelocity, 4); v && *v > GetLe(t, kAddrVelocityLimit, 4)) {
+    return kErrDataLimit;
+  }
+  if (const auto v = after(kAddrProfileAcceleration, 4);
+      v && *v > GetLe(t, kAddrAccelerationLimit, 4)) {
+    return kErrDataLimit;
   }
   if (address <= kAddrGoalPosition && address + n >= kAddrGoalPosition + 4u) {
     const std::size_t off = kAddrGoalPosition - address;
@@ -321,7 +405,10 @@ std::uint8_t DynamixelBusEmulator::ApplyWrite(Servo& s, std::uint16_t address,
                 2));
       if (a >= t.size()) return kErrAccess;
     }
-    t[a] = data[i];
+    const bool ignored = std::any_of(
+        options_.ignored_writes.begin(), options_.ignored_writes.end(),
+        [&](const DxlIgnoredWrite& w) { return w.id == s.id && w.address == address + i; });
+    if (!ignored) t[a] = data[i];
   }
   return 0;
 }
@@ -332,6 +419,14 @@ std::vector<std::uint8_t> DynamixelBusEmulator::Receive(const std::uint8_t* data
   parser_.Feed(data, n);
   while (auto p = parser_.NextInstruction()) {
     Advance(now_s);
+    // Every instruction packet a servo is addressed by (its id, or broadcast: SYNC and BULK
+    // instructions too) feeds its Bus Watchdog (§2.7). Whether packets for other ids do as
+    // well is not documented; counting only its own makes the watchdog the stricter.
+    for (Servo& s : servos_) {
+      if ((p->id == s.id || p->id == dxl::kBroadcastId) && Present(s.id, now_s)) {
+        s.last_instruction_s = now_s;
+      }
+    }
     Handle(*p, now_s, &out);
   }
   return out;
@@ -434,6 +529,7 @@ void DynamixelBusEmulator::Handle(const dxl::InstructionPacket& p, double now_s,
         // After a reboot: errors cleared, torque off, the Realtime Tick restarts from 0.
         s.table[kAddrHwError] = 0;
         s.table[kAddrTorque] = 0;
+        s.table[kAddrBusWatchdog] = 0;  // a RAM item: back to its initial value
         s.tick_zero_s = now_s;
         s.tick_base_ms = 0;
         PutLe(s.table, kAddrGoalPosition, static_cast<std::uint32_t>(RoundToI32(s.position)), 4);

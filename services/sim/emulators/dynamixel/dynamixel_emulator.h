@@ -55,6 +55,14 @@ struct DxlFaultEvent {
   std::uint8_t hw_error_bits = 0x20;  // overload
 };
 
+// A register of one servo that acknowledges writes without taking them: the servo then
+// reports a value other than the one it was told (a firmware that lacks the item, a table
+// edited behind the bridge's back). What a bridge's read-back must catch.
+struct DxlIgnoredWrite {
+  std::uint8_t id = 0;
+  std::uint16_t address = 0;
+};
+
 struct DxlEmulatorOptions {
   std::vector<std::uint8_t> ids = {1, 2, 3, 4, 5, 6};
   double time_constant_s = 0.05;         // first-order response to Goal Position
@@ -69,6 +77,7 @@ struct DxlEmulatorOptions {
   std::uint8_t operating_mode = 3;
   DxlFaultRates rates;
   std::vector<DxlFaultEvent> events;
+  std::vector<DxlIgnoredWrite> ignored_writes;
 };
 
 // Present values supplied from outside for one servo (the twin's shaft angle as counts).
@@ -109,6 +118,7 @@ struct DxlFaultCounts {
   std::int64_t missing = 0;  // replies not given by a missing servo
   std::int64_t silent = 0;   // replies not given while the bus was silent
   std::int64_t hardware_errors = 0;
+  std::int64_t bus_watchdog_expiries = 0;  // a servo with torque on heard nothing in time
 };
 
 class DynamixelBusEmulator {
@@ -134,6 +144,10 @@ class DynamixelBusEmulator {
   std::uint8_t TableByte(std::uint8_t id, std::uint16_t address) const;
   std::int32_t TableI32(std::uint8_t id, std::uint16_t address) const;
   double ExactPosition(std::uint8_t id) const;
+  // When `id` last heard an instruction packet addressed to it (its id or broadcast), and when
+  // its Bus Watchdog last expired (-1: never); seconds on the emulator's clock.
+  double LastInstruction(std::uint8_t id) const;
+  double LastWatchdogExpiry(std::uint8_t id) const;
   const DxlFaultCounts& fault_counts() const { return counts_; }
   const std::vector<std::uint8_t>& ids() const { return options_.ids; }
   const dxl::PacketParser::Stats& parser_stats() const { return parser_.stats(); }
@@ -147,6 +161,8 @@ class DynamixelBusEmulator {
     double current_a = 0.0;
     double tick_zero_s = 0.0;  // REBOOT restarts the Realtime Tick
     std::uint16_t tick_base_ms = 0;
+    double last_instruction_s = 0.0;  // what feeds the Bus Watchdog
+    double watchdog_expired_s = -1.0;
   };
 
   Servo* Find(std::uint8_t id);
@@ -154,6 +170,10 @@ class DynamixelBusEmulator {
   bool Present(std::uint8_t id, double now_s) const;
   bool Silent(double now_s) const;
   void UpdateTable(Servo& s, double now_s);
+  // Moves servo s over [from_s, to_s] (its goal dynamics, or the state source at to_s).
+  void Move(Servo& s, double from_s, double to_s);
+  // The moment s's Bus Watchdog runs out, if it is armed and torque is on; -1 otherwise.
+  double WatchdogDeadline(const Servo& s) const;
   // Applies a WRITE (or one servo's part of a SYNC WRITE); returns the status error byte.
   std::uint8_t ApplyWrite(Servo& s, std::uint16_t address, const std::uint8_t* data,
                           std::size_t n);

@@ -254,11 +254,12 @@ int main(int argc, char** argv) {
     bus.Close();
     const auto& c = emulator.fault_counts();
     std::printf("ftcal-emulate-dynamixel: %zu replies; dropped %lld corrupted %lld noise bursts "
-                "%lld missing %lld silent %lld hardware errors %lld\n",
+                "%lld missing %lld silent %lld hardware errors %lld bus watchdog expiries %lld\n",
                 records.size(), static_cast<long long>(c.dropped),
                 static_cast<long long>(c.corrupted), static_cast<long long>(c.noise_bursts),
                 static_cast<long long>(c.missing), static_cast<long long>(c.silent),
-                static_cast<long long>(c.hardware_errors));
+                static_cast<long long>(c.hardware_errors),
+                static_cast<long long>(c.bus_watchdog_expiries));
     if (!truth_path.empty()) WriteTruth(truth_path, records);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "ftcal-emulate-dynamixel: %s\n", e.what());
