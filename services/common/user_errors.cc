@@ -31,10 +31,8 @@ bool IsInternalError(const std::exception& e) {
   if (const auto* invalid = dynamic_cast<const std::invalid_argument*>(&e)) {
     return IsLibraryConversionText(invalid->what());
   }
-  if (dynamic_cast<const std::out_of_range*>(&e) != nullptr) {
-    // std::stoi's "out of range" for a too-large number is as bare as its invalid_argument.
-    return true;
-  }
+  // Every other logic error (std::out_of_range included: stoi's "stoi" for a too-large
+  // number as much as vector::at's range check) is a bug.
   if (dynamic_cast<const std::logic_error*>(&e) != nullptr) return true;
   return dynamic_cast<const std::bad_cast*>(&e) != nullptr ||
          dynamic_cast<const std::bad_typeid*>(&e) != nullptr ||
