@@ -384,20 +384,27 @@ class DynamixelBridgePty : public ::testing::Test {
 TEST_F(DynamixelBridgePty, AMissingServoIsStaleAndTheOtherFiveAreExact) {
   sim::DxlEmulatorOptions options;
   options.events.push_back({sim::DxlFaultKind::kMissingServo, 0.0, 1e9, 4, 0});
-  // Each servo moves along its own ramp, so a reply matched to the wrong id would show.
-  // The tick wraps during the test (60 cycles of at least 10 ms).
-  options.initial_tick_ms = 32500;
   Start(options);
+  // Each servo moves along its own ramp, so a reply matched to the wrong id would show.
+  // The tick wraps during the test (60 cycles of at least 10 ms): once connected, the bus
+  // clock jumps to 150 ms before the wrap. Connect's length (limit writes and read-backs,
+  // slower under load) cannot then eat the margin; it reads no tick, so the jump is unseen.
+  const double jump_s = (32768 - 150) / 1000.0;
   std::unique_lock<std::mutex> lock(emu_mu_);
-  emu_->SetStateSource([](std::uint8_t id, double t) -> std::optional<sim::DxlDrivenState> {
+  emu_->SetStateSource([jump_s](std::uint8_t id, double t) -> std::optional<sim::DxlDrivenState> {
     sim::DxlDrivenState s;
-    s.position_counts = 1000.0 + 300.0 * id + 2000.0 * t;
+    s.position_counts = 1000.0 + 300.0 * id + 2000.0 * std::max(0.0, t - jump_s);
     s.velocity_counts_s = 2000.0;
     return s;
   });
   lock.unlock();
   ASSERT_TRUE(bridge_->Connect());
   EXPECT_EQ(bridge_->missing_at_start(), std::vector<std::uint8_t>{4});
+  lock.lock();
+  ASSERT_LT(std::chrono::duration<double>(Clock::now() - t0_).count(), jump_s);
+  t0_ = Clock::now() - std::chrono::duration_cast<Clock::duration>(
+                           std::chrono::duration<double>(jump_s));
+  lock.unlock();
   for (int i = 0; i < 60; ++i) {
     bridge_->Cycle();
     SleepS(0.01);
