@@ -548,6 +548,22 @@ def main():
                   + ("Consistent." if m.consistent else "<b>MISMATCH (accepted).</b>") + "</p>",
                   table(["transducer"] + [f"shaft {leg.name}" for leg in cal.leg]
                         + ["best other / own"], leg_map_rows(cal))]
+    if cal.recording_gaps:
+        parts.append("<h2>Recording</h2>")
+        lossy = [g for g in cal.recording_gaps if g.lost or g.restarts]
+        total = sum(g.received + g.lost for g in cal.recording_gaps if g.used)
+        if not lossy:
+            parts.append(f"<p>No transducer record missing: {total} records in the phases "
+                         "used, every RDT sequence number present.</p>")
+        else:
+            parts += [f"<p>Transducer records missing by RDT sequence number, per phase and "
+                      f"channel ({total} records in the phases used); a phase used is refused "
+                      "above calibrator.max_gap_share unless --allow-gaps.</p>",
+                      table(["phase", "session", "channel", "used", "received", "lost",
+                             "lost share", "restarts"],
+                            [[g.phase, g.session_id, g.channel, "yes" if g.used else "no",
+                              g.received, g.lost, f"{100.0 * g.lost_share:.2f}%", g.restarts]
+                             for g in lossy])]
     parts += ["<h2>Hanging residuals per leg (with and without s)</h2>", img(imgs[1]),
               table(["series", "samples"] + ["rms " + c for c in COMPONENTS], hang_rows),
               "<h2>Leg CoM against phase (bins and fit)</h2>"] + [img(n) for n in com_imgs]

@@ -563,6 +563,10 @@ void ValidateCalibrator(const Node& node, const config::Calibrator& c) {
     node.Error("mass_tolerance_kg", "must be >= 0, got " + FormatNumber(c.mass_tolerance_kg()));
   }
   node.Positive("residual_floor_warn_factor", c.residual_floor_warn_factor());
+  if (node.Finite("max_gap_share", c.max_gap_share()) &&
+      (c.max_gap_share() < 0.0 || c.max_gap_share() > 1.0)) {
+    node.Error("max_gap_share", "must be a share in [0, 1], got " + FormatNumber(c.max_gap_share()));
+  }
   if (c.profile() == config::CALIBRATION_PROFILE_UNSPECIFIED) {
     node.Error("profile", "must be FTCAL or REPORT");
   }

@@ -61,6 +61,7 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
       segmenter_options_(SegmenterOptionsFromConfig(config.segmenter())),
       aligner_(AlignerOptionsFromConfig(config), [this](const AlignedSample& a) { OnAligned(a); }) {
   PoseSegmenter check(segmenter_options_, nullptr);  // refuse unusable options at start
+  hang_gaps_index_.fill(-1);
 }
 
 void CalibrationCollector::Attach(Bus& bus) {
@@ -108,7 +109,32 @@ void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, in
     throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
                    refused->detail);
   }
+  if (phase_ >= 0) CountRecord(k, msg.rdt_sequence);
   aligner_.AddFt(inputs_.FromFt(k, msg));
+}
+
+// Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number
+// up to this far below the highest seen fills a gap counted before.
+constexpr int64_t kReorderWindow = 64;
+
+void CalibrationCollector::CountRecord(int k, int64_t sequence) {
+  int64_t& last = last_sequence_[k];
+  if (last == 0) {
+    ++current_gaps_.received[k];
+  } else if (sequence > last) {
+    ++current_gaps_.received[k];
+    current_gaps_.lost[k] += sequence - last - 1;
+  } else if (sequence == last) {
+    return;  // the same record twice (a replayed log): not data, not a gap
+  } else if (last - sequence <= kReorderWindow && current_gaps_.lost[k] > 0) {
+    ++current_gaps_.received[k];
+    --current_gaps_.lost[k];
+    return;
+  } else {
+    ++current_gaps_.received[k];
+    ++current_gaps_.restarts[k];
+  }
+  last = sequence;
 }
 
 void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
@@ -123,6 +149,10 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
     }
     phase_ = msg.phase;
     phase_session_ = msg.session_id;
+    current_gaps_ = PhaseGaps();
+    current_gaps_.phase = phase_;
+    current_gaps_.session = phase_session_;
+    last_sequence_.fill(0);
     if (IsHangPhase(phase_)) {
       current_hang_ = HangingRecording();
       current_hang_.series = SeriesOfPhase(phase_);
@@ -164,9 +194,12 @@ void CalibrationCollector::EndPhase(bool completed) {
     segmented = segmenter_->counters();
     segmenter_.reset();
   }
+  if (completed) phase_gaps_.push_back(current_gaps_);
   if (IsHangPhase(phase_)) {
     if (completed) {
       const int s = static_cast<int>(current_hang_.series);
+      if (hang_gaps_index_[s] >= 0) phase_gaps_[hang_gaps_index_[s]].superseded = true;
+      hang_gaps_index_[s] = static_cast<int>(phase_gaps_.size()) - 1;
       if (hang_[s]) {
         spdlog::warn("{} recorded again: the later recording replaces the earlier one",
                      HangSeriesName(current_hang_.series));
@@ -438,9 +471,70 @@ void LiveCalibrator::CalibrateNow() {
 
 std::string SoftwareVersion() { return FTCAL_SOFTWARE_VERSION; }
 
+std::vector<calibration::RecordingGaps> CheckRecordingGaps(const CalibrationCollector& collector,
+                                                          const config::Config& config,
+                                                          const std::set<int>& used,
+                                                          bool allow_gaps,
+                                                          std::vector<std::string>* warnings) {
+  const double limit = config.calibrator().max_gap_share();
+  std::vector<calibration::RecordingGaps> out;
+  std::vector<std::string> over;
+  for (const PhaseGaps& g : collector.phase_gaps()) {
+    const bool is_used = used.count(g.phase) > 0 && !g.superseded;
+    std::string lossy;
+    for (int k = 0; k < kNumLegs; ++k) {
+      calibration::RecordingGaps& r = out.emplace_back();
+      r.set_phase(PhaseName(g.phase));
+      r.set_session_id(g.session);
+      r.set_channel(collector.ft_channel(k));
+      r.set_received(static_cast<uint64_t>(g.received[k]));
+      r.set_lost(static_cast<uint64_t>(g.lost[k]));
+      r.set_restarts(static_cast<uint32_t>(g.restarts[k]));
+      r.set_lost_share(g.LostShare(k));
+      r.set_used(is_used);
+      if (g.lost[k] > 0 || g.restarts[k] > 0) {
+        lossy += fmt::format("{}{} {} of {} lost ({:.2f}%){}", lossy.empty() ? "" : ", ",
+                             collector.ft_channel(k), g.lost[k], g.received[k] + g.lost[k],
+                             100.0 * g.LostShare(k),
+                             g.restarts[k] > 0 ? fmt::format(", {} restarts", g.restarts[k]) : "");
+      }
+      if (is_used && g.LostShare(k) > limit) {
+        over.push_back(fmt::format("{} (session '{}') {}: {} of {} records lost ({:.2f}%)",
+                                   PhaseName(g.phase), g.session, collector.ft_channel(k),
+                                   g.lost[k], g.received[k] + g.lost[k], 100.0 * g.LostShare(k)));
+      }
+    }
+    if (!lossy.empty()) {
+      spdlog::warn("{} (session '{}'{}): transducer records missing by sequence number: {}",
+                   PhaseName(g.phase), g.session, is_used ? "" : ", not used", lossy);
+    }
+  }
+  if (over.empty()) return out;
+  std::string list;
+  for (const std::string& o : over) list += (list.empty() ? "" : "; ") + o;
+  const std::string what = fmt::format(
+      "the recording lost more than calibrator.max_gap_share ({:.2f}%) of a transducer's "
+      "records in a phase the calibration uses: {}",
+      100.0 * limit, list);
+  if (!allow_gaps) {
+    throw CalibratorInputError(what +
+                               ". Look at the recording path (receive buffers, a bridge "
+                               "restarting); --allow-gaps calibrates anyway");
+  }
+  warnings->push_back(what + " (calibrated anyway: --allow-gaps)");
+  return out;
+}
+
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
                               const CalibratorOptions& options) {
   collector.CheckMarkersAndLegs("hanging series from standing");
+  std::vector<std::string> gap_warnings;
+  const std::vector<calibration::RecordingGaps> gaps = CheckRecordingGaps(
+      collector, config,
+      {experiment_marker_t::HANG_X_POS, experiment_marker_t::HANG_X_NEG,
+       experiment_marker_t::HANG_Z_POS, experiment_marker_t::HANG_Z_NEG,
+       experiment_marker_t::STANDING},
+      options.allow_gaps, &gap_warnings);
   const std::vector<HangingRecording> hanging = collector.HangingRecordings();
   const std::vector<StandingPose> poses = collector.StandingPoses();
   if (poses.empty()) {
@@ -468,6 +562,11 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
                StandingModelName(run.standing.selected));
   // The configured total mass is checked against the data's inside Calibrate() (a
   // MassMismatchError unless accepted): a config for another robot is refused there.
+  for (const std::string& w : gap_warnings) {
+    run.warnings.push_back(w);
+    run.proto.add_warning(w);
+  }
+  for (const calibration::RecordingGaps& g : gaps) *run.proto.add_recording_gaps() = g;
   for (const std::string& w : run.warnings) spdlog::warn("{}", w);
   AddResultRmse({}, nullptr, &run);  // the standing poses; offline adds the walk
 
@@ -508,6 +607,10 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
                                             const std::string& base_path, bool allow_partial,
                                             const CalibratorOptions& options) {
   collector.CheckMarkersAndLegs("standing poses or tripod stances");
+  std::vector<std::string> gap_warnings;
+  CheckRecordingGaps(collector, config,
+                     {experiment_marker_t::STANDING, experiment_marker_t::TRIPOD},
+                     options.allow_gaps, &gap_warnings);
   OffsetReestimationRun run;
   try {
     run.proto = ReadCalibrationFile(base_path);
@@ -563,6 +666,10 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
   r->set_rank(static_cast<uint32_t>(run.estimate.rank));
   for (const std::string& u : run.estimate.undetermined) r->add_undetermined(u);
   r->set_residual_rms(run.estimate.residual_rms);
+  for (const std::string& w : gap_warnings) {
+    spdlog::warn("{}", w);
+    run.proto.add_warning(w);
+  }
   run.proto.set_version(run.proto.version() + 1);
   return run;
 }

@@ -67,6 +67,24 @@ struct CollectorCounters {
   int64_t tripod_stances_dropped = 0; // steady, but no leg lifted
 };
 
+// One completed phase's transducer records per leg, counted by the devices' RDT sequence
+// numbers (ft_sample_t.rdt_sequence rises by 1 a record): what reached this input and what
+// did not, wherever it was lost (network, bridge, the recorder's socket).
+struct PhaseGaps {
+  int phase = -1;  // experiment_marker_t phase code
+  std::string session;
+  std::array<int64_t, kNumLegs> received{};
+  std::array<int64_t, kNumLegs> lost{};
+  // A number that fell back far (a new RDT stream: the bridge or the device restarted): the
+  // records of the outage have no numbers to miss, so it is counted apart from the gaps.
+  std::array<int64_t, kNumLegs> restarts{};
+  bool superseded = false;  // a hanging series recorded again later: this one is not used
+  double LostShare(int k) const {
+    const int64_t n = received[k] + lost[k];
+    return n > 0 ? static_cast<double>(lost[k]) / static_cast<double>(n) : 0.0;
+  }
+};
+
 class CalibrationCollector {
  public:
   // Throws std::invalid_argument for a config whose legs are not kLegNames in order.
@@ -105,6 +123,10 @@ class CalibrationCollector {
 
   // Steady tripod stances of the completed TRIPOD phases, with their unloaded legs.
   const std::vector<LoadSample>& unloaded_samples() const { return unloaded_; }
+
+  // Every completed phase, in order, with its records counted (PhaseGaps).
+  const std::vector<PhaseGaps>& phase_gaps() const { return phase_gaps_; }
+  const std::string& ft_channel(int k) const { return inputs_.FtChannel(k); }
 
   const CollectorCounters& counters() const { return counters_; }
   const std::string& standing_session() const { return standing_session_; }
@@ -153,6 +175,11 @@ class CalibrationCollector {
   std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};
   int LegOfChannel(const std::string& channel);
   ft_sample_t ft_scratch_;
+  void CountRecord(int k, int64_t sequence);
+  PhaseGaps current_gaps_;
+  std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase
+  std::vector<PhaseGaps> phase_gaps_;
+  std::array<int, kNumHangSeries> hang_gaps_index_;  // into phase_gaps_, -1: none
   std::function<void()> on_standing_stop_;
   std::function<void()> on_steady_pose_;
   CollectorCounters counters_;
@@ -166,10 +193,23 @@ struct CalibratorOptions {
   bool accept_mass_mismatch = false;
   // --accept-leg-map-mismatch: calibrate when a transducer's data follows another leg's shaft.
   bool accept_leg_map_mismatch = false;
+  // --allow-gaps: calibrate when a phase used lost more than calibrator.max_gap_share of a
+  // transducer's records (recorded in the calibration file as a warning); refused otherwise.
+  bool allow_gaps = false;
   // The SHA-256 of an input log for provenance; empty: Sha256File. Offline runs hash the logs
   // on another thread while they are read (a second pass over ~1 GB otherwise).
   std::function<std::string(const std::string& path)> sha256;
 };
+
+// The recording gaps of the completed phases: `used` says which phase codes the calibration
+// takes data from (a superseded hanging series is not used). Logs a line per phase with any
+// loss; throws CalibratorInputError naming every used phase and channel above
+// calibrator.max_gap_share unless `allow_gaps` (then each is a warning in `warnings`).
+std::vector<calibration::RecordingGaps> CheckRecordingGaps(const CalibrationCollector& collector,
+                                                          const config::Config& config,
+                                                          const std::set<int>& used,
+                                                          bool allow_gaps,
+                                                          std::vector<std::string>* warnings);
 
 // Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,

@@ -56,6 +56,7 @@ struct Args {
   std::string profile;
   bool accept_mass_mismatch = false;
   bool accept_leg_map_mismatch = false;
+  bool allow_gaps = false;
   std::string command_line;
   std::string signing_key;
 };
@@ -173,6 +174,7 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
   options.command_line = args.command_line;
   options.accept_mass_mismatch = args.accept_mass_mismatch;
   options.accept_leg_map_mismatch = args.accept_leg_map_mismatch;
+  options.allow_gaps = args.allow_gaps;
   return options;
 }
 
@@ -231,11 +233,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   ftcal::ServiceStats stats(spdlog::default_logger());
   const std::string url = args.lcm_url.empty() ? config.lcm_url() : args.lcm_url;
   ftcal::LcmBus bus(url, stats);
-  ftcal::CalibratorOptions options;
-  options.config_path = args.config_path;
-  options.command_line = args.command_line;
-  options.accept_mass_mismatch = args.accept_mass_mismatch;
-  options.accept_leg_map_mismatch = args.accept_leg_map_mismatch;
+  ftcal::CalibratorOptions options = OptionsOf(args);
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
                              [&](const ftcal::CalibrationRun& run) { rc = Report(run, args); });
@@ -330,6 +328,10 @@ int main(int argc, char** argv) {
                "calibrate even when a transducer's standing data follows another leg's shaft "
                "far better than its own (two legs' servo ids or transducer addresses swapped in "
                "the config; recorded in the calibration file as a warning); refused otherwise");
+  cli.add_flag("--allow-gaps", args.allow_gaps,
+               "calibrate even when a phase the calibration uses lost more than "
+               "calibrator.max_gap_share of a transducer's records (by RDT sequence number; "
+               "recorded in the calibration file as a warning); refused otherwise");
   cli.add_option("--signing-key", args.signing_key,
                  "live: sign CALIBRATION with the Ed25519 seed in this file (owner-only; "
                  "ftcal-keygen makes one)");

@@ -32,7 +32,13 @@
 //    a busy 2-core machine degrades the bus until the bridge's gate goes to FAULT (counted as
 //    MOVEs without a write).
 //
+// 3. With --record, the recording's loss (issue 14, "Recording loses nothing"): scripts/record
+//    (lcm-logger with a 32 MB receive buffer, SCHED_FIFO where allowed) records the whole run
+//    beside this subscriber; its FT_<LEG> and CONTACT_WRENCH in the window are counted the
+//    same way.
+//
 //   scripts/netns-exec build/tests/bench/live_latency_bench [--duration 12] [--bridges 6|1]
+//       [--record]
 //
 // The figures depend on what else the machine runs: the load average is printed with them.
 //
@@ -156,13 +162,14 @@ class Listener {
   std::array<std::vector<Event>, 6> ft_, cw_;
   std::int64_t undecodable = 0;
 
- private:
   static int LegOf(const std::string& name) {
     for (int k = 0; k < 6; ++k) {
       if (kLegs[k] == name) return k;
     }
     return -1;
   }
+
+ private:
   void OnFt(const lcm::ReceiveBuffer* rb, const std::string&) {
     const std::int64_t now = NowUs();
     ftcal::ft_sample_t m;
@@ -397,6 +404,10 @@ int main(int argc, char** argv) {
                "run this program's subscriber thread SCHED_FIFO (priority 30, below the ATI "
                "bridges' default): tells a starved subscriber from a slow pipeline");
   bool keep = false;
+  bool record = false;
+  cli.add_flag("--record", record,
+               "also record the run with scripts/record (lcm-logger, its receive buffer and "
+               "real-time priority where allowed) and count what the recording lost");
   cli.add_flag("--keep", keep, "keep the temporary directory (the processes' logs) and print it");
   CLI11_PARSE(cli, argc, argv);
   const char* netns = std::getenv("FTCAL_NETNS");
@@ -456,6 +467,15 @@ int main(int argc, char** argv) {
     }
     SleepS(0.2);
 
+    // The recorder first: it is to hold every record the bridges publish.
+    std::unique_ptr<Child> recorder;
+    if (record) {
+      recorder = std::make_unique<Child>(
+          std::vector<std::string>{std::string(FTCAL_SOURCE_DIR) + "/scripts/record", "--config",
+                                   config_path, path("session.lcmlog")},
+          path("record.out"), path("record.err"));
+      SleepS(0.5);
+    }
     const KernelDrops kernel_before = ReadKernelDrops();
     std::vector<std::unique_ptr<Child>> ati;
     std::vector<std::string> ati_argv = {FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url",
@@ -534,6 +554,7 @@ int main(int argc, char** argv) {
     stop_ati();
     Stop(dxl);
     Stop(mocap);
+    Stop(recorder);
     listener->Stop();
     const KernelDrops kernel_after = ReadKernelDrops();
     const auto goal_writes = tap->writes();
@@ -593,6 +614,54 @@ int main(int argc, char** argv) {
                 window_sent > 0 ? 100.0 * double(window_sent - window_ft) / double(window_sent) : 0.0,
                 window_cw, window_sent - window_cw,
                 window_sent > 0 ? 100.0 * double(window_sent - window_cw) / double(window_sent) : 0.0);
+    if (record) {
+      // The recording, counted as this subscriber's heard: the window's FT by RDT sequence
+      // against the twin's (the same first..last as above), its CONTACT_WRENCH against them.
+      std::array<std::vector<std::int64_t>, 6> seq;
+      std::array<long long, 6> rec_cw{};
+      long long undecodable = 0;
+      lcm::LogFile log(path("session.lcmlog"), "r");
+      while (log.good()) {
+        const lcm::LogEvent* e = log.readNextEvent();
+        if (e == nullptr) break;
+        if (e->channel.rfind("FT_", 0) == 0) {
+          ftcal::ft_sample_t m;
+          if (m.decode(e->data, 0, e->datalen) != e->datalen) {
+            ++undecodable;
+            continue;
+          }
+          const int k = Listener::LegOf(m.leg);
+          if (k >= 0 && m.utime >= window_from && m.utime < window_to) seq[k].push_back(m.rdt_sequence);
+        } else if (e->channel == "CONTACT_WRENCH") {
+          ftcal::contact_wrench_t m;
+          if (m.decode(e->data, 0, e->datalen) != e->datalen || m.leg < 0 || m.leg >= 6) {
+            ++undecodable;
+            continue;
+          }
+          if (m.utime >= window_from && m.utime < window_to) ++rec_cw[m.leg];
+        }
+      }
+      long long rec_sent = 0, rec_ft = 0, rec_cw_total = 0;
+      for (int k = 0; k < 6; ++k) {
+        if (seq[k].empty()) continue;
+        const auto [lo, hi] = std::minmax_element(seq[k].begin(), seq[k].end());
+        rec_sent += *hi - *lo + 1;
+        rec_ft += static_cast<long long>(seq[k].size());
+        rec_cw_total += rec_cw[k];
+      }
+      // scripts/record's own test: it runs lcm-logger under chrt when this succeeds.
+      const bool fifo = ::system("chrt -f 10 true >/dev/null 2>&1") == 0;
+      std::printf("recording (scripts/record: lcm-logger, recv_buf_size 32 MB%s) in the window: "
+                  "twin sent %lld (by the recorded RDT sequences), FT_<LEG> recorded %lld "
+                  "(missing %lld, %.4f%%), CONTACT_WRENCH recorded %lld (missing %lld, %.4f%%), "
+                  "undecodable %lld; the recorder said: %s\n",
+                  fifo ? ", SCHED_FIFO" : "", rec_sent, rec_ft, rec_sent - rec_ft,
+                  rec_sent > 0 ? 100.0 * double(rec_sent - rec_ft) / double(rec_sent) : 0.0,
+                  rec_cw_total, rec_sent - rec_cw_total,
+                  rec_sent > 0 ? 100.0 * double(rec_sent - rec_cw_total) / double(rec_sent) : 0.0,
+                  undecodable, ftcal::testing::ReadFile(path("record.err")).c_str());
+      if (rec_ft == 0) rc = 1;
+    }
     // The twin's own count over the whole run (warm-up and the command phase included).
     long long twin_records = 0;
     {
