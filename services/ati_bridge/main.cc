@@ -83,9 +83,8 @@ int main(int argc, char** argv) {
     return failure;
   }
 
-  const std::string& status_channel = app.config().channels().status();
   std::int64_t reported_in = 0;
-  auto publish_status = [&] {
+  auto sync_stats = [&] {
     std::int64_t received = 0;
     for (std::size_t i = 0; i < bridge->size(); ++i) {
       received += static_cast<std::int64_t>(bridge->counters(i).received);
@@ -93,12 +92,18 @@ int main(int argc, char** argv) {
     // msgs_in counts device records: catch the stats up (CountIn has no bulk form).
     for (; reported_in < received; ++reported_in) app.stats().CountIn();
     for (const auto& [name, value] : bridge->CounterTable()) app.stats().Counter(name) = value;
-    bus.Publish(status_channel, app.Status(), /*count=*/false);
+  };
+  auto publish_status = [&] {
+    sync_stats();
+    app.PublishHeartbeat();
   };
 
+  // The boxes' sockets pace this loop, not LCM: ServiceApp's device-loop calls give it the
+  // heartbeat and systemd's notify protocol (READY=1, the watchdog, STOPPING=1).
   using Clock = std::chrono::steady_clock;
   app.SetState(ftcal::service_status_t::RUNNING);
-  publish_status();
+  sync_stats();
+  app.DeviceLoopStarted();
   auto next_heartbeat = Clock::now() + std::chrono::seconds(1);
   while (!ftcal::ShutdownRequested()) {
     try {
@@ -127,12 +132,8 @@ int main(int argc, char** argv) {
     }
   }
   bridge->Stop();
-  app.SetState(ftcal::service_status_t::STOPPING);
-  try {
-    publish_status();
-  } catch (const std::exception& e) {
-    log->warn("final heartbeat not sent: {}", e.what());
-  }
+  sync_stats();
+  app.DeviceLoopStopped();
   for (std::size_t i = 0; i < bridge->size(); ++i) {
     const auto& c = bridge->counters(i);
     // received = published + duplicates + late + stale + uncalibrated + publish_errors.

@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <climits>
 #include <fstream>
 #include <iostream>
@@ -193,22 +194,77 @@ void ServiceApp::Tick() {
   }
 }
 
+// systemd's notify protocol (a no-op without NOTIFY_SOCKET, i.e. not under systemd), so a host
+// can run this process as a Type=notify unit with WatchdogSec=: ready once the bus is open and
+// the handlers are subscribed (or the device loop starts), and the watchdog fed by the
+// heartbeat, which stops when the loop hangs.
+void ServiceApp::NotifyReady() {
+  sd_notifyf(0, "READY=1\nMAINPID=%lu\nSTATUS=%s", static_cast<unsigned long>(::getpid()),
+             spec_.name.c_str());
+  uint64_t watchdog_us = 0;
+  watchdog_ = sd_watchdog_enabled(0, &watchdog_us) > 0;
+}
+
+void ServiceApp::PublishHeartbeat() {
+  PublishStatus();
+  if (watchdog_) sd_notify(0, "WATCHDOG=1");
+}
+
+void ServiceApp::DeviceLoopStarted() {
+  if (state_ == service_status_t::STARTING) state_ = service_status_t::RUNNING;
+  PublishStatus();
+  NotifyReady();
+}
+
+void ServiceApp::DeviceLoopStopped() {
+  state_ = service_status_t::STOPPING;
+  sd_notify(0, "STOPPING=1");
+  try {
+    PublishStatus();
+  } catch (const std::exception& e) {
+    log_->warn("final heartbeat not sent: {}", UserText(e, "sending the final heartbeat"));
+  }
+}
+
+void ServiceApp::RunDeviceLoop(const std::function<std::string()>& health_reason,
+                               const std::function<void(int max_wait_ms)>& step) {
+  using Clock = std::chrono::steady_clock;
+  const auto period = std::chrono::duration_cast<Clock::duration>(
+      std::chrono::duration<double>(kHeartbeatPeriodS));
+  auto next_heartbeat = Clock::now();
+  std::string last_reason;
+  DeviceLoopStarted();
+  while (!ShutdownRequested()) {
+    const auto now = Clock::now();
+    if (now >= next_heartbeat) {
+      const std::string reason = health_reason();
+      state_ = reason.empty() ? service_status_t::RUNNING : service_status_t::DEGRADED;
+      if (reason != last_reason) {
+        if (reason.empty()) {
+          log_->info("healthy again");
+          stats_->ClearLastError();  // the status says what is wrong now, not once
+        } else {
+          log_->warn("degraded: {}", reason);
+        }
+        last_reason = reason;
+      }
+      if (!reason.empty()) stats_->SetLastError(reason);
+      PublishHeartbeat();
+      next_heartbeat += period;
+      if (next_heartbeat <= now) next_heartbeat = now + period;
+    }
+    const auto wait =
+        std::chrono::duration_cast<std::chrono::milliseconds>(next_heartbeat - Clock::now());
+    step(static_cast<int>(std::clamp<int64_t>(wait.count() + 1, 0, 100)));
+  }
+}
+
 int ServiceApp::Run() {
   if (state_ == service_status_t::STARTING) state_ = service_status_t::RUNNING;
   if (!replaying()) {
     PublishStatus();
-    // systemd's notify protocol (a no-op without NOTIFY_SOCKET, i.e. not under systemd), so a
-    // host can run this process as a Type=notify unit with WatchdogSec=: ready once the bus is
-    // open and the handlers are subscribed, and the watchdog fed by the heartbeat, which stops
-    // when the loop hangs.
-    sd_notifyf(0, "READY=1\nMAINPID=%lu\nSTATUS=%s", static_cast<unsigned long>(::getpid()),
-               spec_.name.c_str());
-    uint64_t watchdog_us = 0;
-    const bool watchdog = sd_watchdog_enabled(0, &watchdog_us) > 0;
-    AddPeriodic(kHeartbeatPeriodS, [this, watchdog] {
-      PublishStatus();
-      if (watchdog) sd_notify(0, "WATCHDOG=1");
-    });
+    NotifyReady();
+    AddPeriodic(kHeartbeatPeriodS, [this] { PublishHeartbeat(); });
   }
   bus_->Run([this] { Tick(); }, kLoopTickUs);
   state_ = service_status_t::STOPPING;

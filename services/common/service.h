@@ -86,6 +86,25 @@ class ServiceApp {
   // The heartbeat as it would be published now.
   service_status_t Status() const;
 
+  // For a process paced by its device instead of LCM (the bridges: a socket or a serial line
+  // wakes them, and they run their own loop instead of Run()). What Run() does for the others:
+  //   DeviceLoopStarted()  RUNNING unless set otherwise, the first heartbeat, and systemd's
+  //                        READY=1 (a no-op when not under systemd);
+  //   PublishHeartbeat()   the heartbeat on the status channel, and systemd's watchdog fed
+  //                        (the heartbeat stops when the loop hangs, and so does the feed);
+  //   DeviceLoopStopped()  STOPPING, systemd told, the final heartbeat (a failure to send it
+  //                        is logged, not thrown: the process is ending anyway).
+  void DeviceLoopStarted();
+  void PublishHeartbeat();
+  void DeviceLoopStopped();
+
+  // The whole loop of a device-paced process whose device object has a health_reason() (empty
+  // when healthy) and a Step(max_wait_ms) that waits for and handles its device: until
+  // SIGINT/SIGTERM, a heartbeat a second, RUNNING or DEGRADED with the reason as the last
+  // error (one log line per change). Exceptions from `step` pass to the caller.
+  void RunDeviceLoop(const std::function<std::string()>& health_reason,
+                     const std::function<void(int max_wait_ms)>& step);
+
  private:
   struct Periodic {
     int64_t period_us;
@@ -94,6 +113,8 @@ class ServiceApp {
   };
   void Tick();
   void PublishStatus();
+  void NotifyReady();
+  bool watchdog_ = false;  // systemd asked for WATCHDOG=1 (WatchdogSec=)
 
   ServiceSpec spec_;
   CLI::App cli_;

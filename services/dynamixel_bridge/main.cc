@@ -152,10 +152,13 @@ int main(int argc, char** argv) {
       }
       if (degraded) app.stats().SetLastError(why);
       app.SetState(state);
-      app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);
+      app.PublishHeartbeat();
     };
 
     bridge.Connect();
+    // The bus cycle paces this loop, not LCM: ServiceApp's device-loop calls give it systemd's
+    // notify protocol (READY=1 once connected, the watchdog with the heartbeat, STOPPING=1).
+    app.DeviceLoopStarted();
     gate.SetArmBlock(bridge.ArmBlocker());
     const auto period = std::chrono::duration_cast<Clock::duration>(
         std::chrono::duration<double>(1.0 / rate_hz));
@@ -211,8 +214,7 @@ int main(int argc, char** argv) {
     app.log().critical("{}", e.what());
     return ftcal::kExitDeviceIo;
   }
-  app.SetState(ftcal::service_status_t::STOPPING);
-  app.bus().Publish(config.channels().status(), app.Status(), /*count=*/false);
+  app.DeviceLoopStopped();
   app.stats().LogSummary();
   return 0;
 }

@@ -1,7 +1,4 @@
 // ftcal-mocap-bridge: Qualisys QTM (RT protocol, TCP) -> MOCAP_BODY.
-#include <algorithm>
-#include <chrono>
-
 #include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
@@ -29,38 +26,10 @@ int main(int argc, char** argv) {
         ftcal::MocapBridgeOptionsFromConfig(app.config().mocap()), app.stats(),
         [&](const ftcal::mocap_body_t& msg) { bus.Publish(channels.mocap_body(), msg); },
         [&] { return bus.NowUtime(); });
-    // The loop is the bridge's own: ServiceApp::Run() waits on LCM only, while the device
-    // socket is what paces this process. The bridge subscribes to nothing, so there is no LCM
-    // input to poll; the heartbeat is published from here.
-    using Clock = std::chrono::steady_clock;
-    auto next_heartbeat = Clock::now();
-    app.SetState(ftcal::service_status_t::RUNNING);
-    std::string last_reason;
-    while (!ftcal::ShutdownRequested()) {
-      const auto now = Clock::now();
-      if (now >= next_heartbeat) {
-        const std::string reason = bridge.health_reason();
-        app.SetState(reason.empty() ? ftcal::service_status_t::RUNNING
-                                    : ftcal::service_status_t::DEGRADED);
-        if (reason != last_reason) {
-          if (reason.empty()) {
-            app.log().info("streaming");
-            app.stats().ClearLastError();  // the status says what is wrong now, not once
-          } else {
-            app.log().warn("degraded: {}", reason);
-          }
-          last_reason = reason;
-        }
-        if (!reason.empty()) app.stats().SetLastError(reason);
-        bus.Publish(channels.status(), app.Status(), /*count=*/false);
-        next_heartbeat += std::chrono::seconds(1);
-        if (next_heartbeat <= now) next_heartbeat = now + std::chrono::seconds(1);
-      }
-      const auto until_heartbeat =
-          std::chrono::duration_cast<std::chrono::milliseconds>(next_heartbeat - Clock::now());
-      bridge.Step(static_cast<int>(std::clamp<int64_t>(until_heartbeat.count() + 1, 0, 100)));
-    }
-    app.SetState(ftcal::service_status_t::STOPPING);
+    // The device socket paces this process, not LCM (it subscribes to nothing): ServiceApp's
+    // device loop, with the heartbeat and systemd's notify protocol.
+    app.RunDeviceLoop([&] { return bridge.health_reason(); },
+                      [&](int max_wait_ms) { bridge.Step(max_wait_ms); });
   } catch (const ftcal::MocapConfigError& e) {
     app.stats().Error("configuration", e.what());  // logs it, and the last heartbeat carries it
     app.SetState(ftcal::service_status_t::FAILED);
@@ -71,7 +40,11 @@ int main(int argc, char** argv) {
     app.SetState(ftcal::service_status_t::FAILED);
     rc = ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
-  bus.Publish(channels.status(), app.Status(), /*count=*/false);
+  if (rc == 0) {
+    app.DeviceLoopStopped();
+  } else {
+    app.PublishHeartbeat();  // the last one, FAILED with the error
+  }
   app.stats().LogSummary();
   return rc;
 }

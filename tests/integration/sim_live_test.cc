@@ -9,12 +9,15 @@
 //     quantization of the twin's unquantized readings, the angles within one encoder count of
 //     its shaft angles, the attitude within 1e-6 of its R_GC (f32 on the wire).
 #include <signal.h>
+#include <sys/socket.h>
+#include <sys/un.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <map>
@@ -624,6 +627,104 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
   } else {
     std::cerr << "logs kept in " << dir << "\n";
   }
+}
+
+// systemd's notify protocol as systemd receives it: a datagram socket at NOTIFY_SOCKET.
+class NotifySocket {
+ public:
+  explicit NotifySocket(const std::string& path) : path_(path) {
+    fd_ = ::socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0);
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    std::snprintf(addr.sun_path, sizeof(addr.sun_path), "%s", path.c_str());
+    bound_ = fd_ >= 0 && ::bind(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0;
+  }
+  ~NotifySocket() {
+    if (fd_ >= 0) ::close(fd_);
+  }
+  bool good() const { return bound_; }
+  const std::string& path() const { return path_; }
+  // Everything sent so far, one string a datagram.
+  void Drain() {
+    char buf[512];
+    for (ssize_t n; (n = ::recv(fd_, buf, sizeof(buf), 0)) > 0;) {
+      heard_.emplace_back(buf, static_cast<std::size_t>(n));
+    }
+  }
+  int Count(const std::string& word) const {
+    int n = 0;
+    for (const auto& m : heard_) n += m.find(word) != std::string::npos;
+    return n;
+  }
+  const std::vector<std::string>& heard() const { return heard_; }
+
+ private:
+  std::string path_;
+  int fd_ = -1;
+  bool bound_ = false;
+  std::vector<std::string> heard_;
+};
+
+// The bridges run their own device-paced loops instead of ServiceApp::Run(), and the
+// launcher's export-systemd makes each a Type=notify unit with WatchdogSec=: each must say
+// READY=1 once running against its device, feed the watchdog with every heartbeat, and say
+// STOPPING=1 on SIGTERM (systemd would otherwise time out the start, or kill a healthy bridge).
+TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
+  const char* netns = std::getenv("FTCAL_NETNS");
+  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
+      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  const std::string dir = testing::MakeTempDir();
+  auto path = [&](const std::string& name) { return dir + "/" + name; };
+  const std::string link = path("tty");
+  const std::string config_path = path("config.pbtxt");
+  std::ofstream(config_path) << TestConfigText(link);
+  Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--ready",
+             path("ready"), "--scenario", "walk", "--seed", std::to_string(kSeed), "--ati-rate",
+             std::to_string(kAtiRateHz)},
+            path("sim.out"), path("sim.err"));
+  const auto deadline = Clock::now() + std::chrono::seconds(30);
+  while (::access(path("ready").c_str(), F_OK) != 0) {
+    ASSERT_FALSE(sim.Wait(0.02).has_value()) << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
+    ASSERT_LT(Clock::now(), deadline) << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
+  }
+  struct Bridge {
+    std::string name;
+    std::vector<std::string> argv;
+    std::unique_ptr<NotifySocket> socket;
+    std::unique_ptr<Child> child;
+  };
+  std::vector<Bridge> bridges;
+  // A long silence timeout: a loaded machine must not make the ATI bridge restart the stream.
+  bridges.push_back({"ati", {FTCAL_ATI_BRIDGE, "--config", config_path, "--silence-timeout", "1.0"},
+                     nullptr, nullptr});
+  bridges.push_back({"dynamixel", {FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path}, nullptr, nullptr});
+  bridges.push_back({"mocap", {FTCAL_MOCAP_BRIDGE, "--config", config_path}, nullptr, nullptr});
+  for (Bridge& b : bridges) {
+    b.socket = std::make_unique<NotifySocket>(path(b.name + ".notify"));
+    ASSERT_TRUE(b.socket->good()) << b.socket->path();
+    ::setenv("NOTIFY_SOCKET", b.socket->path().c_str(), 1);
+    ::setenv("WATCHDOG_USEC", "3000000", 1);
+    b.child = std::make_unique<Child>(b.argv, path(b.name + ".out"), path(b.name + ".err"));
+    ::unsetenv("NOTIFY_SOCKET");
+    ::unsetenv("WATCHDOG_USEC");
+  }
+  SleepS(4.0);
+  for (Bridge& b : bridges) b.socket->Drain();
+  for (Bridge& b : bridges) {
+    SCOPED_TRACE(b.name);
+    EXPECT_EQ(b.socket->Count("READY=1"), 1) << testing::ReadFile(path(b.name + ".err"));
+    EXPECT_GE(b.socket->Count("WATCHDOG=1"), 2) << "one per heartbeat for ~3 s";
+    EXPECT_EQ(b.socket->Count("STOPPING=1"), 0);
+  }
+  for (Bridge& b : bridges) Terminate(*b.child, "ftcal-" + b.name + "-bridge", path(b.name + ".err"));
+  for (Bridge& b : bridges) {
+    SCOPED_TRACE(b.name);
+    b.socket->Drain();
+    EXPECT_EQ(b.socket->Count("STOPPING=1"), 1);
+    EXPECT_EQ(b.socket->Count("READY=1"), 1);
+  }
+  Terminate(sim, "ftcal-sim live", path("sim.err"));
+  if (!HasFailure()) testing::RemoveTree(dir);
 }
 
 }  // namespace
