@@ -1,189 +1,25 @@
 // ftcal-calibrator's work (pipeline items 3 and 5): the recorded (or live) experiment in, the
-// calibration file out.
-//
-// CalibrationCollector listens on a Bus (a LogReplayBus per input log, or live LCM) and turns
-// FT_<LEG>, SERVO_STATE, MOCAP_BODY, EXPERIMENT and STEADY_POSE into what Calibrate() consumes:
-//   - every aligned sample (libcal's Aligner, the same rule as ftcal-pose-segmenter) between a
-//     HANG_* start and its stop marker goes into that series' HangingRecording (per leg: time,
-//     shaft angle, reading; gravity_b from the start marker; the attitude when tracked);
-//   - steady standing poses: the STEADY_POSE events of the log when it has any, else the
-//     PoseSegmenter run over the STANDING spans (as ftcal-pose-segmenter would have);
-//   - the aligned samples of the first WALKING phase (up to kMaxWalkingSamples), for the
-//     report's walking figure (the report's Fig. 9): corrected vs naive tare;
-//   - steady tripod stances (the same segmenter over the TRIPOD spans), with the legs turned
-//     past calibrator.unloaded_leg_min_angle_deg marked unloaded: the per-leg equations of the
-//     offset re-estimation (docs/method.md "Offset drift").
-// Nothing is guessed: a series without its start..stop pair is missing, not reconstructed.
+// calibration file out. The collector (collector.h) gathers the data from the bus; this file
+// checks it and calibrates; outputs.h writes what goes beside the calibration.
 //
 // RunCalibration() checks what was collected (every series, markers present, the config's legs
 // are the log's FT_* channels, no damaged bytes), runs Calibrate() and fills provenance. Every
 // refusal is a CalibratorInputError naming what is wrong; main() turns it into exit code 2.
 #pragma once
 
-#include <array>
-#include <cstdint>
 #include <functional>
-#include <memory>
-#include <optional>
 #include <set>
-#include <stdexcept>
-#include <regex>
 #include <string>
-#include <unordered_map>
 #include <vector>
 
-#include "common/bus.h"
-#include "common/messages.h"
-#include "ftcal/aligner.h"
+#include "calibrator/collector.h"
+#include "calibrator/outputs.h"
 #include "ftcal/calibrate.h"
-#include "ftcal/dataset.h"
-#include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/offset_reestimation.h"
-#include "ftcal/segmenter.h"
-#include "ftcal/steady_pose_t.hpp"
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
 
 namespace ftcal {
-
-// The input cannot give a calibration (missing series, no markers, a config for another robot,
-// a damaged log, a stage that refused its data). what() names the problem.
-class CalibratorInputError : public std::runtime_error {
- public:
-  using std::runtime_error::runtime_error;
-};
-
-struct CollectorCounters {
-  int64_t markers = 0;
-  int64_t aligned_samples = 0;
-  int64_t hanging_samples = 0;
-  int64_t standing_samples = 0;
-  int64_t logged_poses = 0;      // STEADY_POSE events seen
-  int64_t segmented_poses = 0;   // poses the collector's own segmenter found
-  int64_t poses_dropped_markers = 0;  // logged poses without every marker
-  int64_t walking_samples = 0;        // aligned samples inside WALKING phases (kept or not)
-  int64_t tripod_samples = 0;         // aligned samples inside TRIPOD phases
-  int64_t tripod_stances = 0;         // steady tripod stances with a leg unloaded, kept
-  int64_t tripod_stances_dropped = 0; // steady, but no leg lifted
-};
-
-// One completed phase's transducer records per leg, counted by the devices' RDT sequence
-// numbers (ft_sample_t.rdt_sequence rises by 1 a record): what reached this input and what
-// did not, wherever it was lost (network, bridge, the recorder's socket).
-struct PhaseGaps {
-  int phase = -1;  // experiment_marker_t phase code
-  std::string session;
-  std::array<int64_t, kNumLegs> received{};
-  std::array<int64_t, kNumLegs> lost{};
-  // A number that fell back far (a new RDT stream: the bridge or the device restarted): the
-  // records of the outage have no numbers to miss, so it is counted apart from the gaps.
-  std::array<int64_t, kNumLegs> restarts{};
-  bool superseded = false;  // a hanging series recorded again later: this one is not used
-  double LostShare(int k) const {
-    const int64_t n = received[k] + lost[k];
-    return n > 0 ? static_cast<double>(lost[k]) / static_cast<double>(n) : 0.0;
-  }
-};
-
-class CalibrationCollector {
- public:
-  // Throws std::invalid_argument for a config whose legs are not kLegNames in order.
-  explicit CalibrationCollector(const config::Config& config);
-
-  // Subscribes the handlers on `bus` (call once per bus; several logs = several buses, fed in
-  // order).
-  void Attach(Bus& bus);
-  // Ends a phase in progress (its samples are kept only if its stop marker came).
-  void Flush();
-
-  // Called when a STANDING phase stops (live mode calibrates then).
-  void SetOnStandingStop(std::function<void()> fn) { on_standing_stop_ = std::move(fn); }
-  // Called after every STEADY_POSE event (live mode waits for the segmenter's last pose).
-  void SetOnSteadyPose(std::function<void()> fn) { on_steady_pose_ = std::move(fn); }
-  // Poses with every marker tracked: from STEADY_POSE events, and found by the collector's own
-  // segmenter over the completed STANDING phases (the same rule as ftcal-pose-segmenter).
-  size_t logged_pose_count() const { return logged_poses_.size(); }
-  size_t segmented_pose_count() const { return segmented_poses_.size(); }
-
-  // What was collected. Throws CalibratorInputError naming what is missing or inconsistent.
-  std::vector<HangingRecording> HangingRecordings() const;
-  std::vector<StandingPose> StandingPoses() const;
-  // Throws CalibratorInputError when there were no EXPERIMENT markers (`phases`: what cannot be
-  // told apart without them) or the FT_* channels seen are not the config's legs.
-  void CheckMarkersAndLegs(const std::string& phases) const;
-
-  // The aligned samples of the first completed WALKING phase (empty when there was none).
-  // Bounded: ten minutes at 100 Hz is more than a figure shows.
-  static constexpr size_t kMaxWalkingSamples = 60000;
-  const std::vector<SyncSample>& walking_samples() const { return walking_; }
-
-  // The naive tare of the last completed TARE phase (mean reading per leg; upright, feet in the
-  // air, shafts at 0), when there was one.
-  const std::optional<std::array<Vec6, kNumLegs>>& tare() const { return tare_; }
-
-  // Steady tripod stances of the completed TRIPOD phases, with their unloaded legs.
-  const std::vector<LoadSample>& unloaded_samples() const { return unloaded_; }
-
-  // Every completed phase, in order, with its records counted (PhaseGaps).
-  const std::vector<PhaseGaps>& phase_gaps() const { return phase_gaps_; }
-  const std::string& ft_channel(int k) const { return inputs_.FtChannel(k); }
-
-  const CollectorCounters& counters() const { return counters_; }
-  const std::string& standing_session() const { return standing_session_; }
-
- private:
-  void OnFtRaw(const MessageInfo& info, const void* data, int size);
-  void OnExperiment(const experiment_marker_t& msg);
-  void OnSteadyPose(const steady_pose_t& msg);
-  void OnAligned(const AlignedSample& a);
-  void OnTripodStance(const SteadyPoseOut& p);
-  void EndPhase(bool completed);
-
-  const config::Config& config_;
-  // EXPERIMENT is a signed channel (common/envelope.h).
-  auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
-  DeviceInputs inputs_;
-  SegmenterOptions segmenter_options_;
-  Aligner aligner_;
-  std::unique_ptr<PoseSegmenter> segmenter_;
-
-  // The phase in progress (experiment_marker_t phase code, -1 for none).
-  int phase_ = -1;
-  std::string phase_session_;
-  HangingRecording current_hang_;
-  std::vector<StandingPose> current_poses_;
-  std::vector<SyncSample> current_walk_;
-  std::vector<SyncSample> walking_;
-  std::vector<LoadSample> current_unloaded_;
-  std::vector<LoadSample> unloaded_;
-  std::array<Vec6, kNumLegs> tare_sum_;
-  int64_t tare_count_ = 0;
-  std::optional<std::array<Vec6, kNumLegs>> tare_;
-
-  std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
-  std::vector<StandingPose> segmented_poses_;
-  std::vector<StandingPose> logged_poses_;
-  std::string standing_session_;
-  std::set<std::string> ft_channels_seen_;
-  std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
-  // Per channel name heard: its leg index among the config's FT channels (-1: not a leg's, or
-  // not an FT channel). One hash lookup per event instead of a std::set insertion (two per FT
-  // event) and six name comparisons: a report-scale log has 4 M events on ten channels.
-  std::unordered_map<std::string, int> channel_leg_;
-  // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
-  // config's).
-  std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};
-  int LegOfChannel(const std::string& channel);
-  ft_sample_t ft_scratch_;
-  void CountRecord(int k, int64_t sequence);
-  PhaseGaps current_gaps_;
-  std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase
-  std::vector<PhaseGaps> phase_gaps_;
-  std::array<int, kNumHangSeries> hang_gaps_index_;  // into phase_gaps_, -1: none
-  std::function<void()> on_standing_stop_;
-  std::function<void()> on_steady_pose_;
-  CollectorCounters counters_;
-};
 
 struct CalibratorOptions {
   std::vector<std::string> log_paths;  // provenance inputs (empty live)
@@ -274,41 +110,7 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
 // ones; the undetermined components and the data used.
 std::string OffsetSummaryTable(const OffsetReestimationRun& run);
 
-// Writes the calibration file and <out>.residuals.csv beside it, both atomically.
-void WriteCalibrationOutputs(const CalibrationRun& run, const std::string& out_path);
-
-// Results in the journal's terms (docs/method.md): the RMSE of the summed ground-contact force
-// and torque against the balance target, naive tare vs calibration, over the standing poses
-// and (when given) the walk; per leg against the true parameters when `truth` is given. Into
-// run->proto.result_rmse.
-void AddResultRmse(const std::vector<SyncSample>& walk, const RobotCalibration* truth,
-                   CalibrationRun* run);
-
 // The software version recorded in provenance: PROJECT_VERSION (+ git describe at build time).
 std::string SoftwareVersion();
-
-// The short table printed at the end: per leg offsets, weights, mounting; model selection;
-// standing residuals before/after.
-std::string SummaryTable(const CalibrationRun& run);
-
-// Per-pose residuals of the total wrench at the CoM in W, one row per pose and variant:
-// "pose,variant,fx_n,fy_n,fz_n,tx_nm,ty_nm,tz_nm" (variants: naive tare, without T~, full
-// calibration). The report's violin plots read this.
-std::string ResidualsCsv(const StandingResult& standing);
-
-// The path of the residuals file written beside a calibration file: cal.pbtxt -> cal.residuals.csv.
-std::string ResidualsPathFor(const std::string& calibration_path);
-
-// The walking session corrected (eq. 3 in W, about the CoM: GroundWrenchW, the corrector's
-// model) by each calibration: "t_s,variant,<LEG>_fx_n,...,<LEG>_tz_nm for the six legs,
-// total_fx_n,...,total_tz_nm". Variants: "full calibration" (run.calibration), "naive tare"
-// (the step-1 naive offsets, no leg gravity, nominal mounting) and "truth" when `truth` is
-// given. Samples without a tracked attitude are left out (the corrector would assume level and
-// flag them); one sample per `period_s` is kept (the figure's resolution, not the data's).
-// Throws std::invalid_argument when `samples` is empty.
-std::string WalkingCsv(const std::vector<SyncSample>& samples, const CalibrationRun& run,
-                       const RobotCalibration* truth, double period_s = 0.04);
-// cal.pbtxt -> cal.walking.csv.
-std::string WalkingPathFor(const std::string& calibration_path);
 
 }  // namespace ftcal

@@ -1,0 +1,363 @@
+// CalibrationCollector: the bus's messages into what Calibrate() consumes (calibrator.h).
+#include "calibrator/collector.h"
+
+#include <spdlog/fmt/fmt.h>
+#include <spdlog/spdlog.h>
+
+#include "ftcal/hanging.h"
+
+namespace ftcal {
+
+namespace {
+
+bool IsHangPhase(int phase) { return HangSeriesOfPhase(phase).has_value(); }
+
+HangSeries SeriesOfPhase(int phase) { return *HangSeriesOfPhase(phase); }
+
+}  // namespace
+
+CalibrationCollector::CalibrationCollector(const config::Config& config)
+    : config_(config),
+      inputs_(config),
+      segmenter_options_(SegmenterOptionsFromConfig(config.segmenter())),
+      aligner_(AlignerOptionsFromConfig(config), [this](const AlignedSample& a) { OnAligned(a); }) {
+  PoseSegmenter check(segmenter_options_, nullptr);  // refuse unusable options at start
+  hang_gaps_index_.fill(-1);
+}
+
+void CalibrationCollector::Attach(Bus& bus) {
+  const auto& ch = config_.channels();
+  // Each input log's signers count their sequences afresh: logs may be given in any order.
+  verifier_ = auth::Verifier::FromConfig(config_);
+  bus.SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) {
+    LegOfChannel(info.channel);
+  });
+  // Every FT_* channel, not just the config's: a log from a robot with other legs must be told
+  // apart from one whose legs are silent.
+  bus.SubscribeRaw(ch.ft_prefix() + ".*", [this](const MessageInfo& info, const void* data,
+                                                 int size) { OnFtRaw(info, data, size); });
+  inputs_.Subscribe(bus, {nullptr, [this](const ServoInput& in) { aligner_.AddServo(in); },
+                          [this](const MocapInput& in) { aligner_.AddMocap(in); }});
+  // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
+  // signature and the rising sequence still hold.
+  bus.SubscribeSigned<experiment_marker_t>(
+      ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
+  bus.Subscribe<steady_pose_t>(ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) {
+    OnSteadyPose(m);
+  });
+}
+
+int CalibrationCollector::LegOfChannel(const std::string& channel) {
+  const auto it = channel_leg_.find(channel);
+  if (it != channel_leg_.end()) return it->second;
+  // First event on this channel.
+  channels_seen_.insert(channel);
+  if (std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
+  int leg = -1;
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (channel == inputs_.FtChannel(k)) leg = k;
+  }
+  channel_leg_.emplace(channel, leg);
+  return leg;
+}
+
+void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, int size) {
+  const int k = LegOfChannel(info.channel);
+  if (k < 0) return;
+  ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
+  if (auto refused = wire::Decode(data, size, &msg)) {
+    throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
+                   refused->detail);
+  }
+  if (phase_ >= 0) CountRecord(k, msg.rdt_sequence);
+  aligner_.AddFt(inputs_.FromFt(k, msg));
+}
+
+// Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number
+// up to this far below the highest seen fills a gap counted before.
+constexpr int64_t kReorderWindow = 64;
+
+void CalibrationCollector::CountRecord(int k, int64_t sequence) {
+  int64_t& last = last_sequence_[k];
+  if (last == 0) {
+    ++current_gaps_.received[k];
+  } else if (sequence > last) {
+    ++current_gaps_.received[k];
+    current_gaps_.lost[k] += sequence - last - 1;
+  } else if (sequence == last) {
+    return;  // the same record twice (a replayed log): not data, not a gap
+  } else if (last - sequence <= kReorderWindow && current_gaps_.lost[k] > 0) {
+    ++current_gaps_.received[k];
+    --current_gaps_.lost[k];
+    return;
+  } else {
+    ++current_gaps_.received[k];
+    ++current_gaps_.restarts[k];
+  }
+  last = sequence;
+}
+
+void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
+  ++counters_.markers;
+  const bool same = phase_ == msg.phase && phase_session_ == msg.session_id;
+  if (msg.start) {
+    if (same) return;  // a repeated start marker (the sequencer repeats them)
+    if (phase_ >= 0) {
+      spdlog::warn("EXPERIMENT: {} started while {} had no stop marker; {} discarded",
+                   PhaseName(msg.phase), PhaseName(phase_), PhaseName(phase_));
+      EndPhase(false);
+    }
+    phase_ = msg.phase;
+    phase_session_ = msg.session_id;
+    current_gaps_ = PhaseGaps();
+    current_gaps_.phase = phase_;
+    current_gaps_.session = phase_session_;
+    last_sequence_.fill(0);
+    if (IsHangPhase(phase_)) {
+      current_hang_ = HangingRecording();
+      current_hang_.series = SeriesOfPhase(phase_);
+      current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
+    } else if (phase_ == experiment_marker_t::STANDING) {
+      current_poses_.clear();
+      segmenter_ = std::make_unique<PoseSegmenter>(
+          segmenter_options_, [this](const SteadyPoseOut& p) {
+            if (!p.markers_ok) return;
+            current_poses_.push_back(p.pose);
+            ++counters_.segmented_poses;
+          });
+    } else if (phase_ == experiment_marker_t::TARE) {
+      for (Vec6& w : tare_sum_) w.setZero();
+      tare_count_ = 0;
+    } else if (phase_ == experiment_marker_t::TRIPOD) {
+      current_unloaded_.clear();
+      segmenter_ = std::make_unique<PoseSegmenter>(
+          segmenter_options_, [this](const SteadyPoseOut& p) { OnTripodStance(p); });
+    }
+    spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase_), phase_session_);
+    return;
+  }
+  if (!same) {
+    spdlog::warn("EXPERIMENT: stop marker of {} (session '{}') without its start; ignored",
+                 PhaseName(msg.phase), msg.session_id);
+    return;
+  }
+  const bool standing = phase_ == experiment_marker_t::STANDING;
+  EndPhase(true);
+  if (standing && on_standing_stop_) on_standing_stop_();
+}
+
+void CalibrationCollector::EndPhase(bool completed) {
+  // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
+  SegmenterCounters segmented;
+  if (segmenter_) {
+    segmenter_->Flush();
+    segmented = segmenter_->counters();
+    segmenter_.reset();
+  }
+  if (completed) phase_gaps_.push_back(current_gaps_);
+  if (IsHangPhase(phase_)) {
+    if (completed) {
+      const int s = static_cast<int>(current_hang_.series);
+      if (hang_gaps_index_[s] >= 0) phase_gaps_[hang_gaps_index_[s]].superseded = true;
+      hang_gaps_index_[s] = static_cast<int>(phase_gaps_.size()) - 1;
+      if (hang_[s]) {
+        spdlog::warn("{} recorded again: the later recording replaces the earlier one",
+                     HangSeriesName(current_hang_.series));
+      }
+      spdlog::info("{} complete: {} samples per leg, {} attitude samples",
+                   HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
+                   current_hang_.attitude.size());
+      hang_[s] = std::move(current_hang_);
+    }
+    current_hang_ = HangingRecording();
+  } else if (phase_ == experiment_marker_t::STANDING) {
+    if (completed) {
+      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented",
+                   phase_session_, current_poses_.size());
+      segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(),
+                              current_poses_.end());
+      standing_session_ = phase_session_;
+    }
+    current_poses_.clear();
+  } else if (phase_ == experiment_marker_t::TARE) {
+    if (completed && tare_count_ > 0) {
+      std::array<Vec6, kNumLegs> mean;
+      for (int k = 0; k < kNumLegs; ++k) mean[k] = tare_sum_[k] / static_cast<double>(tare_count_);
+      tare_ = mean;
+      spdlog::info("TARE complete (session '{}'): naive tare from {} samples", phase_session_,
+                   tare_count_);
+    }
+  } else if (phase_ == experiment_marker_t::TRIPOD) {
+    if (completed) {
+      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
+                   "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "
+                   "with no leg lifted",
+                   phase_session_, current_unloaded_.size(), segmented.dropped_short,
+                   segmenter_options_.min_steady_s, segmented.dropped_markers,
+                   counters_.tripod_stances_dropped);
+      unloaded_.insert(unloaded_.end(), current_unloaded_.begin(), current_unloaded_.end());
+    }
+    current_unloaded_.clear();
+  } else if (phase_ == experiment_marker_t::WALKING) {
+    if (completed && walking_.empty() && !current_walk_.empty()) {
+      spdlog::info("WALKING complete (session '{}'): {} aligned samples kept for the report",
+                   phase_session_, current_walk_.size());
+      walking_ = std::move(current_walk_);
+    }
+    current_walk_.clear();
+  }
+  phase_ = -1;
+  phase_session_.clear();
+}
+
+void CalibrationCollector::Flush() {
+  if (phase_ >= 0) {
+    spdlog::warn("input ended inside {} (no stop marker): that phase is discarded",
+                 PhaseName(phase_));
+    EndPhase(false);
+  }
+}
+
+void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
+  ++counters_.logged_poses;
+  const SteadyPoseOut p = FromLcm(msg);
+  if (!p.markers_ok) {
+    ++counters_.poses_dropped_markers;
+    return;
+  }
+  logged_poses_.push_back(p.pose);
+  if (on_steady_pose_) on_steady_pose_();
+}
+
+void CalibrationCollector::OnAligned(const AlignedSample& a) {
+  ++counters_.aligned_samples;
+  const SyncSample& s = a.sample;
+  if (IsHangPhase(phase_)) {
+    ++counters_.hanging_samples;
+    const double t_s = 1e-6 * static_cast<double>(s.utime);
+    for (int k = 0; k < kNumLegs; ++k) {
+      LegSamples& leg = current_hang_.legs[k];
+      leg.t_s.push_back(t_s);
+      leg.angle_rad.push_back(s.angle_rad[k]);
+      leg.wrench.push_back(s.wrench[k]);
+    }
+    if (s.attitude_ok) current_hang_.attitude.push_back(s.R_WC);
+  } else if (phase_ == experiment_marker_t::STANDING && segmenter_) {
+    ++counters_.standing_samples;
+    segmenter_->Add(s);
+  } else if (phase_ == experiment_marker_t::TRIPOD && segmenter_) {
+    ++counters_.tripod_samples;
+    segmenter_->Add(s);
+  } else if (phase_ == experiment_marker_t::TARE) {
+    for (int k = 0; k < kNumLegs; ++k) tare_sum_[k] += s.wrench[k];
+    ++tare_count_;
+  } else if (phase_ == experiment_marker_t::WALKING) {
+    ++counters_.walking_samples;
+    if (walking_.empty() && current_walk_.size() < kMaxWalkingSamples) current_walk_.push_back(s);
+  }
+}
+
+// The shaft angle, not the reading, says which legs are off the ground: the reading is what
+// the offsets are being re-estimated from, and a drifted offset can be as large as a light load.
+void CalibrationCollector::OnTripodStance(const SteadyPoseOut& p) {
+  const double min_rad = config_.calibrator().unloaded_leg_min_angle_deg() * M_PI / 180.0;
+  LoadSample sample;
+  sample.wrench = p.pose.wrench;
+  sample.angle_rad = p.pose.angle_rad;
+  sample.R_WC = p.pose.R_WC;
+  bool any = false;
+  for (int k = 0; k < kNumLegs; ++k) {
+    sample.unloaded[k] = std::abs(std::remainder(p.pose.angle_rad[k], 2.0 * M_PI)) > min_rad;
+    any = any || sample.unloaded[k];
+  }
+  if (!p.markers_ok || !any) {
+    ++counters_.tripod_stances_dropped;
+    return;
+  }
+  ++counters_.tripod_stances;
+  current_unloaded_.push_back(sample);
+}
+
+std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
+  std::vector<HangingRecording> out;
+  std::string missing;
+  for (int s = 0; s < kNumHangSeries; ++s) {
+    if (hang_[s]) {
+      out.push_back(*hang_[s]);
+    } else {
+      missing += (missing.empty() ? "" : ", ") + HangSeriesName(static_cast<HangSeries>(s));
+    }
+  }
+  if (!missing.empty()) {
+    throw CalibratorInputError("missing hanging series: " + missing +
+                               " (no EXPERIMENT start..stop marker pair with samples)");
+  }
+  for (const HangingRecording& r : out) {
+    if (r.legs[0].t_s.empty()) {
+      throw CalibratorInputError("hanging series " + HangSeriesName(r.series) +
+                                 " has markers but no aligned samples (FT_*/SERVO_STATE "
+                                 "missing in that span)");
+    }
+  }
+  return out;
+}
+
+std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
+  // Poses a segmenter already published are what the operator saw; when the log has none, the
+  // same segmenter logic over the STANDING spans gives them.
+  if (logged_poses_.empty()) return segmented_poses_;
+  // A STEADY_POSE message carries medians only; the within-pose scatter (the noise floor,
+  // docs/method.md) comes from this collector's own segmentation of the same span, matched by
+  // time (the same logic on the same samples finds the same runs) and shaft angles.
+  std::vector<StandingPose> out = logged_poses_;
+  std::vector<const StandingPose*> by_time;
+  for (const StandingPose& p : segmented_poses_) by_time.push_back(&p);
+  std::sort(by_time.begin(), by_time.end(),
+            [](const StandingPose* a, const StandingPose* b) { return a->t_s < b->t_s; });
+  for (StandingPose& pose : out) {
+    auto it = std::lower_bound(by_time.begin(), by_time.end(), pose.t_s,
+                               [](const StandingPose* p, double t) { return p->t_s < t; });
+    for (auto c : {it, it == by_time.begin() ? it : it - 1}) {
+      if (c == by_time.end()) continue;
+      const StandingPose& seg = **c;
+      bool same = std::abs(seg.t_s - pose.t_s) < 0.5;
+      for (int k = 0; k < kNumLegs && same; ++k) {
+        same = std::abs(seg.angle_rad[k] - pose.angle_rad[k]) < 1e-3;
+      }
+      if (!same) continue;
+      pose.samples = seg.samples;
+      pose.wrench_sem = seg.wrench_sem;
+      pose.attitude_sem_rad = seg.attitude_sem_rad;
+      break;
+    }
+  }
+  return out;
+}
+
+void CalibrationCollector::CheckMarkersAndLegs(const std::string& phases) const {
+  if (counters_.markers == 0) {
+    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config_.channels().experiment() +
+                               "') in the input: cannot tell " + phases);
+  }
+  std::string unknown, silent;
+  std::set<std::string> expected;
+  for (int k = 0; k < kNumLegs; ++k) expected.insert(inputs_.FtChannel(k));
+  for (const std::string& c : ft_channels_seen_) {
+    if (!expected.count(c)) unknown += (unknown.empty() ? "" : ", ") + c;
+  }
+  for (const std::string& c : expected) {
+    if (!ft_channels_seen_.count(c)) silent += (silent.empty() ? "" : ", ") + c;
+  }
+  if (!unknown.empty() || !silent.empty()) {
+    std::string msg = "the config's legs do not match the log's FT channels:";
+    if (!unknown.empty()) msg += " channels for legs the config does not have: " + unknown + ";";
+    if (!silent.empty()) msg += " config legs with no channel in the log: " + silent + ";";
+    std::string all;
+    for (const std::string& c : channels_seen_) all += (all.empty() ? "" : ", ") + c;
+    msg += " the log's channels: " + (all.empty() ? std::string("none") : all);
+    throw CalibratorInputError(msg);
+  }
+}
+
+}  // namespace ftcal
