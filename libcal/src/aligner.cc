@@ -143,8 +143,7 @@ void Aligner::Resolve(int64_t newest_ft_utime) {
 void Aligner::Emit(AlignedSample& out, const ServoHistory::Lookup& angles) {
   SyncSample& s = out.sample;
   s.angle_rad = angles.angle_rad;
-  const bool fresh =
-      mocap_ && std::llabs(s.utime - mocap_->utime) <= max_mocap_age_us_;
+  const bool fresh = mocap_ && std::llabs(s.utime - mocap_->utime) <= max_mocap_age_us_;
   s.R_WC = (mocap_ && mocap_->tracked) ? mocap_->R_WC : Mat3::Identity();
   s.attitude_ok = fresh && mocap_->tracked;
   s.markers_ok = s.attitude_ok && mocap_->markers_ok;

@@ -105,14 +105,14 @@ std::string LegMapResult::Describe() const {
                   "%s%s's transducer follows %s's shaft (rms torque misfit %.4f N m) better than "
                   "its own (%.4f N m, %.1f times worse)",
                   detail.empty() ? "" : "; ", std::string(kLegNames[k]).c_str(),
-                  std::string(kLegNames[j]).c_str(), rms_nm[k][j],
-                  rms_nm[k][k], rms_nm[k][k] / rms_nm[k][j]);
+                  std::string(kLegNames[j]).c_str(), rms_nm[k][j], rms_nm[k][k],
+                  rms_nm[k][k] / rms_nm[k][j]);
     detail += buf;
   }
   if (legs.empty()) return "";
-  return "leg map check: over the " + std::to_string(poses) +
-         " standing poses the data of legs " + legs + " contradicts their configured position: " +
-         detail + " (allowed: " + std::to_string(static_cast<int>(kRatioLimit)) +
+  return "leg map check: over the " + std::to_string(poses) + " standing poses the data of legs " +
+         legs + " contradicts their configured position: " + detail +
+         " (allowed: " + std::to_string(static_cast<int>(kRatioLimit)) +
          " times): were those legs' servo ids (robot.leg servo.id: the Dynamixel bridge names each "
          "servo's leg by it) or transducer addresses (ati.address: the ATI bridge publishes each "
          "box as its leg's FT channel) swapped in the config the bridges ran with?";
@@ -168,8 +168,7 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
     if (options.compare_alternating) {
       StandingOptions selected = standing;
       selected.leg_aware_com = run.standing.selected_leg_aware_com;
-      run.alternating = FitStandingAlternating(run.step1, poses, run.standing.selected,
-                                               selected);
+      run.alternating = FitStandingAlternating(run.step1, poses, run.standing.selected, selected);
       run.has_alternating = true;
     }
   } catch (const std::invalid_argument& e) {
@@ -186,14 +185,14 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
     floor.set_above_floor(run.standing.residual_to_floor > floor.warn_factor());
     if (floor.above_floor()) {
       char buf[400];
-      std::snprintf(buf, sizeof buf,
-                    "the standing residual is %.1f times the noise floor of the poses (more than "
-                    "calibrator.residual_floor_warn_factor = %g): the selected model (%s) misses "
-                    "something the data sees; its sigmas are scaled by the residual but a bias "
-                    "may remain",
-                    floor.residual_to_floor(), floor.warn_factor(),
-                    CandidateName(run.standing.selected, run.standing.selected_leg_aware_com)
-                        .c_str());
+      std::snprintf(
+          buf, sizeof buf,
+          "the standing residual is %.1f times the noise floor of the poses (more than "
+          "calibrator.residual_floor_warn_factor = %g): the selected model (%s) misses "
+          "something the data sees; its sigmas are scaled by the residual but a bias "
+          "may remain",
+          floor.residual_to_floor(), floor.warn_factor(),
+          CandidateName(run.standing.selected, run.standing.selected_leg_aware_com).c_str());
       run.warnings.push_back(buf);
     }
   }
@@ -209,7 +208,8 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
                   config.robot().total_mass_kg(), mass.implied_kg(), mass.sigma_kg(),
                   mass.allowed_kg(), config.calibrator().mass_check_sigmas());
     const std::string what = buf;
-    if (!options.accept_mass_mismatch) throw MassMismatchError(what + " (--accept-mass-mismatch to calibrate anyway)");
+    if (!options.accept_mass_mismatch)
+      throw MassMismatchError(what + " (--accept-mass-mismatch to calibrate anyway)");
     mass.set_accepted_mismatch(true);
     run.warnings.push_back(what + "; calibrated anyway (--accept-mass-mismatch)");
   }
@@ -237,11 +237,14 @@ CalibrationRun CalibrateFromHanging(const HangingResult& hanging,
     for (int k = 0; k < kNumLegs; ++k) {
       const int n = hanging.leg[k].saturated_samples;
       out.mutable_leg(k)->set_saturated_samples(static_cast<uint32_t>(n));
-      if (n > 0) legs += (legs.empty() ? "" : ", ") + std::string(kLegNames[k]) + " " + std::to_string(n);
+      if (n > 0)
+        legs += (legs.empty() ? "" : ", ") + std::string(kLegNames[k]) + " " + std::to_string(n);
     }
     if (!legs.empty()) {
-      run.warnings.push_back("hanging samples beyond the transducer's rated range (saturated) "
-                             "left out of step 1: " + legs);
+      run.warnings.push_back(
+          "hanging samples beyond the transducer's rated range (saturated) "
+          "left out of step 1: " +
+          legs);
     }
   }
   for (const std::string& w : run.warnings) out.add_warning(w);
@@ -279,7 +282,8 @@ CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
   std::string leg_map_warning;
   if (leg_map.checked && !leg_map.consistent()) {
     if (!options.accept_leg_map_mismatch) {
-      throw LegMapMismatchError(leg_map.Describe() + " (--accept-leg-map-mismatch to calibrate "
+      throw LegMapMismatchError(leg_map.Describe() +
+                                " (--accept-leg-map-mismatch to calibrate "
                                 "anyway)");
     }
     leg_map_warning = leg_map.Describe() + "; calibrated anyway (--accept-leg-map-mismatch)";
@@ -313,7 +317,8 @@ CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
   if (!legs.empty()) {
     const std::string w = std::to_string(poses.size() - kept.size()) +
                           " standing poses dropped: a median reading beyond the transducer's "
-                          "rated range (saturated) on " + legs;
+                          "rated range (saturated) on " +
+                          legs;
     run.warnings.push_back(w);
     run.proto.add_warning(w);
   }

@@ -171,8 +171,8 @@ RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
     const calibration::Mounting& m = leg.mounting();
     const std::string qpath = path + ".mounting.quaternion_wxyz";
     if (m.quaternion_wxyz_size() != 4) {
-      R::Fail(qpath, "needs 4 numbers (w, x, y, z), got " +
-                         std::to_string(m.quaternion_wxyz_size()));
+      R::Fail(qpath,
+              "needs 4 numbers (w, x, y, z), got " + std::to_string(m.quaternion_wxyz_size()));
     }
     Eigen::Vector4d q;
     for (int i = 0; i < 4; ++i) {
@@ -183,8 +183,8 @@ RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
     }
     l.R_tilde = QuaternionToRotation(q);
     if (m.has_rotation_vector_deg()) {
-      const Vec3 rv_deg = R::Vector(path + ".mounting.rotation_vector_deg", true,
-                                    m.rotation_vector_deg());
+      const Vec3 rv_deg =
+          R::Vector(path + ".mounting.rotation_vector_deg", true, m.rotation_vector_deg());
       const double disagreement_deg =
           LogSO3(l.R_tilde.transpose() * ExpSO3(rv_deg * (M_PI / 180.0))).norm() * 180.0 / M_PI;
       if (disagreement_deg > kRotationAgreementDeg) {
@@ -192,8 +192,8 @@ RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
                 "disagrees with quaternion_wxyz by " + Num(disagreement_deg) + " deg");
       }
     }
-    l.p_tilde_prime = R::Vector(path + ".mounting.p_tilde_prime_m", m.has_p_tilde_prime_m(),
-                                m.p_tilde_prime_m());
+    l.p_tilde_prime =
+        R::Vector(path + ".mounting.p_tilde_prime_m", m.has_p_tilde_prime_m(), m.p_tilde_prime_m());
   }
   // Models 1 and 3 do not estimate p^C_B; it is then zero (informational for correction).
   if (proto.has_p_c_b_m()) cal.p_C_B = R::Vector("p_c_b_m", true, proto.p_c_b_m());
@@ -213,14 +213,14 @@ RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
 calibration::Calibration ReadCalibrationFile(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {
-    throw std::runtime_error("cannot open calibration file '" + path + "': " +
-                             std::strerror(errno));
+    throw std::runtime_error("cannot open calibration file '" + path +
+                             "': " + std::strerror(errno));
   }
   std::ostringstream s;
   s << in.rdbuf();
   if (in.bad()) {
-    throw std::runtime_error("cannot read calibration file '" + path + "': " +
-                             std::strerror(errno));
+    throw std::runtime_error("cannot read calibration file '" + path +
+                             "': " + std::strerror(errno));
   }
   const std::string text = s.str();
   calibration::Calibration cal;
@@ -245,7 +245,8 @@ void WriteCalibrationFile(const calibration::Calibration& cal, const std::string
 
 void WriteFileAtomic(const std::string& path, const std::string& bytes) {
   const size_t slash = path.rfind('/');
-  const std::string dir = slash == std::string::npos ? "." : (slash == 0 ? "/" : path.substr(0, slash));
+  const std::string dir =
+      slash == std::string::npos ? "." : (slash == 0 ? "/" : path.substr(0, slash));
   const std::string base = slash == std::string::npos ? path : path.substr(slash + 1);
   if (base.empty()) ThrowErrno(path, "not a file name", EINVAL);
 

@@ -281,9 +281,10 @@ void ValidateAti(const Node& node, const config::AtiTransducer& ati) {
         node.Error("rated_range", "must be > 0, got " + FormatNumber(v), i);
       } else if (std::isfinite(v) && !(v >= kMinRatedRange && v <= kMaxRatedRange)) {
         // ATI's smallest transducer (Nano17) is rated 0.12 N*m, its largest (Omega250) 16 kN.
-        node.Error("rated_range", "must be in [" + FormatNumber(kMinRatedRange) + ", " +
-                                      FormatNumber(kMaxRatedRange) + "] N or N*m, got " +
-                                      FormatNumber(v), i);
+        node.Error("rated_range",
+                   "must be in [" + FormatNumber(kMinRatedRange) + ", " +
+                       FormatNumber(kMaxRatedRange) + "] N or N*m, got " + FormatNumber(v),
+                   i);
       }
     }
   }
@@ -425,8 +426,8 @@ void ValidateNatNet(const Node& node, const config::NatNet& n) {
   const std::string& v = n.bitstream_version();
   if (!v.empty() && !(v.size() >= 3 && (v[0] == '3' || v[0] == '4') && v[1] == '.' &&
                       v.find_first_not_of("0123456789.") == std::string::npos)) {
-    node.Error("bitstream_version", "must be a NatNet 3.x or 4.x version such as \"4.1\", got \"" +
-                                        v + "\"");
+    node.Error("bitstream_version",
+               "must be a NatNet 3.x or 4.x version such as \"4.1\", got \"" + v + "\"");
   }
   if (!v.empty() && n.multicast()) {
     node.Error("bitstream_version", "only a unicast client can choose the bitstream (multicast)");
@@ -478,9 +479,11 @@ void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus) {
   node.Positive("max_velocity_rad_s", bus.max_velocity_rad_s());
   if (std::isfinite(bus.max_velocity_rad_s()) && bus.max_velocity_rad_s() > 0 &&
       bus.max_velocity_rad_s() < kVelocityUnitRadS) {
-    node.Error("max_velocity_rad_s", "must be at least one unit of the servos' Velocity Limit "
-                                     "(0.229 rpm = " + FormatNumber(kVelocityUnitRadS) +
-                                         " rad/s), got " + FormatNumber(bus.max_velocity_rad_s()));
+    node.Error("max_velocity_rad_s",
+               "must be at least one unit of the servos' Velocity Limit "
+               "(0.229 rpm = " +
+                   FormatNumber(kVelocityUnitRadS) + " rad/s), got " +
+                   FormatNumber(bus.max_velocity_rad_s()));
   }
   node.Positive("max_acceleration_rad_s2", bus.max_acceleration_rad_s2());
   if (std::isfinite(bus.max_acceleration_rad_s2()) && bus.max_acceleration_rad_s2() > 0 &&
@@ -493,11 +496,11 @@ void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus) {
   node.Positive("bus_watchdog_s", bus.bus_watchdog_s());
   if (std::isfinite(bus.bus_watchdog_s()) && bus.bus_watchdog_s() > 0) {
     const double units = bus.bus_watchdog_s() / 0.02;
-    if (!(units >= 1 - 1e-9 && units <= 127 + 1e-9) ||
-        std::abs(units - std::round(units)) > 1e-6) {
-      node.Error("bus_watchdog_s", "must be a multiple of 0.02 s within 0.02-2.54 s (the Bus "
-                                   "Watchdog's 20 ms units, 1-127), got " +
-                                       FormatNumber(bus.bus_watchdog_s()));
+    if (!(units >= 1 - 1e-9 && units <= 127 + 1e-9) || std::abs(units - std::round(units)) > 1e-6) {
+      node.Error("bus_watchdog_s",
+                 "must be a multiple of 0.02 s within 0.02-2.54 s (the Bus "
+                 "Watchdog's 20 ms units, 1-127), got " +
+                     FormatNumber(bus.bus_watchdog_s()));
     } else if (std::isfinite(bus.rate_hz()) && bus.rate_hz() > 0 &&
                bus.bus_watchdog_s() * bus.rate_hz() < 5) {
       node.Error("bus_watchdog_s", "must span at least five bridge cycles (5 / rate_hz = " +
@@ -524,8 +527,8 @@ void ValidateSegmenter(const Node& node, const config::Segmenter& s) {
       s.savgol_window() / s.sample_rate_hz() > kMaxSavgolWindowS) {
     node.Error("savgol_window", "spans " + FormatNumber(s.savgol_window() / s.sample_rate_hz()) +
                                     " s at sample_rate_hz " + FormatNumber(s.sample_rate_hz()) +
-                                    "; at most " + FormatNumber(kMaxSavgolWindowS) +
-                                    " s, got " + std::to_string(s.savgol_window()));
+                                    "; at most " + FormatNumber(kMaxSavgolWindowS) + " s, got " +
+                                    std::to_string(s.savgol_window()));
   }
   node.Positive("max_force_rate_n_s", s.max_force_rate_n_s());
   node.Positive("min_steady_s", s.min_steady_s());
@@ -565,7 +568,8 @@ void ValidateCalibrator(const Node& node, const config::Calibrator& c) {
   node.Positive("residual_floor_warn_factor", c.residual_floor_warn_factor());
   if (node.Finite("max_gap_share", c.max_gap_share()) &&
       (c.max_gap_share() < 0.0 || c.max_gap_share() > 1.0)) {
-    node.Error("max_gap_share", "must be a share in [0, 1], got " + FormatNumber(c.max_gap_share()));
+    node.Error("max_gap_share",
+               "must be a share in [0, 1], got " + FormatNumber(c.max_gap_share()));
   }
   if (c.profile() == config::CALIBRATION_PROFILE_UNSPECIFIED) {
     node.Error("profile", "must be FTCAL or REPORT");
@@ -606,7 +610,8 @@ void ValidateChannels(const Node& node, const config::Channels& c) {
     }
     if (f->name() == "ft_prefix") {
       for (std::string_view leg : kLegNames) {
-        names.emplace_back(value + std::string(leg), "ft_prefix (" + value + std::string(leg) + ")");
+        names.emplace_back(value + std::string(leg),
+                           "ft_prefix (" + value + std::string(leg) + ")");
       }
     } else {
       names.emplace_back(value, f->name());
@@ -616,8 +621,8 @@ void ValidateChannels(const Node& node, const config::Channels& c) {
     for (std::size_t j = 0; j < i; ++j) {
       if (names[i].first == names[j].first) {
         const std::string field = names[i].second.substr(0, names[i].second.find(' '));
-        node.Error(field, "channel '" + names[i].first + "' is also channels." +
-                              names[j].second + ": each channel carries one thing");
+        node.Error(field, "channel '" + names[i].first + "' is also channels." + names[j].second +
+                              ": each channel carries one thing");
       }
     }
   }
@@ -639,8 +644,9 @@ void ValidatePlanPhase(const Node& node, const config::PlanPhase& p) {
       break;
     case config::PHASE_HANG:
       if (p.orientation() == config::HANG_ORIENTATION_UNSPECIFIED) {
-        node.Error("orientation", "a hanging phase needs HANG_X_POS, HANG_X_NEG, HANG_Z_POS or "
-                                  "HANG_Z_NEG");
+        node.Error("orientation",
+                   "a hanging phase needs HANG_X_POS, HANG_X_NEG, HANG_Z_POS or "
+                   "HANG_Z_NEG");
       }
       if (p.cycles() < 1 || p.cycles() > 1000) {
         node.Error("cycles", "must be in [1, 1000], got " + std::to_string(p.cycles()));
@@ -649,8 +655,8 @@ void ValidatePlanPhase(const Node& node, const config::PlanPhase& p) {
       break;
     case config::PHASE_STANDING_GRID:
       if (p.grid_angles_deg_size() > 5) {
-        node.Error("grid_angles_deg", "at most 5 angles (5^6 poses), got " +
-                                          std::to_string(p.grid_angles_deg_size()));
+        node.Error("grid_angles_deg",
+                   "at most 5 angles (5^6 poses), got " + std::to_string(p.grid_angles_deg_size()));
       }
       for (int i = 0; i < p.grid_angles_deg_size(); ++i) {
         if (node.Finite("grid_angles_deg", p.grid_angles_deg(i), i) &&
@@ -681,8 +687,9 @@ void ValidatePlanPhase(const Node& node, const config::PlanPhase& p) {
       InRange(node, "walk_s", p.walk_s(), 1.0, 36000.0, " s");
       break;
     default:
-      node.Error("kind", "must be PHASE_TARE, PHASE_HANG, PHASE_STANDING_GRID, "
-                         "PHASE_TRIPOD_STANCES or PHASE_TRIPOD_WALK");
+      node.Error("kind",
+                 "must be PHASE_TARE, PHASE_HANG, PHASE_STANDING_GRID, "
+                 "PHASE_TRIPOD_STANCES or PHASE_TRIPOD_WALK");
   }
 }
 
@@ -715,10 +722,10 @@ void ValidateSequencer(const Node& node, const config::Sequencer& s) {
   if (std::isfinite(s.standing_min_weight_share()) &&
       std::isfinite(s.standing_max_weight_share()) &&
       !(s.standing_min_weight_share() < s.standing_max_weight_share())) {
-    node.Error("standing_max_weight_share",
-               "must be greater than standing_min_weight_share (" +
-                   FormatNumber(s.standing_min_weight_share()) + "), got " +
-                   FormatNumber(s.standing_max_weight_share()));
+    node.Error("standing_max_weight_share", "must be greater than standing_min_weight_share (" +
+                                                FormatNumber(s.standing_min_weight_share()) +
+                                                "), got " +
+                                                FormatNumber(s.standing_max_weight_share()));
   }
   InRange(node, "max_tilt_deg", s.max_tilt_deg(), 0.1, 90.0, " deg");
   InRange(node, "arrival_tolerance_rad", s.arrival_tolerance_rad(), 0.001, 1.0, " rad");
@@ -752,9 +759,9 @@ void ValidateAuth(const Node& node, const config::Auth& auth, const config::Chan
     for (const std::string& channel : key.channel()) {
       if (signed_channels.count(channel) == 0) {
         key_node.Error("channel", "'" + channel + "' is not a signed channel (" +
-                                      channels.servo_cmd() + ", " + channels.experiment() +
-                                      ", " + channels.calibration() + ", " +
-                                      channels.sequencer_control() + ")");
+                                      channels.servo_cmd() + ", " + channels.experiment() + ", " +
+                                      channels.calibration() + ", " + channels.sequencer_control() +
+                                      ")");
       } else if (++keys_per_channel[channel] == 3) {
         key_node.Error("channel", "more than two trusted keys for '" + channel +
                                       "' (two at once, for rotation)");
@@ -782,18 +789,20 @@ void ValidateRestart(const Node& node, const config::RestartPolicy& r) {
       !(r.startsecs_s() == 0 || (r.startsecs_s() >= 2 && r.startsecs_s() <= 3600))) {
     // supervisord may notice an exit a second late: below 2 s a process that dies at once can
     // pass as started, and is then restarted forever instead of ending FATAL.
-    node.Error("startsecs_s", "must be 0 (no start check) or in 2..3600 s, got " +
-                                  FormatNumber(r.startsecs_s()));
+    node.Error("startsecs_s",
+               "must be 0 (no start check) or in 2..3600 s, got " + FormatNumber(r.startsecs_s()));
   }
   if (r.startretries() > 100) {
-    node.Error("startretries", "must be at most 100 (a process that keeps dying should end "
-                               "FATAL), got " + std::to_string(r.startretries()));
+    node.Error("startretries",
+               "must be at most 100 (a process that keeps dying should end "
+               "FATAL), got " +
+                   std::to_string(r.startretries()));
   }
-  static const std::set<std::string> kSignals = {"TERM", "INT", "QUIT", "KILL", "HUP",
-                                                 "USR1", "USR2"};
+  static const std::set<std::string> kSignals = {"TERM", "INT",  "QUIT", "KILL",
+                                                 "HUP",  "USR1", "USR2"};
   if (kSignals.count(r.stopsignal()) == 0) {
-    node.Error("stopsignal", "must be one of TERM INT QUIT KILL HUP USR1 USR2, got '" +
-                                 r.stopsignal() + "'");
+    node.Error("stopsignal",
+               "must be one of TERM INT QUIT KILL HUP USR1 USR2, got '" + r.stopsignal() + "'");
   }
   if (node.Finite("stopwaitsecs_s", r.stopwaitsecs_s()) &&
       !(r.stopwaitsecs_s() > 0 && r.stopwaitsecs_s() <= 3600)) {
@@ -881,8 +890,8 @@ void ValidateLaunch(const Node& node, const config::Launch& launch) {
       if (!IsProgramName(proc.name())) {
         proc_node.Error("name", "must be 1..64 of [a-z0-9_-], got '" + proc.name() + "'");
       } else if (!index.emplace(proc.name(), p).second) {
-        proc_node.Error("name", "duplicate process '" + proc.name() + "' in group '" +
-                                    group.name() + "'");
+        proc_node.Error("name",
+                        "duplicate process '" + proc.name() + "' in group '" + group.name() + "'");
       }
       if (proc.host().empty()) {
         proc_node.Missing("host");
@@ -910,8 +919,8 @@ void ValidateLaunch(const Node& node, const config::Launch& launch) {
       const Node proc_node = group_node.Child("process", p, proc);
       for (int i = 0; i < proc.after_size(); ++i) {
         if (index.count(proc.after(i)) == 0) {
-          proc_node.Error("after", "no process '" + proc.after(i) + "' in group '" +
-                                       group.name() + "'", i);
+          proc_node.Error("after",
+                          "no process '" + proc.after(i) + "' in group '" + group.name() + "'", i);
         } else if (proc.after(i) == proc.name()) {
           proc_node.Error("after", "a process cannot wait for itself", i);
         }
@@ -932,13 +941,14 @@ void ValidateLaunch(const Node& node, const config::Launch& launch) {
     for (int p = 0; p < group.process_size(); ++p) {
       if (!acyclic(p)) {
         group_node.Child("process", p, group.process(p))
-            .Error("after", "the dependencies form a cycle through '" +
-                                group.process(p).name() + "'");
+            .Error("after",
+                   "the dependencies form a cycle through '" + group.process(p).name() + "'");
         break;
       }
     }
   }
-  if (launch.process_state_channel().empty()) node.Error("process_state_channel", "must not be empty");
+  if (launch.process_state_channel().empty())
+    node.Error("process_state_channel", "must not be empty");
 }
 
 void Validate(const config::Config& config, const ParseInfoTree* tree, const std::string& source,
@@ -965,11 +975,10 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
       config.sequencer().max_velocity_rad_s() > config.dynamixel().max_velocity_rad_s()) {
     // The bridge rate-limits every goal: a plan timed faster would lag and be called stuck.
     root.Child("sequencer", config.sequencer())
-        .Error("max_velocity_rad_s",
-               "must not exceed dynamixel.max_velocity_rad_s (" +
-                   FormatNumber(config.dynamixel().max_velocity_rad_s()) +
-                   " rad/s, the bridge's own limit), got " +
-                   FormatNumber(config.sequencer().max_velocity_rad_s()));
+        .Error("max_velocity_rad_s", "must not exceed dynamixel.max_velocity_rad_s (" +
+                                         FormatNumber(config.dynamixel().max_velocity_rad_s()) +
+                                         " rad/s, the bridge's own limit), got " +
+                                         FormatNumber(config.sequencer().max_velocity_rad_s()));
   }
   ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
   if (config.has_launch()) ValidateLaunch(root.Child("launch", config.launch()), config.launch());
@@ -982,14 +991,15 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
     for (int i = 0; i < config.robot().leg_size(); ++i) {
       const config::Servo& servo = config.robot().leg(i).servo();
       const Node node = robot.Child("leg", i, config.robot().leg(i)).Child("servo", servo);
-      for (const auto& [name, angle] : {std::pair<const char*, double>{"min_angle_rad",
-                                                                         servo.min_angle_rad()},
-                                        {"max_angle_rad", servo.max_angle_rad()}}) {
+      for (const auto& [name, angle] :
+           {std::pair<const char*, double>{"min_angle_rad", servo.min_angle_rad()},
+            {"max_angle_rad", servo.max_angle_rad()}}) {
         const double count = servo.zero_count() + servo.direction() * angle * 4096.0 / (2 * M_PI);
         if (std::isfinite(count) && std::abs(count) > kMaxExtendedCount) {
           node.Error(name, "is encoder count " + FormatNumber(count) +
                                ", outside the +-1048575 of Extended Position mode (dynamixel."
-                               "operating_mode), got " + FormatNumber(angle));
+                               "operating_mode), got " +
+                               FormatNumber(angle));
         }
       }
     }
@@ -999,14 +1009,14 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
 std::string ReadWholeFile(const std::string& path, const char* what) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {
-    throw ConfigError(std::string("cannot open ") + what + " '" + path + "': " +
-                      std::strerror(errno));
+    throw ConfigError(std::string("cannot open ") + what + " '" + path +
+                      "': " + std::strerror(errno));
   }
   std::ostringstream s;
   s << in.rdbuf();
   if (in.bad()) {
-    throw ConfigError(std::string("cannot read ") + what + " '" + path + "': " +
-                      std::strerror(errno));
+    throw ConfigError(std::string("cannot read ") + what + " '" + path +
+                      "': " + std::strerror(errno));
   }
   return s.str();
 }

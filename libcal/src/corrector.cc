@@ -168,7 +168,8 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
   st.seen = true;
   st.utime = t;
   st.flags = flags;
-  st.wrench_W = std::isnan(angle) ? Vec6::Constant(kNaN) : CorrectLeg(in.leg, in.wrench, angle, R_WC);
+  st.wrench_W =
+      std::isnan(angle) ? Vec6::Constant(kNaN) : CorrectLeg(in.leg, in.wrench, angle, R_WC);
 
   out->utime = t;
   out->updated_leg = in.leg;

@@ -17,9 +17,7 @@ Eigen::Matrix4d Pose3::Matrix() const {
 
 Mat3 Skew(const Vec3& v) {
   Mat3 m;
-  m << 0, -v.z(), v.y(),
-       v.z(), 0, -v.x(),
-       -v.y(), v.x(), 0;
+  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
   return m;
 }
 

@@ -122,9 +122,9 @@ void ValidateSamples(const LegSamples& samples, HangSeries series, int leg) {
     if (!std::isfinite(samples.t_s[i]) || !std::isfinite(samples.angle_rad[i]) ||
         !samples.wrench[i].allFinite()) {
       std::ostringstream s;
-      s << Where(series, leg) << "non-finite value in sample " << i << " (t_s "
-        << samples.t_s[i] << ", angle_rad " << samples.angle_rad[i] << ", wrench "
-        << samples.wrench[i].transpose() << ")";
+      s << Where(series, leg) << "non-finite value in sample " << i << " (t_s " << samples.t_s[i]
+        << ", angle_rad " << samples.angle_rad[i] << ", wrench " << samples.wrench[i].transpose()
+        << ")";
       Fail(s.str());
     }
     if (i > 0 && samples.t_s[i] < samples.t_s[i - 1]) {
@@ -359,8 +359,8 @@ Vec3 RefineSPlus(const Vec3& s0, const std::vector<Vec3>& f_minus, int lo, int h
   double t[2] = {s0.dot(cost.b1), s0.dot(cost.b2)};
   double initial_cost = 0.0;
   cost(t, &initial_cost);
-  ceres::GradientProblem problem(new ceres::AutoDiffFirstOrderFunction<SPlusCost, 2>(
-      new SPlusCost(cost)));
+  ceres::GradientProblem problem(
+      new ceres::AutoDiffFirstOrderFunction<SPlusCost, 2>(new SPlusCost(cost)));
   ceres::GradientProblemSolver::Options solver_options;
   solver_options.logging_type = ceres::SILENT;
   solver_options.max_num_iterations = 100;
@@ -382,10 +382,14 @@ Vec3 RefineSPlus(const Vec3& s0, const std::vector<Vec3>& f_minus, int lo, int h
 
 std::string HangSeriesName(HangSeries series) {
   switch (series) {
-    case HangSeries::kXPos: return "HANG_X_POS";
-    case HangSeries::kXNeg: return "HANG_X_NEG";
-    case HangSeries::kZPos: return "HANG_Z_POS";
-    case HangSeries::kZNeg: return "HANG_Z_NEG";
+    case HangSeries::kXPos:
+      return "HANG_X_POS";
+    case HangSeries::kXNeg:
+      return "HANG_X_NEG";
+    case HangSeries::kZPos:
+      return "HANG_Z_POS";
+    case HangSeries::kZNeg:
+      return "HANG_Z_NEG";
   }
   return "HANG_<invalid " + std::to_string(static_cast<int>(series)) + ">";
 }
@@ -457,9 +461,8 @@ double SPlusObjective(const Vec3& s_plus, const std::vector<Vec3>& f_minus, cons
 // tau- along f- carries no information on r (f-^T [f-] = 0): the update uses only the two
 // components across f-, which gives the same posterior as the report's 3-D observation with
 // isotropic noise and stays well conditioned for any observation variance.
-std::vector<Vec3> SmoothLegCom(const std::vector<Vec3>& f_minus,
-                               const std::vector<Vec3>& tau_minus, double transition_var_m2,
-                               double observation_var_nm2) {
+std::vector<Vec3> SmoothLegCom(const std::vector<Vec3>& f_minus, const std::vector<Vec3>& tau_minus,
+                               double transition_var_m2, double observation_var_nm2) {
   if (f_minus.size() != tau_minus.size()) {
     throw std::invalid_argument("SmoothLegCom: f_minus and tau_minus differ in length");
   }
@@ -593,8 +596,7 @@ PairEstimate SolvePair(const PairData& pair, const std::vector<Vec3>& r_fit, int
   r_mean /= n;
   PairEstimate e;
   if (!(pair.axis.dot(f_minus_mean) > 0.0)) {
-    Fail(where + "the half-difference force is not along +" +
-         (pair.axis_index == 0 ? "x" : "z") +
+    Fail(where + "the half-difference force is not along +" + (pair.axis_index == 0 ? "x" : "z") +
          ": the down and up series carry the leg's weight the wrong way round");
   }
   if (!use_s) {
@@ -730,8 +732,8 @@ Vec3Sigma Combine(const Vec3Sigma& a, const Vec3Sigma& b) {
 // collects the values of the two buckets holding the ranks, and the selection runs inside them.
 // Both passes read each sample once for all six components: std::nth_element per component
 // over the whole vector dominated the step's run time.
-void TwoRanks(const std::vector<Vec6>& v, const Vec6& lo, const Vec6& hi, size_t k_lo,
-              size_t k_hi, Vec6* at_lo, Vec6* at_hi) {
+void TwoRanks(const std::vector<Vec6>& v, const Vec6& lo, const Vec6& hi, size_t k_lo, size_t k_hi,
+              Vec6* at_lo, Vec6* at_hi) {
   constexpr int kBuckets = 1024;
   Vec6 scale;
   for (int c = 0; c < 6; ++c) scale(c) = hi(c) > lo(c) ? kBuckets / (hi(c) - lo(c)) : 0.0;
@@ -838,8 +840,8 @@ Vec3 SeriesGravity(const HangingRecording& rec, const HangingOptions& options) {
     if (angle > options.axis_tolerance_rad) {
       std::ostringstream s;
       s << where << "motion capture puts gravity at (" << measured.transpose() << ") in B, "
-        << angle * kRadToDeg << " deg from the stated (" << g_b.transpose()
-        << "); tolerance " << options.axis_tolerance_rad * kRadToDeg << " deg";
+        << angle * kRadToDeg << " deg from the stated (" << g_b.transpose() << "); tolerance "
+        << options.axis_tolerance_rad * kRadToDeg << " deg";
       Fail(s.str());
     }
   }
@@ -903,9 +905,8 @@ int SeriesSlot(const HangingRecording& rec, const Vec3& g_b, const Pose3& X_B_ft
   const double angle = std::acos(std::clamp(std::abs(g_ft(axis)), 0.0, 1.0));
   if (angle > options.axis_tolerance_rad) {
     std::ostringstream s;
-    s << Where(rec.series, leg) << "stated gravity in the transducer frame is ("
-      << g_ft.transpose() << "), " << angle * kRadToDeg
-      << " deg from the nearest transducer x or z axis; tolerance "
+    s << Where(rec.series, leg) << "stated gravity in the transducer frame is (" << g_ft.transpose()
+      << "), " << angle * kRadToDeg << " deg from the nearest transducer x or z axis; tolerance "
       << options.axis_tolerance_rad * kRadToDeg << " deg";
     Fail(s.str());
   }
@@ -923,15 +924,15 @@ const char* SlotName(int slot) {
 // ---------------------------------------------------------------- the step
 
 HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
-                         const std::array<Pose3, kNumLegs>& X_B_ft,
-                         const HangingOptions& options) {
+                         const std::array<Pose3, kNumLegs>& X_B_ft, const HangingOptions& options) {
   ValidateOptions(options);
   // Exactly one recording per series.
   std::array<const HangingRecording*, kNumHangSeries> by_series{};
   for (const HangingRecording& rec : recordings) {
     const int s = static_cast<int>(rec.series);
     if (s < 0 || s >= kNumHangSeries) Fail("hanging: recording with an invalid series value");
-    if (by_series[s] != nullptr) Fail("hanging: series " + HangSeriesName(rec.series) + " given twice");
+    if (by_series[s] != nullptr)
+      Fail("hanging: series " + HangSeriesName(rec.series) + " given twice");
     by_series[s] = &rec;
   }
   for (int s = 0; s < kNumHangSeries; ++s) {
@@ -985,7 +986,8 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
   }
 
   bool has_attitude = true;
-  for (const HangingRecording* rec : by_series) has_attitude = has_attitude && !rec->attitude.empty();
+  for (const HangingRecording* rec : by_series)
+    has_attitude = has_attitude && !rec->attitude.empty();
 
   const int bins = options.phase_bins;
   HangingResult result;
@@ -1068,8 +1070,7 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
     if (static_cast<int>(m.cycles.size()) < options.min_cycles) {
       std::ostringstream s;
       s << leg_where << "only " << m.cycles.size()
-        << " full cycles are matched across the four series, need at least "
-        << options.min_cycles;
+        << " full cycles are matched across the four series, need at least " << options.min_cycles;
       Fail(s.str());
     }
     const int n = static_cast<int>(m.phase.size());
@@ -1079,12 +1080,12 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
     LegHangingResult& out = result.leg[leg];
 
     // Leg CoM: smoother per pair, null space resolved per sample, sinusoid fit.
-    const std::vector<Vec3> r_x = SmoothLegCom(px.f_minus, px.tau_minus,
-                                               options.smoother_transition_var_m2,
-                                               options.smoother_observation_var_nm2);
-    const std::vector<Vec3> r_z = SmoothLegCom(pz.f_minus, pz.tau_minus,
-                                               options.smoother_transition_var_m2,
-                                               options.smoother_observation_var_nm2);
+    const std::vector<Vec3> r_x =
+        SmoothLegCom(px.f_minus, px.tau_minus, options.smoother_transition_var_m2,
+                     options.smoother_observation_var_nm2);
+    const std::vector<Vec3> r_z =
+        SmoothLegCom(pz.f_minus, pz.tau_minus, options.smoother_transition_var_m2,
+                     options.smoother_observation_var_nm2);
     std::vector<Vec3> r(n);
     for (int i = 0; i < n; ++i) {
       r[i] = ResolveComNullSpace(r_x[i], px.f_minus[i], r_z[i], pz.f_minus[i]);
@@ -1149,7 +1150,8 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
     size_t raw_count = 0;
     {
       // r(phi) = LegComModel::At, with one sin/cos of the shaft angle per sample:
-      // a sin(theta + c) + d = a (sin theta cos c + cos theta sin c) + d (2 pi phi = theta mod 2 pi).
+      // a sin(theta + c) + d = a (sin theta cos c + cos theta sin c) + d (2 pi phi = theta mod 2
+      // pi).
       const LegComModel& com = out.com.model;
       const double xs = com.x.a * std::cos(com.x.c), xc = com.x.a * std::sin(com.x.c);
       const double zs = com.z.a * std::cos(com.z.c), zc = com.z.a * std::sin(com.z.c);
@@ -1199,8 +1201,8 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
           residual.push_back(ls.wrench[i] - model);
         }
       }
-      v.residual = Stats(std::string(kLegNames[leg]) + (use_s ? " with s" : " without s"),
-                         residual);
+      v.residual =
+          Stats(std::string(kLegNames[leg]) + (use_s ? " with s" : " without s"), residual);
     }
 
     // Naive tare: the upright reading near theta = 0, no leg gravity model.
@@ -1217,22 +1219,22 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
       if (count == 0) {
         std::ostringstream s;
         s << Where(by_series[upright]->series, leg) << "no sample within "
-          << options.naive_tare_max_angle_rad * kRadToDeg
-          << " deg of theta = 0 for the naive tare";
+          << options.naive_tare_max_angle_rad * kRadToDeg << " deg of theta = 0 for the naive tare";
         Fail(s.str());
       }
       out.naive_offset = sum / count;
       residual.clear();
       for (int s = 0; s < kNumHangSeries; ++s) {
-        for (const Vec6& w : by_series[s]->legs[leg].wrench) residual.push_back(w - out.naive_offset);
+        for (const Vec6& w : by_series[s]->legs[leg].wrench)
+          residual.push_back(w - out.naive_offset);
       }
       out.naive_residual = Stats(std::string(kLegNames[leg]) + " naive tare", residual);
     }
 
     if (has_attitude) {
       for (int s = 0; s < kNumHangSeries; ++s) {
-        result.gravity_observations.push_back(GravityObservation(
-            *by_series[s], leg, X_B_ft[leg], out.with_s.force_offset_n));
+        result.gravity_observations.push_back(
+            GravityObservation(*by_series[s], leg, X_B_ft[leg], out.with_s.force_offset_n));
       }
     }
   }

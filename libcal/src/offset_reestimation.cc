@@ -115,7 +115,8 @@ OffsetReestimate ReestimateOffsets(const RobotCalibration& cal,
   const Eigen::MatrixXd V_r = V.leftCols(rank);
   const Eigen::MatrixXd V_null = V.rightCols(V.cols() - rank);
   const Eigen::VectorXd inv_s = sv.head(rank).cwiseInverse();
-  const Eigen::VectorXd x = V_r * inv_s.asDiagonal() * (svd.matrixU().leftCols(rank).transpose() * b);
+  const Eigen::VectorXd x =
+      V_r * inv_s.asDiagonal() * (svd.matrixU().leftCols(rank).transpose() * b);
   const Eigen::VectorXd e = A * x - b;
   const int redundancy = n_rows - rank;
   if (redundancy == 0) {
@@ -148,8 +149,8 @@ OffsetReestimate ReestimateOffsets(const RobotCalibration& cal,
   if (options.require_all && !out.undetermined.empty()) {
     std::ostringstream msg;
     msg << "offset re-estimation: the data (" << standing.size() << " standing poses, "
-        << unloaded_legs << " unloaded-leg samples; rank " << rank
-        << " of 36) does not determine " << out.undetermined.size() << " offset components: ";
+        << unloaded_legs << " unloaded-leg samples; rank " << rank << " of 36) does not determine "
+        << out.undetermined.size() << " offset components: ";
     for (size_t i = 0; i < out.undetermined.size(); ++i) {
       msg << (i ? ", " : "") << out.undetermined[i];
     }

@@ -31,7 +31,8 @@ std::vector<double> SavitzkyGolayDerivative(int window, int order) {
       xp *= x;
     }
   }
-  const Eigen::MatrixXd pinv = A.colPivHouseholderQr().solve(Eigen::MatrixXd::Identity(window, window));
+  const Eigen::MatrixXd pinv =
+      A.colPivHouseholderQr().solve(Eigen::MatrixXd::Identity(window, window));
   std::vector<double> c(window);
   for (int i = 0; i < window; ++i) c[i] = pinv(1, i);
   return c;
@@ -118,7 +119,8 @@ PoseSegmenter::PoseSegmenter(const SegmenterOptions& options, PoseCallback on_po
       last_rate_(std::numeric_limits<double>::quiet_NaN()) {
   if (!(options_.sample_rate_hz > 0) || !(options_.max_force_rate_n_s > 0) ||
       !(options_.min_steady_s > 0)) {
-    throw std::invalid_argument("PoseSegmenter: sample rate, rate threshold and min steady time must be > 0");
+    throw std::invalid_argument(
+        "PoseSegmenter: sample rate, rate threshold and min steady time must be > 0");
   }
 }
 
@@ -133,8 +135,8 @@ void PoseSegmenter::Add(const SyncSample& sample) {
     window_.clear();
     return;
   }
-  if (!window_.empty() &&
-      static_cast<double>(sample.utime - window_.back().utime) > options_.max_gap_periods * period_us) {
+  if (!window_.empty() && static_cast<double>(sample.utime - window_.back().utime) >
+                              options_.max_gap_periods * period_us) {
     ++counters_.window_resets;
     CloseRun();
     window_.clear();
@@ -151,7 +153,8 @@ void PoseSegmenter::Evaluate() {
   double sum_sq = 0.0;
   for (int k = 0; k < kNumLegs; ++k) {
     Vec3 d = Vec3::Zero();
-    for (int i = 0; i < options_.savgol_window; ++i) d += coeff_[i] * window_[i].wrench[k].head<3>();
+    for (int i = 0; i < options_.savgol_window; ++i)
+      d += coeff_[i] * window_[i].wrench[k].head<3>();
     sum_sq += (d * inv_dt).squaredNorm();
   }
   last_rate_ = std::sqrt(sum_sq);

@@ -22,9 +22,7 @@ Pose3 RobotCalibration::X_C_ft(int k) const {
   return Pose3(l.R_tilde, l.R_tilde * l.p_tilde_prime) * X_B_ft[k];
 }
 
-Vec3 RobotCalibration::PTilde(int k) const {
-  return leg[k].R_tilde * leg[k].p_tilde_prime - p_C_B;
-}
+Vec3 RobotCalibration::PTilde(int k) const { return leg[k].R_tilde * leg[k].p_tilde_prime - p_C_B; }
 
 Vec3 GravityInC(const Mat3& R_WC, double g0) { return R_WC.transpose() * Vec3(0, 0, -g0); }
 

@@ -1,5 +1,5 @@
-// Step 2 (docs/method.md "Step 2", report section III-B). All Ceres templates of step 2 live in this
-// one translation unit: they compile slowly.
+// Step 2 (docs/method.md "Step 2", report section III-B). All Ceres templates of step 2 live in
+// this one translation unit: they compile slowly.
 //
 // Model: eq. 9 with p~'_k = R~_k^T (p~_k + p^C_B) (bilinear form, see standing.h):
 //   w^C_gc,k = [ R~ f' - F_g ;  R~ tau' + s_k x R~ f' - (R~ r' + s_k) x F_g ],
@@ -44,11 +44,11 @@ constexpr double kRadToDeg = 180.0 / M_PI;
 // The nominally transformed quantities of one leg in one pose (primes of docs/method.md): step 1 is
 // fixed during step 2, so these are computed once and the cost functor only rotates/shifts them.
 struct LegTerms {
-  Vec3 f = Vec3::Zero();     // f' = R_B_ft (w_m - w_o).f
-  Vec3 tau = Vec3::Zero();   // tau' about the body origin
-  Vec3 r = Vec3::Zero();     // r'_k(phi): leg CoM in B (nominal)
-  Vec3 dr = Vec3::Zero();    // (m_k / M) (r'_k(phi) - r'_k(0)): leg-aware CoM shift term
-  Vec3 F_g = Vec3::Zero();   // m_k g^C
+  Vec3 f = Vec3::Zero();    // f' = R_B_ft (w_m - w_o).f
+  Vec3 tau = Vec3::Zero();  // tau' about the body origin
+  Vec3 r = Vec3::Zero();    // r'_k(phi): leg CoM in B (nominal)
+  Vec3 dr = Vec3::Zero();   // (m_k / M) (r'_k(phi) - r'_k(0)): leg-aware CoM shift term
+  Vec3 F_g = Vec3::Zero();  // m_k g^C
 };
 
 struct PoseTerms {
@@ -69,8 +69,8 @@ struct Prepared {
 
 void RequireFinite(double v, const std::string& what) {
   if (!std::isfinite(v)) {
-    throw std::invalid_argument("standing step: " + what + " is not finite (" +
-                                std::to_string(v) + ")");
+    throw std::invalid_argument("standing step: " + what + " is not finite (" + std::to_string(v) +
+                                ")");
   }
 }
 
@@ -126,9 +126,10 @@ Prepared Prepare(const RobotCalibration& step1, const std::vector<StandingPose>&
   out.sqrt_k = options.k_weights.cwiseSqrt();
   out.leg_aware = options.leg_aware_com;
   for (const HangingGravityObservation& o : options.gravity_prior) {
-    const std::string what = "gravity prior of leg " + std::to_string(o.leg) + " series " +
-                             HangSeriesName(o.series);
-    if (o.leg < 0 || o.leg >= kNumLegs) throw std::invalid_argument("standing step: " + what + ": no such leg");
+    const std::string what =
+        "gravity prior of leg " + std::to_string(o.leg) + " series " + HangSeriesName(o.series);
+    if (o.leg < 0 || o.leg >= kNumLegs)
+      throw std::invalid_argument("standing step: " + what + ": no such leg");
     if (!o.u_B.allFinite() || !o.v_C.allFinite() || std::abs(o.u_B.norm() - 1.0) > 1e-6 ||
         std::abs(o.v_C.norm() - 1.0) > 1e-6) {
       throw std::invalid_argument("standing step: " + what + ": directions are not unit vectors");
@@ -269,7 +270,8 @@ class PoseCost final : public ceres::CostFunction {
       }
       const Eigen::Matrix<double, 6, kN> Md = M_ * d;
       if (need_rot) {
-        Eigen::Map<RowJ>(jacobians[0], 6, n_rot).block<6, kR>(0, kR * k) = Md.template leftCols<kR>();
+        Eigen::Map<RowJ>(jacobians[0], 6, n_rot).block<6, kR>(0, kR * k) =
+            Md.template leftCols<kR>();
       }
       if (need_t) {
         Eigen::Map<RowJ> Jt(jacobians[1], 6, n_t);
@@ -427,10 +429,9 @@ Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingMode
   if (!cayley && HasRotations(model) && prep.prior_scale > 0.0) {
     for (const HangingGravityObservation& o : prep.gravity_prior) {
       const double w = prep.prior_scale / std::max(o.sigma_rad, kMinPriorSigmaRad);
-      b.problem->AddResidualBlock(
-          new ceres::AutoDiffCostFunction<GravityPriorResidual, 3, 24>(
-              new GravityPriorResidual(o, w)),
-          nullptr, b.rot);
+      b.problem->AddResidualBlock(new ceres::AutoDiffCostFunction<GravityPriorResidual, 3, 24>(
+                                      new GravityPriorResidual(o, w)),
+                                  nullptr, b.rot);
     }
   }
   if (!cayley) b.problem->SetManifold(b.rot, new SixQuaternions());
@@ -489,8 +490,7 @@ void CheckIdentifiable(ceres::Problem* problem, const std::vector<double*>& bloc
     if (sv[i] >= 1e-8 * sv[0]) continue;
     const Eigen::VectorXd v = svd.matrixV().col(i);
     for (int j = 0; j < v.size(); ++j) {
-      if (std::abs(v[j]) > 0.2 &&
-          std::find(bad.begin(), bad.end(), names[j]) == bad.end()) {
+      if (std::abs(v[j]) > 0.2 && std::find(bad.begin(), bad.end(), names[j]) == bad.end()) {
         bad.push_back(names[j]);
       }
     }
@@ -512,17 +512,19 @@ StandingFit FitFromParams(StandingModel model, const Params& p, bool cayley) {
     if (!HasRotations(model)) {
       fit.R_tilde[k] = Mat3::Identity();
     } else if (cayley) {
-      fit.R_tilde[k] = CayleyToRotation(Vec3(p.cayley[3 * k], p.cayley[3 * k + 1],
-                                             p.cayley[3 * k + 2]));
+      fit.R_tilde[k] =
+          CayleyToRotation(Vec3(p.cayley[3 * k], p.cayley[3 * k + 1], p.cayley[3 * k + 2]));
     } else {
-      fit.R_tilde[k] = Quat(p.quat[4 * k + 3], p.quat[4 * k], p.quat[4 * k + 1],
-                            p.quat[4 * k + 2]).normalized().toRotationMatrix();
+      fit.R_tilde[k] = Quat(p.quat[4 * k + 3], p.quat[4 * k], p.quat[4 * k + 1], p.quat[4 * k + 2])
+                           .normalized()
+                           .toRotationMatrix();
     }
   }
   if (SharedTranslation(model)) {
     fit.has_p_C_B = true;
     fit.p_C_B = Vec3(p.trans[0], p.trans[1], p.trans[2]);
-    for (int k = 0; k < kNumLegs; ++k) fit.p_tilde_prime[k] = fit.R_tilde[k].transpose() * fit.p_C_B;
+    for (int k = 0; k < kNumLegs; ++k)
+      fit.p_tilde_prime[k] = fit.R_tilde[k].transpose() * fit.p_C_B;
   } else {
     for (int k = 0; k < kNumLegs; ++k) {
       fit.p_tilde_prime[k] = Vec3(p.trans[3 * k], p.trans[3 * k + 1], p.trans[3 * k + 2]);
@@ -581,20 +583,22 @@ void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFi
   const char* axes[3] = {"x", "y", "z"};
   if (HasRotations(fit->model)) {
     for (int k = 0; k < kNumLegs; ++k) {
-      for (const char* a : axes) fit->correlation_names.push_back(std::string(kLegNames[k]) + " R~ " + a);
+      for (const char* a : axes)
+        fit->correlation_names.push_back(std::string(kLegNames[k]) + " R~ " + a);
     }
   }
   if (SharedTranslation(fit->model)) {
     for (const char* a : axes) fit->correlation_names.push_back(std::string("p^C_B ") + a);
   } else {
     for (int k = 0; k < kNumLegs; ++k) {
-      for (const char* a : axes) fit->correlation_names.push_back(std::string(kLegNames[k]) + " p~' " + a);
+      for (const char* a : axes)
+        fit->correlation_names.push_back(std::string(kLegNames[k]) + " p~' " + a);
     }
   }
   if (static_cast<Eigen::Index>(fit->correlation_names.size()) != C.rows()) {
     throw std::logic_error(std::string("standing step: covariance of model ") +
-                           StandingModelName(fit->model) +
-                           " has " + std::to_string(C.rows()) + " parameters, expected " +
+                           StandingModelName(fit->model) + " has " + std::to_string(C.rows()) +
+                           " parameters, expected " +
                            std::to_string(fit->correlation_names.size()));
   }
   for (int k = 0; k < kNumLegs; ++k) {
@@ -607,8 +611,8 @@ void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFi
     for (int k = 0; k < kNumLegs; ++k) {
       for (int i = 0; i < 3; ++i) {
         const int j = 3 * k + i;
-        fit->sigma_rotation_deg[k][i] = kQuaternionTangentToRotationVector *
-                                        std::sqrt(std::max(0.0, C(j, j))) * kRadToDeg;
+        fit->sigma_rotation_deg[k][i] =
+            kQuaternionTangentToRotationVector * std::sqrt(std::max(0.0, C(j, j))) * kRadToDeg;
       }
     }
     col = 18;
@@ -651,15 +655,14 @@ std::vector<Vec6> ResidualsOfPoses(const Prepared& prep, const StandingFit& fit,
 
 void CheckPoseCount(size_t n, StandingModel model, const StandingOptions& options) {
   if (static_cast<int>(n) < options.min_poses) {
-    throw std::invalid_argument("standing step: " + std::to_string(n) +
-                                " steady poses, fewer than min_poses = " +
-                                std::to_string(options.min_poses));
+    throw std::invalid_argument(
+        "standing step: " + std::to_string(n) +
+        " steady poses, fewer than min_poses = " + std::to_string(options.min_poses));
   }
   if (static_cast<int>(6 * n) <= StandingModelDof(model)) {
-    throw std::invalid_argument("standing step: " + std::to_string(n) +
-                                " poses give fewer equations than model " +
-                                StandingModelName(model) + "'s " +
-                                std::to_string(StandingModelDof(model)) + " parameters");
+    throw std::invalid_argument(
+        "standing step: " + std::to_string(n) + " poses give fewer equations than model " +
+        StandingModelName(model) + "'s " + std::to_string(StandingModelDof(model)) + " parameters");
   }
 }
 
@@ -702,8 +705,8 @@ ceres::Solver::Options SolverOptions(int max_iterations, double function_toleran
 }
 
 StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, StandingModel model,
-                       const StandingOptions& options, const StandingFit* start,
-                       bool check_rank, double function_tolerance) {
+                       const StandingOptions& options, const StandingFit* start, bool check_rank,
+                       double function_tolerance) {
   Params params;
   if (start != nullptr) {
     StandingFit s = *start;
@@ -766,8 +769,8 @@ std::unique_ptr<ceres::CostFunction> StandingPoseCostForCheck(const RobotCalibra
                                                               const StandingPose& pose,
                                                               StandingModel model, bool cayley,
                                                               const StandingOptions& options) {
-  return std::make_unique<OwningPoseCost>(Prepare(step1, {pose}, options),
-                                          SharedTranslation(model), cayley);
+  return std::make_unique<OwningPoseCost>(Prepare(step1, {pose}, options), SharedTranslation(model),
+                                          cayley);
 }
 
 StandingFit::StandingFit() {
@@ -781,20 +784,28 @@ StandingFit::StandingFit() {
 
 int StandingModelDof(StandingModel model) {
   switch (model) {
-    case StandingModel::kFull: return 36;
-    case StandingModel::kRotationsOneTranslation: return 21;
-    case StandingModel::kTranslationsOnly: return 18;
-    case StandingModel::kOneTranslation: return 3;
+    case StandingModel::kFull:
+      return 36;
+    case StandingModel::kRotationsOneTranslation:
+      return 21;
+    case StandingModel::kTranslationsOnly:
+      return 18;
+    case StandingModel::kOneTranslation:
+      return 3;
   }
   throw std::invalid_argument("unknown standing model");
 }
 
 const char* StandingModelName(StandingModel model) {
   switch (model) {
-    case StandingModel::kFull: return "FULL";
-    case StandingModel::kRotationsOneTranslation: return "ROTATIONS_ONE_TRANSLATION";
-    case StandingModel::kTranslationsOnly: return "TRANSLATIONS_ONLY";
-    case StandingModel::kOneTranslation: return "ONE_TRANSLATION";
+    case StandingModel::kFull:
+      return "FULL";
+    case StandingModel::kRotationsOneTranslation:
+      return "ROTATIONS_ONE_TRANSLATION";
+    case StandingModel::kTranslationsOnly:
+      return "TRANSLATIONS_ONLY";
+    case StandingModel::kOneTranslation:
+      return "ONE_TRANSLATION";
   }
   return "?";
 }
@@ -809,19 +820,26 @@ const StandingFit& StandingResult::FitOf(StandingModel model, bool leg_aware_com
 }
 
 std::string CandidateName(StandingModel model, bool leg_aware_com) {
-  return std::string(StandingModelName(model)) + (leg_aware_com ? ", leg-aware CoM" : ", fixed CoM");
+  return std::string(StandingModelName(model)) +
+         (leg_aware_com ? ", leg-aware CoM" : ", fixed CoM");
 }
 
 StandingOptions StandingOptionsFromConfig(const config::Calibrator& c) {
   StandingOptions o;
   o.k_weights = KWeights(c);
-  o.solver = c.solver() == config::ALTERNATING ? StandingSolver::kAlternating
-                                               : StandingSolver::kJoint;
+  o.solver =
+      c.solver() == config::ALTERNATING ? StandingSolver::kAlternating : StandingSolver::kJoint;
   o.alternating_tolerance = c.alternating_tolerance();
   switch (c.robust_loss()) {
-    case config::HUBER: o.robust_loss = StandingLoss::kHuber; break;
-    case config::CAUCHY: o.robust_loss = StandingLoss::kCauchy; break;
-    default: o.robust_loss = StandingLoss::kNone; break;
+    case config::HUBER:
+      o.robust_loss = StandingLoss::kHuber;
+      break;
+    case config::CAUCHY:
+      o.robust_loss = StandingLoss::kCauchy;
+      break;
+    default:
+      o.robust_loss = StandingLoss::kNone;
+      break;
   }
   o.robust_loss_scale = c.robust_loss_scale();
   o.cv_folds = static_cast<int>(c.cv_folds());
@@ -857,9 +875,8 @@ StandingFit FitStandingJoint(const RobotCalibration& step1, const std::vector<St
 
 namespace {
 // The report's alternating scheme on a subset of poses (FitStandingAlternating's description).
-StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids,
-                             StandingModel model, const StandingOptions& options,
-                             bool check_rank) {
+StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, StandingModel model,
+                             const StandingOptions& options, bool check_rank) {
   const int n_trans = TransSize(model);
   Params params;  // Cayley q = 0 (R~ = I), translations 0
   if (check_rank) {
@@ -944,8 +961,7 @@ StandingFit FitStandingAlternating(const RobotCalibration& step1,
 }
 
 std::vector<Vec6> TotalWrenchResiduals(const RobotCalibration& cal,
-                                       const std::vector<StandingPose>& poses,
-                                       bool leg_aware_com) {
+                                       const std::vector<StandingPose>& poses, bool leg_aware_com) {
   const double G = cal.TotalWeightN();
   std::vector<Vec6> out;
   out.reserve(poses.size());
@@ -1055,11 +1071,10 @@ double CrossValidationMse(const RobotCalibration& step1, const std::vector<Stand
                                   " poses are too few for " + std::to_string(options.cv_folds) +
                                   "-fold cross-validation");
     }
-    const StandingFit fit =
-        options.solver == StandingSolver::kAlternating
-            ? AlternatingOnIds(prep, train, full_data_fit.model, options, false)
-            : JointOnIds(prep, train, full_data_fit.model, options, &full_data_fit, false,
-                         kCrossValidationTolerance);
+    const StandingFit fit = options.solver == StandingSolver::kAlternating
+                                ? AlternatingOnIds(prep, train, full_data_fit.model, options, false)
+                                : JointOnIds(prep, train, full_data_fit.model, options,
+                                             &full_data_fit, false, kCrossValidationTolerance);
     sum += WeightedRss(ResidualsOfPoses(prep, fit, test), k) / static_cast<double>(test.size());
   }
   return sum / options.cv_folds;
@@ -1164,8 +1179,7 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
     }
   }
   result.residual_naive = NaiveTareResiduals(step1, naive_offset, poses);
-  result.residual_without =
-      TotalWrenchResiduals(without, poses, result.selected_leg_aware_com);
+  result.residual_without = TotalWrenchResiduals(without, poses, result.selected_leg_aware_com);
   result.residual_full =
       TotalWrenchResiduals(result.calibration, poses, result.selected_leg_aware_com);
   return result;
@@ -1303,7 +1317,8 @@ void FillStandingProto(const StandingResult& result, calibration::Calibration* o
       runner_up = row.bic;
       runner_up_name = CandidateName(row.model, row.leg_aware_com);
     }
-    if (row.leg_aware_com != result.selected_leg_aware_com) other_com = std::min(other_com, row.bic);
+    if (row.leg_aware_com != result.selected_leg_aware_com)
+      other_com = std::min(other_com, row.bic);
   }
   calibration::SolverInfo* s = out->mutable_solver();
   s->set_solver(fit.solver);
@@ -1313,7 +1328,7 @@ void FillStandingProto(const StandingResult& result, calibration::Calibration* o
   s->set_converged(fit.converged);
   const char* loss = result.options.robust_loss == StandingLoss::kHuber    ? "HUBER"
                      : result.options.robust_loss == StandingLoss::kCauchy ? "CAUCHY"
-                                                                            : "NONE";
+                                                                           : "NONE";
   s->set_robust_loss(loss);
   s->set_leg_aware_com(result.selected_leg_aware_com);
   s->set_com_model_source(result.com_selected_by_data ? "selected by the data"

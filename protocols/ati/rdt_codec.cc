@@ -298,8 +298,7 @@ void CheckCountsPerUnit(double counts_per_force, double counts_per_torque,
       std::ostringstream os;
       os << source << ": " << field << " " << cpu << " counts/" << unit
          << " is outside the plausible range [" << lo << ", " << hi << "] for rated ranges of "
-         << smallest << " to " << largest << " " << unit
-         << " (each must span 2^10 to 2^31 counts)";
+         << smallest << " to " << largest << " " << unit << " (each must span 2^10 to 2^31 counts)";
       throw RdtError(os.str());
     }
   };
@@ -338,19 +337,22 @@ NetFtConfig ParseNetFtXml(std::string_view xml, std::string_view source) {
   c.force_unit = std::string(Trim(required("scfgfu")));
   c.torque_unit = std::string(Trim(required("scfgtu")));
   if (c.force_unit != "N") {
-    Fail(source, "scfgfu", "force unit is '" + c.force_unit +
-                               "'; only N is accepted (set the Net F/T configuration to N, Nm)");
+    Fail(source, "scfgfu",
+         "force unit is '" + c.force_unit +
+             "'; only N is accepted (set the Net F/T configuration to N, Nm)");
   }
   if (c.torque_unit != "Nm") {
-    Fail(source, "scfgtu", "torque unit is '" + c.torque_unit +
-                               "'; only Nm is accepted (set the Net F/T configuration to N, Nm)");
+    Fail(source, "scfgtu",
+         "torque unit is '" + c.torque_unit +
+             "'; only Nm is accepted (set the Net F/T configuration to N, Nm)");
   }
 
   const std::string_view mr = required("cfgmr");
   std::size_t axis = 0, begin = 0;
   while (true) {
     const std::size_t end = mr.find(';', begin);
-    const std::string_view item = mr.substr(begin, end == std::string_view::npos ? mr.npos : end - begin);
+    const std::string_view item =
+        mr.substr(begin, end == std::string_view::npos ? mr.npos : end - begin);
     if (axis == 6) Fail(source, "cfgmr", "has more than 6 values: '" + std::string(mr) + "'");
     c.rated_range[axis] = ParseDouble(item, source, "cfgmr");
     if (c.rated_range[axis] <= 0) {
@@ -363,7 +365,8 @@ NetFtConfig ParseNetFtXml(std::string_view xml, std::string_view source) {
   if (axis != 6) Fail(source, "cfgmr", "has " + std::to_string(axis) + " values, expected 6");
 
   const long long rate = ParseInt(required("comrdtrate"), source, "comrdtrate");
-  if (rate <= 0 || rate > 100000) Fail(source, "comrdtrate", "out of range: " + std::to_string(rate));
+  if (rate <= 0 || rate > 100000)
+    Fail(source, "comrdtrate", "out of range: " + std::to_string(rate));
   c.rdt_rate_hz = static_cast<int>(rate);
   const long long sel = ParseInt(required("setcfgsel"), source, "setcfgsel");
   if (sel < 0 || sel > 1000) Fail(source, "setcfgsel", "out of range: " + std::to_string(sel));

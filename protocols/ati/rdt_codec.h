@@ -109,8 +109,8 @@ class SequenceTracker {
     Verdict verdict;
     std::uint32_t lost;  // records missing just before this one (kStart/kGap/kRestart), else 0
     bool accept() const {
-      return verdict == Verdict::kStart || verdict == Verdict::kNext ||
-             verdict == Verdict::kGap || verdict == Verdict::kRestart;
+      return verdict == Verdict::kStart || verdict == Verdict::kNext || verdict == Verdict::kGap ||
+             verdict == Verdict::kRestart;
     }
   };
 
@@ -157,17 +157,17 @@ bool ExceedsRatedRange(const Vector6d& wrench, const std::array<double, 6>& rate
 
 // The active configuration as read from netftapi2.xml (§1.4, HTTP).
 struct NetFtConfig {
-  double counts_per_force = 0;    // cfgcpf
-  double counts_per_torque = 0;   // cfgcpt
-  std::string force_unit;         // scfgfu, always "N" after parsing
-  std::string torque_unit;        // scfgtu, always "Nm" after parsing
-  std::array<double, 6> rated_range{};  // cfgmr, N and N*m
-  int rdt_rate_hz = 0;            // comrdtrate
-  int active_config = 0;          // setcfgsel
-  std::optional<int> calibration_index;    // cfgcalsel
-  std::optional<int> rdt_buffer_size;      // comrdtbsiz
-  std::optional<std::uint32_t> run_status; // runstat (hex text)
-  std::string config_name;                 // cfgnam, may be empty
+  double counts_per_force = 0;              // cfgcpf
+  double counts_per_torque = 0;             // cfgcpt
+  std::string force_unit;                   // scfgfu, always "N" after parsing
+  std::string torque_unit;                  // scfgtu, always "Nm" after parsing
+  std::array<double, 6> rated_range{};      // cfgmr, N and N*m
+  int rdt_rate_hz = 0;                      // comrdtrate
+  int active_config = 0;                    // setcfgsel
+  std::optional<int> calibration_index;     // cfgcalsel
+  std::optional<int> rdt_buffer_size;       // comrdtbsiz
+  std::optional<std::uint32_t> run_status;  // runstat (hex text)
+  std::string config_name;                  // cfgnam, may be empty
 };
 
 // Counts per unit are plausible when each axis' rated range spans between 2^10 counts (coarser

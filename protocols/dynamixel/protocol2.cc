@@ -43,8 +43,7 @@ std::uint32_t GetU32Le(const std::uint8_t* p) {
 
 void CheckUnicastId(std::uint8_t id, const char* what) {
   if (id > kMaxId) {
-    throw DxlError(std::string(what) + ": servo id " + std::to_string(id) +
-                   " is outside 0-252");
+    throw DxlError(std::string(what) + ": servo id " + std::to_string(id) + " is outside 0-252");
   }
 }
 
@@ -110,7 +109,8 @@ std::vector<std::uint8_t> BuildPacket(std::uint8_t id, std::uint8_t instruction,
   const std::vector<std::uint8_t> stuffed = Stuff(body);
   const std::size_t length = stuffed.size() + 2;  // + CRC
   if (length > 0xFFFF) {
-    throw DxlError("packet: " + std::to_string(length) + " bytes after stuffing exceed the 16-bit length field");
+    throw DxlError("packet: " + std::to_string(length) +
+                   " bytes after stuffing exceed the 16-bit length field");
   }
   std::vector<std::uint8_t> out = {0xFF, 0xFF, 0xFD, 0x00, id};
   PutU16Le(static_cast<std::uint16_t>(length), &out);
@@ -221,8 +221,7 @@ std::string DescribeStatusError(std::uint8_t error) {
 
 PacketParser::PacketParser(std::size_t max_length) : max_length_(max_length) {
   if (max_length_ < 3 || max_length_ > 0xFFFF) {
-    throw DxlError("PacketParser: max_length " + std::to_string(max_length) +
-                   " outside 3-65535");
+    throw DxlError("PacketParser: max_length " + std::to_string(max_length) + " outside 3-65535");
   }
 }
 
@@ -265,8 +264,7 @@ bool PacketParser::NextRaw(std::uint8_t* id, std::vector<std::uint8_t>* body) {
       continue;
     }
     try {
-      *body = Unstuff(std::vector<std::uint8_t>(packet.begin() + kHeaderBytes,
-                                                packet.end() - 2));
+      *body = Unstuff(std::vector<std::uint8_t>(packet.begin() + kHeaderBytes, packet.end() - 2));
     } catch (const DxlError&) {
       ++stats_.malformed;
       buffer_.pop_front();
@@ -377,8 +375,8 @@ double PositionToRad(std::int32_t count, std::int32_t zero_count, int direction)
 
 std::int32_t RadToPosition(double angle_rad, std::int32_t zero_count, int direction) {
   CheckDirection(direction);
-  const double count =
-      static_cast<double>(zero_count) + std::round(direction * angle_rad * kCountsPerRev / (2.0 * kPi));
+  const double count = static_cast<double>(zero_count) +
+                       std::round(direction * angle_rad * kCountsPerRev / (2.0 * kPi));
   if (!std::isfinite(count) || count < std::numeric_limits<std::int32_t>::min() ||
       count > std::numeric_limits<std::int32_t>::max()) {
     throw DxlError("angle " + std::to_string(angle_rad) + " rad has no position count");

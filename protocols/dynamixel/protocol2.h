@@ -54,10 +54,10 @@ constexpr std::uint16_t kPresentBlockBytes = 28;  // addresses 120-147
 // The servo's own limits (EEPROM, written only while torque is off; 4 bytes each) and the
 // profile that drives every position goal (RAM). Min/Max Position Limit bind only in Position
 // mode (3); Extended Position mode ignores them (docs/device-protocols.md §2.7).
-constexpr std::uint16_t kAddrAccelerationLimit = 40;  // 214.577 rev/min^2, 0-32767
-constexpr std::uint16_t kAddrVelocityLimit = 44;      // 0.229 rpm, 0-1023
-constexpr std::uint16_t kAddrMaxPositionLimit = 48;   // counts, 0-4095
-constexpr std::uint16_t kAddrMinPositionLimit = 52;   // counts, 0-4095
+constexpr std::uint16_t kAddrAccelerationLimit = 40;     // 214.577 rev/min^2, 0-32767
+constexpr std::uint16_t kAddrVelocityLimit = 44;         // 0.229 rpm, 0-1023
+constexpr std::uint16_t kAddrMaxPositionLimit = 48;      // counts, 0-4095
+constexpr std::uint16_t kAddrMinPositionLimit = 52;      // counts, 0-4095
 constexpr std::uint16_t kAddrProfileAcceleration = 108;  // <= Acceleration Limit; 0 = none
 constexpr std::uint16_t kAddrProfileVelocity = 112;      // <= Velocity Limit; 0 = none
 constexpr std::int32_t kMaxVelocityLimit = 1023;
@@ -146,11 +146,11 @@ std::string DescribeStatusError(std::uint8_t error);
 class PacketParser {
  public:
   struct Stats {
-    std::uint64_t packets = 0;         // valid packets returned
+    std::uint64_t packets = 0;  // valid packets returned
     std::uint64_t crc_errors = 0;
-    std::uint64_t malformed = 0;       // bad length, id, stuffing, or not the expected kind
-    std::uint64_t timeouts = 0;        // Timeout() calls that found a reply missing or partial
-    std::uint64_t noise_bytes = 0;     // bytes skipped while looking for a header
+    std::uint64_t malformed = 0;    // bad length, id, stuffing, or not the expected kind
+    std::uint64_t timeouts = 0;     // Timeout() calls that found a reply missing or partial
+    std::uint64_t noise_bytes = 0;  // bytes skipped while looking for a header
   };
 
   // `max_length`: largest length field accepted; anything larger is malformed (a corrupted
@@ -182,17 +182,17 @@ class PacketParser {
 
 // The 28-byte block at addresses 120-147 (§2.7), values as the servo reports them.
 struct PresentState {
-  std::uint16_t realtime_tick_ms = 0;     // 120, wraps at 32768
-  std::uint8_t moving = 0;                // 122
-  std::uint8_t moving_status = 0;         // 123
-  std::int16_t present_pwm = 0;           // 124
-  std::int16_t present_current = 0;       // 126, ~3.36 mA units
-  std::int32_t present_velocity = 0;      // 128, 0.229 rpm units
-  std::int32_t present_position = 0;      // 132, counts
-  std::int32_t velocity_trajectory = 0;   // 136
-  std::int32_t position_trajectory = 0;   // 140
+  std::uint16_t realtime_tick_ms = 0;       // 120, wraps at 32768
+  std::uint8_t moving = 0;                  // 122
+  std::uint8_t moving_status = 0;           // 123
+  std::int16_t present_pwm = 0;             // 124
+  std::int16_t present_current = 0;         // 126, ~3.36 mA units
+  std::int32_t present_velocity = 0;        // 128, 0.229 rpm units
+  std::int32_t present_position = 0;        // 132, counts
+  std::int32_t velocity_trajectory = 0;     // 136
+  std::int32_t position_trajectory = 0;     // 140
   std::uint16_t present_input_voltage = 0;  // 144, 0.1 V units
-  std::uint8_t present_temperature = 0;   // 146, deg C
+  std::uint8_t present_temperature = 0;     // 146, deg C
 };
 // Throws DxlError unless `n` is exactly kPresentBlockBytes.
 PresentState DecodePresentBlock(const std::uint8_t* data, std::size_t n);

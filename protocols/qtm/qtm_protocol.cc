@@ -10,7 +10,9 @@
 namespace ftcal::qtm {
 namespace {
 
-std::uint16_t GetU16(const std::uint8_t* p) { return static_cast<std::uint16_t>(p[0] | (p[1] << 8)); }
+std::uint16_t GetU16(const std::uint8_t* p) {
+  return static_cast<std::uint16_t>(p[0] | (p[1] << 8));
+}
 std::uint32_t GetU32(const std::uint8_t* p) {
   return std::uint32_t{p[0]} | (std::uint32_t{p[1]} << 8) | (std::uint32_t{p[2]} << 16) |
          (std::uint32_t{p[3]} << 24);
@@ -47,28 +49,39 @@ void PutF32(double v, std::vector<std::uint8_t>* out) {
 
 std::string ComponentName(std::int32_t type) {
   switch (type) {
-    case kComponent3D: return "3D";
-    case kComponent3DRes: return "3DRes";
-    case kComponent6D: return "6D";
-    case kComponent6DRes: return "6DRes";
-    default: return "type " + std::to_string(type);
+    case kComponent3D:
+      return "3D";
+    case kComponent3DRes:
+      return "3DRes";
+    case kComponent6D:
+      return "6D";
+    case kComponent6DRes:
+      return "6DRes";
+    default:
+      return "type " + std::to_string(type);
   }
 }
 
 // Per-item sizes of the decoded components (§3.6).
 std::size_t ItemBytes(std::int32_t type) {
   switch (type) {
-    case kComponent3D: return 12;
-    case kComponent3DRes: return 16;
-    case kComponent6D: return 48;
-    case kComponent6DRes: return 52;
-    default: return 0;
+    case kComponent3D:
+      return 12;
+    case kComponent3DRes:
+      return 16;
+    case kComponent6D:
+      return 48;
+    case kComponent6DRes:
+      return 52;
+    default:
+      return 0;
   }
 }
 
 }  // namespace
 
-std::vector<std::uint8_t> EncodePacket(std::int32_t type, const std::vector<std::uint8_t>& payload) {
+std::vector<std::uint8_t> EncodePacket(std::int32_t type,
+                                       const std::vector<std::uint8_t>& payload) {
   const std::size_t size = kPacketHeaderBytes + payload.size();
   if (size > static_cast<std::size_t>(std::numeric_limits<std::int32_t>::max())) {
     throw QtmError("packet of " + std::to_string(size) + " bytes exceeds the i32 size field");
@@ -193,7 +206,8 @@ DataFrame DecodeData(const Packet& packet) {
   const std::size_t n = packet.payload.size();
   // Offsets below are within the payload (packet offset - 8).
   if (n < 16) {
-    throw QtmError("data packet: payload of " + std::to_string(n) + " bytes, needs 16 for its header");
+    throw QtmError("data packet: payload of " + std::to_string(n) +
+                   " bytes, needs 16 for its header");
   }
   DataFrame frame;
   frame.timestamp_us = GetI64(p);
@@ -278,7 +292,8 @@ std::vector<std::uint8_t> EncodeData(const DataFrame& frame) {
   std::vector<std::uint8_t> payload;
   PutI64(frame.timestamp_us, &payload);
   PutU32(static_cast<std::uint32_t>(frame.frame_number), &payload);
-  PutU32(static_cast<std::uint32_t>((frame.has_markers ? 1 : 0) + (frame.has_bodies ? 1 : 0)), &payload);
+  PutU32(static_cast<std::uint32_t>((frame.has_markers ? 1 : 0) + (frame.has_bodies ? 1 : 0)),
+         &payload);
   if (frame.has_markers) {
     const std::int32_t type = frame.markers_have_residuals ? kComponent3DRes : kComponent3D;
     const std::size_t size = 16 + ItemBytes(type) * frame.markers.size();
@@ -342,8 +357,8 @@ Parameters ParseParameters(std::string_view xml) {
     std::set<std::string> seen;
     for (const pugi::xml_node n : section.children(item)) {
       const std::string name = n.child("Name").child_value();
-      const std::string where = std::string("QTM parameters: ") + what + " " +
-                                std::to_string(into->size() + 1);
+      const std::string where =
+          std::string("QTM parameters: ") + what + " " + std::to_string(into->size() + 1);
       if (name.empty()) throw QtmError(where + " has no <Name>");
       if (!seen.insert(name).second) throw QtmError(where + ": duplicate name '" + name + "'");
       into->push_back(name);

@@ -112,9 +112,7 @@ struct Body {
   Eigen::Vector3d p_GoBo_G_mm = Eigen::Vector3d::Constant(kNaN);
   Eigen::Matrix3d R_GB = Eigen::Matrix3d::Constant(kNaN);
   double residual_mm = kNaN;
-  bool tracked() const {
-    return !p_GoBo_G_mm.array().isNaN().any() && !R_GB.array().isNaN().any();
-  }
+  bool tracked() const { return !p_GoBo_G_mm.array().isNaN().any() && !R_GB.array().isNaN().any(); }
 };
 
 struct DataFrame {
@@ -146,11 +144,11 @@ std::vector<std::uint8_t> EncodeData(const DataFrame& frame);
 
 // What the bridge needs from `GetParameters General 3D 6D` (§3.4).
 struct Parameters {
-  std::optional<double> frequency_hz;    // General/Frequency
+  std::optional<double> frequency_hz;  // General/Frequency
   bool has_3d = false;
-  std::vector<std::string> labels_3d;    // The_3D/Label/Name, in data order
+  std::vector<std::string> labels_3d;  // The_3D/Label/Name, in data order
   bool has_6d = false;
-  std::vector<std::string> body_names;   // The_6D/Body/Name, in data order
+  std::vector<std::string> body_names;  // The_6D/Body/Name, in data order
 };
 // Throws QtmError on malformed XML, a root other than QTM_Parameters_Ver_*, the protocol
 // <= 1.20 6D layout (<Bodies>), a body or label without a name, or a duplicate name.

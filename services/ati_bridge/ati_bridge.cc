@@ -33,7 +33,8 @@ using Clock = std::chrono::steady_clock;
 
 constexpr int kBatch = 64;             // datagrams per recvmmsg
 constexpr int kMaxBatchesPerCall = 4;  // per socket, before the others get their turn
-constexpr std::size_t kSlotBytes = 1536;  // an Ethernet frame: the largest buffered datagram we take
+constexpr std::size_t kSlotBytes =
+    1536;  // an Ethernet frame: the largest buffered datagram we take
 constexpr auto kCalibrationRetry = std::chrono::seconds(1);
 constexpr auto kCalibrationRetryMax = std::chrono::seconds(16);
 constexpr auto kStateLogPeriod = std::chrono::seconds(30);
@@ -126,15 +127,17 @@ AtiSchedulingGranted ApplyScheduling(const AtiSchedulingOptions& options, spdlog
                granted.locked ? ", memory locked" : "");
       return granted;
     }
-    log.warn("--realtime: SCHED_FIFO refused ({}; needs root or CAP_SYS_NICE): running as an "
-             "ordinary process{}", std::strerror(errno),
-             options.slice_us > 0 ? " with a short slice" : "");
+    log.warn(
+        "--realtime: SCHED_FIFO refused ({}; needs root or CAP_SYS_NICE): running as an "
+        "ordinary process{}",
+        std::strerror(errno), options.slice_us > 0 ? " with a short slice" : "");
   }
   if (options.slice_us > 0) {
     SchedAttr a;
     if (!GetSchedAttr(a) || a.sched_policy != SCHED_OTHER) {
-      log.warn("scheduler slice: not asked (cannot read this thread's policy, or it is not "
-               "SCHED_OTHER)");
+      log.warn(
+          "scheduler slice: not asked (cannot read this thread's policy, or it is not "
+          "SCHED_OTHER)");
       return granted;
     }
     // Only the slice changes: the nice value read back is passed on as it was.
@@ -143,15 +146,16 @@ AtiSchedulingGranted ApplyScheduling(const AtiSchedulingOptions& options, spdlog
     a.sched_runtime = static_cast<std::uint64_t>(options.slice_us * 1000.0);
     SchedAttr back;
     // The kernel clamps the request to 0.1..100 ms; an older kernel ignores it.
-    const std::uint64_t expected =
-        std::clamp<std::uint64_t>(a.sched_runtime, 100'000, 100'000'000);
+    const std::uint64_t expected = std::clamp<std::uint64_t>(a.sched_runtime, 100'000, 100'000'000);
     if (::syscall(SYS_sched_setattr, 0, &a, 0) == 0 && GetSchedAttr(back) &&
         back.sched_runtime == expected) {
       granted.slice = true;
       log.debug("scheduler slice {} us", back.sched_runtime / 1000.0);
     } else {
-      log.info("scheduler slice of {} us not taken (needs Linux >= 6.12): the kernel's default "
-               "applies", options.slice_us);
+      log.info(
+          "scheduler slice of {} us not taken (needs Linux >= 6.12): the kernel's default "
+          "applies",
+          options.slice_us);
     }
   }
   return granted;
@@ -266,7 +270,8 @@ AtiBridge::AtiBridge(const config::Config& config, const std::vector<std::string
       if (leg.name() == name) found = &leg;
     }
     if (found == nullptr) throw AtiBridgeError("leg '" + name + "' is not in the config");
-    if (!found->has_ati()) throw AtiBridgeError("leg " + name + " has no ati transducer in the config");
+    if (!found->has_ati())
+      throw AtiBridgeError("leg " + name + " has no ati transducer in the config");
     for (const auto& t : transducers_) {
       if (t->leg == name) throw AtiBridgeError("leg " + name + " given twice");
     }
@@ -439,8 +444,8 @@ void AtiBridge::ReadCalibration(Transducer& t) {
   t.calibrated = true;
   t.calibration_backoff = kCalibrationRetry;
   ++t.c.calibration_reads;
-  log_->info("{}: {} counts/N, {} counts/Nm, rated range {} N / {} N*m, RDT {} Hz (from {})",
-             t.leg, t.counts_per_force, t.counts_per_torque, t.rated_range[2], t.rated_range[5],
+  log_->info("{}: {} counts/N, {} counts/Nm, rated range {} N / {} N*m, RDT {} Hz (from {})", t.leg,
+             t.counts_per_force, t.counts_per_torque, t.rated_range[2], t.rated_range[5],
              page.rdt_rate_hz, t.url);
 }
 
@@ -501,9 +506,9 @@ void AtiBridge::SendRequest(Transducer& t, rdt::Command command) {
   }
   if (sent != static_cast<ssize_t>(bytes.size())) {
     ++t.c.send_errors;
-    t.problem = fmt::format("sending the RDT command 0x{:04x} to {}:{} failed: {}",
-                            static_cast<unsigned>(command), t.address, t.rdt_port,
-                            std::strerror(errno));
+    t.problem =
+        fmt::format("sending the RDT command 0x{:04x} to {}:{} failed: {}",
+                    static_cast<unsigned>(command), t.address, t.rdt_port, std::strerror(errno));
     LogState(t, "send", spdlog::level::warn, t.problem);
   }
 }
@@ -522,8 +527,8 @@ int AtiBridge::Poll(int timeout_ms) {
   auto now = Clock::now();
   auto wake = now + std::chrono::milliseconds(std::max(0, timeout_ms));
   for (const auto& t : transducers_) {
-    wake = std::min(wake, std::max(t->last_record + Seconds(options_.silence_timeout_s),
-                                   t->next_request));
+    wake = std::min(
+        wake, std::max(t->last_record + Seconds(options_.silence_timeout_s), t->next_request));
   }
   const auto wait_ms = std::chrono::ceil<std::chrono::milliseconds>(wake - now).count();
   std::array<pollfd, kNumLegs> fds{};
@@ -611,8 +616,10 @@ void AtiBridge::HandleSocket(Transducer& t) {
         ++t.c.wrong_length;
         if (!t.logged_wrong_length) {
           t.logged_wrong_length = true;
-          log_->warn("{}: a {}-byte datagram is not a whole number of 36-byte records: dropped "
-                     "(counted from now on)", t.leg, len);
+          log_->warn(
+              "{}: a {}-byte datagram is not a whole number of 36-byte records: dropped "
+              "(counted from now on)",
+              t.leg, len);
         }
         continue;
       }
@@ -654,8 +661,8 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
         ++t.c.duplicates;
         if (!t.logged_duplicate) {
           t.logged_duplicate = true;
-          log_->warn("{}: duplicated record (rdt_sequence {}) dropped (counted from now on)",
-                     t.leg, rec.rdt_sequence);
+          log_->warn("{}: duplicated record (rdt_sequence {}) dropped (counted from now on)", t.leg,
+                     rec.rdt_sequence);
         }
         break;
       case V::kLate:
@@ -672,8 +679,10 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
         // every re-send begins yet another stream; the back-off paces them.
         if (!t.logged_stale) {
           t.logged_stale = true;
-          log_->info("{}: record of a previous stream (rdt_sequence {}) dropped (counted from now "
-                     "on)", t.leg, rec.rdt_sequence);
+          log_->info(
+              "{}: record of a previous stream (rdt_sequence {}) dropped (counted from now "
+              "on)",
+              t.leg, rec.rdt_sequence);
         }
         break;
     }
@@ -686,8 +695,10 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   // A box that rebooted restarts ft_sequence near 0 (§1.7): its configuration may have changed.
   if (t.have_ft && static_cast<std::int32_t>(rec.ft_sequence - t.last_ft) < 0) {
     ++t.c.reboots;
-    log_->warn("{}: ft_sequence went back from {} to {}: the box restarted; reading its "
-               "calibration page again", t.leg, t.last_ft, rec.ft_sequence);
+    log_->warn(
+        "{}: ft_sequence went back from {} to {}: the box restarted; reading its "
+        "calibration page again",
+        t.leg, t.last_ft, rec.ft_sequence);
     if (!t.counts_from_config || !t.range_from_config) {
       try {
         ReadCalibration(t);
@@ -713,14 +724,17 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   const rdt::Vector6d w =
       rdt::CountsToWrench(rec.counts, t.counts_per_force, t.counts_per_torque, t.sign);
   std::int32_t flags = 0;
-  const bool saturated = rdt::StatusSaturated(rec.status) || rdt::ExceedsRatedRange(w, t.rated_range);
+  const bool saturated =
+      rdt::StatusSaturated(rec.status) || rdt::ExceedsRatedRange(w, t.rated_range);
   if (saturated) {
     flags |= ft_sample_t::FLAG_SATURATED;
     ++t.c.saturated;
     if (!t.logged_saturated) {
       t.logged_saturated = true;
-      log_->warn("{}: saturated sample (status bit 17 or beyond the rated range), published "
-                 "flagged (counted from now on)", t.leg);
+      log_->warn(
+          "{}: saturated sample (status bit 17 or beyond the rated range), published "
+          "flagged (counted from now on)",
+          t.leg);
     }
   }
   if (rec.status != 0) {
@@ -784,8 +798,8 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
       ReadCalibration(t);
     } catch (const AtiBridgeError& e) {
       // A box still booting refuses for a while: ask less and less often.
-      t.calibration_backoff = std::min<Clock::duration>(2 * t.calibration_backoff,
-                                                        kCalibrationRetryMax);
+      t.calibration_backoff =
+          std::min<Clock::duration>(2 * t.calibration_backoff, kCalibrationRetryMax);
       t.next_calibration_try = now + t.calibration_backoff;
       t.problem = std::string(e.what()) + " (not publishing until it can be read)";
       LogState(t, "calibration", spdlog::level::err, t.problem);
@@ -797,8 +811,8 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
   // Records may have arrived since poll() looked (a process descheduled between poll() and
   // here would otherwise take its own lateness for the box's silence).
   HandleSocket(t);
-  if (Clock::now() < std::max(t.last_record + Seconds(options_.silence_timeout_s),
-                              t.next_request)) {
+  if (Clock::now() <
+      std::max(t.last_record + Seconds(options_.silence_timeout_s), t.next_request)) {
     return;
   }
   if (!t.silent) {
@@ -812,8 +826,8 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
   ++t.unanswered;
   if (t.up && t.unanswered >= options_.down_after_requests) {
     t.up = false;
-    t.problem = fmt::format("the box at {}:{} does not answer: reported down", t.address,
-                            t.rdt_port);
+    t.problem =
+        fmt::format("the box at {}:{} does not answer: reported down", t.address, t.rdt_port);
     LogState(t, "down", spdlog::level::err, t.problem);
   }
   t.next_request = now + Seconds(t.backoff_s);
@@ -825,17 +839,27 @@ std::vector<std::pair<std::string, std::int64_t>> AtiBridge::CounterTable() cons
   for (const auto& t : transducers_) {
     const AtiTransducerCounters& c = t->c;
     const std::pair<const char*, std::uint64_t> rows[] = {
-        {"datagrams", c.datagrams},       {"received", c.received},
-        {"published", c.published},       {"lost", c.lost},
-        {"duplicates", c.duplicates},     {"late", c.late},
-        {"stale", c.stale},               {"wrong_length", c.wrong_length},
-        {"foreign", c.foreign},           {"uncalibrated", c.uncalibrated},
-        {"status_nonzero", c.status_nonzero}, {"saturated", c.saturated},
-        {"start_requests", c.start_requests}, {"restarts", c.restarts},
-        {"silences", c.silences},         {"reboots", c.reboots},
-        {"calibration_reads", c.calibration_reads}, {"recv_errors", c.recv_errors},
+        {"datagrams", c.datagrams},
+        {"received", c.received},
+        {"published", c.published},
+        {"lost", c.lost},
+        {"duplicates", c.duplicates},
+        {"late", c.late},
+        {"stale", c.stale},
+        {"wrong_length", c.wrong_length},
+        {"foreign", c.foreign},
+        {"uncalibrated", c.uncalibrated},
+        {"status_nonzero", c.status_nonzero},
+        {"saturated", c.saturated},
+        {"start_requests", c.start_requests},
+        {"restarts", c.restarts},
+        {"silences", c.silences},
+        {"reboots", c.reboots},
+        {"calibration_reads", c.calibration_reads},
+        {"recv_errors", c.recv_errors},
         {"send_errors", c.send_errors},
-        {"publish_errors", c.publish_errors}, {"held_in_stack", c.held_in_stack},
+        {"publish_errors", c.publish_errors},
+        {"held_in_stack", c.held_in_stack},
         {"up", t->up ? 1u : 0u},
     };
     for (const auto& [name, value] : rows) {

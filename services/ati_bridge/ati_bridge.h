@@ -45,32 +45,32 @@ struct AtiBridgeOptions {
   double silence_timeout_s = 0.1;  // no record for this long: re-send the start command
   double max_backoff_s = 1.0;      // re-sends back off 0.1, 0.2, 0.4 ... up to this
   int down_after_requests = 2;     // unanswered re-sends before the transducer is reported down
-  double http_timeout_s = 1.0;         // the whole calibration-page fetch, not each read
+  double http_timeout_s = 1.0;     // the whole calibration-page fetch, not each read
   std::size_t calibration_page_max_bytes = 64 << 10;  // a real netftapi2.xml is a few kB
-  int receive_buffer_bytes = 8 << 20;  // SO_RCVBUF (the kernel caps it at rmem_max)
+  int receive_buffer_bytes = 8 << 20;                 // SO_RCVBUF (the kernel caps it at rmem_max)
 };
 
 // Per transducer. All but the latency are also published in the heartbeat.
 struct AtiTransducerCounters {
-  std::uint64_t datagrams = 0;      // received on the socket
+  std::uint64_t datagrams = 0;  // received on the socket
   // Well-formed records. Each is published or counted in exactly one of duplicates, late,
   // stale, uncalibrated or publish_errors.
   std::uint64_t received = 0;
   std::uint64_t published = 0;
-  std::uint64_t lost = 0;           // by rdt_sequence (a reordered record counts here first)
+  std::uint64_t lost = 0;  // by rdt_sequence (a reordered record counts here first)
   std::uint64_t duplicates = 0;
-  std::uint64_t late = 0;           // older than the last accepted (reordered): dropped
-  std::uint64_t stale = 0;          // leftovers of a previous stream: dropped
-  std::uint64_t wrong_length = 0;   // datagrams not a multiple of 36 bytes: dropped
-  std::uint64_t foreign = 0;        // datagrams from another address than the box: dropped
+  std::uint64_t late = 0;          // older than the last accepted (reordered): dropped
+  std::uint64_t stale = 0;         // leftovers of a previous stream: dropped
+  std::uint64_t wrong_length = 0;  // datagrams not a multiple of 36 bytes: dropped
+  std::uint64_t foreign = 0;       // datagrams from another address than the box: dropped
   // Accepted records not published because the calibration page could not be read (yet).
   std::uint64_t uncalibrated = 0;
-  std::uint64_t status_nonzero = 0; // published with FLAG_STATUS_ERROR
-  std::uint64_t saturated = 0;      // published with FLAG_SATURATED
+  std::uint64_t status_nonzero = 0;  // published with FLAG_STATUS_ERROR
+  std::uint64_t saturated = 0;       // published with FLAG_SATURATED
   std::uint64_t start_requests = 0;
-  std::uint64_t restarts = 0;       // streams begun (first record after a start)
-  std::uint64_t silences = 0;       // times the stream went quiet past the timeout
-  std::uint64_t reboots = 0;        // ft_sequence went backwards
+  std::uint64_t restarts = 0;  // streams begun (first record after a start)
+  std::uint64_t silences = 0;  // times the stream went quiet past the timeout
+  std::uint64_t reboots = 0;   // ft_sequence went backwards
   std::uint64_t calibration_reads = 0;
   std::uint64_t recv_errors = 0;
   std::uint64_t send_errors = 0;
@@ -130,9 +130,8 @@ class AtiBridge {
 
   // `legs`: names of the transducers to serve (empty: every leg of the config). Throws
   // AtiBridgeError for an unknown leg, a leg without `ati`, or a bad address or sign.
-  AtiBridge(const config::Config& config, const std::vector<std::string>& legs,
-            Publisher publish, std::shared_ptr<spdlog::logger> log,
-            AtiBridgeOptions options = {});
+  AtiBridge(const config::Config& config, const std::vector<std::string>& legs, Publisher publish,
+            std::shared_ptr<spdlog::logger> log, AtiBridgeOptions options = {});
   ~AtiBridge();
   AtiBridge(const AtiBridge&) = delete;
   AtiBridge& operator=(const AtiBridge&) = delete;

@@ -111,8 +111,8 @@ int main(int argc, char** argv) {
     } catch (const std::exception& e) {
       app.stats().Error("poll", ftcal::UserText(e, "reading the transducers"));
     }
-    const int8_t state = bridge->AllUp() ? ftcal::service_status_t::RUNNING
-                                         : ftcal::service_status_t::DEGRADED;
+    const int8_t state =
+        bridge->AllUp() ? ftcal::service_status_t::RUNNING : ftcal::service_status_t::DEGRADED;
     const bool changed = state != app.state();
     app.SetState(state);
     // The status carries what is wrong now, and nothing once it is healthy again.
@@ -137,22 +137,26 @@ int main(int argc, char** argv) {
   for (std::size_t i = 0; i < bridge->size(); ++i) {
     const auto& c = bridge->counters(i);
     // received = published + duplicates + late + stale + uncalibrated + publish_errors.
-    log->info("{}: received {} published {} lost {} duplicates {} late {} stale {} uncalibrated {} "
-              "publish_errors {} wrong_length {} restarts {} reboots {}", bridge->leg(i),
-              c.received, c.published, c.lost, c.duplicates, c.late, c.stale, c.uncalibrated,
-              c.publish_errors, c.wrong_length, c.restarts, c.reboots);
+    log->info(
+        "{}: received {} published {} lost {} duplicates {} late {} stale {} uncalibrated {} "
+        "publish_errors {} wrong_length {} restarts {} reboots {}",
+        bridge->leg(i), c.received, c.published, c.lost, c.duplicates, c.late, c.stale,
+        c.uncalibrated, c.publish_errors, c.wrong_length, c.restarts, c.reboots);
   }
-  log->info("latency receipt->published: p50 {} us p99 {} us (kernel timestamp: p50 {} us p99 {} us)",
-            bridge->user_latency().QuantileUs(0.5), bridge->user_latency().QuantileUs(0.99),
-            bridge->kernel_latency().QuantileUs(0.5), bridge->kernel_latency().QuantileUs(0.99));
+  log->info(
+      "latency receipt->published: p50 {} us p99 {} us (kernel timestamp: p50 {} us p99 {} us)",
+      bridge->user_latency().QuantileUs(0.5), bridge->user_latency().QuantileUs(0.99),
+      bridge->kernel_latency().QuantileUs(0.5), bridge->kernel_latency().QuantileUs(0.99));
   std::uint64_t held = 0, published = 0;
   for (std::size_t i = 0; i < bridge->size(); ++i) {
     held += bridge->counters(i).held_in_stack;
     published += bridge->counters(i).published;
   }
-  log->info("held in the network stack: {} of {} records (kernel timestamp before the socket was "
-            "last found empty), their latency p50 {} us p99 {} us", held, published,
-            bridge->held_latency().QuantileUs(0.5), bridge->held_latency().QuantileUs(0.99));
+  log->info(
+      "held in the network stack: {} of {} records (kernel timestamp before the socket was "
+      "last found empty), their latency p50 {} us p99 {} us",
+      held, published, bridge->held_latency().QuantileUs(0.5),
+      bridge->held_latency().QuantileUs(0.99));
   app.stats().LogSummary();
   return 0;
 }

@@ -62,7 +62,8 @@ LiveCalibrator::LiveCalibrator(const config::Config& config, Bus& bus, std::stri
   collector_.Attach(bus);
   collector_.SetOnStandingStop([this] { OnStandingStop(); });
   collector_.SetOnSteadyPose([this] {
-    if (waiting_since_utime_ >= 0 && collector_.logged_pose_count() >= collector_.segmented_pose_count()) {
+    if (waiting_since_utime_ >= 0 &&
+        collector_.logged_pose_count() >= collector_.segmented_pose_count()) {
       waiting_since_utime_ = -1;
       CalibrateNow();
     }
@@ -72,9 +73,10 @@ LiveCalibrator::LiveCalibrator(const config::Config& config, Bus& bus, std::stri
 void LiveCalibrator::OnStandingStop() {
   const size_t logged = collector_.logged_pose_count(), found = collector_.segmented_pose_count();
   if (logged > 0 && logged < found) {
-    spdlog::info("STANDING stopped: {} STEADY_POSE events, {} poses found here; waiting up to "
-                 "{} s for the segmenter's last",
-                 logged, found, kLatePoseWaitS);
+    spdlog::info(
+        "STANDING stopped: {} STEADY_POSE events, {} poses found here; waiting up to "
+        "{} s for the segmenter's last",
+        logged, found, kLatePoseWaitS);
     waiting_since_utime_ = bus_.NowUtime();
     return;
   }
@@ -119,10 +121,10 @@ void LiveCalibrator::CalibrateNow() {
 std::string SoftwareVersion() { return FTCAL_SOFTWARE_VERSION; }
 
 std::vector<calibration::RecordingGaps> CheckRecordingGaps(const CalibrationCollector& collector,
-                                                          const config::Config& config,
-                                                          const std::set<int>& used,
-                                                          bool allow_gaps,
-                                                          std::vector<std::string>* warnings) {
+                                                           const config::Config& config,
+                                                           const std::set<int>& used,
+                                                           bool allow_gaps,
+                                                           std::vector<std::string>* warnings) {
   const double limit = config.calibrator().max_gap_share();
   std::vector<calibration::RecordingGaps> out;
   std::vector<std::string> over;
@@ -176,12 +178,12 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
                               const CalibratorOptions& options) {
   collector.CheckMarkersAndLegs("hanging series from standing");
   std::vector<std::string> gap_warnings;
-  const std::vector<calibration::RecordingGaps> gaps = CheckRecordingGaps(
-      collector, config,
-      {experiment_marker_t::HANG_X_POS, experiment_marker_t::HANG_X_NEG,
-       experiment_marker_t::HANG_Z_POS, experiment_marker_t::HANG_Z_NEG,
-       experiment_marker_t::STANDING},
-      options.allow_gaps, &gap_warnings);
+  const std::vector<calibration::RecordingGaps> gaps =
+      CheckRecordingGaps(collector, config,
+                         {experiment_marker_t::HANG_X_POS, experiment_marker_t::HANG_X_NEG,
+                          experiment_marker_t::HANG_Z_POS, experiment_marker_t::HANG_Z_NEG,
+                          experiment_marker_t::STANDING},
+                         options.allow_gaps, &gap_warnings);
   const std::vector<HangingRecording> hanging = collector.HangingRecordings();
   const std::vector<StandingPose> poses = collector.StandingPoses();
   if (poses.empty()) {
@@ -239,9 +241,18 @@ void SetOffsetComponent(int i, double value, double sigma, calibration::LegCalib
   calibration::Vec3Estimate* v =
       i < 3 ? leg->mutable_force_offset_n() : leg->mutable_torque_offset_nm();
   switch (i % 3) {
-    case 0: v->set_x(value); v->set_sigma_x(sigma); break;
-    case 1: v->set_y(value); v->set_sigma_y(sigma); break;
-    default: v->set_z(value); v->set_sigma_z(sigma); break;
+    case 0:
+      v->set_x(value);
+      v->set_sigma_x(sigma);
+      break;
+    case 1:
+      v->set_y(value);
+      v->set_sigma_y(sigma);
+      break;
+    default:
+      v->set_z(value);
+      v->set_sigma_z(sigma);
+      break;
   }
 }
 

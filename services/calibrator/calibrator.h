@@ -42,10 +42,10 @@ struct CalibratorOptions {
 // loss; throws CalibratorInputError naming every used phase and channel above
 // calibrator.max_gap_share unless `allow_gaps` (then each is a warning in `warnings`).
 std::vector<calibration::RecordingGaps> CheckRecordingGaps(const CalibrationCollector& collector,
-                                                          const config::Config& config,
-                                                          const std::set<int>& used,
-                                                          bool allow_gaps,
-                                                          std::vector<std::string>* warnings);
+                                                           const config::Config& config,
+                                                           const std::set<int>& used,
+                                                           bool allow_gaps,
+                                                           std::vector<std::string>* warnings);
 
 // Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,

@@ -29,9 +29,8 @@ void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   // Each input log's signers count their sequences afresh: logs may be given in any order.
   verifier_ = auth::Verifier::FromConfig(config_);
-  bus.SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) {
-    LegOfChannel(info.channel);
-  });
+  bus.SubscribeRaw(
+      ".*", [this](const MessageInfo& info, const void*, int) { LegOfChannel(info.channel); });
   // Every FT_* channel, not just the config's: a log from a robot with other legs must be told
   // apart from one whose legs are silent.
   bus.SubscribeRaw(ch.ft_prefix() + ".*", [this](const MessageInfo& info, const void* data,
@@ -43,9 +42,8 @@ void CalibrationCollector::Attach(Bus& bus) {
   bus.SubscribeSigned<experiment_marker_t>(
       ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
       [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
-  bus.Subscribe<steady_pose_t>(ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) {
-    OnSteadyPose(m);
-  });
+  bus.Subscribe<steady_pose_t>(
+      ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) { OnSteadyPose(m); });
 }
 
 int CalibrationCollector::LegOfChannel(const std::string& channel) {
@@ -120,8 +118,8 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
       current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
     } else if (phase_ == experiment_marker_t::STANDING) {
       current_poses_.clear();
-      segmenter_ = std::make_unique<PoseSegmenter>(
-          segmenter_options_, [this](const SteadyPoseOut& p) {
+      segmenter_ =
+          std::make_unique<PoseSegmenter>(segmenter_options_, [this](const SteadyPoseOut& p) {
             if (!p.markers_ok) return;
             current_poses_.push_back(p.pose);
             ++counters_.segmented_poses;
@@ -173,10 +171,9 @@ void CalibrationCollector::EndPhase(bool completed) {
     current_hang_ = HangingRecording();
   } else if (phase_ == experiment_marker_t::STANDING) {
     if (completed) {
-      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented",
-                   phase_session_, current_poses_.size());
-      segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(),
-                              current_poses_.end());
+      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase_session_,
+                   current_poses_.size());
+      segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(), current_poses_.end());
       standing_session_ = phase_session_;
     }
     current_poses_.clear();
@@ -190,12 +187,13 @@ void CalibrationCollector::EndPhase(bool completed) {
     }
   } else if (phase_ == experiment_marker_t::TRIPOD) {
     if (completed) {
-      spdlog::info("TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
-                   "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "
-                   "with no leg lifted",
-                   phase_session_, current_unloaded_.size(), segmented.dropped_short,
-                   segmenter_options_.min_steady_s, segmented.dropped_markers,
-                   counters_.tripod_stances_dropped);
+      spdlog::info(
+          "TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
+          "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "
+          "with no leg lifted",
+          phase_session_, current_unloaded_.size(), segmented.dropped_short,
+          segmenter_options_.min_steady_s, segmented.dropped_markers,
+          counters_.tripod_stances_dropped);
       unloaded_.insert(unloaded_.end(), current_unloaded_.begin(), current_unloaded_.end());
     }
     current_unloaded_.clear();
@@ -337,8 +335,9 @@ std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
 
 void CalibrationCollector::CheckMarkersAndLegs(const std::string& phases) const {
   if (counters_.markers == 0) {
-    throw CalibratorInputError("no EXPERIMENT markers (channel '" + config_.channels().experiment() +
-                               "') in the input: cannot tell " + phases);
+    throw CalibratorInputError("no EXPERIMENT markers (channel '" +
+                               config_.channels().experiment() + "') in the input: cannot tell " +
+                               phases);
   }
   std::string unknown, silent;
   std::set<std::string> expected;

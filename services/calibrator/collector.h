@@ -53,13 +53,13 @@ struct CollectorCounters {
   int64_t aligned_samples = 0;
   int64_t hanging_samples = 0;
   int64_t standing_samples = 0;
-  int64_t logged_poses = 0;      // STEADY_POSE events seen
-  int64_t segmented_poses = 0;   // poses the collector's own segmenter found
-  int64_t poses_dropped_markers = 0;  // logged poses without every marker
-  int64_t walking_samples = 0;        // aligned samples inside WALKING phases (kept or not)
-  int64_t tripod_samples = 0;         // aligned samples inside TRIPOD phases
-  int64_t tripod_stances = 0;         // steady tripod stances with a leg unloaded, kept
-  int64_t tripod_stances_dropped = 0; // steady, but no leg lifted
+  int64_t logged_poses = 0;            // STEADY_POSE events seen
+  int64_t segmented_poses = 0;         // poses the collector's own segmenter found
+  int64_t poses_dropped_markers = 0;   // logged poses without every marker
+  int64_t walking_samples = 0;         // aligned samples inside WALKING phases (kept or not)
+  int64_t tripod_samples = 0;          // aligned samples inside TRIPOD phases
+  int64_t tripod_stances = 0;          // steady tripod stances with a leg unloaded, kept
+  int64_t tripod_stances_dropped = 0;  // steady, but no leg lifted
 };
 
 // One completed phase's transducer records per leg, counted by the devices' RDT sequence

@@ -152,11 +152,10 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const Args& args) {
       if (kind.rfind("undecodable", 0) == 0) undecodable += n;
     }
     if (stats.errors() > 0 || undecodable > 0) {
-      throw CalibratorInputError("log '" + path + "' is damaged or truncated: " +
-                                 std::to_string(stats.errors()) + " unreadable spans, " +
-                                 std::to_string(undecodable) + " undecodable messages, " +
-                                 std::to_string(bus.events_read()) + " events read (" +
-                                 stats.last_error() + kinds + ")");
+      throw CalibratorInputError(
+          "log '" + path + "' is damaged or truncated: " + std::to_string(stats.errors()) +
+          " unreadable spans, " + std::to_string(undecodable) + " undecodable messages, " +
+          std::to_string(bus.events_read()) + " events read (" + stats.last_error() + kinds + ")");
     }
     if (stats.drops() > 0) {
       spdlog::warn("{}: {} inputs dropped{}", path, stats.drops(), kinds);
@@ -199,8 +198,8 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
     try {
       truth = ftcal::CalibrationFromProto(ftcal::ReadCalibrationFile(args.truth), config.robot());
     } catch (const std::exception& e) {
-      throw CalibratorInputError("--truth '" + args.truth + "': " +
-                                 ftcal::UserText(e, "reading the truth file"));
+      throw CalibratorInputError("--truth '" + args.truth +
+                                 "': " + ftcal::UserText(e, "reading the truth file"));
     }
   }
   ftcal::AddResultRmse(collector.walking_samples(), truth ? &*truth : nullptr, &run);
@@ -209,8 +208,8 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   std::string walking;
   if (!collector.walking_samples().empty()) {
     walking = ftcal::WalkingPathFor(args.out);
-    ftcal::WriteFileAtomic(walking, ftcal::WalkingCsv(collector.walking_samples(), run,
-                                                      truth ? &*truth : nullptr));
+    ftcal::WriteFileAtomic(
+        walking, ftcal::WalkingCsv(collector.walking_samples(), run, truth ? &*truth : nullptr));
     spdlog::info("wrote {} (the walking session corrected, for the report)", walking);
   }
   return Report(run, args, walking);
@@ -311,9 +310,9 @@ int main(int argc, char** argv) {
   cli.add_flag("--partial", args.partial,
                "with --reestimate-offsets: keep the old value of the components the data does "
                "not determine (listed) instead of refusing");
-  cli.add_option("--config", args.config_path, "configuration file; default: the " +
-                                                   std::string(ftcal::kDefaultConfigName) +
-                                                   " built in");
+  cli.add_option(
+      "--config", args.config_path,
+      "configuration file; default: the " + std::string(ftcal::kDefaultConfigName) + " built in");
   cli.add_option("--lcm-url", args.lcm_url, "live: LCM URL; overrides the config's lcm_url");
   ftcal::AddLogLevelOption(cli, &args.log_level);
   cli.add_option("--profile", args.profile,

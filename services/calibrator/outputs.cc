@@ -70,28 +70,31 @@ std::string SummaryTable(const CalibrationRun& run) {
   o += fmt::format("Calibration of {} ({} standing poses, model {})\n", c.robot_name(),
                    c.standing_poses(), calibration::StandingModel_Name(c.model()));
   const calibration::SolverInfo& m = c.solver();
-  o += fmt::format("Method: profile {}; step-2 solver {}; hanging rotations {}; hanging gravity "
-                   "prior {}; robot CoM {} ({})\n",
-                   m.profile(), m.solver(),
-                   m.exact_hanging_rotations() ? "exact" : "first-order (report)",
-                   m.hanging_gravity_prior() ? "on" : "off",
-                   m.leg_aware_com() ? "leg-aware" : "fixed (report)", m.com_model_source());
+  o += fmt::format(
+      "Method: profile {}; step-2 solver {}; hanging rotations {}; hanging gravity "
+      "prior {}; robot CoM {} ({})\n",
+      m.profile(), m.solver(), m.exact_hanging_rotations() ? "exact" : "first-order (report)",
+      m.hanging_gravity_prior() ? "on" : "off", m.leg_aware_com() ? "leg-aware" : "fixed (report)",
+      m.com_model_source());
   if (c.has_mass_check()) {
     const calibration::MassCheck& mc = c.mass_check();
-    o += fmt::format("Total mass: configured {:.4f} kg, implied by the data {:.4f} +- {:.4f} kg "
-                     "(allowed difference {:.4f} kg): {}\n",
-                     mc.configured_kg(), mc.implied_kg(), mc.sigma_kg(), mc.allowed_kg(),
-                     mc.consistent() ? "consistent" : "MISMATCH (accepted)");
+    o += fmt::format(
+        "Total mass: configured {:.4f} kg, implied by the data {:.4f} +- {:.4f} kg "
+        "(allowed difference {:.4f} kg): {}\n",
+        mc.configured_kg(), mc.implied_kg(), mc.sigma_kg(), mc.allowed_kg(),
+        mc.consistent() ? "consistent" : "MISMATCH (accepted)");
   }
   if (c.has_noise_floor() && c.noise_floor().has_residual_to_floor()) {
-    o += fmt::format("Standing residual: {:.2f} times the noise floor of the poses (warn above "
-                     "{:g})\n",
-                     c.noise_floor().residual_to_floor(), c.noise_floor().warn_factor());
+    o += fmt::format(
+        "Standing residual: {:.2f} times the noise floor of the poses (warn above "
+        "{:g})\n",
+        c.noise_floor().residual_to_floor(), c.noise_floor().warn_factor());
   }
   for (const std::string& w : c.warning()) o += "WARNING: " + w + "\n";
-  o += fmt::format("{:<4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}\n",
-                   "leg", "fo_x N", "fo_y N", "fo_z N", "to_x Nm", "to_y Nm", "to_z Nm", "mg N",
-                   "+-", "rx deg", "ry deg", "rz deg", "p~'x mm", "p~'y mm");
+  o += fmt::format(
+      "{:<4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}\n",
+      "leg", "fo_x N", "fo_y N", "fo_z N", "to_x Nm", "to_y Nm", "to_z Nm", "mg N", "+-", "rx deg",
+      "ry deg", "rz deg", "p~'x mm", "p~'y mm");
   for (const auto& leg : c.leg()) {
     const auto& f = leg.force_offset_n();
     const auto& t = leg.torque_offset_nm();
@@ -126,16 +129,17 @@ std::string SummaryTable(const CalibrationRun& run) {
   }
   if (c.result_rmse_size() > 0) {
     o += "\nGround-contact RMSE, naive tare -> calibrated (the journal's terms):\n";
-    o += fmt::format("  {:<15} {:<6} {:<15} {:>7} {:>20} {:>22}\n", "samples", "wrench",
-                     "against", "count", "force N", "torque N*m");
+    o += fmt::format("  {:<15} {:<6} {:<15} {:>7} {:>20} {:>22}\n", "samples", "wrench", "against",
+                     "count", "force N", "torque N*m");
     for (const auto& r : c.result_rmse()) {
       auto pct = [](double a, double b) { return a > 0 ? 100.0 * (b - a) / a : 0.0; };
-      o += fmt::format("  {:<15} {:<6} {:<15} {:>7} {:>7.3f} -> {:<6.3f}{:>+5.0f}% {:>7.4f} -> "
-                       "{:<6.4f}{:>+5.0f}%\n",
-                       r.samples(), r.wrench(), r.reference(), r.count(), r.force_naive_n(),
-                       r.force_calibrated_n(), pct(r.force_naive_n(), r.force_calibrated_n()),
-                       r.torque_naive_nm(), r.torque_calibrated_nm(),
-                       pct(r.torque_naive_nm(), r.torque_calibrated_nm()));
+      o += fmt::format(
+          "  {:<15} {:<6} {:<15} {:>7} {:>7.3f} -> {:<6.3f}{:>+5.0f}% {:>7.4f} -> "
+          "{:<6.4f}{:>+5.0f}%\n",
+          r.samples(), r.wrench(), r.reference(), r.count(), r.force_naive_n(),
+          r.force_calibrated_n(), pct(r.force_naive_n(), r.force_calibrated_n()),
+          r.torque_naive_nm(), r.torque_calibrated_nm(),
+          pct(r.torque_naive_nm(), r.torque_calibrated_nm()));
     }
   }
   o += "\nResidual of the total wrench at the CoM in W (rms per component):\n";
@@ -248,8 +252,8 @@ std::string ResidualsCsv(const StandingResult& standing) {
   for (const auto& [label, rows] : variants) {
     for (size_t p = 0; p < rows->size(); ++p) {
       const Vec6& r = (*rows)[p];
-      fmt::format_to(put, "{},{},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g}\n", p, label,
-                     r[0], r[1], r[2], r[3], r[4], r[5]);
+      fmt::format_to(put, "{},{},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g}\n", p, label, r[0],
+                     r[1], r[2], r[3], r[4], r[5]);
     }
   }
   return fmt::to_string(out);

@@ -184,8 +184,8 @@ void AtomicLogFile::Commit() {
   const int closed = ::close(fd_) == 0 ? 0 : errno;
   fd_ = -1;
   if (synced != 0 || closed != 0) {
-    throw std::runtime_error(what_ + " '" + tmp_path_ + "': " +
-                             std::strerror(synced != 0 ? synced : closed));
+    throw std::runtime_error(what_ + " '" + tmp_path_ +
+                             "': " + std::strerror(synced != 0 ? synced : closed));
   }
   if (std::rename(tmp_path_.c_str(), path_.c_str()) != 0) {
     throw std::runtime_error(what_ + ": cannot rename '" + tmp_path_ + "' to '" + path_ +

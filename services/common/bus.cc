@@ -40,8 +40,10 @@ void Bus::SubscribeRaw(const std::string& channel, RawHandler handler) {
   try {
     pattern = std::regex(channel, std::regex::extended);
   } catch (const std::regex_error& e) {
-    throw std::invalid_argument("channel pattern '" + channel + "' is not a valid regular "
-                                "expression: " + e.what());
+    throw std::invalid_argument("channel pattern '" + channel +
+                                "' is not a valid regular "
+                                "expression: " +
+                                e.what());
   }
   subscriptions_.push_back({channel, std::move(pattern), std::move(handler)});
   handlers_by_channel_.clear();
@@ -161,8 +163,7 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
 
 LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_path,
                            ServiceStats& stats)
-    : Bus(stats),
-      in_path_(in_path) {
+    : Bus(stats), in_path_(in_path) {
   struct stat st {};
   if (::stat(in_path.c_str(), &st) != 0) {
     throw std::runtime_error("replay input '" + in_path + "': " + std::strerror(errno));
@@ -172,8 +173,8 @@ LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_pa
   }
   in_fd_ = ::open(in_path.c_str(), O_RDONLY | O_CLOEXEC);
   if (in_fd_ < 0) {
-    throw std::runtime_error("replay input '" + in_path + "': cannot open: " +
-                             std::strerror(errno));
+    throw std::runtime_error("replay input '" + in_path +
+                             "': cannot open: " + std::strerror(errno));
   }
   try {
     out_ = std::make_unique<AtomicLogFile>(out_path, "replay output");
@@ -188,13 +189,15 @@ LogReplayBus::~LogReplayBus() { ::close(in_fd_); }
 
 const uint8_t* LogReplayBus::InputBytes(int64_t at, int64_t n) {
   if (at < 0 || n < 0 || at + n > in_bytes_) return nullptr;
-  if (at >= chunk_at_ && at + n <= chunk_at_ + chunk_bytes_) return chunk_.data() + (at - chunk_at_);
+  if (at >= chunk_at_ && at + n <= chunk_at_ + chunk_bytes_)
+    return chunk_.data() + (at - chunk_at_);
   // Refill from `at`: reading is sequential, so only the tail of one event is read twice.
   const int64_t want = std::min(std::max(n, kChunkBytes), in_bytes_ - at);
   if (static_cast<int64_t>(chunk_.size()) < want) chunk_.resize(static_cast<size_t>(want));
   int64_t got = 0;
   while (got < want) {
-    const ssize_t r = ::pread(in_fd_, chunk_.data() + got, static_cast<size_t>(want - got), at + got);
+    const ssize_t r =
+        ::pread(in_fd_, chunk_.data() + got, static_cast<size_t>(want - got), at + got);
     if (r < 0 && errno == EINTR) continue;
     if (r <= 0) break;  // an error, or the file shrank since it was opened
     got += r;
@@ -309,14 +312,15 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
       if (subscription_generation() != generation) {
         handlers = &HandlersFor(channel_);
         j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -
-                                handlers->begin()) - 1;
+                                handlers->begin()) -
+            1;
       }
     }
   }
   report_damage(file_bytes);
   if (events_read_ == 0 && file_bytes > 0) {
-    stats_.Error("replay input", in_path_ + ": no LCM log events in " +
-                                     std::to_string(file_bytes) + " bytes (not an LCM log?)");
+    stats_.Error("replay input", in_path_ + ": no LCM log events in " + std::to_string(file_bytes) +
+                                     " bytes (not an LCM log?)");
   }
   finished_ = true;
 }

@@ -196,11 +196,11 @@ class LogReplayBus : public Bus {
 
   std::string in_path_;
   int in_fd_ = -1;
-  int64_t in_bytes_ = 0;              // the input's size when opened
+  int64_t in_bytes_ = 0;  // the input's size when opened
   std::vector<uint8_t> chunk_;
-  int64_t chunk_at_ = 0;              // input offset of chunk_[0]
-  int64_t chunk_bytes_ = 0;           // valid bytes in chunk_
-  std::string channel_;               // the current event's channel (reused: no allocation)
+  int64_t chunk_at_ = 0;     // input offset of chunk_[0]
+  int64_t chunk_bytes_ = 0;  // valid bytes in chunk_
+  std::string channel_;      // the current event's channel (reused: no allocation)
   std::unique_ptr<AtomicLogFile> out_;
   int64_t now_utime_ = 0;
   int64_t events_read_ = 0;
@@ -217,11 +217,11 @@ void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
   // const reference for the call only (dispatch is never re-entrant for one subscription).
   auto scratch = std::make_shared<Msg>();
   SubscribeRaw(channel, [handler = std::move(handler), scratch](const MessageInfo& info,
-                                                                 const void* data, int size) {
+                                                                const void* data, int size) {
     Msg& msg = *scratch;
     if (auto refused = wire::Decode(data, size, &msg)) {
-      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
-                         refused->kind,
+      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel +
+                         ": " + refused->kind,
                      refused->detail);
     }
     handler(info, msg);
@@ -231,9 +231,8 @@ void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
 template <class Msg>
 void Bus::SubscribeSigned(const std::string& channel, auth::Verifier* verifier, int64_t window_us,
                           bool allow_unsigned, Handler<Msg> handler) {
-  SubscribeRaw(channel, [this, verifier, window_us, allow_unsigned,
-                         handler = std::move(handler)](const MessageInfo& info, const void* data,
-                                                       int size) {
+  SubscribeRaw(channel, [this, verifier, window_us, allow_unsigned, handler = std::move(handler)](
+                            const MessageInfo& info, const void* data, int size) {
     const auto fingerprint = static_cast<uint64_t>(Msg::getHash());
     auto [opened, refused] =
         verifier->Open(info.channel, data, size, fingerprint, info.recv_utime, window_us);

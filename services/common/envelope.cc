@@ -54,7 +54,8 @@ std::string ToHex(const uint8_t* bytes, size_t n) {
 PublicKey PublicKeyFromHex(const std::string& hex, const std::string& what) {
   PublicKey key{};
   if (!FromHex(hex, key.data(), key.size())) {
-    throw std::invalid_argument(what + ": '" + hex + "' is not an Ed25519 public key (64 hex "
+    throw std::invalid_argument(what + ": '" + hex +
+                                "' is not an Ed25519 public key (64 hex "
                                 "digits)");
   }
   return key;
@@ -166,7 +167,8 @@ Verifier::Verifier(std::vector<TrustedKey> keys) : keys_(std::move(keys)) { Init
 Verifier Verifier::FromConfig(const config::Config& config) {
   std::vector<TrustedKey> keys;
   for (const config::TrustedKey& k : config.auth().trusted_key()) {
-    keys.push_back({k.name(), PublicKeyFromHex(k.public_key_hex(), "auth.trusted_key " + k.name()),
+    keys.push_back({k.name(),
+                    PublicKeyFromHex(k.public_key_hex(), "auth.trusted_key " + k.name()),
                     {k.channel().begin(), k.channel().end()}});
   }
   return Verifier(std::move(keys));
@@ -183,13 +185,13 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
     const std::string& channel, const void* data, int size, uint64_t inner_fingerprint,
     int64_t recv_utime, int64_t window_us) {
   auto refuse = [](std::string kind, std::string detail) {
-    return std::make_pair(std::optional<Opened>(),
-                          std::optional<wire::Refusal>(wire::Refusal{std::move(kind),
-                                                                     std::move(detail)}));
+    return std::make_pair(std::optional<Opened>(), std::optional<wire::Refusal>(wire::Refusal{
+                                                       std::move(kind), std::move(detail)}));
   };
   if (size >= 8) {
     uint64_t fingerprint = 0;
-    for (int i = 0; i < 8; ++i) fingerprint = fingerprint << 8 | static_cast<const uint8_t*>(data)[i];
+    for (int i = 0; i < 8; ++i)
+      fingerprint = fingerprint << 8 | static_cast<const uint8_t*>(data)[i];
     if (fingerprint == inner_fingerprint) {
       return refuse("unsigned", "a bare message where a signed envelope is required");
     }
@@ -214,8 +216,7 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
     return refuse("not allowed on channel from " + name,
                   name + " may not sign " + channel + " (auth.trusted_key.channel)");
   }
-  if (static_cast<uint64_t>(e.inner_fingerprint) != inner_fingerprint ||
-      e.payload.size() < 8) {
+  if (static_cast<uint64_t>(e.inner_fingerprint) != inner_fingerprint || e.payload.size() < 8) {
     return refuse("wrong inner type from " + name, "the envelope holds another message type");
   }
   const std::vector<uint8_t> message = SignedBytes(channel, e);
@@ -231,14 +232,13 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
   }
   int64_t& last = last_sequence_[{key, channel}];
   if (e.sequence <= last) {
-    return refuse("replayed from " + name, "sequence " + std::to_string(e.sequence) +
-                                               " not above " + std::to_string(last));
+    return refuse("replayed from " + name,
+                  "sequence " + std::to_string(e.sequence) + " not above " + std::to_string(last));
   }
   if (window_us > 0 && (recv_utime - e.utime > window_us || e.utime - recv_utime > window_us)) {
-    return refuse("stale from " + name,
-                  "signed " + std::to_string((recv_utime - e.utime) / 1000) +
-                      " ms before it was received (window " + std::to_string(window_us / 1000) +
-                      " ms)");
+    return refuse("stale from " + name, "signed " + std::to_string((recv_utime - e.utime) / 1000) +
+                                            " ms before it was received (window " +
+                                            std::to_string(window_us / 1000) + " ms)");
   }
   last = e.sequence;
   return {Opened{e.payload.data(), static_cast<int>(e.payload.size()), &name, e.sequence, e.utime},

@@ -59,8 +59,7 @@ class Signer {
 
   const PublicKey& public_key() const { return public_key_; }
   // The envelope of `inner` (LCM-encoded, fingerprint first) for `channel`, signed at `utime`.
-  signed_envelope_t Seal(const std::string& channel, const uint8_t* inner, int size,
-                         int64_t utime);
+  signed_envelope_t Seal(const std::string& channel, const uint8_t* inner, int size, int64_t utime);
   template <class Msg>
   signed_envelope_t Seal(const std::string& channel, const Msg& msg, int64_t utime) {
     std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
@@ -102,9 +101,11 @@ class Verifier {
   // The refusal's kind names the sender when it is a trusted key ("bad signature from
   // operator"); every unknown key is one kind, "untrusted signer", so fresh keys cannot grow
   // the counts.
-  std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Open(
-      const std::string& channel, const void* data, int size, uint64_t inner_fingerprint,
-      int64_t recv_utime, int64_t window_us);
+  std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Open(const std::string& channel,
+                                                                      const void* data, int size,
+                                                                      uint64_t inner_fingerprint,
+                                                                      int64_t recv_utime,
+                                                                      int64_t window_us);
 
   // True when some trusted key may sign `channel`.
   bool Trusts(const std::string& channel) const;

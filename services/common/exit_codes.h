@@ -34,9 +34,11 @@ inline const std::vector<std::string>& LogLevels() {
 }
 
 inline CLI::Option* AddLogLevelOption(CLI::App& cli, std::string* level) {
-  return cli.add_option("--log-level", *level, "log level: trace, debug, info, warn, error, "
-                                               "critical or off; default from SPDLOG_LEVEL, "
-                                               "else info")
+  return cli
+      .add_option("--log-level", *level,
+                  "log level: trace, debug, info, warn, error, "
+                  "critical or off; default from SPDLOG_LEVEL, "
+                  "else info")
       ->check(CLI::IsMember(LogLevels()));
 }
 

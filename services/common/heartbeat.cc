@@ -12,8 +12,8 @@ ProcessIdentity ThisProcess(const std::string& name) {
   return {name, host, static_cast<int64_t>(::getpid())};
 }
 
-service_status_t MakeServiceStatus(const ProcessIdentity& identity, int8_t state,
-                                   double uptime_s, const ServiceStats& stats, int64_t utime) {
+service_status_t MakeServiceStatus(const ProcessIdentity& identity, int8_t state, double uptime_s,
+                                   const ServiceStats& stats, int64_t utime) {
   service_status_t msg;
   msg.utime = utime;
   msg.name = identity.name;
@@ -36,12 +36,18 @@ service_status_t MakeServiceStatus(const ProcessIdentity& identity, int8_t state
 
 std::string ServiceStateName(int8_t state) {
   switch (state) {
-    case service_status_t::STARTING: return "STARTING";
-    case service_status_t::RUNNING: return "RUNNING";
-    case service_status_t::DEGRADED: return "DEGRADED";
-    case service_status_t::STOPPING: return "STOPPING";
-    case service_status_t::FAILED: return "FAILED";
-    default: return "STATE(" + std::to_string(static_cast<int>(state)) + ")";
+    case service_status_t::STARTING:
+      return "STARTING";
+    case service_status_t::RUNNING:
+      return "RUNNING";
+    case service_status_t::DEGRADED:
+      return "DEGRADED";
+    case service_status_t::STOPPING:
+      return "STOPPING";
+    case service_status_t::FAILED:
+      return "FAILED";
+    default:
+      return "STATE(" + std::to_string(static_cast<int>(state)) + ")";
   }
 }
 

@@ -19,8 +19,8 @@ struct ProcessIdentity {
 ProcessIdentity ThisProcess(const std::string& name);
 
 // The heartbeat message for the given identity, state and counters at `utime`.
-service_status_t MakeServiceStatus(const ProcessIdentity& identity, int8_t state,
-                                   double uptime_s, const ServiceStats& stats, int64_t utime);
+service_status_t MakeServiceStatus(const ProcessIdentity& identity, int8_t state, double uptime_s,
+                                   const ServiceStats& stats, int64_t utime);
 
 // "STARTING", "RUNNING", ... or "STATE(<n>)" for a value the type does not define.
 std::string ServiceStateName(int8_t state);

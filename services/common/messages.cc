@@ -29,10 +29,10 @@ std::vector<std::string> LegNameList() { return {kLegNames.begin(), kLegNames.en
 
 FtInput FromLcm(const ft_sample_t& msg, int leg) {
   if (leg < 0 || leg >= kNumLegs || msg.leg != kLegNames[leg]) {
-    throw BadInput("leg name not the channel's",
-                   "message names leg '" + msg.leg + "' on the channel of leg " +
-                       (leg >= 0 && leg < kNumLegs ? std::string(kLegNames[leg])
-                                                   : std::to_string(leg)));
+    throw BadInput(
+        "leg name not the channel's",
+        "message names leg '" + msg.leg + "' on the channel of leg " +
+            (leg >= 0 && leg < kNumLegs ? std::string(kLegNames[leg]) : std::to_string(leg)));
   }
   FtInput in;
   in.utime = msg.utime;
@@ -61,8 +61,8 @@ ServoInput FromLcm(const servo_state_t& msg) {
     const auto k = LegIndex(msg.leg[i]);
     if (!k) {
       throw BadInput("unknown leg in servo state", "servo " + std::to_string(i) + " (id " +
-                                                       std::to_string(msg.id[i]) +
-                                                       ") names leg '" + msg.leg[i] + "'");
+                                                       std::to_string(msg.id[i]) + ") names leg '" +
+                                                       msg.leg[i] + "'");
     }
     if (seen[*k]) {
       throw BadInput("duplicate leg in servo state", "leg " + msg.leg[i] + " twice");
@@ -103,9 +103,9 @@ MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers) {
   if (msg.tracked) {
     const Eigen::Vector4d q(msg.q_wc[0], msg.q_wc[1], msg.q_wc[2], msg.q_wc[3]);
     if (q.allFinite() && std::abs(q.norm() - 1.0) > 1e-3) {
-      throw BadInput("mocap q_wc not a unit quaternion",
-                     "|q_wc| = " + std::to_string(q.norm()) + " at utime " +
-                         std::to_string(msg.utime));
+      throw BadInput(
+          "mocap q_wc not a unit quaternion",
+          "|q_wc| = " + std::to_string(q.norm()) + " at utime " + std::to_string(msg.utime));
     }
     // A non-finite quaternion stays non-finite: the aligner/corrector count and drop it.
     in.R_WC = q.allFinite() ? QuaternionToRotation(q) : Mat3::Constant(kNaN);
@@ -139,8 +139,8 @@ mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_ma
 
 AlignedSample FromLcm(const sync_sample_t& msg) {
   if (msg.num_legs != kNumLegs) {
-    throw BadInput("SYNC_SAMPLE leg count", std::to_string(msg.num_legs) + " legs, expected " +
-                                                std::to_string(kNumLegs));
+    throw BadInput("SYNC_SAMPLE leg count",
+                   std::to_string(msg.num_legs) + " legs, expected " + std::to_string(kNumLegs));
   }
   AlignedSample a;
   SyncSample& s = a.sample;
@@ -190,8 +190,8 @@ sync_sample_t ToLcm(const AlignedSample& a) {
 
 SteadyPoseOut FromLcm(const steady_pose_t& msg, SteadyPoseHeader* header) {
   if (msg.num_legs != kNumLegs) {
-    throw BadInput("STEADY_POSE leg count", std::to_string(msg.num_legs) + " legs, expected " +
-                                                std::to_string(kNumLegs));
+    throw BadInput("STEADY_POSE leg count",
+                   std::to_string(msg.num_legs) + " legs, expected " + std::to_string(kNumLegs));
   }
   SteadyPoseOut p;
   std::array<bool, kNumLegs> seen{};
@@ -338,12 +338,18 @@ int8_t PhaseOfHangSeries(HangSeries series) {
 std::string PhaseName(int phase) {
   if (const auto series = HangSeriesOfPhase(phase)) return HangSeriesName(*series);
   switch (phase) {
-    case experiment_marker_t::IDLE: return "IDLE";
-    case experiment_marker_t::STANDING: return "STANDING";
-    case experiment_marker_t::WALKING: return "WALKING";
-    case experiment_marker_t::TRIPOD: return "TRIPOD";
-    case experiment_marker_t::TARE: return "TARE";
-    default: return "phase " + std::to_string(phase);
+    case experiment_marker_t::IDLE:
+      return "IDLE";
+    case experiment_marker_t::STANDING:
+      return "STANDING";
+    case experiment_marker_t::WALKING:
+      return "WALKING";
+    case experiment_marker_t::TRIPOD:
+      return "TRIPOD";
+    case experiment_marker_t::TARE:
+      return "TARE";
+    default:
+      return "phase " + std::to_string(phase);
   }
 }
 
@@ -355,8 +361,7 @@ DeviceInputs::DeviceInputs(const config::Config& config)
       chassis_markers_(static_cast<int>(config.robot().chassis_marker_count())) {
   if (config.robot().leg_size() != kNumLegs) {
     throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
-                                " legs expected, got " +
-                                std::to_string(config.robot().leg_size()));
+                                " legs expected, got " + std::to_string(config.robot().leg_size()));
   }
   for (int k = 0; k < kNumLegs; ++k) {
     if (config.robot().leg(k).name() != kLegNames[k]) {
@@ -376,17 +381,15 @@ std::optional<MocapInput> DeviceInputs::FromMocap(const mocap_body_t& msg) const
 void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
   if (h.ft) {
     for (int k = 0; k < kNumLegs; ++k) {
-      bus.Subscribe<ft_sample_t>(ft_channel_[k], [k, f = h.ft](const MessageInfo&,
-                                                               const ft_sample_t& m) {
-        f(FromLcm(m, k));
-      });
+      bus.Subscribe<ft_sample_t>(
+          ft_channel_[k],
+          [k, f = h.ft](const MessageInfo&, const ft_sample_t& m) { f(FromLcm(m, k)); });
     }
   }
   if (h.servo) {
-    bus.Subscribe<servo_state_t>(channels_.servo_state(),
-                                 [f = h.servo](const MessageInfo&, const servo_state_t& m) {
-                                   f(FromLcm(m));
-                                 });
+    bus.Subscribe<servo_state_t>(
+        channels_.servo_state(),
+        [f = h.servo](const MessageInfo&, const servo_state_t& m) { f(FromLcm(m)); });
   }
   if (h.mocap) {
     bus.Subscribe<mocap_body_t>(channels_.mocap_body(),

@@ -20,7 +20,6 @@
 #include "common/shutdown.h"
 #include "ftcal/config.h"
 
-
 namespace ftcal {
 namespace {
 
@@ -77,7 +76,8 @@ std::vector<std::string> LcmUrlWarnings(const std::string& url, long long rmem_m
     out.push_back("LCM URL " + url + ": recv_buf_size=" + std::to_string(*asked) +
                   " but the kernel allows " + std::to_string(rmem_max) +
                   " bytes (net.core.rmem_max): bursts can be lost; raise it with sysctl -w "
-                  "net.core.rmem_max=" + std::to_string(*asked));
+                  "net.core.rmem_max=" +
+                  std::to_string(*asked));
   }
   return out;
 }
@@ -90,7 +90,8 @@ ServiceApp::ServiceApp(ServiceSpec spec)
       state_(service_status_t::STARTING) {
   cli_.add_option("--config", config_path_,
                   "configuration file (protobuf text format, libcal/proto/config.proto); "
-                  "default: the " + std::string(kDefaultConfigName) + " built in");
+                  "default: the " +
+                      std::string(kDefaultConfigName) + " built in");
   cli_.add_option("--lcm-url", lcm_url_, "LCM URL; overrides the config's lcm_url");
   AddLogLevelOption(cli_, &log_level_);
   if (spec_.replayable) {
@@ -114,7 +115,6 @@ ServiceApp::ServiceApp(ServiceSpec spec)
 }
 
 ServiceApp::~ServiceApp() = default;
-
 
 std::optional<int> ServiceApp::Init(int argc, char** argv) {
   if (auto rc = ParseCommandLine(cli_, argc, argv)) return rc;
@@ -229,8 +229,8 @@ void ServiceApp::DeviceLoopStopped() {
 void ServiceApp::RunDeviceLoop(const std::function<std::string()>& health_reason,
                                const std::function<void(int max_wait_ms)>& step) {
   using Clock = std::chrono::steady_clock;
-  const auto period = std::chrono::duration_cast<Clock::duration>(
-      std::chrono::duration<double>(kHeartbeatPeriodS));
+  const auto period =
+      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(kHeartbeatPeriodS));
   auto next_heartbeat = Clock::now();
   std::string last_reason;
   DeviceLoopStarted();

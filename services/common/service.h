@@ -8,8 +8,9 @@
 //     return app.Run();
 //   }
 //
-// Flags: --config FILE (default: config/sim.pbtxt as built into the binary), --lcm-url URL (overrides the
-// config's lcm_url), --log-level LEVEL (else SPDLOG_LEVEL), and for a replayable stage
+// Flags: --config FILE (default: config/sim.pbtxt as built into the binary), --lcm-url URL
+// (overrides the config's lcm_url), --log-level LEVEL (else SPDLOG_LEVEL), and for a replayable
+// stage
 // --replay IN.lcmlog --out OUT.lcmlog. On replay the heartbeat is not logged; instead one final
 // service_status_t (state STOPPING, the run's counters) is written to the output log on the
 // status channel, stamped with the last input time.

@@ -24,11 +24,11 @@ void ServiceStats::Drop(const std::string& kind, const std::string& reason) {
   const std::int64_t n = CountKind(kind);
   if (n == 0) return;
   if (kinds_[kind] == 1) {
-    log_->warn("dropped input: {}: {} (repeats are counted and logged at most once a minute)",
-               kind, reason);
+    log_->warn("dropped input: {}: {} (repeats are counted and logged at most once a minute)", kind,
+               reason);
   } else {
-    log_->warn("dropped input: {}: {} more since the last line ({} in all); latest: {}", kind,
-               n, kinds_[kind], reason);
+    log_->warn("dropped input: {}: {} more since the last line ({} in all); latest: {}", kind, n,
+               kinds_[kind], reason);
   }
 }
 
@@ -40,8 +40,8 @@ void ServiceStats::Error(const std::string& kind, const std::string& reason) {
   if (kinds_[kind] == 1) {
     log_->error("{}: {} (repeats are counted and logged at most once a minute)", kind, reason);
   } else {
-    log_->error("{}: {} more since the last line ({} in all); latest: {}", kind, n,
-                kinds_[kind], reason);
+    log_->error("{}: {} more since the last line ({} in all); latest: {}", kind, n, kinds_[kind],
+                reason);
   }
 }
 

@@ -20,8 +20,9 @@ namespace ftcal {
 
 class ServiceStats {
  public:
-  explicit ServiceStats(std::shared_ptr<spdlog::logger> log,
-                        std::chrono::steady_clock::duration repeat_log_period = std::chrono::seconds(60));
+  explicit ServiceStats(
+      std::shared_ptr<spdlog::logger> log,
+      std::chrono::steady_clock::duration repeat_log_period = std::chrono::seconds(60));
 
   void CountIn() { ++msgs_in_; }
   void CountOut() { ++msgs_out_; }

@@ -14,7 +14,9 @@ namespace {
 std::atomic<bool> g_shutdown{false};
 static_assert(std::atomic<bool>::is_always_lock_free, "shutdown flag must be lock-free");
 
-extern "C" void OnShutdownSignal(int /*signo*/) { g_shutdown.store(true, std::memory_order_relaxed); }
+extern "C" void OnShutdownSignal(int /*signo*/) {
+  g_shutdown.store(true, std::memory_order_relaxed);
+}
 
 }  // namespace
 

@@ -103,8 +103,8 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
       const Dim& dim = f.dims[d];
       const int64_t n = dim.member < 0 ? dim.fixed : values[static_cast<size_t>(dim.member)];
       if (n < 0) {
-        return Refusal{"negative length", where() + ": dimension " + std::to_string(d) +
-                                              " is " + std::to_string(n)};
+        return Refusal{"negative length",
+                       where() + ": dimension " + std::to_string(d) + " is " + std::to_string(n)};
       }
       if (n > kMaxLength) {
         return Refusal{"length over cap", where() + ": dimension " + std::to_string(d) + " is " +
@@ -119,17 +119,17 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
     // (A single string is checked below, with a more precise complaint.)
     if ((f.ndims > 0 || f.type != Prim::kString) &&
         count * static_cast<unsigned>(elem) > static_cast<unsigned __int128>(remaining)) {
-      return Refusal{"array past the end",
-                     where() + ": needs at least " +
-                         std::to_string(static_cast<unsigned long long>(
-                             count * static_cast<unsigned>(elem))) +
-                         " bytes, " + std::to_string(remaining) + " remain"};
+      return Refusal{
+          "array past the end",
+          where() + ": needs at least " +
+              std::to_string(static_cast<unsigned long long>(count * static_cast<unsigned>(elem))) +
+              " bytes, " + std::to_string(remaining) + " remain"};
     }
     // Both now fit in int64: count <= remaining, headers <= count per level.
     if (headers > static_cast<unsigned __int128>(decoded_bound)) {
-      return Refusal{"decoded size over bound",
-                     where() + ": " + std::to_string(static_cast<long long>(headers)) +
-                         " empty inner arrays"};
+      return Refusal{
+          "decoded size over bound",
+          where() + ": " + std::to_string(static_cast<long long>(headers)) + " empty inner arrays"};
     }
     const int64_t n = static_cast<int64_t>(count);
     decoded += static_cast<int64_t>(headers) * static_cast<int64_t>(sizeof(std::vector<char>)) +
@@ -143,8 +143,8 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
                          where() + ": length " + std::to_string(len) + " (at least 1: the NUL)"};
         }
         if (len > total - pos - 4) {
-          return Refusal{"string past the end", where() + ": length " + std::to_string(len) +
-                                                    ", " + std::to_string(total - pos - 4) +
+          return Refusal{"string past the end", where() + ": length " + std::to_string(len) + ", " +
+                                                    std::to_string(total - pos - 4) +
                                                     " bytes remain"};
         }
         if (bytes[pos + 4 + len - 1] != 0) {
@@ -173,9 +173,9 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
       pos += n * elem;
     }
     if (decoded > decoded_bound) {
-      return Refusal{"decoded size over bound",
-                     where() + ": would decode into " + std::to_string(decoded) + " bytes from " +
-                         std::to_string(total)};
+      return Refusal{"decoded size over bound", where() + ": would decode into " +
+                                                    std::to_string(decoded) + " bytes from " +
+                                                    std::to_string(total)};
     }
   }
   if (pos != total) {
@@ -197,8 +197,10 @@ std::string Describe(const Schema& schema, const void* data, int size) {
     switch (type) {
       case Prim::kString: {
         const int64_t len = ReadSigned(bytes + pos, 4);
-        std::string s = "\"" + std::string(reinterpret_cast<const char*>(bytes + pos + 4),
-                                            static_cast<size_t>(len - 1)) + "\"";
+        std::string s = "\"" +
+                        std::string(reinterpret_cast<const char*>(bytes + pos + 4),
+                                    static_cast<size_t>(len - 1)) +
+                        "\"";
         pos += 4 + len;
         return s;
       }
@@ -218,7 +220,8 @@ std::string Describe(const Schema& schema, const void* data, int size) {
         break;
       }
       default:
-        std::snprintf(text, sizeof text, "%lld", static_cast<long long>(ReadSigned(bytes + pos, n)));
+        std::snprintf(text, sizeof text, "%lld",
+                      static_cast<long long>(ReadSigned(bytes + pos, n)));
     }
     pos += n;
     return std::string(text);
@@ -229,7 +232,8 @@ std::string Describe(const Schema& schema, const void* data, int size) {
     out += f.name;
     out += "=";
     if (f.ndims == 0) {
-      if (IsInteger(f.type)) values[static_cast<size_t>(i)] = ReadSigned(bytes + pos, WireBytes(f.type));
+      if (IsInteger(f.type))
+        values[static_cast<size_t>(i)] = ReadSigned(bytes + pos, WireBytes(f.type));
       out += element(f.type);
       continue;
     }

@@ -27,7 +27,17 @@
 
 namespace ftcal::wire {
 
-enum class Prim : uint8_t { kInt8, kInt16, kInt32, kInt64, kByte, kBoolean, kFloat, kDouble, kString };
+enum class Prim : uint8_t {
+  kInt8,
+  kInt16,
+  kInt32,
+  kInt64,
+  kByte,
+  kBoolean,
+  kFloat,
+  kDouble,
+  kString
+};
 
 struct Dim {
   int64_t fixed;   // the size, when `member` < 0
@@ -42,8 +52,8 @@ struct Field {
 };
 
 struct Schema {
-  const char* name;       // "ftcal.mocap_body_t"
-  uint64_t fingerprint;   // the first 8 bytes of every encoded message, as getHash()
+  const char* name;      // "ftcal.mocap_body_t"
+  uint64_t fingerprint;  // the first 8 bytes of every encoded message, as getHash()
   const Field* fields;
   int num_fields;
 };
@@ -89,8 +99,8 @@ std::optional<Refusal> Decode(const void* data, int size, Msg* msg) {
   try {
     used = msg->decode(data, 0, size);
   } catch (const std::exception& e) {
-    return Refusal{"decoder threw", std::string("decoder threw after the checks passed: ") +
-                                        e.what()};
+    return Refusal{"decoder threw",
+                   std::string("decoder threw after the checks passed: ") + e.what()};
   }
   if (used != size) {
     return Refusal{"decoder disagrees", "decoder used " + std::to_string(used) + " of " +

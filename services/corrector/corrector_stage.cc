@@ -27,9 +27,9 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
                &st.Counter("drop_out_of_order"), &st.Counter("drop_non_finite"),
                &st.Counter("stale_outputs")};
   const auto& ch = config.channels();
-  inputs_.Subscribe(bus, {[this](const FtInput& in) { OnFt(in); },
-                          [this](const ServoInput& in) { OnServo(in); },
-                          [this](const MocapInput& in) { OnMocap(in); }});
+  inputs_.Subscribe(
+      bus, {[this](const FtInput& in) { OnFt(in); }, [this](const ServoInput& in) { OnServo(in); },
+            [this](const MocapInput& in) { OnMocap(in); }});
   // Signed; no time window, so a calibration replayed from a recording still applies.
   bus.SubscribeSigned<calibration_t>(
       ch.calibration(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
@@ -66,12 +66,13 @@ void CorrectorStage::OnCalibration(const calibration_t& msg) {
     ++refused_;
     UpdateCounters();
     // Every refusal is logged (rare, and the operator must see it); the old calibration stays.
-    bus_.stats().log().error("calibration version {} refused: {}; {}", msg.version, e.what(),
-                             corrector_.has_calibration()
-                                 ? "keeping version " + std::to_string(corrector_.calibration_version())
-                                 : std::string("still none in use"));
-    bus_.stats().Error("refused calibration", "version " + std::to_string(msg.version) + ": " +
-                                                  e.what());
+    bus_.stats().log().error(
+        "calibration version {} refused: {}; {}", msg.version, e.what(),
+        corrector_.has_calibration()
+            ? "keeping version " + std::to_string(corrector_.calibration_version())
+            : std::string("still none in use"));
+    bus_.stats().Error("refused calibration",
+                       "version " + std::to_string(msg.version) + ": " + e.what());
   }
 }
 
@@ -104,9 +105,11 @@ void CorrectorStage::OnFt(const FtInput& in) {
   if (!corrector_.AddFt(in, saturated, &out_)) {
     const CorrectorCounters& now = corrector_.counters();
     if (now.non_finite > before.non_finite) {
-      bus_.stats().Drop("non-finite " + inputs_.FtChannel(leg), "utime " + std::to_string(in.utime));
+      bus_.stats().Drop("non-finite " + inputs_.FtChannel(leg),
+                        "utime " + std::to_string(in.utime));
     } else if (now.out_of_order > before.out_of_order) {
-      bus_.stats().Drop("out-of-order " + inputs_.FtChannel(leg), "utime " + std::to_string(in.utime));
+      bus_.stats().Drop("out-of-order " + inputs_.FtChannel(leg),
+                        "utime " + std::to_string(in.utime));
     }
     UpdateCounters();
     return;

@@ -74,19 +74,19 @@ void CommandGate::OnCommand(const std::string& signer, const servo_command_t& cm
   if (now_s - start_s_ < quiet_s_) {
     Refuse("ignored_at_start", "from " + signer + " within dynamixel.start_quiet_s of the start");
   }
-  const bool is_commander =
-      (mode_ == Mode::kArmed || mode_ == Mode::kHold) && signer == commander_;
+  const bool is_commander = (mode_ == Mode::kArmed || mode_ == Mode::kHold) && signer == commander_;
   switch (cmd.action) {
     case servo_command_t::ARM: {
       if (mode_ == Mode::kFault) Refuse("in_fault", "ARM from " + signer + " while in FAULT");
-      if (!arm_block_.empty()) Refuse("limits_unverified", "ARM from " + signer + ": " + arm_block_);
+      if (!arm_block_.empty())
+        Refuse("limits_unverified", "ARM from " + signer + ": " + arm_block_);
       if (mode_ == Mode::kArmed && signer != commander_) {
         Refuse("not_commander", "ARM from " + signer + " while armed by " + commander_);
       }
       for (const Servo& s : servos_) {
         if (!s.measured) {
-          Refuse("unmeasured", "ARM from " + signer + " before servo " + std::to_string(s.id) +
-                                   " was measured");
+          Refuse("unmeasured",
+                 "ARM from " + signer + " before servo " + std::to_string(s.id) + " was measured");
         }
       }
       for (Servo& s : servos_) {
@@ -120,16 +120,16 @@ void CommandGate::OnCommand(const std::string& signer, const servo_command_t& cm
   }
   if (!is_commander) Refuse("not_commander", "MOVE from " + signer + ", armed by " + commander_);
   // Exactly the configured servos, each once, finite goals: taken whole or not at all.
-  if (cmd.num_servos != static_cast<int>(servos_.size()) ||
-      cmd.id.size() != servos_.size() || cmd.goal_angle_rad.size() != servos_.size()) {
+  if (cmd.num_servos != static_cast<int>(servos_.size()) || cmd.id.size() != servos_.size() ||
+      cmd.goal_angle_rad.size() != servos_.size()) {
     Refuse("wrong_servos", "MOVE names " + std::to_string(cmd.num_servos) + " servos, the config " +
                                std::to_string(servos_.size()));
   }
   std::set<int> seen;
   for (size_t i = 0; i < servos_.size(); ++i) {
     if (by_id_.count(cmd.id[i]) == 0 || !seen.insert(cmd.id[i]).second) {
-      Refuse("wrong_servos", "MOVE names servo id " + std::to_string(cmd.id[i]) +
-                                 " (unknown or twice)");
+      Refuse("wrong_servos",
+             "MOVE names servo id " + std::to_string(cmd.id[i]) + " (unknown or twice)");
     }
     if (cmd.torque_enable && !std::isfinite(cmd.goal_angle_rad[i])) {
       Refuse("non_finite", "MOVE goal for servo " + std::to_string(cmd.id[i]) + " is not finite");

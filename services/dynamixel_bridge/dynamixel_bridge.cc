@@ -80,9 +80,9 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
   // faster than the config says; above a register's range it holds its maximum.
   const double velocity_unit_rad_s = dxl::kVelocityUnitRpm * 2 * M_PI / 60;
   const double acceleration_unit_rad_s2 = dxl::kAccelerationUnitRevPerMin2 * 2 * M_PI / 3600;
-  velocity_limit_ = static_cast<std::uint32_t>(std::clamp(
-      std::floor(config_.dynamixel().max_velocity_rad_s() / velocity_unit_rad_s + 1e-9), 1.0,
-      static_cast<double>(dxl::kMaxVelocityLimit)));
+  velocity_limit_ = static_cast<std::uint32_t>(
+      std::clamp(std::floor(config_.dynamixel().max_velocity_rad_s() / velocity_unit_rad_s + 1e-9),
+                 1.0, static_cast<double>(dxl::kMaxVelocityLimit)));
   acceleration_limit_ = static_cast<std::uint32_t>(std::clamp(
       std::floor(config_.dynamixel().max_acceleration_rad_s2() / acceleration_unit_rad_s2 + 1e-9),
       1.0, static_cast<double>(dxl::kMaxAccelerationLimit)));
@@ -320,9 +320,10 @@ std::optional<std::uint8_t> DynamixelBridge::ReadByte(std::size_t i, std::uint16
 }
 
 void DynamixelBridge::CheckOperatingModes(const std::vector<std::size_t>& slots) {
-  const std::string want = std::to_string(operating_mode_) + " (" +
-                           config::DynamixelOperatingMode_Name(config_.dynamixel().operating_mode()) +
-                           ", dynamixel.operating_mode)";
+  const std::string want =
+      std::to_string(operating_mode_) + " (" +
+      config::DynamixelOperatingMode_Name(config_.dynamixel().operating_mode()) +
+      ", dynamixel.operating_mode)";
   for (const std::size_t i : slots) {
     ServoSlot& s = servos_[i];
     if (s.mode_checked) continue;
@@ -360,8 +361,8 @@ void DynamixelBridge::CheckOperatingModes(const std::vector<std::size_t>& slots)
                return true;
              });
     if (!port_) return;
-    const std::optional<std::uint8_t> now = written ? ReadByte(i, dxl::kAddrOperatingMode)
-                                                    : std::nullopt;
+    const std::optional<std::uint8_t> now =
+        written ? ReadByte(i, dxl::kAddrOperatingMode) : std::nullopt;
     if (!port_) return;
     s.mode = now ? *now : -1;
     s.mode_ok = now && *now == operating_mode_;
@@ -424,8 +425,8 @@ std::vector<DynamixelBridge::LimitItem> DynamixelBridge::LimitsFor(std::size_t i
     items.push_back({"Min Position Limit", dxl::kAddrMinPositionLimit, 4, true,
                      static_cast<std::uint32_t>(std::min(a, b))});
   }
-  items.push_back({"Profile Acceleration", dxl::kAddrProfileAcceleration, 4, false,
-                   acceleration_limit_});
+  items.push_back(
+      {"Profile Acceleration", dxl::kAddrProfileAcceleration, 4, false, acceleration_limit_});
   items.push_back({"Profile Velocity", dxl::kAddrProfileVelocity, 4, false, velocity_limit_});
   items.push_back({"Bus Watchdog", dxl::kAddrBusWatchdog, 1, false, watchdog_units_});
   return items;
@@ -435,7 +436,8 @@ bool DynamixelBridge::ClearWatchdog(std::size_t i, std::string* why) {
   ServoSlot& s = servos_[i];
   const std::string name = ServoName(s.id, s.leg);
   auto refused = [&](const std::string& step, const std::optional<std::uint8_t>& e) {
-    *why = name + ": " + step + (e ? " refused: " + dxl::DescribeStatusError(*e) : " not answered") +
+    *why = name + ": " + step +
+           (e ? " refused: " + dxl::DescribeStatusError(*e) : " not answered") +
            "; its goals stay refused";
     return false;
   };
@@ -524,8 +526,10 @@ void DynamixelBridge::CheckLimits(std::size_t i) {
     ++stats_.Counter("limits_mismatch");
     stats_.Error(name + " limits not as configured", s.limits_error + ": not armed");
   } else {
-    stats_.log().info("{}: limits written and read back (velocity {}, acceleration {}, watchdog "
-                      "{} x 20 ms)", name, velocity_limit_, acceleration_limit_, watchdog_units_);
+    stats_.log().info(
+        "{}: limits written and read back (velocity {}, acceleration {}, watchdog "
+        "{} x 20 ms)",
+        name, velocity_limit_, acceleration_limit_, watchdog_units_);
   }
 }
 
@@ -640,61 +644,67 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
   fresh->assign(servos_.size(), false);
   const std::vector<std::size_t> slots = ActiveSlots();
   std::vector<bool> repeated(servos_.size(), false);
-  const std::vector<bool> got = slots.empty() ? std::vector<bool>{} : Transact(
-      dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, IdsOf(slots)), slots,
-      dxl::kPresentBlockBytes, [&](std::size_t k, const dxl::StatusPacket& p) {
-        const std::size_t i = slots[k];
-        ServoSlot& s = servos_[i];
-        if (p.error_number() != 0) {
-          ++stats_.Counter("status_errors");
-          stats_.Drop(ServoName(s.id, s.leg) + ": " + dxl::DescribeStatusError(p.error),
-                      "the reply to the present-block read carries an error; its data is not used");
-          return false;
-        }
-        const dxl::PresentState st = dxl::DecodePresentBlock(p.params.data(), p.params.size());
-        if (s.ever_read && now - s.last_read > std::chrono::duration_cast<Clock::duration>(
-                                                   std::chrono::duration<double>(
-                                                       kTickUnwrapMaxGapS))) {
-          s.ticks.Reset();
-          s.tick_known = false;
-        }
-        // Protocol 2.0 has no sequence number: under load a reply that missed its deadline can
-        // arrive during the next request and look like its answer. The Realtime Tick is the
-        // only witness: a block whose tick is not after the last one accepted is that late
-        // reply (or a second read within one ms, which says nothing new either): this cycle
-        // publishes that servo STALE rather than an old sample as new.
-        const std::uint16_t forward =
-            static_cast<std::uint16_t>((st.realtime_tick_ms - s.last_raw_tick) & 0x7FFF);
-        if (s.tick_known && (forward == 0 || forward >= kTickHalfWrap)) {
-          const bool same = forward == 0;
-          ++stats_.Counter(same ? "repeated_tick" : "backward_tick");
-          stats_.Drop(same ? "repeated Realtime Tick" : "Realtime Tick went backwards",
-                      ServoName(s.id, s.leg) + " sent a present block with tick " +
-                          std::to_string(st.realtime_tick_ms) + " after " +
-                          std::to_string(s.last_raw_tick) +
-                          " (a late reply); not published as new");
-          repeated[i] = true;
-          return true;
-        }
-        s.last_raw_tick = st.realtime_tick_ms;
-        s.tick_known = true;
-        s.ever_read = true;
-        s.last_read = now;
-        s.angle_rad = dxl::PositionToRad(st.present_position, s.zero_count, s.direction);
-        s.velocity_rad_s = s.direction * dxl::VelocityToRadPerS(st.present_velocity);
-        s.current_a = s.direction * dxl::CurrentToA(st.present_current);
-        s.tick_ms = s.ticks.Update(st.realtime_tick_ms);
-        if (p.alert() && !s.alert) {
-          ++stats_.Counter("hw_error_alerts");
-          stats_.Error(ServoName(s.id, s.leg) + " hardware error",
-                       ServoName(s.id, s.leg) + " raised its Alert bit");
-          force_error_read_ = true;  // what the error is: read it this cycle
-        }
-        s.alert = p.alert();
-        s.consecutive_misses = 0;
-        stats_.CountIn();
-        return true;
-      });
+  const std::vector<bool> got =
+      slots.empty()
+          ? std::vector<bool>{}
+          : Transact(
+                dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, IdsOf(slots)),
+                slots, dxl::kPresentBlockBytes, [&](std::size_t k, const dxl::StatusPacket& p) {
+                  const std::size_t i = slots[k];
+                  ServoSlot& s = servos_[i];
+                  if (p.error_number() != 0) {
+                    ++stats_.Counter("status_errors");
+                    stats_.Drop(ServoName(s.id, s.leg) + ": " + dxl::DescribeStatusError(p.error),
+                                "the reply to the present-block read carries an error; its data is "
+                                "not used");
+                    return false;
+                  }
+                  const dxl::PresentState st =
+                      dxl::DecodePresentBlock(p.params.data(), p.params.size());
+                  if (s.ever_read &&
+                      now - s.last_read > std::chrono::duration_cast<Clock::duration>(
+                                              std::chrono::duration<double>(kTickUnwrapMaxGapS))) {
+                    s.ticks.Reset();
+                    s.tick_known = false;
+                  }
+                  // Protocol 2.0 has no sequence number: under load a reply that missed its
+                  // deadline can arrive during the next request and look like its answer. The
+                  // Realtime Tick is the only witness: a block whose tick is not after the last one
+                  // accepted is that late reply (or a second read within one ms, which says nothing
+                  // new either): this cycle publishes that servo STALE rather than an old sample as
+                  // new.
+                  const std::uint16_t forward =
+                      static_cast<std::uint16_t>((st.realtime_tick_ms - s.last_raw_tick) & 0x7FFF);
+                  if (s.tick_known && (forward == 0 || forward >= kTickHalfWrap)) {
+                    const bool same = forward == 0;
+                    ++stats_.Counter(same ? "repeated_tick" : "backward_tick");
+                    stats_.Drop(same ? "repeated Realtime Tick" : "Realtime Tick went backwards",
+                                ServoName(s.id, s.leg) + " sent a present block with tick " +
+                                    std::to_string(st.realtime_tick_ms) + " after " +
+                                    std::to_string(s.last_raw_tick) +
+                                    " (a late reply); not published as new");
+                    repeated[i] = true;
+                    return true;
+                  }
+                  s.last_raw_tick = st.realtime_tick_ms;
+                  s.tick_known = true;
+                  s.ever_read = true;
+                  s.last_read = now;
+                  s.angle_rad = dxl::PositionToRad(st.present_position, s.zero_count, s.direction);
+                  s.velocity_rad_s = s.direction * dxl::VelocityToRadPerS(st.present_velocity);
+                  s.current_a = s.direction * dxl::CurrentToA(st.present_current);
+                  s.tick_ms = s.ticks.Update(st.realtime_tick_ms);
+                  if (p.alert() && !s.alert) {
+                    ++stats_.Counter("hw_error_alerts");
+                    stats_.Error(ServoName(s.id, s.leg) + " hardware error",
+                                 ServoName(s.id, s.leg) + " raised its Alert bit");
+                    force_error_read_ = true;  // what the error is: read it this cycle
+                  }
+                  s.alert = p.alert();
+                  s.consecutive_misses = 0;
+                  stats_.CountIn();
+                  return true;
+                });
   for (std::size_t k = 0; k < slots.size(); ++k) {
     (*fresh)[slots[k]] = got[k] && !repeated[slots[k]];
   }
@@ -743,8 +753,9 @@ void DynamixelBridge::ReadHardwareErrors() {
              if (hw != 0 && hw != s.hardware_error) {
                stats_.Error(ServoName(s.id, s.leg) + " hardware error status",
                             ServoName(s.id, s.leg) + " reports Hardware Error Status " +
-                                std::to_string(hw) + " (bit 0 voltage, 2 overheating, 3 encoder, "
-                                                     "4 electrical shock, 5 overload)");
+                                std::to_string(hw) +
+                                " (bit 0 voltage, 2 overheating, 3 encoder, "
+                                "4 electrical shock, 5 overload)");
              }
              s.hardware_error = hw;
              s.alert = p.alert();
@@ -882,17 +893,18 @@ void DynamixelBridge::OnCommand(const servo_command_t& cmd) {
       }
       if (s->mode_checked && !s->mode_ok) {
         throw BadInput("servo_command_t servo in the wrong operating mode",
-                       "SERVO_CMD goal for " + ServoName(s->id, s->leg) + ": the servo is in "
-                       "Operating Mode " + std::to_string(s->mode) + ", not the configured " +
+                       "SERVO_CMD goal for " + ServoName(s->id, s->leg) +
+                           ": the servo is in "
+                           "Operating Mode " +
+                           std::to_string(s->mode) + ", not the configured " +
                            std::to_string(operating_mode_));
       }
       count = dxl::RadToPosition(clamped, s->zero_count, s->direction);
       if (*count < min_goal_count_ || *count > max_goal_count_) {
         throw BadInput("servo_command_t goal outside the encoder range",
                        "SERVO_CMD goal for " + ServoName(s->id, s->leg) + " is count " +
-                           std::to_string(*count) + ", outside " +
-                           std::to_string(min_goal_count_) + ".." +
-                           std::to_string(max_goal_count_) + " of Operating Mode " +
+                           std::to_string(*count) + ", outside " + std::to_string(min_goal_count_) +
+                           ".." + std::to_string(max_goal_count_) + " of Operating Mode " +
                            std::to_string(operating_mode_));
       }
     }
@@ -920,9 +932,8 @@ bool DynamixelBridge::Degraded(std::string* why) const {
       } else if (s.hardware_error != 0 || s.alert) {
         reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " hardware error";
       } else if (s.mode_checked && !s.mode_ok) {
-        reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) +
-                  " in Operating Mode " + std::to_string(s.mode) + ", not " +
-                  std::to_string(operating_mode_);
+        reason += (reason.empty() ? "" : "; ") + ServoName(s.id, s.leg) + " in Operating Mode " +
+                  std::to_string(s.mode) + ", not " + std::to_string(operating_mode_);
       } else if (!s.limits_error.empty()) {
         reason += (reason.empty() ? "" : "; ") + s.limits_error;
       }

@@ -54,11 +54,11 @@
 namespace ftcal {
 
 struct DynamixelBridgeOptions {
-  std::string device;          // serial device; empty: the config's
+  std::string device;             // serial device; empty: the config's
   int hardware_error_every = 10;  // read address 64-70 every n-th cycle (and after an alert)
-  int lost_after_misses = 5;   // consecutive cycles without a valid reply before a servo is lost
-  double reprobe_every_s = 1.0;  // a lost servo is PINGed this often
-  double reopen_min_s = 0.1;   // back-off between attempts to reopen a vanished port
+  int lost_after_misses = 5;      // consecutive cycles without a valid reply before a servo is lost
+  double reprobe_every_s = 1.0;   // a lost servo is PINGed this often
+  double reopen_min_s = 0.1;      // back-off between attempts to reopen a vanished port
   double reopen_max_s = 2.0;
 };
 
@@ -69,8 +69,8 @@ class DynamixelBridge {
 
   // Throws std::invalid_argument when the config has no dynamixel section or a servo's
   // direction is not +-1.
-  DynamixelBridge(const config::Config& config, DynamixelBridgeOptions options,
-                  ServiceStats& stats, Publisher publish, std::function<int64_t()> now_utime);
+  DynamixelBridge(const config::Config& config, DynamixelBridgeOptions options, ServiceStats& stats,
+                  Publisher publish, std::function<int64_t()> now_utime);
 
   // Opens the port and pings every configured servo; logs each one that does not answer or is
   // not an MX-106(2.0). Returns false (and schedules a retry) when the port cannot be opened.
@@ -117,7 +117,7 @@ class DynamixelBridge {
     dxl::TickUnwrapper ticks;
     std::int64_t tick_ms = 0;
     std::uint16_t last_raw_tick = 0;
-    bool tick_known = false;  // last_raw_tick is from this port session and this find
+    bool tick_known = false;         // last_raw_tick is from this port session and this find
     double return_delay_s = 500e-6;  // factory default until read from the servo
     std::int32_t hardware_error = 0;
     int torque_enable = -1;  // -1 unknown
@@ -137,7 +137,7 @@ class DynamixelBridge {
     // Its limits (ServoLimits): written and read back since it was last found; what differs.
     bool limits_checked = false;
     std::string limits_error;
-    bool watchdog_expired = false;   // seen in the error block: cleared at the end of the cycle
+    bool watchdog_expired = false;  // seen in the error block: cleared at the end of the cycle
   };
   // One register the bridge sets in every servo; the value comes from the config.
   struct LimitItem {
@@ -204,8 +204,8 @@ class DynamixelBridge {
   std::string device_;
   std::uint32_t baud_;
   double reply_timeout_s_;
-  std::uint8_t operating_mode_;  // dynamixel.operating_mode's code
-  std::int32_t min_goal_count_, max_goal_count_;  // the mode's range
+  std::uint8_t operating_mode_;                        // dynamixel.operating_mode's code
+  std::int32_t min_goal_count_, max_goal_count_;       // the mode's range
   std::uint32_t velocity_limit_, acceleration_limit_;  // register units
   std::uint8_t watchdog_units_;
   double watchdog_s_;

@@ -33,10 +33,9 @@ struct CommandSink {
     stats->CountIn();
     try {
       const int size = static_cast<int>(rbuf->data_size);
-      auto [opened, refused] =
-          verifier->Open(channel, rbuf->data, size,
-                         static_cast<uint64_t>(ftcal::servo_command_t::getHash()),
-                         rbuf->recv_utime, window_us);
+      auto [opened, refused] = verifier->Open(
+          channel, rbuf->data, size, static_cast<uint64_t>(ftcal::servo_command_t::getHash()),
+          rbuf->recv_utime, window_us);
       if (refused) throw ftcal::BadInput(refused->kind + " on " + channel, refused->detail);
       ftcal::servo_command_t cmd;
       if (auto bad = ftcal::wire::Decode(opened->payload, opened->size, &cmd)) {
@@ -65,7 +64,8 @@ int main(int argc, char** argv) {
        "publishes SERVO_STATE (servo_state_t: shaft angles in rad, 0 = leg straight down, "
        "velocity, current, hardware error, unwrapped device tick, STALE/HW_ERROR/TORQUE_OFF "
        "flags; LOST for a servo silent for --lost-after cycles, which is then only PINGed "
-       "every --reprobe-every s). Reads SERVO_CMD (servo_command_t in a signed envelope from a key the config's "
+       "every --reprobe-every s). Reads SERVO_CMD (servo_command_t in a signed envelope from a key "
+       "the config's "
        "auth trusts for it) and, once armed by one commander, writes torque enable and goal "
        "positions clamped to the angle limits minus dynamixel.limit_margin_rad and rate-limited "
        "to dynamixel.max_velocity_rad_s; holds the measured position when the armed commander "
@@ -92,7 +92,8 @@ int main(int argc, char** argv) {
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
   app.cli()
-      .add_option("--reprobe-every", options.reprobe_every_s, "seconds between PINGs of a lost servo")
+      .add_option("--reprobe-every", options.reprobe_every_s,
+                  "seconds between PINGs of a lost servo")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
   if (auto rc = app.Init(argc, argv)) return *rc;
@@ -160,8 +161,8 @@ int main(int argc, char** argv) {
     // notify protocol (READY=1 once connected, the watchdog with the heartbeat, STOPPING=1).
     app.DeviceLoopStarted();
     gate.SetArmBlock(bridge.ArmBlocker());
-    const auto period = std::chrono::duration_cast<Clock::duration>(
-        std::chrono::duration<double>(1.0 / rate_hz));
+    const auto period =
+        std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / rate_hz));
     auto next_cycle = Clock::now();
     auto next_status = Clock::now();
     while (!ftcal::ShutdownRequested()) {
@@ -198,7 +199,8 @@ int main(int argc, char** argv) {
         continue;
       }
       // Wait for the next cycle, a command, or bytes nobody asked for (and hang-ups).
-      const auto wait = std::min({next_cycle, next_status, now + std::chrono::milliseconds(100)}) - now;
+      const auto wait =
+          std::min({next_cycle, next_status, now + std::chrono::milliseconds(100)}) - now;
       const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(wait).count();
       timespec ts{static_cast<time_t>(ns / 1'000'000'000), static_cast<long>(ns % 1'000'000'000)};
       pollfd fds[2] = {{cmd_lcm.getFileno(), POLLIN, 0}, {bridge.fd(), POLLIN, 0}};

@@ -14,14 +14,22 @@ namespace {
 // The Dynamixel rates (docs/device-protocols.md §2.1) that have a Bxxx constant.
 speed_t StandardSpeed(std::uint32_t baud) {
   switch (baud) {
-    case 9600: return B9600;
-    case 57600: return B57600;
-    case 115200: return B115200;
-    case 1000000: return B1000000;
-    case 2000000: return B2000000;
-    case 3000000: return B3000000;
-    case 4000000: return B4000000;
-    default: return 0;
+    case 9600:
+      return B9600;
+    case 57600:
+      return B57600;
+    case 115200:
+      return B115200;
+    case 1000000:
+      return B1000000;
+    case 2000000:
+      return B2000000;
+    case 3000000:
+      return B3000000;
+    case 4000000:
+      return B4000000;
+    default:
+      return 0;
   }
 }
 

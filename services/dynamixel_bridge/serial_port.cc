@@ -21,7 +21,8 @@ SerialPort::SerialPort(const std::string& path, std::uint32_t baud) : path_(path
   if (fd_ < 0) throw SerialError("serial port " + path + ": open: " + Errno());
   try {
     termios tio{};
-    if (::tcgetattr(fd_, &tio) != 0) throw SerialError("serial port " + path + ": tcgetattr: " + Errno());
+    if (::tcgetattr(fd_, &tio) != 0)
+      throw SerialError("serial port " + path + ": tcgetattr: " + Errno());
     ::cfmakeraw(&tio);  // 8 data bits, no parity, no echo, no translation
     tio.c_cflag &= ~static_cast<tcflag_t>(CSTOPB | CRTSCTS);  // 1 stop bit, no flow control
     tio.c_cflag |= CLOCAL | CREAD;

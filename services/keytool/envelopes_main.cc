@@ -21,9 +21,10 @@
 #include "ftcal/config.h"
 
 int main(int argc, char** argv) {
-  CLI::App cli("Prints every signed envelope (SERVO_CMD, EXPERIMENT, CALIBRATION) in an LCM log: "
-               "signer, sequence, signing time, signature verdict and the inner message's fields.",
-               "ftcal-envelopes");
+  CLI::App cli(
+      "Prints every signed envelope (SERVO_CMD, EXPERIMENT, CALIBRATION) in an LCM log: "
+      "signer, sequence, signing time, signature verdict and the inner message's fields.",
+      "ftcal-envelopes");
   std::string log_path, config_path;
   cli.add_option("log", log_path, "LCM log (lcm-logger format)")->required();
   cli.add_option("--config", config_path, "name the signers the config's auth trusts");

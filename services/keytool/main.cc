@@ -62,10 +62,11 @@ int WriteSeed(const std::string& path) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App cli("Makes an Ed25519 signing key for a publisher of ftcal's signed channels "
-               "(SERVO_CMD, EXPERIMENT, CALIBRATION) and prints its public key, 64 hex digits, "
-               "for the receivers' config (auth.trusted_key.public_key_hex).",
-               "ftcal-keygen");
+  CLI::App cli(
+      "Makes an Ed25519 signing key for a publisher of ftcal's signed channels "
+      "(SERVO_CMD, EXPERIMENT, CALIBRATION) and prints its public key, 64 hex digits, "
+      "for the receivers' config (auth.trusted_key.public_key_hex).",
+      "ftcal-keygen");
   std::string out, public_of;
   auto* out_opt = cli.add_option("--out", out, "write a new seed to this file (mode 600)");
   cli.add_option("--public", public_of, "print the public key of this seed file")

@@ -80,7 +80,8 @@ GateVerdict GateWatcher::Judge(const config::HealthGate& gate, int64_t pid,
       }
       const auto& s = it->second.first;
       static const char* kNames[] = {"STARTING", "RUNNING", "DEGRADED", "STOPPING", "FAILED"};
-      const std::string state = s.state >= 0 && s.state <= 4 ? kNames[s.state] : "state " + std::to_string(s.state);
+      const std::string state =
+          s.state >= 0 && s.state <= 4 ? kNames[s.state] : "state " + std::to_string(s.state);
       v.passed = s.state == service_status_t::RUNNING ||
                  (gate.accept_degraded() && s.state == service_status_t::DEGRADED);
       v.figure = "heartbeat says " + state +

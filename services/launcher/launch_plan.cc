@@ -45,17 +45,23 @@ std::string Join(const std::vector<std::string>& words, bool quote) {
 
 const char* SupervisorAutorestart(config::RestartPolicy::AutoRestart a) {
   switch (a) {
-    case config::RestartPolicy::NEVER: return "false";
-    case config::RestartPolicy::UNEXPECTED: return "unexpected";
-    default: return "true";
+    case config::RestartPolicy::NEVER:
+      return "false";
+    case config::RestartPolicy::UNEXPECTED:
+      return "unexpected";
+    default:
+      return "true";
   }
 }
 
 const char* SystemdRestart(config::RestartPolicy::AutoRestart a) {
   switch (a) {
-    case config::RestartPolicy::NEVER: return "no";
-    case config::RestartPolicy::UNEXPECTED: return "on-failure";
-    default: return "always";
+    case config::RestartPolicy::NEVER:
+      return "no";
+    case config::RestartPolicy::UNEXPECTED:
+      return "on-failure";
+    default:
+      return "always";
   }
 }
 
@@ -67,8 +73,8 @@ const config::LaunchGroup& FindGroup(const config::Launch& launch, const std::st
     if (g.name() == name) return g;
     known += (known.empty() ? "" : ", ") + g.name();
   }
-  throw LaunchError("no launch group '" + name + "' in the config (launch.group: " +
-                    (known.empty() ? "none" : known) + ")");
+  throw LaunchError("no launch group '" + name +
+                    "' in the config (launch.group: " + (known.empty() ? "none" : known) + ")");
 }
 
 const config::LaunchHost& FindHost(const config::Launch& launch, const std::string& name) {
@@ -204,8 +210,9 @@ std::string GateText(const config::HealthGate& gate) {
         << (gate.accept_degraded() ? " or DEGRADED" : "") << ")";
       break;
     case config::HealthGate::RATE:
-      s << "RATE " << gate.channel() << " >= " << Number(std::round(gate.min_fraction() * 1000) / 10)
-        << "% of " << Number(gate.rate_hz()) << " Hz";
+      s << "RATE " << gate.channel()
+        << " >= " << Number(std::round(gate.min_fraction() * 1000) / 10) << "% of "
+        << Number(gate.rate_hz()) << " Hz";
       if (gate.min_channels() > 0) s << " (each of >= " << gate.min_channels() << " channels)";
       s << " over " << Number(gate.window_s()) << " s";
       break;
@@ -221,25 +228,39 @@ std::string GateText(const config::HealthGate& gate) {
 
 std::string SupervisordConf(const std::string& host, const std::string& run_dir) {
   std::ostringstream s;
-  s << "; Written by ftcal-launch for host '" << host << "': edits are overwritten by the next\n"
+  s << "; Written by ftcal-launch for host '" << host
+    << "': edits are overwritten by the next\n"
        "; `ftcal-launch up`. The control socket is a local unix socket (owner only); there is\n"
        "; no [inet_http_server]: a remote host is driven through ssh, never over HTTP.\n"
        "[unix_http_server]\n"
-       "file=" << run_dir << "/supervisor.sock\n"
+       "file="
+    << run_dir
+    << "/supervisor.sock\n"
        "chmod=0700\n\n"
        "[supervisord]\n"
-       "logfile=" << run_dir << "/supervisord.log\n"
-       "pidfile=" << run_dir << "/supervisord.pid\n"
-       "childlogdir=" << run_dir << "/logs\n"
-       "identifier=ftcal-" << host << "\n"
+       "logfile="
+    << run_dir
+    << "/supervisord.log\n"
+       "pidfile="
+    << run_dir
+    << "/supervisord.pid\n"
+       "childlogdir="
+    << run_dir
+    << "/logs\n"
+       "identifier=ftcal-"
+    << host
+    << "\n"
        "nodaemon=false\n"
        "strip_ansi=true\n\n"
        "[rpcinterface:supervisor]\n"
        "supervisor.rpcinterface_factory = supervisor.rpcinterface:make_main_rpcinterface\n\n"
        "[supervisorctl]\n"
-       "serverurl=unix://" << run_dir << "/supervisor.sock\n\n"
+       "serverurl=unix://"
+    << run_dir
+    << "/supervisor.sock\n\n"
        "[include]\n"
-       "files = " << run_dir << "/groups/*.conf\n";
+       "files = "
+    << run_dir << "/groups/*.conf\n";
   return s.str();
 }
 
@@ -259,7 +280,8 @@ std::string GroupConf(const config::Config& config, const config::LaunchGroup& g
     s << "\n[program:" << p.name() << "]\n"
       << "command=" << SupervisorEscape(Join(CommandLine(p, values, where), true)) << "\n"
       << "autostart=false\n"
-      << "autorestart=" << SupervisorAutorestart(r.autorestart()) << "\n"
+      << "autorestart=" << SupervisorAutorestart(r.autorestart())
+      << "\n"
       // supervisor takes whole seconds; a sub-second startsecs rounds up, so "started" never
       // means less than asked.
       << "startsecs=" << static_cast<int>(std::ceil(r.startsecs_s())) << "\n"
@@ -277,7 +299,8 @@ std::string GroupConf(const config::Config& config, const config::LaunchGroup& g
       for (int e = 0; e < p.env_size(); ++e) {
         const std::string& kv = p.env(e);
         const auto eq = kv.find('=');
-        std::string value = Expand(kv.substr(eq + 1), values, where + ".env[" + std::to_string(e) + "]");
+        std::string value =
+            Expand(kv.substr(eq + 1), values, where + ".env[" + std::to_string(e) + "]");
         std::string quoted;
         for (char c : value) {
           if (c == '"' || c == '\\') quoted += '\\';
@@ -295,9 +318,9 @@ std::string GroupConf(const config::Config& config, const config::LaunchGroup& g
     // One listener per group and host: it reports this group's processes only, so two groups on
     // one supervisord do not publish each other's events twice.
     std::vector<std::string> words = listener_command;
-    words.insert(words.end(), {"--group", group.name(), "--host-name", host,
-                               "--lcm-url", config.lcm_url(),
-                               "--channel", config.launch().process_state_channel()});
+    words.insert(words.end(),
+                 {"--group", group.name(), "--host-name", host, "--lcm-url", config.lcm_url(),
+                  "--channel", config.launch().process_state_channel()});
     s << "\n[eventlistener:" << group.name() << "-events]\n"
       << "command=" << SupervisorEscape(Join(words, true)) << "\n"
       << "events=PROCESS_STATE\n"
@@ -335,7 +358,8 @@ std::string SystemdUnit(const config::Config& /*config*/, const config::LaunchGr
   }
   // supervisor's startretries within a window: systemd's start limit, so a process that keeps
   // dying ends failed instead of restarting forever.
-  s << "StartLimitIntervalSec=" << static_cast<int>(std::ceil(60 + r.startsecs_s() * (r.startretries() + 1)))
+  s << "StartLimitIntervalSec="
+    << static_cast<int>(std::ceil(60 + r.startsecs_s() * (r.startretries() + 1)))
     << "\nStartLimitBurst=" << r.startretries() + 1 << "\n\n[Service]\n";
   s << "Type=" << (p.sd_notify() ? "notify" : "simple") << "\n";
   if (p.sd_notify()) s << "NotifyAccess=main\n";

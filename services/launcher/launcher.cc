@@ -89,8 +89,7 @@ std::optional<int> Launcher::Init() {
   }
   if (o_.lcm_url.empty()) o_.lcm_url = config_.lcm_url();
   if (!config_.has_launch() || config_.launch().group_size() == 0) {
-    std::cerr << "ftcal-launch: "
-              << (o_.config_path.empty() ? kDefaultConfigName : o_.config_path)
+    std::cerr << "ftcal-launch: " << (o_.config_path.empty() ? kDefaultConfigName : o_.config_path)
               << ": no launch groups (launch.group)\n";
     return kExitConfig;
   }
@@ -110,7 +109,8 @@ HostSupervisor& Launcher::Host(const std::string& name) {
   if (!slot) {
     const auto& h = FindHost(config_.launch(), name);
     std::vector<std::string> shell(h.shell().begin(), h.shell().end());
-    slot = std::make_unique<HostSupervisor>(name, shell, h.run_dir().empty() ? o_.run_dir : h.run_dir());
+    slot = std::make_unique<HostSupervisor>(name, shell,
+                                            h.run_dir().empty() ? o_.run_dir : h.run_dir());
   }
   return *slot;
 }
@@ -247,8 +247,8 @@ std::optional<int> Launcher::StartAndGate(const config::LaunchGroup& group,
       };
       const GateVerdict v = watcher.Await(gate, pid, status_name, gate_since, alive);
       if (!v.passed) {
-        std::cerr << "ftcal-launch: " << who << ": gate " << GateText(gate) << " failed: "
-                  << v.figure << "\n";
+        std::cerr << "ftcal-launch: " << who << ": gate " << GateText(gate)
+                  << " failed: " << v.figure << "\n";
         return kExitRefused;
       }
       std::cout << "  " << p.name() << ": gate " << GateText(gate) << " passed: " << v.figure
@@ -274,7 +274,8 @@ int Launcher::Up() {
       std::string names;
       for (int i : wave) {
         procs.push_back(&group.process(i));
-        names += (names.empty() ? "" : ", ") + group.process(i).host() + "/" + group.process(i).name();
+        names +=
+            (names.empty() ? "" : ", ") + group.process(i).host() + "/" + group.process(i).name();
       }
       if (auto rc = StartAndGate(group, procs, /*restart=*/false)) {
         std::cerr << "ftcal-launch: up " << group.name() << " stopped before the dependents of "
@@ -318,7 +319,8 @@ int Launcher::Down() {
       hs.RemoveFile("groups/" + group.name() + ".conf");
       if (hs.Status().empty()) {
         hs.Ctl({"shutdown"});
-        std::cout << "host " << h << ": group " << group.name() << " stopped, supervisord shut down\n";
+        std::cout << "host " << h << ": group " << group.name()
+                  << " stopped, supervisord shut down\n";
       } else {
         std::cout << "host " << h << ": group " << group.name() << " stopped\n";
       }
@@ -409,8 +411,8 @@ int Launcher::ExportSystemd() {
     // systemd's own run dir (RuntimeDirectory=ftcal in each unit); the config where a lab keeps
     // system-wide files unless the host names its copy.
     values.run_dir = host.run_dir().empty() ? "%t/ftcal" : host.run_dir();
-    values.config = host.config_path().empty() ? "/etc/ftcal/" + group.name() + ".pbtxt"
-                                               : host.config_path();
+    values.config =
+        host.config_path().empty() ? "/etc/ftcal/" + group.name() + ".pbtxt" : host.config_path();
     std::cout << "units read the config at " << values.config << " on host " << host.name() << "\n";
     int n = 0;
     for (const auto& p : group.process()) {

@@ -33,24 +33,28 @@ int main(int argc, char** argv) {
   ftcal::AddLogLevelOption(cli, &log_level);
   cli.require_subcommand(1);
 
-  auto* up = cli.add_subcommand("up", "write the hosts' supervisor files, start GROUP in order "
-                                      "behind its health gates");
+  auto* up = cli.add_subcommand("up",
+                                "write the hosts' supervisor files, start GROUP in order "
+                                "behind its health gates");
   up->add_option("group", o.group, "launch group name")->required();
-  auto* down = cli.add_subcommand("down", "stop GROUP (reverse order) and remove it; a host's "
-                                          "supervisord with nothing left is shut down");
+  auto* down = cli.add_subcommand("down",
+                                  "stop GROUP (reverse order) and remove it; a host's "
+                                  "supervisord with nothing left is shut down");
   down->add_option("group", o.group, "launch group name")->required();
   auto* restart = cli.add_subcommand("restart", "restart one process and wait for its gates");
   restart->add_option("name", o.process, "process name")->required();
   restart->add_option("--group", o.group, "its group, when the name is in several");
-  auto* status = cli.add_subcommand("status", "every host's supervisor state of the group's "
-                                              "processes, with their heartbeats");
+  auto* status = cli.add_subcommand("status",
+                                    "every host's supervisor state of the group's "
+                                    "processes, with their heartbeats");
   status->add_option("group", o.group, "launch group name (default: every group)");
   status->add_option("--listen", o.listen_s, "seconds to listen for heartbeats")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
-  auto* systemd = cli.add_subcommand(
-      "export-systemd", "write one systemd unit per process of GROUP on HOST (Type=notify, "
-                        "Restart=, WatchdogSec=, MemoryMax=) into --out");
+  auto* systemd =
+      cli.add_subcommand("export-systemd",
+                         "write one systemd unit per process of GROUP on HOST (Type=notify, "
+                         "Restart=, WatchdogSec=, MemoryMax=) into --out");
   systemd->add_option("group", o.group, "launch group name")->required();
   systemd->add_option("--host", o.host, "the host whose processes to export")->required();
   systemd->add_option("--out", o.out_dir, "directory to write the units into")->required();

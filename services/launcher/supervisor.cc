@@ -49,7 +49,8 @@ CommandResult RunShell(const std::vector<std::string>& shell, const std::string&
   args.push_back(nullptr);
 
   int in_pipe[2], out_pipe[2];
-  if (::pipe2(in_pipe, O_CLOEXEC) != 0) throw std::runtime_error(std::string("pipe: ") + std::strerror(errno));
+  if (::pipe2(in_pipe, O_CLOEXEC) != 0)
+    throw std::runtime_error(std::string("pipe: ") + std::strerror(errno));
   if (::pipe2(out_pipe, O_CLOEXEC) != 0) {
     ::close(in_pipe[0]);
     ::close(in_pipe[1]);
@@ -131,8 +132,8 @@ std::map<std::string, ProgramStatus> ParseStatus(const std::string& output) {
     std::istringstream words(line);
     std::string name, state;
     if (!(words >> name >> state)) continue;
-    static const char* kStates[] = {"STOPPED", "STARTING", "RUNNING", "BACKOFF",
-                                    "STOPPING", "EXITED",  "FATAL",   "UNKNOWN"};
+    static const char* kStates[] = {"STOPPED",  "STARTING", "RUNNING", "BACKOFF",
+                                    "STOPPING", "EXITED",   "FATAL",   "UNKNOWN"};
     bool known = false;
     for (const char* s : kStates) known = known || state == s;
     if (!known) continue;  // "unix:///...: no such file" and other complaints
@@ -156,8 +157,8 @@ HostSupervisor::HostSupervisor(std::string host, std::vector<std::string> shell,
 const std::string& HostSupervisor::run_dir() {
   if (!run_dir_.empty()) return run_dir_;
   const std::string q = "\"" + DoubleQuoteBody(run_dir_spec_) + "\"";
-  const auto r = RunShell(shell_, "umask 077 && mkdir -p " + q + "/groups " + q + "/logs && cd " +
-                                      q + " && pwd -P");
+  const auto r = RunShell(
+      shell_, "umask 077 && mkdir -p " + q + "/groups " + q + "/logs && cd " + q + " && pwd -P");
   const std::string dir = Trim(r.output);
   if (r.exit_code != 0 || dir.empty() || dir[0] != '/' || dir.find('\n') != std::string::npos) {
     throw std::runtime_error("host '" + host_ + "': cannot make the run dir '" + run_dir_spec_ +
@@ -171,8 +172,9 @@ void HostSupervisor::WriteFile(const std::string& relative, const std::string& c
   const std::string path = run_dir() + "/" + relative;
   // Temporary beside the target, renamed over it: supervisord never reads half a file.
   const std::string tmp = path + ".tmp." + std::to_string(::getpid());
-  const auto r = RunShell(shell_, "umask 077 && cat > " + ShellQuote(tmp) + " && mv -f " +
-                                      ShellQuote(tmp) + " " + ShellQuote(path),
+  const auto r = RunShell(shell_,
+                          "umask 077 && cat > " + ShellQuote(tmp) + " && mv -f " + ShellQuote(tmp) +
+                              " " + ShellQuote(path),
                           content);
   if (r.exit_code != 0) {
     RunShell(shell_, "rm -f " + ShellQuote(tmp));
@@ -206,8 +208,9 @@ void HostSupervisor::EnsureRunning(double timeout_s) {
   if (Alive()) return;
   // The daemon must not keep our pipe open: its early complaints go to a file we then print.
   const std::string start_log = ShellQuote(run_dir() + "/supervisord.start.log");
-  const auto r = RunShell(shell_, "supervisord -c " + ShellQuote(conf_path()) + " </dev/null >" +
-                                      start_log + " 2>&1; rc=$?; cat " + start_log + "; exit $rc",
+  const auto r = RunShell(shell_,
+                          "supervisord -c " + ShellQuote(conf_path()) + " </dev/null >" +
+                              start_log + " 2>&1; rc=$?; cat " + start_log + "; exit $rc",
                           "", 30);
   if (r.exit_code != 0) {
     throw std::runtime_error("host '" + host_ + "': supervisord -c " + conf_path() +

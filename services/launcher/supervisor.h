@@ -25,9 +25,10 @@ CommandResult RunShell(const std::vector<std::string>& shell, const std::string&
                        const std::string& input = "", double timeout_s = 60);
 
 struct ProgramStatus {
-  std::string state;   // STOPPED STARTING RUNNING BACKOFF STOPPING EXITED FATAL UNKNOWN
-  int64_t pid = 0;     // when RUNNING
-  std::string detail;  // the rest of supervisorctl's line: "pid 12, uptime 0:00:05", "Exited too quickly"
+  std::string state;  // STOPPED STARTING RUNNING BACKOFF STOPPING EXITED FATAL UNKNOWN
+  int64_t pid = 0;    // when RUNNING
+  std::string
+      detail;  // the rest of supervisorctl's line: "pid 12, uptime 0:00:05", "Exited too quickly"
 };
 
 // Parses `supervisorctl status` output: "group:name   STATE   detail" per line, keyed by

@@ -71,10 +71,10 @@ MocapBridge::MocapBridge(MocapBridgeOptions options, ServiceStats& stats, Publis
       now_utime_(std::move(now_utime)),
       next_connect_(Clock::now()),
       backoff_s_(options_.backoff_min_s) {
-  for (const char* name : {"frames", "published", "untracked", "frame_gaps", "frames_lost",
-                           "frame_restarts", "duplicates", "decode_errors", "stream_errors",
-                           "no_more_data", "events", "parameter_reads", "connects",
-                           "disconnects", "timeouts"}) {
+  for (const char* name :
+       {"frames", "published", "untracked", "frame_gaps", "frames_lost", "frame_restarts",
+        "duplicates", "decode_errors", "stream_errors", "no_more_data", "events", "parameter_reads",
+        "connects", "disconnects", "timeouts"}) {
     stats_.Counter(name);  // present in the heartbeat from the start, at zero
   }
   read_buffer_.resize(64 * 1024);
@@ -86,12 +86,18 @@ MocapBridge::~MocapBridge() {
 
 std::string MocapBridge::LinkName(Link link) {
   switch (link) {
-    case Link::kDisconnected: return "disconnected";
-    case Link::kConnecting: return "connecting";
-    case Link::kWelcome: return "awaiting welcome";
-    case Link::kVersion: return "awaiting version";
-    case Link::kParameters: return "awaiting parameters";
-    case Link::kStreaming: return "streaming";
+    case Link::kDisconnected:
+      return "disconnected";
+    case Link::kConnecting:
+      return "connecting";
+    case Link::kWelcome:
+      return "awaiting welcome";
+    case Link::kVersion:
+      return "awaiting version";
+    case Link::kParameters:
+      return "awaiting parameters";
+    case Link::kStreaming:
+      return "streaming";
   }
   return "?";
 }
@@ -107,9 +113,8 @@ short MocapBridge::poll_events() const {
 
 int MocapBridge::TimerDueMs() const {
   if (link_ == Link::kDisconnected) {
-    const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(next_connect_ -
-                                                                          Clock::now())
-                        .count();
+    const auto ms =
+        std::chrono::duration_cast<std::chrono::milliseconds>(next_connect_ - Clock::now()).count();
     return static_cast<int>(std::clamp<int64_t>(ms + 1, 0, 100));
   }
   return 20;  // timeouts and silence are judged on this grain
@@ -122,8 +127,8 @@ std::string MocapBridge::health_reason() const {
   if (link_ != Link::kStreaming) return "QTM link " + LinkName(link_);
   if (shutting_down_) return "QTM is shutting down";
   if (no_more_data_) return "No More Data: QTM is not capturing";
-  if (silent_) return "no frame from QTM for more than " +
-                      std::to_string(options_.silence_degraded_s) + " s";
+  if (silent_)
+    return "no frame from QTM for more than " + std::to_string(options_.silence_degraded_s) + " s";
   if (!got_frame_) return "no frame yet";
   return "";
 }
@@ -210,8 +215,8 @@ void MocapBridge::Disconnect(const std::string& why, bool count_as_failure) {
       stats_.Error("qtm connection lost", why);
     }
   } else if (count_as_failure) {
-    stats_.Error("qtm connect failed", options_.address + ":" + std::to_string(options_.port) +
-                                           ": " + why);
+    stats_.Error("qtm connect failed",
+                 options_.address + ":" + std::to_string(options_.port) + ": " + why);
   }
   link_ = Link::kDisconnected;
   have_parameters_ = false;
@@ -321,7 +326,8 @@ void MocapBridge::OnReady(short revents) {
     if (n < 0 && errno == EINTR) continue;
     if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) break;
     closed = true;
-    close_reason = n == 0 ? "QTM closed the connection" : std::string("recv: ") + std::strerror(errno);
+    close_reason =
+        n == 0 ? "QTM closed the connection" : std::string("recv: ") + std::strerror(errno);
     break;
   }
   // What arrived before a close still counts (QTM announces its shutdown, then closes).
@@ -529,11 +535,12 @@ void MocapBridge::HandleData(const qtm::Packet& packet) {
     // Not NaN yet not a pose: the bytes are damaged; never publish them as a value.
     if (!AllFinite(body.p_GoBo_G_mm) || !body.R_GB.allFinite() ||
         OrthonormalityError(body.R_GB) > kMaxOrthonormalityError ||
-        !(std::isnan(body.residual_mm) || (std::isfinite(body.residual_mm) && body.residual_mm >= 0))) {
+        !(std::isnan(body.residual_mm) ||
+          (std::isfinite(body.residual_mm) && body.residual_mm >= 0))) {
       ++stats_.Counter("decode_errors");
-      stats_.Drop("QTM pose not a rigid motion", where + ": non-finite values or a rotation " +
-                                                     "off SO(3) by " +
-                                                     std::to_string(OrthonormalityError(body.R_GB)));
+      stats_.Drop("QTM pose not a rigid motion",
+                  where + ": non-finite values or a rotation " + "off SO(3) by " +
+                      std::to_string(OrthonormalityError(body.R_GB)));
       return;
     }
   }

@@ -37,9 +37,9 @@ struct MocapBridgeOptions {
   uint16_t port = qtm::kLittleEndianPort;
   std::string protocol_version = "1.25";  // at least 1.21: the 6D XML layout the codec reads
   std::string body_name = "chassis";
-  double reply_timeout_s = 2.0;     // welcome, Version and GetParameters answers
-  double silence_degraded_s = 0.5;  // streaming with no packet this long: DEGRADED
-  double silence_reconnect_s = 5.0; // ... this long: reconnect
+  double reply_timeout_s = 2.0;      // welcome, Version and GetParameters answers
+  double silence_degraded_s = 0.5;   // streaming with no packet this long: DEGRADED
+  double silence_reconnect_s = 5.0;  // ... this long: reconnect
   double backoff_min_s = 0.05;
   double backoff_max_s = 1.0;
 };
@@ -107,15 +107,15 @@ class MocapBridge {
   int fd_ = -1;
   Link link_ = Link::kDisconnected;
   qtm::Deframer deframer_;
-  Clock::time_point link_since_;        // when the current link state began
-  Clock::time_point last_packet_;       // last packet of any kind from the server
+  Clock::time_point link_since_;   // when the current link state began
+  Clock::time_point last_packet_;  // last packet of any kind from the server
   Clock::time_point next_connect_;
   double backoff_s_;
   bool reconnect_now_ = false;
 
   // Parameters of the current connection.
   bool have_parameters_ = false;
-  bool parameters_pending_ = false;     // a GetParameters is outstanding
+  bool parameters_pending_ = false;  // a GetParameters is outstanding
   Clock::time_point parameters_requested_at_;
   int num_bodies_ = 0;
   std::optional<Clock::time_point> retry_parameters_at_;
@@ -127,7 +127,7 @@ class MocapBridge {
   bool no_more_data_ = false;
   bool shutting_down_ = false;
   bool silent_ = false;
-  bool got_frame_ = false;              // a frame arrived on this connection
+  bool got_frame_ = false;  // a frame arrived on this connection
   std::string parameters_problem_;
 
   std::optional<int32_t> last_frame_;

@@ -48,9 +48,7 @@ bool Finite(const natnet::Vec3f& v) {
 MotiveFrames::MotiveFrames(UpAxis up, const Pose3& X_PC) : X_PC_(X_PC) {
   if (up == UpAxis::kY) {
     // Rx(+90°): y_Y -> z_G, z_Y -> -y_G.
-    R_GM_ << 1, 0, 0,
-             0, 0, -1,
-             0, 1, 0;
+    R_GM_ << 1, 0, 0, 0, 0, -1, 0, 1, 0;
   } else {
     R_GM_.setIdentity();
   }
@@ -68,9 +66,7 @@ MotiveFrames MotiveFrames::FromConfig(const config::NatNet& n) {
   return MotiveFrames(up, n.has_x_pivot_chassis() ? ToPose3(n.x_pivot_chassis()) : Pose3());
 }
 
-Vec3 MotiveFrames::Point(const natnet::Vec3f& p) const {
-  return R_GM_ * Vec3(p[0], p[1], p[2]);
-}
+Vec3 MotiveFrames::Point(const natnet::Vec3f& p) const { return R_GM_ * Vec3(p[0], p[1], p[2]); }
 
 Mat3 MotiveFrames::Rotation(const natnet::Quatf& q) const {
   // Wire order x, y, z, w; QuaternionToRotation takes (w, x, y, z).
@@ -89,8 +85,9 @@ NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap) {
   const config::NatNet& n = mocap.natnet();
   NatNetBridgeOptions o;
   if (mocap.system() != config::OPTITRACK) {
-    throw NatNetConfigError("config mocap.system is not OPTITRACK: this config runs "
-                            "ftcal-mocap-bridge (Qualisys), not ftcal-natnet-bridge");
+    throw NatNetConfigError(
+        "config mocap.system is not OPTITRACK: this config runs "
+        "ftcal-mocap-bridge (Qualisys), not ftcal-natnet-bridge");
   }
   o.address = n.server_address();
   if (o.address.empty()) throw NatNetConfigError("config mocap.natnet.server_address is empty");
@@ -121,8 +118,9 @@ NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap) {
                               "': the bridge reads NatNet 3.x and 4.x");
     }
     if (o.multicast) {
-      throw NatNetConfigError("config mocap.natnet.bitstream_version: only a unicast client can "
-                              "choose the bitstream (set multicast: false or leave it empty)");
+      throw NatNetConfigError(
+          "config mocap.natnet.bitstream_version: only a unicast client can "
+          "choose the bitstream (set multicast: false or leave it empty)");
     }
     o.bitstream = v;
   }
@@ -151,12 +149,15 @@ NatNetBridge::NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, Pub
       now_utime_(std::move(now_utime)),
       next_connect_(Clock::now()),
       backoff_s_(options_.backoff_min_s) {
-  for (const char* name :
-       {"frames", "published", "untracked", "frame_gaps", "frames_lost", "frame_restarts",
-        "duplicates", "decode_errors", "edit_mode_frames", "model_changes", "description_reads",
-        "bitstream_changes", "body_missing", "connects", "probes", "server_lost", "not_streaming",
-        "keepalives", "timeouts", "foreign_packets", "unknown_messages", "clock_fallbacks",
-        "clock_resyncs", "system_latency_us", "transit_us"}) {
+  for (const char* name : {"frames",          "published",         "untracked",
+                           "frame_gaps",      "frames_lost",       "frame_restarts",
+                           "duplicates",      "decode_errors",     "edit_mode_frames",
+                           "model_changes",   "description_reads", "bitstream_changes",
+                           "body_missing",    "connects",          "probes",
+                           "server_lost",     "not_streaming",     "keepalives",
+                           "timeouts",        "foreign_packets",   "unknown_messages",
+                           "clock_fallbacks", "clock_resyncs",     "system_latency_us",
+                           "transit_us"}) {
     stats_.Counter(name);
   }
   server_ip_ = Ipv4(options_.address, "mocap.natnet.server_address");
@@ -168,10 +169,14 @@ NatNetBridge::~NatNetBridge() { CloseSockets(); }
 
 std::string NatNetBridge::LinkName(Link link) {
   switch (link) {
-    case Link::kDisconnected: return "disconnected";
-    case Link::kAwaitInfo: return "awaiting SERVERINFO";
-    case Link::kAwaitDescriptions: return "awaiting descriptions";
-    case Link::kStreaming: return "streaming";
+    case Link::kDisconnected:
+      return "disconnected";
+    case Link::kAwaitInfo:
+      return "awaiting SERVERINFO";
+    case Link::kAwaitDescriptions:
+      return "awaiting descriptions";
+    case Link::kStreaming:
+      return "streaming";
   }
   return "?";
 }
@@ -181,7 +186,8 @@ double NatNetBridge::SecondsSince(Clock::time_point t) const {
 }
 
 NatNetBridge::Clock::time_point NatNetBridge::After(double s) const {
-  return Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
+  return Clock::now() +
+         std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
 }
 
 void NatNetBridge::OpenSockets() {
@@ -209,8 +215,8 @@ void NatNetBridge::OpenSockets() {
   data.sin_addr.s_addr = htonl(INADDR_ANY);
   data.sin_port = htons(options_.data_port);
   if (::bind(data_fd_, reinterpret_cast<sockaddr*>(&data), sizeof data) != 0) {
-    throw NatNetConfigError("binding the data socket to port " + std::to_string(options_.data_port) +
-                            ": " + std::strerror(errno));
+    throw NatNetConfigError("binding the data socket to port " +
+                            std::to_string(options_.data_port) + ": " + std::strerror(errno));
   }
   ip_mreq m{};
   m.imr_multiaddr.s_addr = Ipv4(options_.multicast_group, "mocap.natnet.multicast_group");
@@ -315,7 +321,8 @@ void NatNetBridge::Drain(int fd) {
       ++stats_.Counter("foreign_packets");
       char ip[INET_ADDRSTRLEN] = {};
       ::inet_ntop(AF_INET, &from.sin_addr, ip, sizeof ip);
-      stats_.Drop("natnet datagram from another host", std::string(ip) + " is not " + options_.address);
+      stats_.Drop("natnet datagram from another host",
+                  std::string(ip) + " is not " + options_.address);
       continue;
     }
     try {
@@ -326,10 +333,18 @@ void NatNetBridge::Drain(int fd) {
       continue;
     }
     switch (packet.id) {
-      case natnet::kServerInfo: HandleServerInfo(packet); break;
-      case natnet::kModelDef: HandleDescriptions(packet); break;
-      case natnet::kFrameOfData: HandleFrame(packet, receive_us); break;
-      case natnet::kResponse: HandleResponse(packet); break;
+      case natnet::kServerInfo:
+        HandleServerInfo(packet);
+        break;
+      case natnet::kModelDef:
+        HandleDescriptions(packet);
+        break;
+      case natnet::kFrameOfData:
+        HandleFrame(packet, receive_us);
+        break;
+      case natnet::kResponse:
+        HandleResponse(packet);
+        break;
       case natnet::kMessageString:
         stats_.log().info("Motive says: {}", natnet::DecodeString(packet.payload));
         break;
@@ -358,11 +373,16 @@ void NatNetBridge::HandleDatagram(const uint8_t* data, size_t size, bool from_se
     return;
   }
   switch (packet.id) {
-    case natnet::kServerInfo: return HandleServerInfo(packet);
-    case natnet::kModelDef: return HandleDescriptions(packet);
-    case natnet::kFrameOfData: return HandleFrame(packet, now_utime_());
-    case natnet::kResponse: return HandleResponse(packet);
-    default: return;
+    case natnet::kServerInfo:
+      return HandleServerInfo(packet);
+    case natnet::kModelDef:
+      return HandleDescriptions(packet);
+    case natnet::kFrameOfData:
+      return HandleFrame(packet, now_utime_());
+    case natnet::kResponse:
+      return HandleResponse(packet);
+    default:
+      return;
   }
 }
 
@@ -580,7 +600,7 @@ int64_t NatNetBridge::SampleUtime(const natnet::FrameOfData& f, int64_t receive_
   const double offset = offset_window_.front().second;
   // Mid-exposure is the sample time (the photons' average age, §5.3); 0 when Motive does not
   // know it (USB cameras, playback): the camera data's arrival, else the transmit time.
-  const uint64_t sample_ticks = f.mid_exposure_ticks != 0   ? f.mid_exposure_ticks
+  const uint64_t sample_ticks = f.mid_exposure_ticks != 0    ? f.mid_exposure_ticks
                                 : f.data_received_ticks != 0 ? f.data_received_ticks
                                                              : f.transmit_ticks;
   const double sample_us = us(sample_ticks) + offset;
@@ -677,8 +697,8 @@ void NatNetBridge::HandleFrame(const natnet::Packet& p, int64_t receive_us) {
   const bool tracked = body->tracked();
   if (tracked) {
     const auto& q = body->orientation;
-    const double norm = std::sqrt(double(q[0]) * q[0] + double(q[1]) * q[1] +
-                                  double(q[2]) * q[2] + double(q[3]) * q[3]);
+    const double norm = std::sqrt(double(q[0]) * q[0] + double(q[1]) * q[1] + double(q[2]) * q[2] +
+                                  double(q[3]) * q[3]);
     if (!Finite(body->position) || !std::isfinite(norm) ||
         std::abs(norm - 1.0) > kMaxQuaternionNormError || !std::isfinite(body->mean_error) ||
         body->mean_error < 0) {

@@ -52,8 +52,8 @@ class MotiveFrames {
   // Throws NatNetConfigError for an up_axis other than "Y"/"Z".
   static MotiveFrames FromConfig(const config::NatNet& n);
 
-  Vec3 Point(const natnet::Vec3f& p_motive) const;      // a position in G
-  Mat3 Rotation(const natnet::Quatf& q_xyzw) const;     // R_GP (quaternion normalised)
+  Vec3 Point(const natnet::Vec3f& p_motive) const;   // a position in G
+  Mat3 Rotation(const natnet::Quatf& q_xyzw) const;  // R_GP (quaternion normalised)
   // The chassis pose from the rigid body's pose: R_GC and p_GoCo_G.
   Pose3 Chassis(const natnet::Vec3f& p, const natnet::Quatf& q_xyzw) const;
   const Mat3& R_GM() const { return R_GM_; }  // Motive's world axes into G
@@ -73,13 +73,13 @@ struct NatNetBridgeOptions {
   std::optional<natnet::Version> bitstream;  // unicast: asked for in NAT_CONNECT
   std::string body_name = "chassis";
   MotiveFrames::UpAxis up_axis = MotiveFrames::UpAxis::kY;
-  Pose3 X_PC;                       // chassis in the pivot frame
+  Pose3 X_PC;  // chassis in the pivot frame
   double keepalive_s = 1.0;
-  double reply_timeout_s = 1.0;     // SERVERINFO and MODELDEF answers
-  double silence_s = 0.5;           // no frame this long: DEGRADED, and probe the server
+  double reply_timeout_s = 1.0;  // SERVERINFO and MODELDEF answers
+  double silence_s = 0.5;        // no frame this long: DEGRADED, and probe the server
   double backoff_min_s = 0.05;
   double backoff_max_s = 1.0;
-  double clock_window_s = 5.0;      // the minimum-transit window of the clock offset
+  double clock_window_s = 5.0;  // the minimum-transit window of the clock offset
 };
 
 // From the config's mocap section (body_name, natnet). Throws NatNetConfigError naming the field.
@@ -151,11 +151,11 @@ class NatNetBridge {
   uint32_t server_ip_ = 0;  // network order
   Link link_ = Link::kDisconnected;
   Clock::time_point next_connect_;
-  Clock::time_point sent_at_;          // the outstanding request (CONNECT or MODELDEF)
+  Clock::time_point sent_at_;  // the outstanding request (CONNECT or MODELDEF)
   Clock::time_point next_keepalive_;
   Clock::time_point last_frame_at_;
   double backoff_s_;
-  bool probing_ = false;               // silent: a CONNECT is out to see whether Motive is up
+  bool probing_ = false;  // silent: a CONNECT is out to see whether Motive is up
   bool server_up_not_streaming_ = false;
   bool descriptions_pending_ = false;
   bool got_frame_ = false;
@@ -164,7 +164,7 @@ class NatNetBridge {
   natnet::ServerInfo server_;
   natnet::Version version_{0, 0};
   std::optional<int32_t> body_id_;
-  std::vector<int32_t> marker_ids_;    // labeled-marker ids of the body's members
+  std::vector<int32_t> marker_ids_;  // labeled-marker ids of the body's members
   std::string descriptions_problem_;
   std::optional<Clock::time_point> retry_descriptions_at_;
 

@@ -111,8 +111,8 @@ void ReadSection(Reader& r, Version v, const std::string& name, std::vector<Reco
   if (v.AtLeast(4, 1)) {
     bytes = r.Get<int32_t>(name + " byte count");
     if (*bytes < 0 || static_cast<size_t>(*bytes) > r.left()) {
-      r.Fail(name + " byte count", std::to_string(*bytes) + " with " + std::to_string(r.left()) +
-                                       " bytes left");
+      r.Fail(name + " byte count",
+             std::to_string(*bytes) + " with " + std::to_string(r.left()) + " bytes left");
     }
   }
   const size_t start = r.at();
@@ -310,9 +310,8 @@ Packet DecodePacket(const uint8_t* data, size_t size) {
   std::memcpy(&p.id, data, 2);
   std::memcpy(&n, data + 2, 2);
   if (size != n + kHeaderBytes) {
-    throw NatNetError("message " + std::to_string(p.id) + ": datagram of " +
-                      std::to_string(size) + " bytes, header says " + std::to_string(n) +
-                      " + 4 (truncated or padded)");
+    throw NatNetError("message " + std::to_string(p.id) + ": datagram of " + std::to_string(size) +
+                      " bytes, header says " + std::to_string(n) + " + 4 (truncated or padded)");
   }
   p.payload.assign(data + kHeaderBytes, data + size);
   return p;
@@ -430,8 +429,8 @@ Descriptions DecodeDescriptions(const std::vector<uint8_t>& payload, Version v) 
     if (v.AtLeast(4, 1)) {
       const int32_t bytes = r.Get<int32_t>(where + " byte count");
       if (bytes < 0 || static_cast<size_t>(bytes) > r.left()) {
-        r.Fail(where + " byte count", std::to_string(bytes) + " with " + std::to_string(r.left()) +
-                                          " bytes left");
+        r.Fail(where + " byte count",
+               std::to_string(bytes) + " with " + std::to_string(r.left()) + " bytes left");
       }
       size = static_cast<size_t>(bytes);
     }
@@ -513,14 +512,15 @@ FrameOfData DecodeFrame(const std::vector<uint8_t>& payload, Version v) {
   Reader r(payload, "NAT_FRAMEOFDATA (NatNet " + v.ToString() + ")");
   FrameOfData f;
   f.frame_number = r.Get<int32_t>("frame number");
-  ReadSection<MarkerSetData>(r, v, "marker set", f.marker_sets, [](Reader& r, const std::string& w) {
-    MarkerSetData m;
-    m.name = r.CString(w + " name");
-    const int32_t n = r.Count(w + " marker count");
-    r.Need(static_cast<size_t>(n) * 12, w + " markers");
-    for (int32_t i = 0; i < n; ++i) m.markers.push_back(r.Vec3(w));
-    return m;
-  });
+  ReadSection<MarkerSetData>(r, v, "marker set", f.marker_sets,
+                             [](Reader& r, const std::string& w) {
+                               MarkerSetData m;
+                               m.name = r.CString(w + " name");
+                               const int32_t n = r.Count(w + " marker count");
+                               r.Need(static_cast<size_t>(n) * 12, w + " markers");
+                               for (int32_t i = 0; i < n; ++i) m.markers.push_back(r.Vec3(w));
+                               return m;
+                             });
   ReadSection<Vec3f>(r, v, "unlabeled marker", f.other_markers,
                      [](Reader& r, const std::string& w) { return r.Vec3(w); });
   ReadSection<RigidBodyData>(r, v, "rigid body", f.rigid_bodies, ReadRigidBody);

@@ -129,11 +129,11 @@ struct MarkerSetDescription {
 
 struct RigidBodyDescription {
   std::string name;
-  int32_t id = 0;                   // the streaming id frames carry
+  int32_t id = 0;  // the streaming id frames carry
   int32_t parent_id = -1;
-  Vec3f offset{0, 0, 0};            // relative to the parent (skeleton bones)
-  Quatf rotation_offset{0, 0, 0, 1};  // v >= 4.2
-  std::vector<Vec3f> marker_positions;   // v >= 3.0, body (pivot) frame
+  Vec3f offset{0, 0, 0};                // relative to the parent (skeleton bones)
+  Quatf rotation_offset{0, 0, 0, 1};    // v >= 4.2
+  std::vector<Vec3f> marker_positions;  // v >= 3.0, body (pivot) frame
   std::vector<int32_t> marker_required_labels;
   std::vector<std::string> marker_names;  // v >= 4.0
 };
@@ -233,11 +233,11 @@ struct FrameOfData {
   std::vector<AnalogData> devices;
   uint32_t timecode = 0;
   uint32_t timecode_subframe = 0;
-  double timestamp_s = 0;          // since Motive started
-  uint64_t mid_exposure_ticks = 0; // 0 when unavailable
+  double timestamp_s = 0;           // since Motive started
+  uint64_t mid_exposure_ticks = 0;  // 0 when unavailable
   uint64_t data_received_ticks = 0;
   uint64_t transmit_ticks = 0;
-  uint32_t precision_s = 0;        // v >= 4.1
+  uint32_t precision_s = 0;  // v >= 4.1
   uint32_t precision_fraction = 0;
   int16_t params = 0;
 

@@ -9,22 +9,26 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
       bus_(bus),
       inputs_(config),
       segmenter_options_(SegmenterOptionsFromConfig(config.segmenter())),
-      aligner_(AlignerOptionsFromConfig(config),
-               [this](const AlignedSample& s) { OnAligned(s); }) {
+      aligner_(AlignerOptionsFromConfig(config), [this](const AlignedSample& s) { OnAligned(s); }) {
   ServiceStats& st = bus.stats();
-  counters_ = {&st.Counter("sync_samples"),      &st.Counter("standing_samples"),
-               &st.Counter("poses"),             &st.Counter("drop_out_of_order"),
-               &st.Counter("drop_non_finite"),   &st.Counter("drop_stale_servo"),
-               &st.Counter("servo_held"),        &st.Counter("attitude_not_ok"),
-               &st.Counter("pose_dropped_short"), &st.Counter("pose_dropped_markers"),
+  counters_ = {&st.Counter("sync_samples"),
+               &st.Counter("standing_samples"),
+               &st.Counter("poses"),
+               &st.Counter("drop_out_of_order"),
+               &st.Counter("drop_non_finite"),
+               &st.Counter("drop_stale_servo"),
+               &st.Counter("servo_held"),
+               &st.Counter("attitude_not_ok"),
+               &st.Counter("pose_dropped_short"),
+               &st.Counter("pose_dropped_markers"),
                &st.Counter("window_resets")};
   // Fail at start, not at the first STANDING marker, on options the segmenter refuses.
   PoseSegmenter check(segmenter_options_, nullptr);
 
   const auto& ch = config.channels();
-  inputs_.Subscribe(bus, {[this](const FtInput& in) { OnFt(in); },
-                          [this](const ServoInput& in) { OnServo(in); },
-                          [this](const MocapInput& in) { OnMocap(in); }});
+  inputs_.Subscribe(
+      bus, {[this](const FtInput& in) { OnFt(in); }, [this](const ServoInput& in) { OnServo(in); },
+            [this](const MocapInput& in) { OnMocap(in); }});
   // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
   // signature and the rising sequence still hold.
   bus.SubscribeSigned<experiment_marker_t>(
@@ -33,7 +37,8 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
   PublishCounters();
 }
 
-void PoseSegmenterStage::CountAlignerDrop(const std::string& stream, const AlignerCounters& before) {
+void PoseSegmenterStage::CountAlignerDrop(const std::string& stream,
+                                          const AlignerCounters& before) {
   const AlignerCounters& now = aligner_.counters();
   if (now.non_finite > before.non_finite) {
     bus_.stats().Drop("non-finite " + stream, "NaN or inf in the message's numbers");
@@ -75,8 +80,8 @@ void PoseSegmenterStage::OnExperiment(const experiment_marker_t& msg) {
   if (standing_start) {
     if (msg.session_id != session_id_) pose_index_ = 0;
     session_id_ = msg.session_id;
-    segmenter_ = std::make_unique<PoseSegmenter>(
-        segmenter_options_, [this](const SteadyPoseOut& p) { OnPose(p); });
+    segmenter_ = std::make_unique<PoseSegmenter>(segmenter_options_,
+                                                 [this](const SteadyPoseOut& p) { OnPose(p); });
   }
   PublishCounters();
 }

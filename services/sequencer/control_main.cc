@@ -26,9 +26,12 @@ int main(int argc, char** argv) {
        /*replayable=*/false});
   std::string action, signing_key, note;
   int step = -1;
-  app.cli().add_option("action", action, "confirm or stop")->required()->check(
-      CLI::IsMember({"confirm", "stop"}));
-  app.cli().add_option("--step", step, "confirm only this step (-1: whatever waits)")
+  app.cli()
+      .add_option("action", action, "confirm or stop")
+      ->required()
+      ->check(CLI::IsMember({"confirm", "stop"}));
+  app.cli()
+      .add_option("--step", step, "confirm only this step (-1: whatever waits)")
       ->capture_default_str();
   app.cli().add_option("--note", note, "free text the sequencer logs");
   app.cli().add_option("--signing-key", signing_key,
@@ -38,8 +41,8 @@ int main(int argc, char** argv) {
 
   ftcal::sequencer_control_t msg;
   msg.utime = app.bus().NowUtime();
-  msg.action = action == "confirm" ? ftcal::sequencer_control_t::CONFIRM
-                                   : ftcal::sequencer_control_t::STOP;
+  msg.action =
+      action == "confirm" ? ftcal::sequencer_control_t::CONFIRM : ftcal::sequencer_control_t::STOP;
   msg.step = step;
   msg.note = note;
   const std::string& channel = app.config().channels().sequencer_control();
@@ -54,7 +57,6 @@ int main(int argc, char** argv) {
     app.log().critical("{}", ftcal::UserText(e, "sending the request"));
     return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
-  app.log().info("{} sent on {}{}", action, channel,
-                 signing_key.empty() ? " (unsigned)" : "");
+  app.log().info("{} sent on {}{}", action, channel, signing_key.empty() ? " (unsigned)" : "");
   return 0;
 }

@@ -34,9 +34,11 @@ int main(int argc, char** argv) {
        "plan cannot run.",
        /*replayable=*/false});
   ftcal::sequencer::Sequencer::Options options;
-  app.cli().add_option("--plan", options.plan_name, "experiment plan by name (default: the config's first)");
-  app.cli().add_flag("--yes", options.yes,
-                     "confirm every step that asks the operator (unattended plans that need no re-hanging)");
+  app.cli().add_option("--plan", options.plan_name,
+                       "experiment plan by name (default: the config's first)");
+  app.cli().add_flag(
+      "--yes", options.yes,
+      "confirm every step that asks the operator (unattended plans that need no re-hanging)");
   app.cli().add_option("--progress", options.progress_file,
                        "progress file for resuming (default: sequencer.progress_file)");
   app.cli().add_option("--session", options.session_id, "session id for the EXPERIMENT markers");
@@ -68,9 +70,8 @@ int main(int argc, char** argv) {
 
   // The terminal answers prompts: any line confirms the waiting step.
   std::atomic<int> lines{0};
-  seq->OnPrompt([](const std::string& prompt) {
-    std::cout << prompt << " [press Enter]" << std::endl;
-  });
+  seq->OnPrompt(
+      [](const std::string& prompt) { std::cout << prompt << " [press Enter]" << std::endl; });
   std::thread([&lines] {
     std::string line;
     while (std::getline(std::cin, line)) ++lines;
@@ -95,7 +96,7 @@ int main(int argc, char** argv) {
   }
   if (rc != 0) return rc;
   if (seq->state() == ftcal::sequencer::Sequencer::State::kDone) return kDone;
-  app.log().error("plan '{}' stopped at step {}: {}", seq->schedule().plan_name,
-                  seq->step_index(), seq->stop_reason());
+  app.log().error("plan '{}' stopped at step {}: {}", seq->schedule().plan_name, seq->step_index(),
+                  seq->stop_reason());
   return kStopped;
 }

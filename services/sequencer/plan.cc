@@ -33,8 +33,9 @@ double Blend(double u) { return 0.5 * (1.0 - std::cos(M_PI * std::clamp(u, 0.0, 
 double Buehler(double clock, double duty, double sweep) {
   const double cycle = std::floor(clock);
   const double psi = clock - cycle;
-  const double in_cycle = psi < duty ? -0.5 * sweep + sweep * psi / duty
-                                     : 0.5 * sweep + (2.0 * M_PI - sweep) * (psi - duty) / (1.0 - duty);
+  const double in_cycle = psi < duty
+                              ? -0.5 * sweep + sweep * psi / duty
+                              : 0.5 * sweep + (2.0 * M_PI - sweep) * (psi - duty) / (1.0 - duty);
   return 2.0 * M_PI * cycle + in_cycle;
 }
 
@@ -166,8 +167,8 @@ class Builder {
         schedule_.phase_gravity_b[i] = StatedGravityB(p.orientation());
         const auto& g = schedule_.phase_gravity_b[i];
         Open(i, marker, p.has_confirm() ? p.confirm() : true,
-             "Hang the robot with gravity along body axis (" + Num(g[0]) + ", " + Num(g[1]) +
-                 ", " + Num(g[2]) + ") (" + config::HangOrientation_Name(p.orientation()) +
+             "Hang the robot with gravity along body axis (" + Num(g[0]) + ", " + Num(g[1]) + ", " +
+                 Num(g[2]) + ") (" + config::HangOrientation_Name(p.orientation()) +
                  " of the transducers), then confirm.",
              Precheck::kAirborne, zero);
         const double rate = 2.0 * M_PI / p.cycle_s();
@@ -209,8 +210,7 @@ class Builder {
       }
       case config::PHASE_TRIPOD_STANCES: {
         Open(i, marker, p.has_confirm() && p.confirm(),
-             "Set the robot down on its feet, upright, then confirm.", Precheck::kStanding,
-             zero);
+             "Set the robot down on its feet, upright, then confirm.", Precheck::kStanding, zero);
         const double lift = p.lift_angle_deg() * kDeg;
         for (uint32_t j = 0; j < p.stances(); ++j) {
           const int lifted = static_cast<int>(j % 2);
@@ -256,8 +256,8 @@ class Builder {
         }
         start = GoalAt(w, 0.0);
         Open(i, marker, p.has_confirm() && p.confirm(),
-             "Set the robot down on its feet with room to walk, then confirm.",
-             Precheck::kStanding, start);
+             "Set the robot down on its feet with room to walk, then confirm.", Precheck::kStanding,
+             start);
         w.from = start;
         w.to = GoalAt(w, w.duration_s);
         CheckLimits(i, w.to);

@@ -42,21 +42,21 @@ enum class Precheck { kNone, kAirborne, kStanding };
 
 struct Step {
   StepKind kind = StepKind::kHold;
-  int phase = 0;             // index into the plan's phases
-  int8_t marker = 0;         // experiment_marker_t phase constant of this step's phase
-  double duration_s = 0.0;   // kMove, kHold, kTurn, kWalk
-  Angles from{};             // goals at the step's start
-  Angles to{};               // goals at its end
+  int phase = 0;                        // index into the plan's phases
+  int8_t marker = 0;                    // experiment_marker_t phase constant of this step's phase
+  double duration_s = 0.0;              // kMove, kHold, kTurn, kWalk
+  Angles from{};                        // goals at the step's start
+  Angles to{};                          // goals at its end
   Precheck precheck = Precheck::kNone;  // kPrecheck
-  int unit = -1;             // standing pose / tripod stance index within the phase, else -1
+  int unit = -1;  // standing pose / tripod stance index within the phase, else -1
   bool resume_point = false;
   // kTurn: one full leg cycle every cycle_s, in the direction of `direction` per leg.
   double cycle_s = 0.0;
   Angles direction{};
   // kWalk
   double clock_hz = 0.0, duty = 0.0;
-  Angles sweep_rad{};        // per leg: the stance sweep (left and right differ to turn)
-  std::string prompt;        // kConfirm: what the operator is asked to do
+  Angles sweep_rad{};  // per leg: the stance sweep (left and right differ to turn)
+  std::string prompt;  // kConfirm: what the operator is asked to do
 };
 
 struct Schedule {
@@ -67,7 +67,7 @@ struct Schedule {
   std::vector<std::array<double, 3>> phase_gravity_b;
   std::vector<std::string> phase_names;
   std::vector<int8_t> phase_marker;  // experiment_marker_t phase of each plan phase
-  double duration_s = 0.0;   // the sum of the timed steps (confirmations take no time)
+  double duration_s = 0.0;           // the sum of the timed steps (confirmations take no time)
 };
 
 // The plan named `plan_name` ("" = the config's first plan). Throws std::invalid_argument with

@@ -26,8 +26,7 @@ double AgeS(int64_t now_utime, int64_t utime) { return (now_utime - utime) * 1e-
 
 }  // namespace
 
-Safety::Safety(const config::Config& config)
-    : config_(config), seq_(config.sequencer()) {
+Safety::Safety(const config::Config& config) : config_(config), seq_(config.sequencer()) {
   const auto poses = NominalTransducerPoses(config.robot());
   for (int k = 0; k < kNumLegs; ++k) {
     R_B_ft_[k] = poses[k].R;
@@ -44,8 +43,7 @@ std::optional<std::string> Safety::Stale(const Inputs& in, int64_t now_utime,
   auto old = [&](const std::string& what, int64_t utime) -> std::optional<std::string> {
     const double age = AgeS(now_utime, utime);
     if (age > limit) {
-      return what + " is " + Num(age, 3) + " s old, above sequencer.max_input_age_s " +
-             Num(limit);
+      return what + " is " + Num(age, 3) + " s old, above sequencer.max_input_age_s " + Num(limit);
     }
     return std::nullopt;
   };
@@ -81,7 +79,8 @@ std::optional<std::string> Safety::OverRange(const Inputs& in) const {
                std::to_string(k) + "].ati.rated_range)";
       }
     }
-    if (r.flags & ft_sample_t::FLAG_SATURATED) return "FT_" + std::string(kLegNames[k]) + " is flagged saturated";
+    if (r.flags & ft_sample_t::FLAG_SATURATED)
+      return "FT_" + std::string(kLegNames[k]) + " is flagged saturated";
   }
   return std::nullopt;
 }
@@ -116,11 +115,12 @@ std::optional<std::string> Safety::Airborne(const Inputs& in, const Vec3& stated
   const double support = (sum - std::max(0.0, sum.dot(g_b)) * g_b).norm();
   if (support > seq_.airborne_max_support_n()) {
     return "the robot is not in the air: the transducers' summed force has " + Num(support) +
-           " N that is not the legs hanging along gravity (" + Num(g_b.x()) + ", " +
-           Num(g_b.y()) + ", " + Num(g_b.z()) + "), above sequencer.airborne_max_support_n " +
+           " N that is not the legs hanging along gravity (" + Num(g_b.x()) + ", " + Num(g_b.y()) +
+           ", " + Num(g_b.z()) + "), above sequencer.airborne_max_support_n " +
            Num(seq_.airborne_max_support_n());
   }
-  if (!in.mocap) return std::nullopt;  // motion capture is optional for hanging (the report had none)
+  if (!in.mocap)
+    return std::nullopt;  // motion capture is optional for hanging (the report had none)
   if (!in.mocap->tracked) return std::string("MOCAP_BODY: the body is not tracked");
   if (stated_gravity_b.norm() == 0.0) return Tilted(in);
   const Vec3 g_C = in.mocap->R_WC.transpose() * Vec3(0.0, 0.0, -1.0);
@@ -128,10 +128,9 @@ std::optional<std::string> Safety::Airborne(const Inputs& in, const Vec3& stated
       std::acos(std::clamp(g_C.dot(stated_gravity_b.normalized()), -1.0, 1.0)) / kDeg;
   const double tol = config_.mocap().hang_axis_tolerance_deg();
   if (angle > tol) {
-    return "motion capture sees gravity " + Num(angle, 3) +
-           " deg from the stated body axis (" + Num(stated_gravity_b.x()) + ", " +
-           Num(stated_gravity_b.y()) + ", " + Num(stated_gravity_b.z()) +
-           "), above mocap.hang_axis_tolerance_deg " + Num(tol);
+    return "motion capture sees gravity " + Num(angle, 3) + " deg from the stated body axis (" +
+           Num(stated_gravity_b.x()) + ", " + Num(stated_gravity_b.y()) + ", " +
+           Num(stated_gravity_b.z()) + "), above mocap.hang_axis_tolerance_deg " + Num(tol);
   }
   return std::nullopt;
 }
@@ -147,8 +146,8 @@ std::optional<std::string> Safety::Standing(const Inputs& in) const {
   const double lo = seq_.standing_min_weight_share() * weight_n_;
   const double hi = seq_.standing_max_weight_share() * weight_n_;
   if (!(up >= lo && up <= hi)) {
-    return "the robot is not standing: the transducers carry " + Num(up) +
-           " N upward, outside [" + Num(lo) + ", " + Num(hi) +
+    return "the robot is not standing: the transducers carry " + Num(up) + " N upward, outside [" +
+           Num(lo) + ", " + Num(hi) +
            "] N (sequencer.standing_{min,max}_weight_share of m g = " + Num(weight_n_) + " N)";
   }
   return std::nullopt;

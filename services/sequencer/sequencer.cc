@@ -90,8 +90,7 @@ void SaveProgress(const std::string& path, const Progress& p) {
                             "\nsession " + p.session_id + "\n");
 }
 
-Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signer,
-                     Options options)
+Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signer, Options options)
     : config_(config),
       bus_(bus),
       signer_(signer),
@@ -158,8 +157,8 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
     step_of_.push_back(i);
   }
   if (resume > 0) {
-    bus_.stats().log().info("resuming plan '{}' at step {} of {} (session {})",
-                             schedule_.plan_name, resume, all.size(), session_id_);
+    bus_.stats().log().info("resuming plan '{}' at step {} of {} (session {})", schedule_.plan_name,
+                            resume, all.size(), session_id_);
   }
 
   const config::Channels& ch = config.channels();
@@ -171,9 +170,8 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
   };
   handlers.mocap = [this](const MocapInput& in) { inputs_.mocap = in; };
   device_inputs_.Subscribe(bus_, handlers);
-  bus_.Subscribe<service_status_t>(ch.status(), [this](const MessageInfo& i, const service_status_t& m) {
-    OnStatus(i, m);
-  });
+  bus_.Subscribe<service_status_t>(
+      ch.status(), [this](const MessageInfo& i, const service_status_t& m) { OnStatus(i, m); });
   // No time window: a CONFIRM names the step it confirms, and the sequence must rise.
   bus_.SubscribeSigned<sequencer_control_t>(
       ch.sequencer_control(), &verifier_, /*window_us=*/0, config.auth().allow_unsigned(),
@@ -203,8 +201,7 @@ void Sequencer::OnControl(const MessageInfo&, const sequencer_control_t& msg) {
   } else if (msg.action == sequencer_control_t::CONFIRM) {
     Confirm(msg.step);
   } else {
-    throw BadInput("unknown sequencer_control_t action",
-                   "action " + std::to_string(msg.action));
+    throw BadInput("unknown sequencer_control_t action", "action " + std::to_string(msg.action));
   }
 }
 
@@ -248,7 +245,8 @@ std::optional<std::string> Sequencer::SafetyViolation() const {
 bool Sequencer::Arrived(const Angles& goals) const {
   if (!inputs_.servo) return false;
   for (int k = 0; k < kNumLegs; ++k) {
-    if (std::abs(inputs_.servo->angle_rad[k] - goals[k]) > config_.sequencer().arrival_tolerance_rad()) {
+    if (std::abs(inputs_.servo->angle_rad[k] - goals[k]) >
+        config_.sequencer().arrival_tolerance_rad()) {
       return false;
     }
   }
@@ -333,7 +331,8 @@ void Sequencer::PublishMarker(int phase, bool start) {
   last_marker_utime_ = m.utime;
   const bool repeat = start && open_marker_phase_ == phase;
   open_marker_phase_ = start ? phase : -1;
-  if (!repeat) bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
+  if (!repeat)
+    bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
 }
 
 void Sequencer::Save() {
@@ -376,16 +375,16 @@ void Sequencer::Begin(int index) {
 void Sequencer::Advance() {
   const Step& done = Current();
   // A finished unit (its last step) is saved so that a restart does not repeat it.
-  const bool unit_done = done.unit >= 0 &&
-                         (index_ + 1 >= static_cast<int>(steps_.size()) ||
-                          steps_[index_ + 1].unit != done.unit ||
-                          steps_[index_ + 1].phase != done.phase);
+  const bool unit_done = done.unit >= 0 && (index_ + 1 >= static_cast<int>(steps_.size()) ||
+                                            steps_[index_ + 1].unit != done.unit ||
+                                            steps_[index_ + 1].phase != done.phase);
   Begin(index_ + 1);
   if (index_ >= static_cast<int>(steps_.size())) {
     state_ = State::kDone;
     if (!options_.progress_file.empty()) {
-      SaveProgress(options_.progress_file,
-                   Progress{schedule_.plan_name, static_cast<int>(schedule_.steps.size()), session_id_});
+      SaveProgress(
+          options_.progress_file,
+          Progress{schedule_.plan_name, static_cast<int>(schedule_.steps.size()), session_id_});
     }
     bus_.stats().log().info("plan '{}' done", schedule_.plan_name);
     if (arm_utime_ > 0) SendAction(servo_command_t::DISARM);  // the bridge holds the last pose
@@ -421,8 +420,8 @@ void Sequencer::TickSteps() {
           step_started_ = false;  // no servo state yet: wait for one
           return;
         }
-        s.duration_s = std::max(s.duration_s, MoveDurationS(s.from, s.to,
-                                                            config_.sequencer().max_velocity_rad_s()));
+        s.duration_s = std::max(
+            s.duration_s, MoveDurationS(s.from, s.to, config_.sequencer().max_velocity_rad_s()));
       }
     }
     const double t = (now - step_start_utime_) * 1e-6;
@@ -434,7 +433,8 @@ void Sequencer::TickSteps() {
         }
         if (state_ != State::kWaitingForOperator) {
           state_ = State::kWaitingForOperator;
-          const std::string prompt = s.prompt + (waiting_reason_.empty() ? "" : " (" + waiting_reason_ + ")");
+          const std::string prompt =
+              s.prompt + (waiting_reason_.empty() ? "" : " (" + waiting_reason_ + ")");
           bus_.stats().log().info("waiting for the operator: {}", prompt);
           if (on_prompt_) on_prompt_(prompt);
         }
@@ -561,7 +561,8 @@ std::string Sequencer::ProgressLine() const {
   for (size_t i = index_; i < steps_.size(); ++i) {
     if (Timed(steps_[i].kind)) left += steps_[i].duration_s;
   }
-  if (step_started_ && Timed(s.kind)) left -= std::min(s.duration_s, (bus_.NowUtime() - step_start_utime_) * 1e-6);
+  if (step_started_ && Timed(s.kind))
+    left -= std::min(s.duration_s, (bus_.NowUtime() - step_start_utime_) * 1e-6);
   line += ", " + Clock(left) + " left";
   if (state_ == State::kWaitingForOperator) line += " (waiting for the operator)";
   return line;

@@ -167,7 +167,8 @@ std::string QtmTruthCsv(const std::vector<std::string>& labels,
   std::ostringstream out;
   out << "tick,frame_number,timestamp_us,corrupt,tracked,px_mm,py_mm,pz_mm,"
          "r11,r21,r31,r12,r22,r32,r13,r23,r33,residual_mm";
-  for (const auto& label : labels) out << "," << label << "_x_mm," << label << "_y_mm," << label << "_z_mm";
+  for (const auto& label : labels)
+    out << "," << label << "_x_mm," << label << "_y_mm," << label << "_z_mm";
   out << "\n";
   for (const QtmSentFrame& s : frames) {
     out << s.tick << "," << s.frame_number << "," << s.timestamp_us << "," << int(s.corrupt) << ","
@@ -263,7 +264,7 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     o.address = leg.ati().address();
     o.rdt_port = static_cast<std::uint16_t>(leg.ati().rdt_port());
     o.http_port = static_cast<std::uint16_t>(options_.ati_http_port >= 0 ? options_.ati_http_port
-                                                                       : leg.ati().http_port());
+                                                                         : leg.ati().http_port());
     o.counts_per_force = options_.counts_per_force;
     o.counts_per_torque = options_.counts_per_torque;
     if (leg.ati().rated_range_size() == 6) {
@@ -314,9 +315,9 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
   if (commanded_) {
     dxl_options.time_constant_s = options_.servo_time_constant_s;
     for (int k = 0; k < kNumLegs; ++k) {
-      dxl_options.initial_positions.push_back(static_cast<std::int32_t>(std::lround(
-          DxlStateFromAngle(options_.commanded_start_rad[k], 0, zero[k], direction[k])
-              .position_counts)));
+      dxl_options.initial_positions.push_back(static_cast<std::int32_t>(
+          std::lround(DxlStateFromAngle(options_.commanded_start_rad[k], 0, zero[k], direction[k])
+                          .position_counts)));
       dxl_id_[k] = dxl_options.ids[k];
     }
     dxl_zero_ = zero;
@@ -365,9 +366,10 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     if (no.faults.seed == 0) no.faults.seed = options_.seed;
     const double rate = no.rate_hz;
     if (commanded_) {
-      natnet_ = std::make_unique<NatNetEmulator>(no, [this, residual_m](int64_t) -> std::optional<NatNetPose> {
-        return NatNetPoseFromFrame(*LatestFrame(), residual_m);
-      });
+      natnet_ = std::make_unique<NatNetEmulator>(
+          no, [this, residual_m](int64_t) -> std::optional<NatNetPose> {
+            return NatNetPoseFromFrame(*LatestFrame(), residual_m);
+          });
     } else {
       natnet_ = std::make_unique<NatNetEmulator>(
           no, [series, rate, residual_m](int64_t tick) -> std::optional<NatNetPose> {
@@ -380,7 +382,7 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     QtmEmulatorOptions qo;
     qo.address = config.mocap().server_address();
     qo.port = static_cast<std::uint16_t>(options_.qtm_port >= 0 ? options_.qtm_port
-                                                               : int(config.mocap().port()));
+                                                                : int(config.mocap().port()));
     qo.rate_hz = options_.qtm_rate_hz;
     qo.body_name = config.mocap().body_name();
     for (const auto& m : twin_->MarkersB()) qo.body_points_m.push_back(m);
@@ -390,9 +392,10 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     if (qo.faults.seed == 0) qo.faults.seed = options_.seed;
     const double qtm_rate = qo.rate_hz;
     if (commanded_) {
-      qtm_ = std::make_unique<QtmEmulator>(qo, [this, residual_m](int64_t) -> std::optional<QtmPose> {
-        return QtmPoseFromFrame(*LatestFrame(), residual_m);
-      });
+      qtm_ =
+          std::make_unique<QtmEmulator>(qo, [this, residual_m](int64_t) -> std::optional<QtmPose> {
+            return QtmPoseFromFrame(*LatestFrame(), residual_m);
+          });
     } else {
       qtm_ = std::make_unique<QtmEmulator>(
           qo, [series, qtm_rate, residual_m](int64_t tick) -> std::optional<QtmPose> {
@@ -424,9 +427,7 @@ double LiveSim::Now() const {
 }
 
 std::uint16_t LiveSim::qtm_port() const { return qtm_ ? qtm_->port() : 0; }
-std::uint16_t LiveSim::natnet_command_port() const {
-  return natnet_ ? natnet_->command_port() : 0;
-}
+std::uint16_t LiveSim::natnet_command_port() const { return natnet_ ? natnet_->command_port() : 0; }
 
 void LiveSim::RunAti() {
   std::vector<pollfd> fds;
@@ -450,7 +451,8 @@ void LiveSim::RunDxl() {
   while (!stop_.load()) {
     const double now_s = Now();
     bool down = false;
-    for (const auto& w : options_.dxl_disconnects) down = down || (now_s >= w.start_s && now_s < w.end_s);
+    for (const auto& w : options_.dxl_disconnects)
+      down = down || (now_s >= w.start_s && now_s < w.end_s);
     if (down && pty_->is_open()) {
       pty_->Close();
     } else if (!down && !pty_->is_open()) {
@@ -514,8 +516,9 @@ void LiveSim::RunTwin() {
   std::int64_t i = 1;
   while (!stop_.load()) {
     const double t_s = static_cast<double>(i) * period_s;
-    std::this_thread::sleep_until(t0_ + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                                             std::chrono::duration<double>(t_s)));
+    std::this_thread::sleep_until(t0_ +
+                                  std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                      std::chrono::duration<double>(t_s)));
     if (stop_.load()) break;
     std::int64_t requested;
     {

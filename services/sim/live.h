@@ -48,9 +48,8 @@ namespace ftcal::sim {
 
 // The scenarios a live run can play: the first seven loop a twin series (TwinSeries); in
 // "commanded" the legs follow the servos' goals (see the header comment).
-inline constexpr const char* kLiveScenarios[] = {"walk",       "stand",      "tripod",
-                                                 "hang-x-pos", "hang-x-neg", "hang-z-pos",
-                                                 "hang-z-neg", "commanded"};
+inline constexpr const char* kLiveScenarios[] = {
+    "walk", "stand", "tripod", "hang-x-pos", "hang-x-neg", "hang-z-pos", "hang-z-neg", "commanded"};
 inline constexpr const char kCommandedScenario[] = "commanded";
 
 class TwinSeries {
@@ -181,7 +180,7 @@ class LiveSim {
   void WriteTruth(const std::string& dir) const;
   LiveCounts Counts() const;  // after Stop()
   const std::string& pty_path() const { return pty_slave_; }
-  std::uint16_t qtm_port() const;  // 0 with mocap "natnet"
+  std::uint16_t qtm_port() const;             // 0 with mocap "natnet"
   std::uint16_t natnet_command_port() const;  // 0 with mocap "qtm"
   int ati_boxes() const { return static_cast<int>(ati_.size()); }
   std::size_t ati_truth_rows() const { return ati_truth_.size(); }

@@ -50,9 +50,7 @@ int64_t SimLogCounts::Total() const {
 
 SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_path,
                            const SimLogOptions& options)
-    : options_(options),
-      log_(out_path, "sim log"),
-      rng_(options.seed ^ 0x51D106ULL) {
+    : options_(options), log_(out_path, "sim log"), rng_(options.seed ^ 0x51D106ULL) {
   if (config.robot().leg_size() != kNumLegs) {
     throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
                                 " legs expected, got " + std::to_string(config.robot().leg_size()));
@@ -112,9 +110,7 @@ SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_
 // The temporary file goes with log_ unless Commit() ran.
 SimLogWriter::~SimLogWriter() = default;
 
-double SimLogWriter::Uniform() {
-  return static_cast<double>(rng_() >> 11) * 0x1.0p-53;
-}
+double SimLogWriter::Uniform() { return static_cast<double>(rng_() >> 11) * 0x1.0p-53; }
 
 int64_t SimLogWriter::Utime(double t_s) const {
   return options_.t0_utime + std::llround(t_s * 1e6);
@@ -138,7 +134,8 @@ void SimLogWriter::Write(int64_t utime, const std::string& channel,
 }
 
 void SimLogWriter::WriteFrame(const TwinFrame& f) {
-  if (log_.committed()) throw std::logic_error("sim log '" + log_.path() + "': frame after Commit()");
+  if (log_.committed())
+    throw std::logic_error("sim log '" + log_.path() + "': frame after Commit()");
   if (!std::isfinite(f.t_s)) {
     throw std::invalid_argument("sim log: frame time is not finite");
   }
@@ -155,8 +152,8 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
     const int64_t utime = t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform()) * 1e6);
     m.utime = utime;
     ++m.rdt_sequence;  // 1 for the first record of the stream
-    m.ft_sequence = static_cast<uint32_t>(ft_sequence0_[k] +
-                                          static_cast<uint32_t>(70 * (m.rdt_sequence - 1)));
+    m.ft_sequence =
+        static_cast<uint32_t>(ft_sequence0_[k] + static_cast<uint32_t>(70 * (m.rdt_sequence - 1)));
     for (int i = 0; i < 6; ++i) {
       m.counts[i] = f.counts[k][i];
       m.wrench[i] = f.reading[k][i];
@@ -181,7 +178,8 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
     const double units = std::round(direction_[k] * omega / kVelocityUnitRadS);
     servo_.velocity_rad_s[k] = direction_[k] * units * kVelocityUnitRadS;
     // Same stand-in as the bus emulator: current follows velocity, not a motor model.
-    servo_.current_a[k] = direction_[k] * 0.5 * std::tanh(units * 0.229 / 60.0 * kCountsPerRev / 100.0);
+    servo_.current_a[k] =
+        direction_[k] * 0.5 * std::tanh(units * 0.229 / 60.0 * kCountsPerRev / 100.0);
     servo_.device_tick_ms[k] = tick0_ms_[k] + std::llround(f.t_s * 1e3);
     previous_angle_[k] = f.angle_rad[k];
   }
@@ -219,7 +217,7 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
                                 " s would be stamped before the previous event");
   }
   for (const Pending& p : pending) {
-    const std::string& channel = p.slot < kNumLegs    ? ft_channel_[p.slot]
+    const std::string& channel = p.slot < kNumLegs      ? ft_channel_[p.slot]
                                  : p.slot == kServoSlot ? servo_channel_
                                                         : mocap_channel_;
     Write(p.utime, channel, buffer_[p.slot], size_[p.slot]);
@@ -233,7 +231,8 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
 
 void SimLogWriter::WriteMarker(int64_t utime, ExperimentPhase phase, bool start,
                                const Vec3& gravity_b, const std::string& note) {
-  if (log_.committed()) throw std::logic_error("sim log '" + log_.path() + "': marker after Commit()");
+  if (log_.committed())
+    throw std::logic_error("sim log '" + log_.path() + "': marker after Commit()");
   if (utime < last_utime_) {
     throw std::invalid_argument("sim log: marker at utime " + std::to_string(utime) +
                                 " precedes the last event at " + std::to_string(last_utime_));
@@ -281,8 +280,9 @@ double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLo
     options.t0_s = t;
     options.drift_from_s = plan.drift_at_s;
     const double end = scenario(options);
-    writer->WriteMarker(std::max(writer->last_utime(), writer->Utime(writer->last_frame_t_s()) + 9000), phase,
-                        false, gravity_b, note);
+    writer->WriteMarker(
+        std::max(writer->last_utime(), writer->Utime(writer->last_frame_t_s()) + 9000), phase,
+        false, gravity_b, note);
     t = end + plan.gap_s;
   };
   if (plan.tare) {
@@ -294,14 +294,14 @@ double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLo
                                                  "hanging, body +z down", "hanging, body -z down"};
     for (int s = 0; s < kNumHangSeries; ++s) {
       const auto series = static_cast<HangSeries>(s);
-      const auto phase = static_cast<ExperimentPhase>(static_cast<int>(ExperimentPhase::kHangXPos) + s);
+      const auto phase =
+          static_cast<ExperimentPhase>(static_cast<int>(ExperimentPhase::kHangXPos) + s);
       run(phase, twin.StatedGravityB(series), kNotes[s],
           [&](const RunOptions& r) { return twin.Hanging(series, r, sink); });
     }
   }
   if (plan.standing) {
-    run(ExperimentPhase::kStanding, Vec3::Zero(),
-        std::to_string(plan.poses) + " standing poses",
+    run(ExperimentPhase::kStanding, Vec3::Zero(), std::to_string(plan.poses) + " standing poses",
         [&](const RunOptions& r) { return twin.Standing(plan.poses, r, sink); });
   }
   if (plan.tripod) {

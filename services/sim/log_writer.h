@@ -46,7 +46,7 @@ inline constexpr int64_t kSimLogT0Utime = 1'700'000'000'000'000;
 struct SimLogOptions {
   std::string session_id = "sim";
   int64_t t0_utime = kSimLogT0Utime;
-  uint64_t seed = 1;            // timestamp jitter and device counters
+  uint64_t seed = 1;  // timestamp jitter and device counters
   double mocap_residual_m = 0.0005;
 };
 
@@ -147,7 +147,6 @@ struct ExperimentPlan {
 
 // Runs the plan on the twin into the writer (not committed). Returns the twin time at the end.
 // Throws std::invalid_argument naming the field for a plan it cannot run.
-double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan,
-                       SimLogWriter* writer);
+double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLogWriter* writer);
 
 }  // namespace ftcal

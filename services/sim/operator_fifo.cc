@@ -43,7 +43,8 @@ std::optional<OperatorCommand> ParseOperatorLine(const std::string& line, std::s
         return c;
       }
     }
-    if (error) *error = "unknown orientation '" + words[1] + "' in '" + line + "' (" + kAccepted + ")";
+    if (error)
+      *error = "unknown orientation '" + words[1] + "' in '" + line + "' (" + kAccepted + ")";
     return std::nullopt;
   }
   if (error) *error = "unknown operator command '" + line + "' (" + kAccepted + ")";
@@ -52,9 +53,12 @@ std::optional<OperatorCommand> ParseOperatorLine(const std::string& line, std::s
 
 std::string SupportName(const OperatorCommand& c) {
   switch (c.support) {
-    case BigAntTwin::Driven::Support::kStanding: return "STANDING";
-    case BigAntTwin::Driven::Support::kLifted: return "LIFTED";
-    case BigAntTwin::Driven::Support::kHanging: return kSeriesNames[static_cast<int>(c.series)];
+    case BigAntTwin::Driven::Support::kStanding:
+      return "STANDING";
+    case BigAntTwin::Driven::Support::kLifted:
+      return "LIFTED";
+    case BigAntTwin::Driven::Support::kHanging:
+      return kSeriesNames[static_cast<int>(c.series)];
   }
   return "?";
 }

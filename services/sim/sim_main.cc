@@ -12,8 +12,8 @@
 // NatNet server, --natnet-version, --natnet-transport) at the config's address; the bridges run
 // against it unchanged. With --scenario commanded the servos follow the goals a bridge writes
 // (first-order, --servo-tau) and the twin's legs follow the servos; --control PATH is then the
-// operator's FIFO (hang, lift, stand: services/sim/operator_fifo.h). At the end (SIGINT, SIGTERM or --duration) the truth series of every
-// device, with the faults injected, goes to --truth-dir.
+// operator's FIFO (hang, lift, stand: services/sim/operator_fifo.h). At the end (SIGINT, SIGTERM or
+// --duration) the truth series of every device, with the faults injected, goes to --truth-dir.
 #include <signal.h>
 
 #include <chrono>
@@ -196,13 +196,15 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
       ->check(CLI::Range(0.0, 1.0));
   live->add_flag("--natnet-mid-exposure-zero", o.natnet_faults.mid_exposure_zero,
                  "send mid-exposure ticks 0 (USB cameras, playback)");
-  live->add_option("--natnet-untracked", f->natnet_untracked, "START_S:DURATION_S  body not tracked");
+  live->add_option("--natnet-untracked", f->natnet_untracked,
+                   "START_S:DURATION_S  body not tracked");
   live->add_option("--natnet-silent", f->natnet_silent,
                    "START_S:DURATION_S  Motive up and answering, no frames");
   live->add_option("--natnet-edit-mode", f->natnet_edit_mode,
                    "START_S:DURATION_S  frames flagged edit mode (4.0+)");
-  live->add_option("--natnet-down", f->natnet_down,
-                   "START_S:DURATION_S  Motive gone; restarts afterwards (frames, clock, ids anew)");
+  live->add_option(
+      "--natnet-down", f->natnet_down,
+      "START_S:DURATION_S  Motive gone; restarts afterwards (frames, clock, ids anew)");
   live->add_option("--natnet-model-change", f->natnet_model_change,
                    "T_S  model list changed: the rigid bodies swap order and ids");
 }
@@ -211,10 +213,12 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
 ftcal::sim::TickWindow TickWindowFlag(const std::string& text, double rate_hz,
                                       const std::string& flag) {
   const auto parts = ftcal::sim::SplitFlag(text, ':');
-  if (parts.size() != 2) throw std::invalid_argument(flag + " '" + text + "': want START_S:DURATION_S");
+  if (parts.size() != 2)
+    throw std::invalid_argument(flag + " '" + text + "': want START_S:DURATION_S");
   const double start = ftcal::sim::ParseFlagNumber(parts[0], flag);
   const double duration = ftcal::sim::ParseFlagNumber(parts[1], flag);
-  if (start < 0 || duration <= 0) throw std::invalid_argument(flag + " '" + text + "': out of range");
+  if (start < 0 || duration <= 0)
+    throw std::invalid_argument(flag + " '" + text + "': out of range");
   return {std::llround(start * rate_hz), std::max<int64_t>(1, std::llround(duration * rate_hz))};
 }
 
@@ -247,8 +251,8 @@ void ResolveLiveFlags(LiveFlags* f) {
     const auto p = SplitFlag(s, ':');
     const auto k = p.size() == 2 ? ftcal::LegIndex(p[0]) : std::nullopt;
     if (!k) throw std::invalid_argument("--ati-reboot '" + s + "': want LEG:AT_S");
-    o.ati_faults[*k].events.push_back({ftcal::sim::AtiScheduledEvent::Kind::kReboot,
-                                       ParseFlagNumber(p[1], "--ati-reboot"), 0});
+    o.ati_faults[*k].events.push_back(
+        {ftcal::sim::AtiScheduledEvent::Kind::kReboot, ParseFlagNumber(p[1], "--ati-reboot"), 0});
   }
   o.dxl_rates.seed = o.seed;
   auto servo_id = [](const std::string& text, const std::string& flag) {
@@ -260,15 +264,17 @@ void ResolveLiveFlags(LiveFlags* f) {
   };
   for (const std::string& s : f->dxl_missing) {
     const auto p = SplitFlag(s, ':');
-    if (p.size() != 3) throw std::invalid_argument("--dxl-missing '" + s + "': want ID:START_S:END_S");
-    o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kMissingServo,
-                            ParseFlagNumber(p[1], "--dxl-missing"),
-                            ParseFlagNumber(p[2], "--dxl-missing"), servo_id(p[0], "--dxl-missing"), 0});
+    if (p.size() != 3)
+      throw std::invalid_argument("--dxl-missing '" + s + "': want ID:START_S:END_S");
+    o.dxl_events.push_back(
+        {ftcal::sim::DxlFaultKind::kMissingServo, ParseFlagNumber(p[1], "--dxl-missing"),
+         ParseFlagNumber(p[2], "--dxl-missing"), servo_id(p[0], "--dxl-missing"), 0});
   }
   for (const std::string& s : f->dxl_silent) {
     const auto p = SplitFlag(s, ':');
     if (p.size() != 2) throw std::invalid_argument("--dxl-silent '" + s + "': want START_S:END_S");
-    o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kSilent, ParseFlagNumber(p[0], "--dxl-silent"),
+    o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kSilent,
+                            ParseFlagNumber(p[0], "--dxl-silent"),
                             ParseFlagNumber(p[1], "--dxl-silent"), 0, 0});
   }
   for (const std::string& s : f->dxl_hw_error) {
@@ -277,14 +283,16 @@ void ResolveLiveFlags(LiveFlags* f) {
       throw std::invalid_argument("--dxl-hw-error '" + s + "': want ID:T_S[:BITS]");
     }
     const double bits = p.size() == 3 ? ParseFlagNumber(p[2], "--dxl-hw-error") : 32;
-    if (bits < 1 || bits > 255) throw std::invalid_argument("--dxl-hw-error '" + s + "': BITS 1-255");
+    if (bits < 1 || bits > 255)
+      throw std::invalid_argument("--dxl-hw-error '" + s + "': BITS 1-255");
     o.dxl_events.push_back({ftcal::sim::DxlFaultKind::kHardwareError,
                             ParseFlagNumber(p[1], "--dxl-hw-error"), 0,
                             servo_id(p[0], "--dxl-hw-error"), static_cast<std::uint8_t>(bits)});
   }
   for (const std::string& s : f->dxl_disconnect) {
     const auto p = SplitFlag(s, ':');
-    if (p.size() != 2) throw std::invalid_argument("--dxl-disconnect '" + s + "': want START_S:END_S");
+    if (p.size() != 2)
+      throw std::invalid_argument("--dxl-disconnect '" + s + "': want START_S:END_S");
     o.dxl_disconnects.push_back(
         {ParseFlagNumber(p[0], "--dxl-disconnect"), ParseFlagNumber(p[1], "--dxl-disconnect")});
   }
@@ -293,13 +301,17 @@ void ResolveLiveFlags(LiveFlags* f) {
       throw std::invalid_argument("--start-angles needs --scenario commanded");
     }
     const auto p = SplitFlag(f->start_angles, ':');
-    if (p.size() != 6) throw std::invalid_argument("--start-angles '" + f->start_angles + "': want six angles A:B:C:D:E:F");
-    for (int k = 0; k < ftcal::kNumLegs; ++k) o.commanded_start_rad[k] = ParseFlagNumber(p[k], "--start-angles");
+    if (p.size() != 6)
+      throw std::invalid_argument("--start-angles '" + f->start_angles +
+                                  "': want six angles A:B:C:D:E:F");
+    for (int k = 0; k < ftcal::kNumLegs; ++k)
+      o.commanded_start_rad[k] = ParseFlagNumber(p[k], "--start-angles");
   }
   auto& q = o.qtm_faults;
   q.seed = o.seed;
   const double r = o.qtm_rate_hz;
-  for (const auto& w : f->qtm_untracked) q.untracked.push_back(TickWindowFlag(w, r, "--qtm-untracked"));
+  for (const auto& w : f->qtm_untracked)
+    q.untracked.push_back(TickWindowFlag(w, r, "--qtm-untracked"));
   for (const auto& w : f->qtm_silent) q.silent.push_back(TickWindowFlag(w, r, "--qtm-silent"));
   for (const auto& w : f->qtm_no_more_data) {
     q.no_more_data.push_back(TickWindowFlag(w, r, "--qtm-no-more-data"));
@@ -348,23 +360,24 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
   std::unique_ptr<ftcal::sim::OperatorFifo> control;
   if (!flags.control_path.empty()) {
     if (!sim.commanded()) {
-      throw std::invalid_argument("--control needs --scenario commanded (the recorded scenarios "
-                                  "play their own supports)");
+      throw std::invalid_argument(
+          "--control needs --scenario commanded (the recorded scenarios "
+          "play their own supports)");
     }
     control = std::make_unique<ftcal::sim::OperatorFifo>(flags.control_path);
     control->WriteState(0, "STANDING");
   }
   if (!flags.ready_path.empty()) ftcal::WriteFileAtomic(flags.ready_path, "ready\n");
-  const std::string mocap =
-      sim.natnet_command_port() != 0
-          ? "Motive NatNet " + flags.options.natnet_version.ToString() + " on port " +
-                std::to_string(sim.natnet_command_port())
-          : "QTM on port " + std::to_string(sim.qtm_port());
-  std::printf("ftcal-sim live: scenario %s (seed %llu): %d ATI boxes at %d records/s, "
-              "Dynamixel bus on %s (linked at %s), %s\n",
-              flags.options.scenario.c_str(), static_cast<unsigned long long>(flags.options.seed),
-              sim.ati_boxes(), flags.options.ati_rate_hz, sim.pty_path().c_str(),
-              flags.options.pty_link.c_str(), mocap.c_str());
+  const std::string mocap = sim.natnet_command_port() != 0
+                                ? "Motive NatNet " + flags.options.natnet_version.ToString() +
+                                      " on port " + std::to_string(sim.natnet_command_port())
+                                : "QTM on port " + std::to_string(sim.qtm_port());
+  std::printf(
+      "ftcal-sim live: scenario %s (seed %llu): %d ATI boxes at %d records/s, "
+      "Dynamixel bus on %s (linked at %s), %s\n",
+      flags.options.scenario.c_str(), static_cast<unsigned long long>(flags.options.seed),
+      sim.ati_boxes(), flags.options.ati_rate_hz, sim.pty_path().c_str(),
+      flags.options.pty_link.c_str(), mocap.c_str());
   std::fflush(stdout);
   std::int64_t requested = 0, acknowledged = 0;
   std::string support = "STANDING";
@@ -375,8 +388,8 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
       std::string why;
       const auto cmd = ftcal::sim::ParseOperatorLine(line, &why);
       if (!cmd) {
-        std::fprintf(stderr, "ftcal-sim live: --control %s: %s; ignored\n",
-                     control->path().c_str(), why.c_str());
+        std::fprintf(stderr, "ftcal-sim live: --control %s: %s; ignored\n", control->path().c_str(),
+                     why.c_str());
         continue;
       }
       sim.SetSupport(cmd->support, cmd->series);
@@ -399,37 +412,39 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
   std::printf("ftcal-sim live: stopped after %.1f s\n", ran_s);
   for (int k = 0; k < ftcal::kNumLegs; ++k) {
     const auto& a = c.ati[k];
-    std::printf("  ati %s: records %llu datagrams %llu starts %llu drop %llu duplicate %llu "
-                "reorder %llu corrupt %llu silent %llu reboots %llu http %llu\n",
-                std::string(ftcal::kLegNames[k]).c_str(), (unsigned long long)a.records,
-                (unsigned long long)a.datagrams, (unsigned long long)a.starts,
-                (unsigned long long)a.faults[1], (unsigned long long)a.faults[2],
-                (unsigned long long)a.faults[3], (unsigned long long)a.faults[4],
-                (unsigned long long)a.faults[5], (unsigned long long)a.reboots,
-                (unsigned long long)a.http_requests);
+    std::printf(
+        "  ati %s: records %llu datagrams %llu starts %llu drop %llu duplicate %llu "
+        "reorder %llu corrupt %llu silent %llu reboots %llu http %llu\n",
+        std::string(ftcal::kLegNames[k]).c_str(), (unsigned long long)a.records,
+        (unsigned long long)a.datagrams, (unsigned long long)a.starts,
+        (unsigned long long)a.faults[1], (unsigned long long)a.faults[2],
+        (unsigned long long)a.faults[3], (unsigned long long)a.faults[4],
+        (unsigned long long)a.faults[5], (unsigned long long)a.reboots,
+        (unsigned long long)a.http_requests);
   }
-  std::printf("  dynamixel: replies %lld dropped %lld corrupted %lld noise bursts %lld missing "
-              "%lld silent %lld hardware errors %lld reopens %lld\n",
-              (long long)c.dxl_replies, (long long)c.dxl.dropped, (long long)c.dxl.corrupted,
-              (long long)c.dxl.noise_bursts, (long long)c.dxl.missing, (long long)c.dxl.silent,
-              (long long)c.dxl.hardware_errors, (long long)c.dxl_reopens);
-  std::printf("  qtm: ticks %lld frames_sent %lld corrupt %lld untracked %lld gaps %lld skipped "
-              "%lld connections %lld disconnects %lld events %lld\n",
-              (long long)c.qtm.ticks, (long long)c.qtm.frames_sent,
-              (long long)c.qtm.frames_corrupt, (long long)c.qtm.frames_untracked,
-              (long long)c.qtm.gaps, (long long)c.qtm.frames_skipped,
-              (long long)c.qtm.connections, (long long)c.qtm.disconnects,
-              (long long)c.qtm.events_sent);
+  std::printf(
+      "  dynamixel: replies %lld dropped %lld corrupted %lld noise bursts %lld missing "
+      "%lld silent %lld hardware errors %lld reopens %lld\n",
+      (long long)c.dxl_replies, (long long)c.dxl.dropped, (long long)c.dxl.corrupted,
+      (long long)c.dxl.noise_bursts, (long long)c.dxl.missing, (long long)c.dxl.silent,
+      (long long)c.dxl.hardware_errors, (long long)c.dxl_reopens);
+  std::printf(
+      "  qtm: ticks %lld frames_sent %lld corrupt %lld untracked %lld gaps %lld skipped "
+      "%lld connections %lld disconnects %lld events %lld\n",
+      (long long)c.qtm.ticks, (long long)c.qtm.frames_sent, (long long)c.qtm.frames_corrupt,
+      (long long)c.qtm.frames_untracked, (long long)c.qtm.gaps, (long long)c.qtm.frames_skipped,
+      (long long)c.qtm.connections, (long long)c.qtm.disconnects, (long long)c.qtm.events_sent);
   if (flags.options.mocap == "natnet") {
     const auto& n = c.natnet;
-    std::printf("  natnet: ticks %lld frames_sent %lld corrupt %lld duplicated %lld untracked %lld "
-                "gaps %lld skipped %lld connects %lld keepalives %lld descriptions %lld restarts "
-                "%lld model_changes %lld expired %lld\n",
-                (long long)n.ticks, (long long)n.frames_sent, (long long)n.frames_corrupt,
-                (long long)n.frames_duplicated, (long long)n.frames_untracked, (long long)n.gaps,
-                (long long)n.frames_skipped, (long long)n.connects, (long long)n.keepalives,
-                (long long)n.descriptions_sent, (long long)n.restarts, (long long)n.model_changes,
-                (long long)n.clients_expired);
+    std::printf(
+        "  natnet: ticks %lld frames_sent %lld corrupt %lld duplicated %lld untracked %lld "
+        "gaps %lld skipped %lld connects %lld keepalives %lld descriptions %lld restarts "
+        "%lld model_changes %lld expired %lld\n",
+        (long long)n.ticks, (long long)n.frames_sent, (long long)n.frames_corrupt,
+        (long long)n.frames_duplicated, (long long)n.frames_untracked, (long long)n.gaps,
+        (long long)n.frames_skipped, (long long)n.connects, (long long)n.keepalives,
+        (long long)n.descriptions_sent, (long long)n.restarts, (long long)n.model_changes,
+        (long long)n.clients_expired);
   }
   std::fflush(stdout);
   return 0;
@@ -443,8 +458,7 @@ int main(int argc, char** argv) {
   // --config may come before or after the subcommand.
   cli.fallthrough();
   std::string config_path;
-  cli.add_option("--config", config_path,
-                 "config file (default: the embedded config/sim.pbtxt)");
+  cli.add_option("--config", config_path, "config file (default: the embedded config/sim.pbtxt)");
 
   CLI::App* log = cli.add_subcommand(
       "log",
@@ -482,8 +496,7 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   log->add_flag("--physical-com", physical_com, "the same as --com leg-aware");
   log->add_flag("--no-mounting-errors", no_mounting_errors, "true mounting equals the nominal");
-  log->add_option("--scenarios", scenarios,
-                  "comma-separated subset of tare,hang,stand,tripod,walk")
+  log->add_option("--scenarios", scenarios, "comma-separated subset of tare,hang,stand,tripod,walk")
       ->delimiter(',')
       ->check(CLI::IsMember({"tare", "hang", "stand", "tripod", "walk"}))
       ->capture_default_str();
@@ -550,7 +563,8 @@ int main(int argc, char** argv) {
     if (truth_path.empty()) truth_path = DefaultTruthPath(out_path);
     const bool drift = std::isfinite(plan.drift_at_s);
     if (!drifted_truth_path.empty() && !drift) {
-      throw std::invalid_argument("--drifted-truth needs --drift-at-s (no drift, no drifted truth)");
+      throw std::invalid_argument(
+          "--drifted-truth needs --drift-at-s (no drift, no drifted truth)");
     }
     // TRUTH.pbtxt -> TRUTH.drifted.pbtxt.
     if (drift && drifted_truth_path.empty()) {
@@ -569,15 +583,17 @@ int main(int argc, char** argv) {
     std::printf(
         "ftcal-sim log: %s (session %s): %.1f s of robot time, %lld events (%lld FT per leg, "
         "%lld servo, %lld mocap, %lld markers) in %.2f s; truth %s\n",
-        out_path.c_str(), log_options.session_id.c_str(), end_s,
-        static_cast<long long>(c.Total()), static_cast<long long>(c.ft[0]),
-        static_cast<long long>(c.servo), static_cast<long long>(c.mocap),
-        static_cast<long long>(c.markers), wall_s, truth_path.c_str());
-    if (drift) std::printf("ftcal-sim log: offsets drift from %.1f s; drifted truth %s\n",
-                           plan.drift_at_s, drifted_truth_path.c_str());
+        out_path.c_str(), log_options.session_id.c_str(), end_s, static_cast<long long>(c.Total()),
+        static_cast<long long>(c.ft[0]), static_cast<long long>(c.servo),
+        static_cast<long long>(c.mocap), static_cast<long long>(c.markers), wall_s,
+        truth_path.c_str());
+    if (drift)
+      std::printf("ftcal-sim log: offsets drift from %.1f s; drifted truth %s\n", plan.drift_at_s,
+                  drifted_truth_path.c_str());
     return 0;
   } catch (const std::exception& e) {
-    std::fprintf(stderr, "ftcal-sim log: %s\n", ftcal::UserText(e, "writing the twin's log").c_str());
+    std::fprintf(stderr, "ftcal-sim log: %s\n",
+                 ftcal::UserText(e, "writing the twin's log").c_str());
     return 1;
   }
 }

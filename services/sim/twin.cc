@@ -18,9 +18,9 @@ constexpr double kDeg = M_PI / 180.0;
 
 // The report's Table II (legs in the order HL ML FL HR MR FR): the true parameters are drawn
 // around these so the twin's numbers look like the lab robot's.
-constexpr double kTableForceOffsetN[kNumLegs][3] = {
-    {1.47, -1.30, -5.61}, {1.419, -4.884, -0.406}, {0.57, 3.71, -2.039},
-    {-8.49, -1.448, -2.43}, {-0.06, -0.123, -0.07}, {-0.93, 0.653, -2.183}};
+constexpr double kTableForceOffsetN[kNumLegs][3] = {{1.47, -1.30, -5.61},   {1.419, -4.884, -0.406},
+                                                    {0.57, 3.71, -2.039},   {-8.49, -1.448, -2.43},
+                                                    {-0.06, -0.123, -0.07}, {-0.93, 0.653, -2.183}};
 constexpr double kTableTorqueOffsetNm[kNumLegs][3] = {
     {0.2457, 0.002, 0.034},   {-0.0136, 0.0808, 0.0144}, {0.2176, 0.0921, -0.0177},
     {-0.3159, 0.3449, 0.001}, {-0.2392, -0.0982, 0.004}, {-0.3611, -0.153, 0.0222}};
@@ -52,7 +52,9 @@ enum ScenarioTag : uint64_t {
 class Random {
  public:
   explicit Random(uint64_t seed) : engine_(seed) {}
-  double Uniform(double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(engine_); }
+  double Uniform(double lo, double hi) {
+    return std::uniform_real_distribution<double>(lo, hi)(engine_);
+  }
   double Normal() { return normal_(engine_); }
   double Exponential(double rate) { return std::exponential_distribution<double>(rate)(engine_); }
   Vec3 UnitVector() {
@@ -75,14 +77,17 @@ void Require(bool ok, const std::string& what) {
 
 void ValidateOptions(const TwinOptions& o) {
   auto non_negative = [](double v, const char* name) {
-    Require(std::isfinite(v) && v >= 0.0, std::string("TwinOptions.") + name + " must be finite and >= 0, got " + std::to_string(v));
+    Require(std::isfinite(v) && v >= 0.0, std::string("TwinOptions.") + name +
+                                              " must be finite and >= 0, got " + std::to_string(v));
   };
   auto positive = [](double v, const char* name) {
-    Require(std::isfinite(v) && v > 0.0, std::string("TwinOptions.") + name + " must be finite and > 0, got " + std::to_string(v));
+    Require(std::isfinite(v) && v > 0.0, std::string("TwinOptions.") + name +
+                                             " must be finite and > 0, got " + std::to_string(v));
   };
   auto range = [](double lo, double hi, const char* name) {
     Require(std::isfinite(lo) && std::isfinite(hi) && 0.0 <= lo && lo <= hi,
-            std::string("TwinOptions.") + name + ": need 0 <= min <= max, got [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
+            std::string("TwinOptions.") + name + ": need 0 <= min <= max, got [" +
+                std::to_string(lo) + ", " + std::to_string(hi) + "]");
   };
   non_negative(o.force_noise_n, "force_noise_n");
   non_negative(o.torque_noise_nm, "torque_noise_nm");
@@ -110,7 +115,8 @@ void ValidateOptions(const TwinOptions& o) {
   positive(o.foot_stiffness_horizontal_n_m, "foot_stiffness_horizontal_n_m");
   non_negative(o.internal_force_n, "internal_force_n");
   positive(o.hang_cycle_s, "hang_cycle_s");
-  Require(o.hang_cycles > 0, "TwinOptions.hang_cycles must be > 0, got " + std::to_string(o.hang_cycles));
+  Require(o.hang_cycles > 0,
+          "TwinOptions.hang_cycles must be > 0, got " + std::to_string(o.hang_cycles));
   non_negative(o.stance_angle_deg, "stance_angle_deg");
   positive(o.pose_move_s, "pose_move_s");
   positive(o.pose_dwell_s, "pose_dwell_s");
@@ -121,10 +127,13 @@ void ValidateOptions(const TwinOptions& o) {
   non_negative(o.settle_cutoff_s, "settle_cutoff_s");
   non_negative(o.lift_spread_rad, "lift_spread_rad");
   positive(o.walk_clock_hz, "walk_clock_hz");
-  Require(std::isfinite(o.walk_turn_deg_per_cycle), "TwinOptions.walk_turn_deg_per_cycle must be finite");
+  Require(std::isfinite(o.walk_turn_deg_per_cycle),
+          "TwinOptions.walk_turn_deg_per_cycle must be finite");
   Require(o.walk_duty > 0.5 && o.walk_duty < 1.0,
-          "TwinOptions.walk_duty must be in (0.5, 1) so a tripod always stands, got " + std::to_string(o.walk_duty));
-  Require(o.walk_sweep_deg > 0.0 && o.walk_sweep_deg < 360.0, "TwinOptions.walk_sweep_deg must be in (0, 360)");
+          "TwinOptions.walk_duty must be in (0.5, 1) so a tripod always stands, got " +
+              std::to_string(o.walk_duty));
+  Require(o.walk_sweep_deg > 0.0 && o.walk_sweep_deg < 360.0,
+          "TwinOptions.walk_sweep_deg must be in (0, 360)");
 }
 
 // Smooth servo motion between two goals: s in [0, 1] -> [0, 1] with zero end velocities.
@@ -215,9 +224,10 @@ class BigAntTwin::Generator {
       }
       const Vec3 noise(rng_.Normal(), rng_.Normal(), rng_.Normal());
       f.marker_tracked[m] = t_s < drop_start_[m];
-      f.marker_G_m[m] = f.marker_tracked[m]
-                            ? Vec3(p_GC_m + R_GC * (twin_.markers_B_[m] + p_C_B) + o.marker_noise_m * noise)
-                            : Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
+      f.marker_G_m[m] =
+          f.marker_tracked[m]
+              ? Vec3(p_GC_m + R_GC * (twin_.markers_B_[m] + p_C_B) + o.marker_noise_m * noise)
+              : Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
     }
     sink_(f);
   }
@@ -285,7 +295,8 @@ BigAntTwin::BigAntTwin(const config::Config& config, const TwinOptions& options)
     LegCalibration& leg = cal.leg[k];
     for (int i = 0; i < 3; ++i) {
       leg.offset[i] = kTableForceOffsetN[k][i] + rng.Uniform(-1.0, 1.0) * o.offset_force_spread_n;
-      leg.offset[3 + i] = kTableTorqueOffsetNm[k][i] + rng.Uniform(-1.0, 1.0) * o.offset_torque_spread_nm;
+      leg.offset[3 + i] =
+          kTableTorqueOffsetNm[k][i] + rng.Uniform(-1.0, 1.0) * o.offset_torque_spread_nm;
     }
     leg.weight_n = kTableWeightN[k] + rng.Uniform(-1.0, 1.0) * o.weight_spread_n;
     // Leg CoM in the module frame ft_k (report Fig. 4/7): below the transducer, a little
@@ -335,10 +346,10 @@ BigAntTwin::BigAntTwin(const config::Config& config, const TwinOptions& options)
 
   // Twelve chassis markers on the top plate and on short posts, asymmetric so the body is
   // unambiguous.
-  markers_B_ = {Vec3(0.25, 0.14, 0.03),   Vec3(0.25, -0.14, 0.03),  Vec3(-0.25, 0.14, 0.03),
-                Vec3(-0.25, -0.14, 0.03), Vec3(0.0, 0.14, 0.03),    Vec3(0.0, -0.14, 0.03),
-                Vec3(0.25, 0.0, 0.03),    Vec3(-0.25, 0.0, 0.03),   Vec3(0.10, 0.05, 0.08),
-                Vec3(-0.12, 0.06, 0.07),  Vec3(0.05, -0.07, 0.09),  Vec3(-0.08, -0.04, 0.06)};
+  markers_B_ = {Vec3(0.25, 0.14, 0.03),   Vec3(0.25, -0.14, 0.03), Vec3(-0.25, 0.14, 0.03),
+                Vec3(-0.25, -0.14, 0.03), Vec3(0.0, 0.14, 0.03),   Vec3(0.0, -0.14, 0.03),
+                Vec3(0.25, 0.0, 0.03),    Vec3(-0.25, 0.0, 0.03),  Vec3(0.10, 0.05, 0.08),
+                Vec3(-0.12, 0.06, 0.07),  Vec3(0.05, -0.07, 0.09), Vec3(-0.08, -0.04, 0.06)};
 
   Random order_rng(MixSeed(options_.seed, kTagPoseOrder));
   std::iota(pose_order_.begin(), pose_order_.end(), 0);
@@ -356,8 +367,7 @@ calibration::Calibration BigAntTwin::TruthProto(bool drifted) const {
   proto.set_standing_uncertainty(calibration::TRUTH);
   std::ostringstream what;
   what << "BigAntTwin truth: seed=" << options_.seed << " physical_com=" << options_.physical_com
-       << " mounting_errors=" << options_.mounting_errors
-       << (drifted ? " offsets=drifted" : "");
+       << " mounting_errors=" << options_.mounting_errors << (drifted ? " offsets=drifted" : "");
   proto.mutable_provenance()->set_software_version("ftcal-twin");
   proto.mutable_provenance()->set_command_line(what.str());
   return proto;
@@ -390,7 +400,8 @@ Vec3 BigAntTwin::FootC(int k, double angle_rad) const {
   const TwinOptions& o = options_;
   const double c = std::cos(angle_rad);
   const double bottom = (c >= 0 ? 1.0 : -1.0) * std::pow(std::abs(c), o.foot_flatten);
-  const Vec3 foot_ft(-o.foot_rx_m * std::sin(angle_rad), 0.0, -o.foot_drop_m - o.foot_rz_m * bottom);
+  const Vec3 foot_ft(-o.foot_rx_m * std::sin(angle_rad), 0.0,
+                     -o.foot_drop_m - o.foot_rz_m * bottom);
   return truth_.X_C_ft(k) * foot_ft;
 }
 
@@ -408,7 +419,8 @@ std::array<double, kNumLegs> BigAntTwin::StandingPoseAngles(int index) const {
 
 // Quasi-static equilibrium on compliant feet.
 // Model: the ground pushes foot k with f_k = K (s_k - J_k delta), s_k the springs' compression
-//   at the undisplaced chassis, delta = [dp; dw] the chassis' small displacement, J_k = [I, -[a_k]].
+//   at the undisplaced chassis, delta = [dp; dw] the chassis' small displacement, J_k = [I,
+//   -[a_k]].
 // Residual: sum_k J_k^T f_k - target = 0 (J_k^T f = [f; a x f], the wrench about C in W).
 // Unknowns: delta (6). Null spaces: none with three non-collinear feet (H = sum J^T K J > 0);
 //   the vertical offset of the floor is absorbed in dz, the heading in the W convention.
@@ -529,13 +541,14 @@ double BigAntTwin::Hanging(HangSeries series, const RunOptions& run, const Frame
   Generator gen(*this, run, sink, kTagHanging + s);
   const TwinOptions& o = options_;
   const long n = std::lround(o.hang_cycles * o.hang_cycle_s * o.sample_rate_hz);
-  const ExperimentPhase phase = static_cast<ExperimentPhase>(static_cast<int>(ExperimentPhase::kHangXPos) + s);
+  const ExperimentPhase phase =
+      static_cast<ExperimentPhase>(static_cast<int>(ExperimentPhase::kHangXPos) + s);
   std::array<double, kNumLegs> angle{};
   for (long i = 0; i < n; ++i) {
     const double tau = i * gen.Dt();
     angle.fill(2.0 * M_PI * tau / o.hang_cycle_s);
-    gen.Emit(run.t0_s + tau, phase, s, true, angle, HangingState(series, angle),
-             HangingPositionG(), yaw0_rad_);
+    gen.Emit(run.t0_s + tau, phase, s, true, angle, HangingState(series, angle), HangingPositionG(),
+             yaw0_rad_);
   }
   return run.t0_s + n * gen.Dt();
 }
@@ -574,7 +587,8 @@ Vec6 DrawSettling(Random* rng, const TwinOptions& o) {
 // Settling displacement tau_s after a change: zero at the change, exactly zero after the cutoff.
 Vec6 Settling(const Vec6& amplitude, double tau_s, const TwinOptions& o) {
   if (tau_s < 0.0 || tau_s >= o.settle_cutoff_s) return Vec6::Zero();
-  return amplitude * std::exp(-tau_s / o.settle_tau_s) * std::sin(2.0 * M_PI * o.settle_freq_hz * tau_s);
+  return amplitude * std::exp(-tau_s / o.settle_tau_s) *
+         std::sin(2.0 * M_PI * o.settle_freq_hz * tau_s);
 }
 
 }  // namespace
@@ -619,7 +633,8 @@ double BigAntTwin::Standing(int num_poses, const RunOptions& run, const FrameSin
 
 double BigAntTwin::TripodStances(int num_stances, const RunOptions& run,
                                  const FrameSink& sink) const {
-  Require(num_stances >= 1, "TripodStances: num_stances must be >= 1, got " + std::to_string(num_stances));
+  Require(num_stances >= 1,
+          "TripodStances: num_stances must be >= 1, got " + std::to_string(num_stances));
   Generator gen(*this, run, sink, kTagTripod);
   const TwinOptions& o = options_;
   const double dt = gen.Dt();
@@ -641,7 +656,8 @@ double BigAntTwin::TripodStances(int num_stances, const RunOptions& run,
     std::array<Vec3, kNumLegs> internal = DrawInternal(&gen.Rng(), o.internal_force_n);
     for (long i = 0; i < n; ++i, t += dt) {
       const double b = Blend(static_cast<double>(i) / n);
-      for (int k = 0; k < kNumLegs; ++k) angle[k] = moving[k] ? from[k] + (to[k] - from[k]) * b : from[k];
+      for (int k = 0; k < kNumLegs; ++k)
+        angle[k] = moving[k] ? from[k] + (to[k] - from[k]) * b : from[k];
       const StanceState st = Equilibrium(angle, contact_moving, internal);
       gen.Emit(t, ExperimentPhase::kTripod, stance, false, angle, st,
                origin_G_m_ + Vec3(0.0, 0.0, st.height_m), yaw0_rad_);
@@ -686,7 +702,8 @@ double BigAntTwin::TripodStances(int num_stances, const RunOptions& run,
   return t;
 }
 
-double BigAntTwin::TripodWalk(double duration_s, const RunOptions& run, const FrameSink& sink) const {
+double BigAntTwin::TripodWalk(double duration_s, const RunOptions& run,
+                              const FrameSink& sink) const {
   Require(std::isfinite(duration_s) && duration_s > 0.0,
           "TripodWalk: duration_s must be > 0, got " + std::to_string(duration_s));
   Generator gen(*this, run, sink, kTagWalk);
@@ -744,7 +761,8 @@ BigAntTwin::Driven::Driven(const BigAntTwin& twin, const RunOptions& run)
 
 BigAntTwin::Driven::~Driven() = default;
 
-const TwinFrame& BigAntTwin::Driven::Frame(double t_s, const std::array<double, kNumLegs>& angle_rad) {
+const TwinFrame& BigAntTwin::Driven::Frame(double t_s,
+                                           const std::array<double, kNumLegs>& angle_rad) {
   Require(std::isfinite(t_s), "Driven::Frame: time must be finite");
   for (int k = 0; k < kNumLegs; ++k) {
     Require(std::isfinite(angle_rad[k]),

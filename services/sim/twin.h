@@ -71,8 +71,8 @@ struct TwinOptions {
   // Noise (1 sigma), per sample.
   double force_noise_n = 0.05;
   double torque_noise_nm = 0.002;
-  double attitude_noise_deg = 0.2;     // mocap R_GC, per axis
-  double marker_noise_m = 0.0005;      // mocap marker positions, per axis
+  double attitude_noise_deg = 0.2;  // mocap R_GC, per axis
+  double marker_noise_m = 0.0005;   // mocap marker positions, per axis
   // Chassis marker dropouts: each marker independently drops out at this rate (events per
   // second) for an exponentially distributed time with this mean.
   double marker_dropout_rate_hz = 0.004;
@@ -84,20 +84,20 @@ struct TwinOptions {
   double sample_rate_hz = 100.0;
 
   // True parameter ranges (drawn uniformly from the seed).
-  double offset_force_spread_n = 1.0;     // around the report's Table II offsets
+  double offset_force_spread_n = 1.0;  // around the report's Table II offsets
   double offset_torque_spread_nm = 0.03;
-  double weight_spread_n = 0.1;           // around Table II's m g
-  double tilt_min_deg = 1.0, tilt_max_deg = 3.0;          // mounting tilt about ft origin
-  double shift_min_m = 0.002, shift_max_m = 0.008;        // mounting shift
-  double p_C_B_min_m = 0.008, p_C_B_max_m = 0.012;        // |p^C_B|
+  double weight_spread_n = 0.1;                             // around Table II's m g
+  double tilt_min_deg = 1.0, tilt_max_deg = 3.0;            // mounting tilt about ft origin
+  double shift_min_m = 0.002, shift_max_m = 0.008;          // mounting shift
+  double p_C_B_min_m = 0.008, p_C_B_max_m = 0.012;          // |p^C_B|
   double hang_tilt_min_deg = 1.0, hang_tilt_max_deg = 3.0;  // whole robot, per hanging series
-  double drift_force_n = 3.0, drift_torque_nm = 0.1;      // offset drift, uniform +-
+  double drift_force_n = 3.0, drift_torque_nm = 0.1;        // offset drift, uniform +-
 
   // Leg module (foot curve in ft_k, see the header comment).
-  double foot_drop_m = 0.10;   // h
+  double foot_drop_m = 0.10;  // h
   double foot_rx_m = 0.06;
   double foot_rz_m = 0.04;
-  double foot_flatten = 0.3;   // e
+  double foot_flatten = 0.3;  // e
   double foot_stiffness_vertical_n_m = 1000.0;
   double foot_stiffness_horizontal_n_m = 1000.0;
   double internal_force_n = 3.0;  // rms per foot and horizontal axis before projection
@@ -139,10 +139,10 @@ struct TwinFrame {
   // Devices.
   std::array<Vec6, kNumLegs> reading;  // w_m,k in ft_k, [N; N*m] (quantized when asked)
   std::array<std::array<int32_t, 6>, kNumLegs> counts;  // reading * cpf / cpt, rounded
-  std::array<double, kNumLegs> angle_rad;  // shaft angles, continuous (not wrapped)
-  Mat3 R_GC = Mat3::Identity();            // mocap attitude (noisy); G: z up
-  Vec3 p_GB_m = Vec3::Zero();              // mocap position of the body origin B in G
-  std::array<Vec3, kNumChassisMarkers> marker_G_m;  // NaN when untracked
+  std::array<double, kNumLegs> angle_rad;               // shaft angles, continuous (not wrapped)
+  Mat3 R_GC = Mat3::Identity();                         // mocap attitude (noisy); G: z up
+  Vec3 p_GB_m = Vec3::Zero();                           // mocap position of the body origin B in G
+  std::array<Vec3, kNumChassisMarkers> marker_G_m;      // NaN when untracked
   std::array<bool, kNumChassisMarkers> marker_tracked;
 
   // Truth.
@@ -169,8 +169,8 @@ struct StanceState {
   std::array<Vec3, kNumLegs> force_W;  // ground on foot k, W axes
   std::array<Vec6, kNumLegs> ground_w_C;
   Vec3 com_shift_C = Vec3::Zero();
-  Vec6 target_W = Vec6::Zero();        // what the ground wrenches sum to (about C, W axes)
-  double height_m = 0.0;               // C above the floor
+  Vec6 target_W = Vec6::Zero();  // what the ground wrenches sum to (about C, W axes)
+  double height_m = 0.0;         // C above the floor
 };
 
 class BigAntTwin {

@@ -53,7 +53,8 @@ const GroupBoard::Beat* GroupBoard::BeatFor(const config::LaunchProcess& p, int6
   if (launched_with_name != 1) return nullptr;
   const Beat* newest = nullptr;
   for (const auto& [key, beat] : beats_) {
-    if (key.first == name && (!newest || beat.received_utime > newest->received_utime)) newest = &beat;
+    if (key.first == name && (!newest || beat.received_utime > newest->received_utime))
+      newest = &beat;
   }
   return newest;
 }

@@ -32,8 +32,8 @@ class GroupBoard {
     std::string supervisor_state;  // "?" when no event heard yet
     int64_t pid = 0;
     int32_t restarts = 0;
-    std::string heartbeat;         // RUNNING ... or SILENT, "-" for a process that sends none
-    double out_per_s = -1;         // from the last two heartbeats; -1 unknown
+    std::string heartbeat;  // RUNNING ... or SILENT, "-" for a process that sends none
+    double out_per_s = -1;  // from the last two heartbeats; -1 unknown
     std::string last_error;
   };
   std::vector<Row> Rows(int64_t now_utime) const;
@@ -49,7 +49,8 @@ class GroupBoard {
 
   config::Launch launch_;
   double lost_after_s_;
-  std::map<std::tuple<std::string, std::string, std::string>, process_state_t> states_;  // host, group, name
+  std::map<std::tuple<std::string, std::string, std::string>, process_state_t>
+      states_;                                             // host, group, name
   std::map<std::pair<std::string, int64_t>, Beat> beats_;  // name, pid
 };
 

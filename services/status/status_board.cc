@@ -68,17 +68,16 @@ std::vector<StatusBoard::Row> StatusBoard::Rows(int64_t now_utime) const {
 }
 
 std::string StatusBoard::Render(int64_t now_utime) const {
-  const std::vector<std::string> header = {"NAME",  "HOST",   "PID", "STATE",    "UPTIME",
-                                           "IN",    "OUT",    "DROPS", "ERRORS", "AGE",
-                                           "COUNTERS", "LAST ERROR"};
+  const std::vector<std::string> header = {"NAME",   "HOST", "PID",      "STATE",
+                                           "UPTIME", "IN",   "OUT",      "DROPS",
+                                           "ERRORS", "AGE",  "COUNTERS", "LAST ERROR"};
   std::vector<std::vector<std::string>> cells = {header};
   for (const Row& row : Rows(now_utime)) {
     const service_status_t& s = row.status;
-    cells.push_back({Printable(s.name), Printable(s.host), std::to_string(s.pid),
-                     row.shown_state, FormatDuration(s.uptime_s), std::to_string(s.msgs_in),
-                     std::to_string(s.msgs_out), std::to_string(s.drops),
-                     std::to_string(s.errors), FormatDuration(row.age_s), Counters(s),
-                     Printable(s.last_error)});
+    cells.push_back({Printable(s.name), Printable(s.host), std::to_string(s.pid), row.shown_state,
+                     FormatDuration(s.uptime_s), std::to_string(s.msgs_in),
+                     std::to_string(s.msgs_out), std::to_string(s.drops), std::to_string(s.errors),
+                     FormatDuration(row.age_s), Counters(s), Printable(s.last_error)});
   }
   std::vector<size_t> width(header.size(), 0);
   for (const auto& line : cells) {

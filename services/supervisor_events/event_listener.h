@@ -19,7 +19,8 @@ std::map<std::string, std::string> ParseTokens(const std::string& text);
 
 class EventTranslator {
  public:
-  EventTranslator(std::string host, std::string group) : host_(std::move(host)), group_(std::move(group)) {}
+  EventTranslator(std::string host, std::string group)
+      : host_(std::move(host)), group_(std::move(group)) {}
 
   // The message for one event, or nullopt for an event of another group or kind.
   std::optional<process_state_t> Translate(const std::string& header, const std::string& payload,

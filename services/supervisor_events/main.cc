@@ -14,9 +14,10 @@
 #include "supervisor_events/event_listener.h"
 
 int main(int argc, char** argv) {
-  CLI::App cli("supervisor event listener: publishes PROCESS_STATE events of --group as "
-               "process_state_t on --channel. Run by supervisord, not by hand.",
-               "ftcal-supervisor-events");
+  CLI::App cli(
+      "supervisor event listener: publishes PROCESS_STATE events of --group as "
+      "process_state_t on --channel. Run by supervisord, not by hand.",
+      "ftcal-supervisor-events");
   std::string group, host_name, url = "udpm://239.255.76.67:7667?ttl=0", channel = "PROCESS_STATE";
   cli.add_option("--group", group, "the supervisor group to report (default: every group)");
   cli.add_option("--host-name", host_name, "host name to put in the messages (default: hostname)");

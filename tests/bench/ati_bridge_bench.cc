@@ -129,6 +129,7 @@ class Listener {
     std::lock_guard<std::mutex> lock(mu_);
     return heard_;
   }
+
  private:
   lcm::LCM lcm_;
   std::atomic<bool> stop_{false};
@@ -136,7 +137,6 @@ class Listener {
   std::mutex mu_;
   std::map<std::string, long long> heard_;
 };
-
 
 // The machine's floor: how late a thread that does nothing but sleep to a 7000 Hz tick wakes
 // (SCHED_FIFO when `fifo` and permitted). A bridge cannot beat its own wake-up.
@@ -165,8 +165,10 @@ std::string WakeProbe(double seconds, bool fifo) {
   std::sort(late.begin(), late.end());
   auto q = [&](double f) { return late[static_cast<std::size_t>(f * (late.size() - 1))] / 1000; };
   char line[200];
-  std::snprintf(line, sizeof line, "%s thread's wake-up lateness at 7000 Hz over %.0f s: p50 %lld "
-                "us p99 %lld us p99.9 %lld us", policy.c_str(), seconds, q(0.5), q(0.99), q(0.999));
+  std::snprintf(line, sizeof line,
+                "%s thread's wake-up lateness at 7000 Hz over %.0f s: p50 %lld "
+                "us p99 %lld us p99.9 %lld us",
+                policy.c_str(), seconds, q(0.5), q(0.99), q(0.999));
   return line;
 }
 
@@ -218,8 +220,12 @@ int main(int argc, char** argv) {
   const std::string ready = dir + "/ready";
   // The boxes stop sending after --duration and the bridge is stopped a second later, so that
   // every record sent has had time to arrive: received/sent is then the real loss.
-  std::vector<std::string> emulator_argv = {FTCAL_EMULATE_ATI, "--rate", std::to_string(rate_hz),
-                                            "--duration", std::to_string(duration_s), "--ready",
+  std::vector<std::string> emulator_argv = {FTCAL_EMULATE_ATI,
+                                            "--rate",
+                                            std::to_string(rate_hz),
+                                            "--duration",
+                                            std::to_string(duration_s),
+                                            "--ready",
                                             ready};
   if (emulator_fifo) {
     emulator_argv.insert(emulator_argv.begin(), {"/usr/bin/chrt", "-f", "30"});
@@ -236,8 +242,7 @@ int main(int argc, char** argv) {
   if (listen) listener = std::make_unique<Listener>();
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
 
-  std::vector<std::string> bridge_argv = {bridge_binary, "--lcm-url", kUrl, "--log-level",
-                                          "info"};
+  std::vector<std::string> bridge_argv = {bridge_binary, "--lcm-url", kUrl, "--log-level", "info"};
   if (realtime) bridge_argv.push_back("--realtime");
   if (!slice_us.empty()) bridge_argv.insert(bridge_argv.end(), {"--slice-us", slice_us});
   std::vector<pid_t> bridge_pids;
@@ -280,8 +285,8 @@ int main(int argc, char** argv) {
   std::vector<std::string> held(bridge_pids.size());
   std::vector<std::string> scheduling(bridge_pids.size(), "SCHED_OTHER");
   for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
-    const std::string err =
-        ReadFile(dir + (bridges == 1 ? std::string("/bridge.err") : "/bridge-" + kLegs[i] + ".err"));
+    const std::string err = ReadFile(
+        dir + (bridges == 1 ? std::string("/bridge.err") : "/bridge-" + kLegs[i] + ".err"));
     std::istringstream in(err);
     for (std::string line; std::getline(in, line);) {
       for (const auto& leg : kLegs) {
@@ -294,8 +299,8 @@ int main(int argc, char** argv) {
         std::string name;
         long long value = 0;
         while (words >> name >> value) {
-          if (name == "duplicates" || name == "late" || name == "stale" ||
-              name == "uncalibrated" || name == "publish_errors") {
+          if (name == "duplicates" || name == "late" || name == "stale" || name == "uncalibrated" ||
+              name == "publish_errors") {
             f.dropped += value;
           }
         }
@@ -310,10 +315,12 @@ int main(int argc, char** argv) {
     }
   }
 
-  std::printf("ati_bridge_bench: %d boxes x %d records/s for %.1f s on loopback, %d bridge "
-              "process(es)%s%s%s%s\n", 6, rate_hz, duration_s, bridges,
-              realtime ? ", --realtime" : "", slice_us.empty() ? "" : ", --slice-us ",
-              slice_us.c_str(), emulator_fifo ? ", emulator SCHED_FIFO" : "");
+  std::printf(
+      "ati_bridge_bench: %d boxes x %d records/s for %.1f s on loopback, %d bridge "
+      "process(es)%s%s%s%s\n",
+      6, rate_hz, duration_s, bridges, realtime ? ", --realtime" : "",
+      slice_us.empty() ? "" : ", --slice-us ", slice_us.c_str(),
+      emulator_fifo ? ", emulator SCHED_FIFO" : "");
   // unaccounted: received records neither published nor counted as dropped; must be 0.
   std::printf("%-4s %10s %10s %10s %8s %8s %11s %10s %10s\n", "leg", "sent", "received",
               "published", "lost", "dropped", "unaccounted", "heard_lcm", "recv/sent");
@@ -334,9 +341,10 @@ int main(int argc, char** argv) {
                 f.received, f.published, f.lost, f.dropped, unaccounted, h,
                 s > 0 ? double(f.received) / double(s) : 0.0);
   }
-  std::printf("total: sent %lld received %lld published %lld lost (by rdt_sequence) %lld "
-              "dropped (counted) %lld unaccounted %lld\n", total_sent, total_received,
-              total_published, total_lost, total_dropped, total_unaccounted);
+  std::printf(
+      "total: sent %lld received %lld published %lld lost (by rdt_sequence) %lld "
+      "dropped (counted) %lld unaccounted %lld\n",
+      total_sent, total_received, total_published, total_lost, total_dropped, total_unaccounted);
   for (std::size_t i = 0; i < bridge_pids.size(); ++i) {
     std::printf("bridge %zu (%s): CPU %.2f s = %.1f%% of one core; latency %s\n", i,
                 scheduling[i].c_str(), ended[i].cpu_s, 100.0 * ended[i].cpu_s / duration_s,
@@ -345,8 +353,10 @@ int main(int argc, char** argv) {
   }
   double load[3] = {0, 0, 0};
   if (::getloadavg(load, 3) == 3) {
-    std::printf("machine load average %.2f %.2f %.2f on %ld cores (figures are only as good as "
-                "the machine is quiet)\n", load[0], load[1], load[2], ::sysconf(_SC_NPROCESSORS_ONLN));
+    std::printf(
+        "machine load average %.2f %.2f %.2f on %ld cores (figures are only as good as "
+        "the machine is quiet)\n",
+        load[0], load[1], load[2], ::sysconf(_SC_NPROCESSORS_ONLN));
   }
   std::printf("emulator: CPU %.2f s\n", emu.cpu_s);
   if (!probe.empty()) std::printf("machine floor (before the run): %s\n", probe.c_str());

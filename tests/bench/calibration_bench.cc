@@ -77,9 +77,10 @@ int Run() {
   const auto t0 = std::chrono::steady_clock::now();
   const double c0 = CpuSeconds();
   run = Calibrate(hanging, poses, config);
-  std::printf("total (Calibrate(), one call, the default): wall %.3f s, cpu %.3f s; selected model %s\n",
-              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(),
-              CpuSeconds() - c0, StandingModelName(run.standing.selected));
+  std::printf(
+      "total (Calibrate(), one call, the default): wall %.3f s, cpu %.3f s; selected model %s\n",
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(),
+      CpuSeconds() - c0, StandingModelName(run.standing.selected));
   {
     // The report's procedure (profile REPORT: first-order hanging rotations, fixed CoM, four
     // candidates instead of eight).

@@ -133,7 +133,8 @@ BENCHMARK(BM_CorrectorEngine)->Unit(benchmark::kMillisecond);
 // The process's handler code end to end (replay at full speed), output log written.
 void BM_CorrectorStageReplay(benchmark::State& state) {
   const Data& d = TheData();
-  auto log = std::make_shared<spdlog::logger>("corrector_bench", std::make_shared<spdlog::sinks::null_sink_mt>());
+  auto log = std::make_shared<spdlog::logger>("corrector_bench",
+                                              std::make_shared<spdlog::sinks::null_sink_mt>());
   const std::string out = d.log_path + ".out";
   int64_t samples = 0;
   double out_bytes = 0;
@@ -159,9 +160,10 @@ void BM_CorrectorStageReplay(benchmark::State& state) {
       benchmark::Counter(static_cast<double>(samples), benchmark::Counter::kIsRate);
   state.counters["x_real_time"] = benchmark::Counter(
       static_cast<double>(samples) / kNumLegs / 100.0, benchmark::Counter::kIsRate);
-  state.SetLabel("ftcal-corrector --replay path, log in -> log out; " +
-                 std::to_string(d.frames.size() * kNumLegs) +
-                 " leg-samples (FT_<LEG> sample -> CONTACT_WRENCH, 1/6 CONTACT_WRENCH_SUM) per pass");
+  state.SetLabel(
+      "ftcal-corrector --replay path, log in -> log out; " +
+      std::to_string(d.frames.size() * kNumLegs) +
+      " leg-samples (FT_<LEG> sample -> CONTACT_WRENCH, 1/6 CONTACT_WRENCH_SUM) per pass");
 }
 BENCHMARK(BM_CorrectorStageReplay)->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_CorrectorStageReplay)->Unit(benchmark::kMillisecond)->UseRealTime();

@@ -1,9 +1,10 @@
 // The Dynamixel bridge's full read-write cycle on the emulated bus: SYNC WRITE of six goal
 // positions, SYNC READ of the six present blocks, and every --hw-error-every cycles the SYNC
 // READ of addresses 64-70, one cycle per 1.05 ms (the servos' tick is 1 ms) over a
-// pseudo-terminal with the twin's MX-106 emulator answering in a second thread. Prints cycles/s and the per-cycle latency p50/p99/max.
-// On real hardware the wire time dominates (about 2.5 ms per cycle at 1 Mbit/s, see
-// docs/device-protocols.md §2.1); this measures the software path: codec, pty, emulator, bridge.
+// pseudo-terminal with the twin's MX-106 emulator answering in a second thread. Prints cycles/s and
+// the per-cycle latency p50/p99/max. On real hardware the wire time dominates (about 2.5 ms per
+// cycle at 1 Mbit/s, see docs/device-protocols.md §2.1); this measures the software path: codec,
+// pty, emulator, bridge.
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -112,9 +113,10 @@ int main(int argc, char** argv) {
       return latency_us[std::min(latency_us.size() - 1,
                                  static_cast<std::size_t>(p * (latency_us.size() - 1) + 0.5))];
     };
-    std::printf("dynamixel_bridge_bench: six MX-106 on an emulated bus (pty), goal write + present "
-                "read per cycle, hardware-error read every %d\n",
-                hw_every);
+    std::printf(
+        "dynamixel_bridge_bench: six MX-106 on an emulated bus (pty), goal write + present "
+        "read per cycle, hardware-error read every %d\n",
+        hw_every);
     std::printf("  cycles            %zu in %.2f s\n", latency_us.size(), elapsed_s);
     std::printf("  cycles/s          %.0f\n", latency_us.size() / elapsed_s);
     std::printf("  latency p50       %.1f us\n", pct(0.50));

@@ -62,7 +62,8 @@ void BM_OpenServoCommand(benchmark::State& state) {
   const servo_command_t cmd = SixServos();
   // Distinct envelopes (rising sequences), sealed beforehand: only the receiver is timed.
   std::vector<std::vector<uint8_t>> envelopes;
-  for (int i = 0; i < 4096; ++i) envelopes.push_back(Encode(signer.Seal("SERVO_CMD", cmd, NowUs())));
+  for (int i = 0; i < 4096; ++i)
+    envelopes.push_back(Encode(signer.Seal("SERVO_CMD", cmd, NowUs())));
   size_t i = 0;
   for (auto _ : state) {
     if (i == envelopes.size()) {
@@ -72,9 +73,9 @@ void BM_OpenServoCommand(benchmark::State& state) {
       state.ResumeTiming();
     }
     const auto& b = envelopes[i++];
-    auto [opened, refused] = verifier.Open("SERVO_CMD", b.data(), static_cast<int>(b.size()),
-                                           static_cast<uint64_t>(servo_command_t::getHash()),
-                                           NowUs(), /*window_us=*/0);
+    auto [opened, refused] =
+        verifier.Open("SERVO_CMD", b.data(), static_cast<int>(b.size()),
+                      static_cast<uint64_t>(servo_command_t::getHash()), NowUs(), /*window_us=*/0);
     if (refused) state.SkipWithError(refused->kind.c_str());
     servo_command_t out;
     benchmark::DoNotOptimize(wire::Decode(opened->payload, opened->size, &out));

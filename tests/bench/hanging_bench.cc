@@ -47,11 +47,7 @@ void BM_RunHanging(benchmark::State& state) {
   state.SetLabel(std::string(options.refine_s_plus ? "report objective refine" : "closed-form s+") +
                  (options.exact_rotations ? ", exact rotations" : ", I + [s]"));
 }
-BENCHMARK(BM_RunHanging)
-    ->Args({1, 0})
-    ->Args({0, 0})
-    ->Args({1, 1})
-    ->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_RunHanging)->Args({1, 0})->Args({0, 0})->Args({1, 1})->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace ftcal

@@ -129,9 +129,9 @@ std::string Quantiles(std::vector<std::int64_t> v) {
 class Listener {
  public:
   struct Event {
-    std::int64_t utime;       // the transducer sample's
-    std::int64_t lcm_recv;    // LCM's receive stamp
-    std::int64_t handled;     // this program's clock in the handler
+    std::int64_t utime;         // the transducer sample's
+    std::int64_t lcm_recv;      // LCM's receive stamp
+    std::int64_t handled;       // this program's clock in the handler
     std::int64_t rdt_sequence;  // FT only
   };
   explicit Listener(bool realtime) : lcm_(kListenUrl) {
@@ -424,7 +424,8 @@ int main(int argc, char** argv) {
     // timeout for the tap's extra hop on a loaded machine, no velocity limit to speak of (a
     // MOVE's goal is written whole, in one Sync Write), and the commander's key trusted.
     ftcal::testing::SignedCommander commander(kUrl);
-    std::string text = ftcal::testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+    std::string text =
+        ftcal::testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
     text = std::regex_replace(text, std::regex("device: \"[^\"]*\""),
                               "device: \"" + path("bridge-tty") + "\"");
     text = std::regex_replace(text, std::regex("reply_timeout_s: [0-9.]+"),
@@ -454,7 +455,8 @@ int main(int argc, char** argv) {
       if (sim->Wait(0.05)) break;
     }
     if (::access(path("ready").c_str(), F_OK) != 0) {
-      std::fprintf(stderr, "ftcal-sim not ready: %s\n", ftcal::testing::ReadFile(path("sim.err")).c_str());
+      std::fprintf(stderr, "ftcal-sim not ready: %s\n",
+                   ftcal::testing::ReadFile(path("sim.err")).c_str());
       Stop(sim);
       ftcal::testing::RemoveTree(dir);
       return 1;
@@ -478,8 +480,8 @@ int main(int argc, char** argv) {
     }
     const KernelDrops kernel_before = ReadKernelDrops();
     std::vector<std::unique_ptr<Child>> ati;
-    std::vector<std::string> ati_argv = {FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url",
-                                         kUrl, "--silence-timeout", "1.0"};
+    std::vector<std::string> ati_argv = {
+        FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", kUrl, "--silence-timeout", "1.0"};
     if (!no_realtime) ati_argv.push_back("--realtime");
     if (bridges == 1) {
       ati.push_back(std::make_unique<Child>(ati_argv, path("ati.out"), path("ati.err")));
@@ -487,12 +489,13 @@ int main(int argc, char** argv) {
       for (const auto& leg : kLegs) {
         auto a = ati_argv;
         a.insert(a.end(), {"--legs", leg});
-        ati.push_back(std::make_unique<Child>(a, path("ati-" + leg + ".out"), path("ati-" + leg + ".err")));
+        ati.push_back(
+            std::make_unique<Child>(a, path("ati-" + leg + ".out"), path("ati-" + leg + ".err")));
       }
     }
-    auto dxl = std::make_unique<Child>(
-        std::vector<std::string>{FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path, "--lcm-url", kUrl},
-        path("dxl.out"), path("dxl.err"));
+    auto dxl = std::make_unique<Child>(std::vector<std::string>{FTCAL_DYNAMIXEL_BRIDGE, "--config",
+                                                                config_path, "--lcm-url", kUrl},
+                                       path("dxl.out"), path("dxl.err"));
     auto mocap = std::make_unique<Child>(
         std::vector<std::string>{FTCAL_MOCAP_BRIDGE, "--config", config_path, "--lcm-url", kUrl},
         path("mocap.out"), path("mocap.err"));
@@ -518,7 +521,8 @@ int main(int argc, char** argv) {
 
     // ---- command latency ----
     std::vector<int> ids;
-    for (int k = 0; k < config.robot().leg_size(); ++k) ids.push_back(static_cast<int>(config.robot().leg(k).servo().id()));
+    for (int k = 0; k < config.robot().leg_size(); ++k)
+      ids.push_back(static_cast<int>(config.robot().leg(k).servo().id()));
     const std::vector<double> pose_a = {0.3, -0.2, 0.25, -0.3, 0.2, -0.25};
     const std::vector<double> pose_b = {-0.25, 0.3, -0.2, 0.25, -0.3, 0.2};
     std::vector<std::int64_t> published;
@@ -561,18 +565,20 @@ int main(int argc, char** argv) {
     tap.reset();
 
     // ---- figures ----
-    std::printf("live_latency_bench: twin (ftcal-sim live, scenario commanded, seed %llu), 6 boxes "
-                "x %d records/s; %s%s; Dynamixel and mocap bridges; ftcal-corrector with the "
-                "true calibration; subscriber %s; %.0f s counted after %.0f s of warm-up\n",
-                (unsigned long long)seed, rate_hz,
-                bridges == 6 ? "six ATI bridges (--legs X)" : "one ATI bridge for all six legs",
-                no_realtime ? "" : " --realtime",
-                listener->realtime() ? "SCHED_FIFO" : "SCHED_OTHER", duration_s, warmup_s);
+    std::printf(
+        "live_latency_bench: twin (ftcal-sim live, scenario commanded, seed %llu), 6 boxes "
+        "x %d records/s; %s%s; Dynamixel and mocap bridges; ftcal-corrector with the "
+        "true calibration; subscriber %s; %.0f s counted after %.0f s of warm-up\n",
+        (unsigned long long)seed, rate_hz,
+        bridges == 6 ? "six ATI bridges (--legs X)" : "one ATI bridge for all six legs",
+        no_realtime ? "" : " --realtime", listener->realtime() ? "SCHED_FIFO" : "SCHED_OTHER",
+        duration_s, warmup_s);
     std::vector<std::int64_t> ft_lat, ft_lat_lcm, cw_lat, cw_lat_lcm, corr_lat;
     long long window_sent = 0, window_ft = 0, window_cw = 0, gaps = 0;
     long long run_ft = 0, run_cw = 0;
-    std::printf("%-4s %12s %10s %10s %10s   (in the window; twin = last - first RDT sequence + 1)\n",
-                "leg", "twin", "FT heard", "FT gaps", "CW heard");
+    std::printf(
+        "%-4s %12s %10s %10s %10s   (in the window; twin = last - first RDT sequence + 1)\n", "leg",
+        "twin", "FT heard", "FT gaps", "CW heard");
     for (int k = 0; k < 6; ++k) {
       const auto& ft = listener->ft_[k];
       const auto& cw = listener->cw_[k];
@@ -608,12 +614,13 @@ int main(int argc, char** argv) {
       std::printf("%-4s %12lld %10lld %10lld %10lld\n", kLegs[k].c_str(), (long long)sent,
                   (long long)n_ft, (long long)n_gap, (long long)n_cw);
     }
-    std::printf("loss in the window: twin sent %lld, FT_<LEG> heard %lld (missing %lld, %.4f%%), "
-                "CONTACT_WRENCH heard %lld (missing %lld, %.4f%%)\n",
-                window_sent, window_ft, window_sent - window_ft,
-                window_sent > 0 ? 100.0 * double(window_sent - window_ft) / double(window_sent) : 0.0,
-                window_cw, window_sent - window_cw,
-                window_sent > 0 ? 100.0 * double(window_sent - window_cw) / double(window_sent) : 0.0);
+    std::printf(
+        "loss in the window: twin sent %lld, FT_<LEG> heard %lld (missing %lld, %.4f%%), "
+        "CONTACT_WRENCH heard %lld (missing %lld, %.4f%%)\n",
+        window_sent, window_ft, window_sent - window_ft,
+        window_sent > 0 ? 100.0 * double(window_sent - window_ft) / double(window_sent) : 0.0,
+        window_cw, window_sent - window_cw,
+        window_sent > 0 ? 100.0 * double(window_sent - window_cw) / double(window_sent) : 0.0);
     if (record) {
       // The recording, counted as this subscriber's heard: the window's FT by RDT sequence
       // against the twin's (the same first..last as above), its CONTACT_WRENCH against them.
@@ -631,7 +638,8 @@ int main(int argc, char** argv) {
             continue;
           }
           const int k = Listener::LegOf(m.leg);
-          if (k >= 0 && m.utime >= window_from && m.utime < window_to) seq[k].push_back(m.rdt_sequence);
+          if (k >= 0 && m.utime >= window_from && m.utime < window_to)
+            seq[k].push_back(m.rdt_sequence);
         } else if (e->channel == "CONTACT_WRENCH") {
           ftcal::contact_wrench_t m;
           if (m.decode(e->data, 0, e->datalen) != e->datalen || m.leg < 0 || m.leg >= 6) {
@@ -651,15 +659,16 @@ int main(int argc, char** argv) {
       }
       // scripts/record's own test: it runs lcm-logger under chrt when this succeeds.
       const bool fifo = ::system("chrt -f 10 true >/dev/null 2>&1") == 0;
-      std::printf("recording (scripts/record: lcm-logger, recv_buf_size 32 MB%s) in the window: "
-                  "twin sent %lld (by the recorded RDT sequences), FT_<LEG> recorded %lld "
-                  "(missing %lld, %.4f%%), CONTACT_WRENCH recorded %lld (missing %lld, %.4f%%), "
-                  "undecodable %lld; the recorder said: %s\n",
-                  fifo ? ", SCHED_FIFO" : "", rec_sent, rec_ft, rec_sent - rec_ft,
-                  rec_sent > 0 ? 100.0 * double(rec_sent - rec_ft) / double(rec_sent) : 0.0,
-                  rec_cw_total, rec_sent - rec_cw_total,
-                  rec_sent > 0 ? 100.0 * double(rec_sent - rec_cw_total) / double(rec_sent) : 0.0,
-                  undecodable, ftcal::testing::ReadFile(path("record.err")).c_str());
+      std::printf(
+          "recording (scripts/record: lcm-logger, recv_buf_size 32 MB%s) in the window: "
+          "twin sent %lld (by the recorded RDT sequences), FT_<LEG> recorded %lld "
+          "(missing %lld, %.4f%%), CONTACT_WRENCH recorded %lld (missing %lld, %.4f%%), "
+          "undecodable %lld; the recorder said: %s\n",
+          fifo ? ", SCHED_FIFO" : "", rec_sent, rec_ft, rec_sent - rec_ft,
+          rec_sent > 0 ? 100.0 * double(rec_sent - rec_ft) / double(rec_sent) : 0.0, rec_cw_total,
+          rec_sent - rec_cw_total,
+          rec_sent > 0 ? 100.0 * double(rec_sent - rec_cw_total) / double(rec_sent) : 0.0,
+          undecodable, ftcal::testing::ReadFile(path("record.err")).c_str());
       if (rec_ft == 0) rc = 1;
     }
     // The twin's own count over the whole run (warm-up and the command phase included).
@@ -672,9 +681,10 @@ int main(int argc, char** argv) {
         if (std::regex_search(line, m, re)) twin_records += std::stoll(m[2]);
       }
     }
-    std::printf("loss over the whole run: twin sent %lld datagrams, FT_<LEG> heard %lld, "
-                "CONTACT_WRENCH heard %lld, undecodable %lld\n", twin_records, run_ft, run_cw,
-                (long long)listener->undecodable);
+    std::printf(
+        "loss over the whole run: twin sent %lld datagrams, FT_<LEG> heard %lld, "
+        "CONTACT_WRENCH heard %lld, undecodable %lld\n",
+        twin_records, run_ft, run_cw, (long long)listener->undecodable);
     // The stages' own accounts, from their exit summaries: where the samples went.
     {
       long long received = 0, published = 0, lost = 0;
@@ -694,8 +704,10 @@ int main(int argc, char** argv) {
           if (at != std::string::npos) latency.push_back(line.substr(at + 28));
         }
       }
-      std::printf("ATI bridge(s), their own count over the run: received %lld published %lld "
-                  "lost (by RDT sequence) %lld\n", received, published, lost);
+      std::printf(
+          "ATI bridge(s), their own count over the run: received %lld published %lld "
+          "lost (by RDT sequence) %lld\n",
+          received, published, lost);
       for (std::size_t i = 0; i < latency.size(); ++i) {
         std::printf("  bridge %zu receipt->lcm_publish returned (its own measure): %s\n", i,
                     latency[i].c_str());
@@ -710,27 +722,37 @@ int main(int argc, char** argv) {
         }
       }
     }
-    std::printf("kernel, from the bridges' start to their end: UDP datagrams delivered to sockets "
-                "%lld, dropped at a full socket buffer %lld (InErrors %lld), dropped at a full "
-                "CPU backlog %lld (machine-wide)\n",
-                kernel_after.in_datagrams - kernel_before.in_datagrams,
-                kernel_after.rcvbuf_errors - kernel_before.rcvbuf_errors,
-                kernel_after.in_errors - kernel_before.in_errors,
-                kernel_after.backlog_drops - kernel_before.backlog_drops);
-    std::printf("RDT receipt in the bridge -> FT_<LEG> in this subscriber's handler (bridge + LCM "
-                "hop): %s\n", Quantiles(ft_lat).c_str());
-    std::printf("  the same to liblcm's receive stamp (recv_utime) in this subscriber:  "
-                "%s\n", Quantiles(ft_lat_lcm).c_str());
-    std::printf("RDT receipt in the bridge -> CONTACT_WRENCH in this subscriber's handler "
-                "(+ corrector): %s\n", Quantiles(cw_lat).c_str());
+    std::printf(
+        "kernel, from the bridges' start to their end: UDP datagrams delivered to sockets "
+        "%lld, dropped at a full socket buffer %lld (InErrors %lld), dropped at a full "
+        "CPU backlog %lld (machine-wide)\n",
+        kernel_after.in_datagrams - kernel_before.in_datagrams,
+        kernel_after.rcvbuf_errors - kernel_before.rcvbuf_errors,
+        kernel_after.in_errors - kernel_before.in_errors,
+        kernel_after.backlog_drops - kernel_before.backlog_drops);
+    std::printf(
+        "RDT receipt in the bridge -> FT_<LEG> in this subscriber's handler (bridge + LCM "
+        "hop): %s\n",
+        Quantiles(ft_lat).c_str());
+    std::printf(
+        "  the same to liblcm's receive stamp (recv_utime) in this subscriber:  "
+        "%s\n",
+        Quantiles(ft_lat_lcm).c_str());
+    std::printf(
+        "RDT receipt in the bridge -> CONTACT_WRENCH in this subscriber's handler "
+        "(+ corrector): %s\n",
+        Quantiles(cw_lat).c_str());
     std::printf("  the same to liblcm's receive stamp (recv_utime) in this subscriber:  %s\n",
                 Quantiles(cw_lat_lcm).c_str());
-    std::printf("FT_<LEG> handled -> its CONTACT_WRENCH handled here (the corrector's stage, as "
-                "seen from one subscriber): %s\n", Quantiles(corr_lat).c_str());
+    std::printf(
+        "FT_<LEG> handled -> its CONTACT_WRENCH handled here (the corrector's stage, as "
+        "seen from one subscriber): %s\n",
+        Quantiles(corr_lat).c_str());
 
     if (!armed) {
-      std::printf("command latency: not measured, the Dynamixel bridge never reported armed (its "
-                  "log: --keep)\n");
+      std::printf(
+          "command latency: not measured, the Dynamixel bridge never reported armed (its "
+          "log: --keep)\n");
       rc = 1;
     } else {
       // For each MOVE the first goal write after its publish whose goals differ from the write
@@ -758,20 +780,22 @@ int main(int argc, char** argv) {
           unmatched_at += " " + std::to_string(i);
         }
       }
-      std::printf("SERVO_CMD MOVE published -> its Sync Write of Goal Position on the bus "
-                  "(Dynamixel bridge at %.0f Hz, %s): %s; %d of %zu MOVEs without a write of their "
-                  "goals before the next MOVE%s%s\n",
-                  config.dynamixel().rate_hz(),
-                  commands_under_load ? "under the ATI load" : "ATI stages stopped",
-                  Quantiles(cmd_lat).c_str(), unmatched,
-                  published.size(), unmatched > 0 ? ": MOVE" : "", unmatched_at.c_str());
+      std::printf(
+          "SERVO_CMD MOVE published -> its Sync Write of Goal Position on the bus "
+          "(Dynamixel bridge at %.0f Hz, %s): %s; %d of %zu MOVEs without a write of their "
+          "goals before the next MOVE%s%s\n",
+          config.dynamixel().rate_hz(),
+          commands_under_load ? "under the ATI load" : "ATI stages stopped",
+          Quantiles(cmd_lat).c_str(), unmatched, published.size(), unmatched > 0 ? ": MOVE" : "",
+          unmatched_at.c_str());
       if (cmd_lat.empty()) rc = 1;
     }
     double load[3] = {0, 0, 0};
     if (::getloadavg(load, 3) == 3) {
-      std::printf("machine load average %.2f %.2f %.2f on %ld cores (the figures are only as "
-                  "good as the machine is quiet)\n", load[0], load[1], load[2],
-                  ::sysconf(_SC_NPROCESSORS_ONLN));
+      std::printf(
+          "machine load average %.2f %.2f %.2f on %ld cores (the figures are only as "
+          "good as the machine is quiet)\n",
+          load[0], load[1], load[2], ::sysconf(_SC_NPROCESSORS_ONLN));
     }
     if (window_ft == 0 || window_cw == 0) {
       std::fprintf(stderr, "nothing heard: corrector %s\nati %s\n",

@@ -61,7 +61,8 @@ Result RunAt(double rate_hz, double seconds, lcm::LCM& lcm) {
     ftcal::sim::QtmPose p;
     p.R_GC = ftcal::RotationFromRollPitchYaw(0.02, -0.01, 0.001 * double(k));
     p.p_GoCo_G_m = {0.001 * double(k % 1000), 0.5, 0.3};
-    for (int i = 0; i < 12; ++i) p.markers_G_m.push_back(p.p_GoCo_G_m + Eigen::Vector3d(0.1 * i, 0, 0));
+    for (int i = 0; i < 12; ++i)
+      p.markers_G_m.push_back(p.p_GoCo_G_m + Eigen::Vector3d(0.1 * i, 0, 0));
     return p;
   });
   Result r;
@@ -76,7 +77,8 @@ Result RunAt(double rate_hz, double seconds, lcm::LCM& lcm) {
     done = true;
   });
 
-  auto log = std::make_shared<spdlog::logger>("bench", std::make_shared<spdlog::sinks::null_sink_mt>());
+  auto log =
+      std::make_shared<spdlog::logger>("bench", std::make_shared<spdlog::sinks::null_sink_mt>());
   ftcal::ServiceStats stats(log);
   std::vector<double> latency_us;
   latency_us.reserve(static_cast<size_t>(ticks));
@@ -125,8 +127,9 @@ int main(int argc, char** argv) {
   const double seconds = argc > 1 ? std::atof(argv[1]) : 5.0;
   const char* netns = std::getenv("FTCAL_NETNS");
   if (netns == nullptr || std::string(netns) != "1") {
-    std::fprintf(stderr, "mocap_bridge_bench publishes UDP multicast: run it through "
-                         "scripts/netns-exec (ctest does)\n");
+    std::fprintf(stderr,
+                 "mocap_bridge_bench publishes UDP multicast: run it through "
+                 "scripts/netns-exec (ctest does)\n");
     return 2;
   }
   lcm::LCM lcm("udpm://239.255.76.67:7667?ttl=0");
@@ -134,10 +137,11 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "LCM did not open\n");
     return 1;
   }
-  std::printf("mocap_bridge_bench: QTM emulator -> loopback TCP -> MocapBridge -> LCM, %.1f s per rate\n",
-              seconds);
-  std::printf("%8s %8s %9s %6s %8s %10s %12s %8s %8s %8s\n", "rate_hz", "sent", "published",
-              "lost", "corrupt", "bridge_cpu", "emulator_cpu", "p50_us", "p99_us", "max_us");
+  std::printf(
+      "mocap_bridge_bench: QTM emulator -> loopback TCP -> MocapBridge -> LCM, %.1f s per rate\n",
+      seconds);
+  std::printf("%8s %8s %9s %6s %8s %10s %12s %8s %8s %8s\n", "rate_hz", "sent", "published", "lost",
+              "corrupt", "bridge_cpu", "emulator_cpu", "p50_us", "p99_us", "max_us");
   bool ok = true;
   for (double rate : {100.0, 1000.0}) {
     const Result r = RunAt(rate, seconds, lcm);

@@ -84,7 +84,8 @@ Result RunAt(double rate_hz, bool multicast, double seconds, lcm::LCM& lcm) {
     done = true;
   });
 
-  auto log = std::make_shared<spdlog::logger>("bench", std::make_shared<spdlog::sinks::null_sink_mt>());
+  auto log =
+      std::make_shared<spdlog::logger>("bench", std::make_shared<spdlog::sinks::null_sink_mt>());
   ftcal::ServiceStats stats(log);
   std::vector<double> receipt_us, source_us;
   receipt_us.reserve(static_cast<size_t>(ticks));
@@ -102,7 +103,8 @@ Result RunAt(double rate_hz, bool multicast, double seconds, lcm::LCM& lcm) {
         const int64_t now = NowNs();
         receipt_us.push_back(1e-3 * double(now - receipt_ns));
         const int64_t k = m.frame_number - 1;
-        if (k >= 0 && k < ticks) source_us.push_back(1e-3 * double(now - asked_ns[size_t(k)].load()));
+        if (k >= 0 && k < ticks)
+          source_us.push_back(1e-3 * double(now - asked_ns[size_t(k)].load()));
       },
       [&] {
         receipt_ns = NowNs();
@@ -140,8 +142,9 @@ int main(int argc, char** argv) {
   const double seconds = argc > 1 ? std::atof(argv[1]) : 5.0;
   const char* netns = std::getenv("FTCAL_NETNS");
   if (netns == nullptr || std::string(netns) != "1") {
-    std::fprintf(stderr, "natnet_bridge_bench uses UDP multicast: run it through "
-                         "scripts/netns-exec (ctest does)\n");
+    std::fprintf(stderr,
+                 "natnet_bridge_bench uses UDP multicast: run it through "
+                 "scripts/netns-exec (ctest does)\n");
     return 2;
   }
   lcm::LCM lcm("udpm://239.255.76.67:7667?ttl=0");
@@ -149,8 +152,10 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "LCM did not open\n");
     return 1;
   }
-  std::printf("natnet_bridge_bench: Motive emulator (NatNet 4.1) -> loopback UDP -> NatNetBridge "
-              "-> LCM, %.1f s per case\n", seconds);
+  std::printf(
+      "natnet_bridge_bench: Motive emulator (NatNet 4.1) -> loopback UDP -> NatNetBridge "
+      "-> LCM, %.1f s per case\n",
+      seconds);
   std::printf("%8s %10s %7s %9s %5s %8s %10s %14s %14s %14s %13s %13s\n", "rate_hz", "transport",
               "sent", "published", "lost", "corrupt", "bridge_cpu", "receipt_p50_us",
               "receipt_p99_us", "receipt_max_us", "source_p50_us", "source_p99_us");

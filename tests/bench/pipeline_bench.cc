@@ -153,29 +153,33 @@ int main(int argc, char** argv) {
 
   // The logs are in the page cache after the segmenter's pass, as after a lab's recording; the
   // first run is a warm-up, not counted.
-  const std::vector<std::string> cal_argv = {FTCAL_CALIBRATOR, "--config", config,
-                                             "--log", dir + "/session.lcmlog",
-                                             "--log", dir + "/poses.lcmlog",
-                                             "--out", dir + "/cal.pbtxt"};
+  const std::vector<std::string> cal_argv = {FTCAL_CALIBRATOR,
+                                             "--config",
+                                             config,
+                                             "--log",
+                                             dir + "/session.lcmlog",
+                                             "--log",
+                                             dir + "/poses.lcmlog",
+                                             "--out",
+                                             dir + "/cal.pbtxt"};
   Run(cal_argv, dir + "/cal.out");
   std::vector<Timing> cals;
   for (int r = 0; r < runs; ++r) cals.push_back(Run(cal_argv, dir + "/cal.out"));
   std::sort(cals.begin(), cals.end(),
             [](const Timing& a, const Timing& b) { return a.wall_s < b.wall_s; });
   const Timing& cal = cals[cals.size() / 2];
-  const double used = Capture(cal.out, "calibrating: 4 hanging series, ([0-9]+) standing poses",
-                              "pose count");
-  const double candidates = Capture(cal.out, "calibration done: ([0-9]+) candidates",
-                                    "candidate count");
+  const double used =
+      Capture(cal.out, "calibrating: 4 hanging series, ([0-9]+) standing poses", "pose count");
+  const double candidates =
+      Capture(cal.out, "calibration done: ([0-9]+) candidates", "candidate count");
   std::snprintf(fig, sizeof fig,
                 "whole process: %.0f poses, %.0f candidates; median of %d runs (wall min %.3f, "
                 "max %.3f s)",
                 used, candidates, runs, cals.front().wall_s, cals.back().wall_s);
   Print("ftcal-calibrator", cal, fig);
 
-  const Timing cor = Run({FTCAL_CORRECTOR, "--config", config, "--calibration",
-                          dir + "/cal.pbtxt", "--replay", dir + "/session.lcmlog", "--out",
-                          dir + "/contact.lcmlog"},
+  const Timing cor = Run({FTCAL_CORRECTOR, "--config", config, "--calibration", dir + "/cal.pbtxt",
+                          "--replay", dir + "/session.lcmlog", "--out", dir + "/contact.lcmlog"},
                          dir + "/cor.out");
   const double out = Capture(cor.out, "([0-9]+) leg-samples corrected", "leg-sample count");
   std::error_code ec;

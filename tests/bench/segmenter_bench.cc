@@ -49,12 +49,14 @@ struct Data {
   std::vector<Frame> frames;  // ten minutes
   double span_s = 0;
   Data() {
-    const config::Config config = LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+    const config::Config config =
+        LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
     TwinOptions o;
     o.marker_dropout_rate_hz = 0;
     BigAntTwin twin(config, o);
     span_s = twin.Standing(108, {}, [this](const TwinFrame& f) {
-      frames.push_back({kT0 + std::llround(f.t_s * 1e6), f.reading, f.angle_rad, RemoveHeading(f.R_GC)});
+      frames.push_back(
+          {kT0 + std::llround(f.t_s * 1e6), f.reading, f.angle_rad, RemoveHeading(f.R_GC)});
     });
   }
 };
@@ -88,8 +90,10 @@ void BM_AlignAndSegmentOneHour(benchmark::State& state) {
   const double hours_of_data = kRepeats * d.span_s / 3600.0;
   state.counters["x_real_time"] = benchmark::Counter(
       static_cast<double>(state.iterations()) * kRepeats * d.span_s, benchmark::Counter::kIsRate);
-  state.counters["poses_per_pass"] = static_cast<double>(poses) / static_cast<double>(state.iterations());
-  state.SetLabel(std::to_string(hours_of_data).substr(0, 4) + " h of six 100 Hz transducers per pass");
+  state.counters["poses_per_pass"] =
+      static_cast<double>(poses) / static_cast<double>(state.iterations());
+  state.SetLabel(std::to_string(hours_of_data).substr(0, 4) +
+                 " h of six 100 Hz transducers per pass");
   benchmark::DoNotOptimize(samples);
 }
 BENCHMARK(BM_AlignAndSegmentOneHour)->Unit(benchmark::kMillisecond);

@@ -42,12 +42,13 @@ void BM_FullExperimentLog(benchmark::State& state) {
   ::stat(path.c_str(), &st);
   ::unlink(path.c_str());
   ::rmdir(dir);
-  state.counters["events_per_s"] = benchmark::Counter(static_cast<double>(events), benchmark::Counter::kIsRate);
+  state.counters["events_per_s"] =
+      benchmark::Counter(static_cast<double>(events), benchmark::Counter::kIsRate);
   state.counters["events"] = static_cast<double>(events) / static_cast<double>(state.iterations());
   state.counters["robot_s"] = robot_s;
   state.counters["log_MB"] = static_cast<double>(st.st_size) / 1e6;
-  state.counters["x_real_time"] =
-      benchmark::Counter(robot_s * static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
+  state.counters["x_real_time"] = benchmark::Counter(
+      robot_s * static_cast<double>(state.iterations()), benchmark::Counter::kIsRate);
 }
 BENCHMARK(BM_FullExperimentLog)->Unit(benchmark::kSecond)->Iterations(1)->UseRealTime();
 
@@ -70,7 +71,8 @@ void BM_FullExperimentTwinOnly(benchmark::State& state) {
     t = twin.TripodStances(plan.tripod_stances, RunOptions{t}, sink) + plan.gap_s;
     twin.TripodWalk(plan.walk_s, RunOptions{t}, sink);
   }
-  state.counters["frames_per_s"] = benchmark::Counter(static_cast<double>(frames), benchmark::Counter::kIsRate);
+  state.counters["frames_per_s"] =
+      benchmark::Counter(static_cast<double>(frames), benchmark::Counter::kIsRate);
 }
 BENCHMARK(BM_FullExperimentTwinOnly)->Unit(benchmark::kSecond)->Iterations(1)->UseRealTime();
 

@@ -94,12 +94,14 @@ TEST(Coverage, TrueValuesWithinTwoReportedSigmas) {
     all.inside += t.inside;
     all.total += t.total;
   }
-  std::printf("coverage: all            %4d/%4d within 2 sigma = %.1f%% (%d seeds x 2 CoM modes, "
-              "%d hanging cycles, %d poses; goal 85-99%% per class)\n",
-              all.inside, all.total, all.Percent(), kSeeds, kHangCycles, kPoses);
-  std::printf("coverage: the default chose the twin's robot-CoM model (and FULL) in %d of %d "
-              "runs; largest residual / noise floor %.2f\n",
-              2 * kSeeds - wrong_com, 2 * kSeeds, worst_floor_ratio);
+  std::printf(
+      "coverage: all            %4d/%4d within 2 sigma = %.1f%% (%d seeds x 2 CoM modes, "
+      "%d hanging cycles, %d poses; goal 85-99%% per class)\n",
+      all.inside, all.total, all.Percent(), kSeeds, kHangCycles, kPoses);
+  std::printf(
+      "coverage: the default chose the twin's robot-CoM model (and FULL) in %d of %d "
+      "runs; largest residual / noise floor %.2f\n",
+      2 * kSeeds - wrong_com, 2 * kSeeds, worst_floor_ratio);
   EXPECT_EQ(wrong_com, 0);
   EXPECT_GE(all.Percent(), 85.0);
   EXPECT_LE(all.Percent(), 99.0);

@@ -136,7 +136,7 @@ struct Pipeline {
   bool keep = false;
   config::Config config;
   std::unique_ptr<BigAntTwin> twin;
-  std::vector<TwinFrame> walk;  // the regenerated walk, frame i = rdt_sequence i + 1
+  std::vector<TwinFrame> walk;      // the regenerated walk, frame i = rdt_sequence i + 1
   std::vector<StandingPose> poses;  // the regenerated steady standing poses
   std::string walk_log, truth_path, walk_truth_path, cal_path, truth_cal_path, naive_cal_path;
   std::string ftcal_config_path;
@@ -154,7 +154,8 @@ void RunProgram(const std::vector<std::string>& argv, const std::string& tag, do
   const auto status = child.Wait(timeout_s);
   ASSERT_TRUE(status.has_value()) << tag << " did not finish in " << timeout_s << " s";
   ASSERT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << tag << ": " << DescribeWaitStatus(*status) << "\n" << ReadFile(err);
+      << tag << ": " << DescribeWaitStatus(*status) << "\n"
+      << ReadFile(err);
   std::printf("pipeline_e2e: %s took %.1f s\n", tag.c_str(), Seconds(started));
 }
 
@@ -179,7 +180,8 @@ calibration::Calibration NaiveCalibration(const calibration::Calibration& cal) {
     l->mutable_torque_offset_nm()->set_y(leg.naive_offset(4));
     l->mutable_torque_offset_nm()->set_z(leg.naive_offset(5));
     l->mutable_leg_weight_n()->set_value(0.0);  // no leg gravity model
-    for (calibration::SinusoidFit* s : {l->mutable_com()->mutable_x(), l->mutable_com()->mutable_z()}) {
+    for (calibration::SinusoidFit* s :
+         {l->mutable_com()->mutable_x(), l->mutable_com()->mutable_z()}) {
       s->set_a_m(0.0);
       s->set_c_rad(0.0);
       s->set_d_m(0.0);
@@ -250,12 +252,12 @@ class PipelineE2e : public ::testing::Test {
                     px->walk_truth_path, "--seed", seed, "--scenarios", "walk"},
                    d + "/sim_walk.out", d + "/sim_walk.err");
     RunProgram({FTCAL_SIM, "log", "--config", kConfig, "--out", session, "--truth", px->truth_path,
-         "--seed", seed, "--scenarios", "hang,stand"},
-        "sim_session", 300);
+                "--seed", seed, "--scenarios", "hang,stand"},
+               "sim_session", 300);
     if (HasFatalFailure()) return;
     RunProgram({FTCAL_CALIBRATOR, "--config", px->ftcal_config_path, "--log", session, "--out",
-         px->cal_path},
-        "calibrator", 300);
+                px->cal_path},
+               "calibrator", 300);
     if (!px->keep) std::remove(session.c_str());
     if (HasFatalFailure()) return;
     const auto walk_status = walk_sim.Wait(300);
@@ -276,8 +278,8 @@ class PipelineE2e : public ::testing::Test {
     for (const auto& [name, cal] : runs) px->wrench_logs[name] = d + "/wrench-" + name + ".lcmlog";
     auto argv = [&](const std::string& name, const std::string& cal) {
       return std::vector<std::string>{FTCAL_CORRECTOR, "--config", px->ftcal_config_path,
-                                      "--calibration", cal, "--replay", px->walk_log, "--out",
-                                      px->wrench_logs[name]};
+                                      "--calibration", cal,        "--replay",
+                                      px->walk_log,    "--out",    px->wrench_logs[name]};
     };
     {
       Child a(argv(runs[0].first, runs[0].second), d + "/corrector-estimated.out",
@@ -314,7 +316,8 @@ class PipelineE2e : public ::testing::Test {
     // (leg, utime) of every FT sample -> its frame, from the walk log itself (rdt_sequence).
     std::array<std::map<int64_t, int64_t>, kNumLegs> frame_of;
     for (int k = 0; k < kNumLegs; ++k) {
-      for (const ft_sample_t& m : ReadChannel<ft_sample_t>(px->walk_log, ch.ft_prefix() + std::string(kLegNames[k]))) {
+      for (const ft_sample_t& m :
+           ReadChannel<ft_sample_t>(px->walk_log, ch.ft_prefix() + std::string(kLegNames[k]))) {
         frame_of[k][m.utime] = m.rdt_sequence - 1;
       }
     }
@@ -326,7 +329,8 @@ class PipelineE2e : public ::testing::Test {
       EXPECT_TRUE(k >= 0 && k < kNumLegs) << name;
       if (k < 0 || k >= kNumLegs) continue;
       const auto it = frame_of[k].find(m.utime);
-      EXPECT_NE(it, frame_of[k].end()) << name << ": no FT sample of leg " << k << " at " << m.utime;
+      EXPECT_NE(it, frame_of[k].end())
+          << name << ": no FT sample of leg " << k << " at " << m.utime;
       if (it == frame_of[k].end()) continue;
       const int64_t i = it->second;
       // The first frame comes before any servo state or mocap frame: flagged, not compared.
@@ -394,7 +398,8 @@ TEST_F(PipelineE2e, TheRegeneratedTwinIsTheLogsTwinToTheLastBit) {
   const auto& ch = px->config.channels();
   int64_t compared = 0, differ = 0;
   for (int k = 0; k < kNumLegs; ++k) {
-    const auto samples = ReadChannel<ft_sample_t>(px->walk_log, ch.ft_prefix() + std::string(kLegNames[k]));
+    const auto samples =
+        ReadChannel<ft_sample_t>(px->walk_log, ch.ft_prefix() + std::string(kLegNames[k]));
     ASSERT_EQ(samples.size(), px->walk.size()) << "leg " << k;
     for (const ft_sample_t& m : samples) {
       const TwinFrame& f = px->walk[static_cast<size_t>(m.rdt_sequence - 1)];
@@ -403,8 +408,8 @@ TEST_F(PipelineE2e, TheRegeneratedTwinIsTheLogsTwinToTheLastBit) {
         if (std::memcmp(&m.wrench[a], &expected, sizeof(double)) != 0 ||
             m.counts[a] != f.counts[k][a]) {
           if (++differ <= 5) {
-            ADD_FAILURE() << "leg " << k << " sample " << m.rdt_sequence << " axis " << a << ": log "
-                          << m.wrench[a] << " regenerated " << expected;
+            ADD_FAILURE() << "leg " << k << " sample " << m.rdt_sequence << " axis " << a
+                          << ": log " << m.wrench[a] << " regenerated " << expected;
           }
         }
         ++compared;
@@ -426,12 +431,13 @@ TEST_F(PipelineE2e, CalibrationFromTheLogMeetsTheRecoveryBounds) {
     const LegCalibration& t = truth.leg[k];
     const double leg_rot = RotationErrorDeg(e.R_tilde, t.R_tilde).norm();
     const double leg_pp = (e.p_tilde_prime - t.p_tilde_prime).norm();
-    std::printf("pipeline_e2e: leg %s: weight %+.5f N, force offset max %.5f N, torque offset max "
-                "%.6f N*m, CoM curve %.4f mm, rotation %.4f deg, p~' %.4f mm\n",
-                std::string(kLegNames[k]).c_str(), e.weight_n - t.weight_n,
-                (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff(),
-                (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff(),
-                MaxComCurveError(e.com, t.com) * 1e3, leg_rot, leg_pp * 1e3);
+    std::printf(
+        "pipeline_e2e: leg %s: weight %+.5f N, force offset max %.5f N, torque offset max "
+        "%.6f N*m, CoM curve %.4f mm, rotation %.4f deg, p~' %.4f mm\n",
+        std::string(kLegNames[k]).c_str(), e.weight_n - t.weight_n,
+        (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff(),
+        (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff(),
+        MaxComCurveError(e.com, t.com) * 1e3, leg_rot, leg_pp * 1e3);
     weight = std::max(weight, std::abs(e.weight_n - t.weight_n));
     force = std::max(force, (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff());
     torque = std::max(torque, (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff());
@@ -439,12 +445,12 @@ TEST_F(PipelineE2e, CalibrationFromTheLogMeetsTheRecoveryBounds) {
     rot = std::max(rot, leg_rot);
     pp = std::max(pp, leg_pp);
   }
-  std::printf("pipeline_e2e: cal.pbtxt vs truth, largest errors: leg weight %.5f N (bound %.3f), "
-              "force offsets %.5f N (%.2f), torque offsets %.6f N*m (%.3f), CoM curve %.4f mm "
-              "(%.1f), mounting rotations %.4f deg (%.2f), p~' %.4f mm (%.1f)\n",
-              weight, kWeightBoundN, force, kForceOffsetBoundN, torque, kTorqueOffsetBoundNm,
-              com * 1e3, kComCurveBoundM * 1e3, rot, kRotationBoundDeg, pp * 1e3,
-              kPTildePrimeBoundM * 1e3);
+  std::printf(
+      "pipeline_e2e: cal.pbtxt vs truth, largest errors: leg weight %.5f N (bound %.3f), "
+      "force offsets %.5f N (%.2f), torque offsets %.6f N*m (%.3f), CoM curve %.4f mm "
+      "(%.1f), mounting rotations %.4f deg (%.2f), p~' %.4f mm (%.1f)\n",
+      weight, kWeightBoundN, force, kForceOffsetBoundN, torque, kTorqueOffsetBoundNm, com * 1e3,
+      kComCurveBoundM * 1e3, rot, kRotationBoundDeg, pp * 1e3, kPTildePrimeBoundM * 1e3);
   EXPECT_LE(weight, kWeightBoundN);
   EXPECT_LE(force, kForceOffsetBoundN);
   EXPECT_LE(torque, kTorqueOffsetBoundNm);
@@ -465,9 +471,10 @@ TEST_F(PipelineE2e, StandingResidualWithinTheBoundOfTheTrueParameters) {
                      static_cast<double>(poses.size()));
   };
   const double truth_rms = rms(px->twin->Truth()), est_rms = rms(est);
-  std::printf("pipeline_e2e: %zu standing poses, K-weighted rms total-wrench residual: true "
-              "parameters %.5f, cal.pbtxt %.5f (ratio %.3f, bound %.1f)\n",
-              poses.size(), truth_rms, est_rms, est_rms / truth_rms, kResidualRatioBound);
+  std::printf(
+      "pipeline_e2e: %zu standing poses, K-weighted rms total-wrench residual: true "
+      "parameters %.5f, cal.pbtxt %.5f (ratio %.3f, bound %.1f)\n",
+      poses.size(), truth_rms, est_rms, est_rms / truth_rms, kResidualRatioBound);
   EXPECT_LE(est_rms, kResidualRatioBound * truth_rms);
 }
 
@@ -480,12 +487,14 @@ TEST_F(PipelineE2e, WalkingWrenchesSitAtTheNoiseFloorAndTheNaiveTareIsWorse) {
     // Only the first frame (before any servo state or mocap frame) may be flagged.
     EXPECT_LE(e.flagged, kNumLegs) << name;
     EXPECT_GE(e.frames_with_total, static_cast<int64_t>(px->walk.size()) - 1) << name;
-    std::printf("pipeline_e2e: walk, %-9s %lld leg samples, %lld frame totals; rms error per leg "
-                "force [N] / torque [N*m]:",
-                name.c_str(), static_cast<long long>(e.leg_samples),
-                static_cast<long long>(e.frames_with_total));
+    std::printf(
+        "pipeline_e2e: walk, %-9s %lld leg samples, %lld frame totals; rms error per leg "
+        "force [N] / torque [N*m]:",
+        name.c_str(), static_cast<long long>(e.leg_samples),
+        static_cast<long long>(e.frames_with_total));
     for (int k = 0; k < kNumLegs; ++k) {
-      std::printf(" %s %.4f/%.5f", std::string(kLegNames[k]).c_str(), e.leg_force[k].Value(), e.leg_torque[k].Value());
+      std::printf(" %s %.4f/%.5f", std::string(kLegNames[k]).c_str(), e.leg_force[k].Value(),
+                  e.leg_torque[k].Value());
     }
     std::printf("; mean %.4f N / %.5f N*m; total %.4f N / %.5f N*m\n", e.MeanLegForce(),
                 e.MeanLegTorque(), e.total_force.Value(), e.total_torque.Value());
@@ -496,20 +505,22 @@ TEST_F(PipelineE2e, WalkingWrenchesSitAtTheNoiseFloorAndTheNaiveTareIsWorse) {
   // The floor is noise, not zero: an error this small would mean the truth leaked into the
   // readings' path (reading noise alone is 0.05 N per axis).
   EXPECT_GT(floor.MeanLegForce(), 0.03);
-  std::printf("pipeline_e2e: walk, ratio to the floor (estimated | naive): mean leg force %.3f | "
-              "%.2f, mean leg torque %.3f | %.2f, total force %.3f | %.2f, total torque %.3f | "
-              "%.2f (bound %.1f | at least %.1f)\n",
-              est.MeanLegForce() / floor.MeanLegForce(), naive.MeanLegForce() / floor.MeanLegForce(),
-              est.MeanLegTorque() / floor.MeanLegTorque(),
-              naive.MeanLegTorque() / floor.MeanLegTorque(),
-              est.total_force.Value() / floor.total_force.Value(),
-              naive.total_force.Value() / floor.total_force.Value(),
-              est.total_torque.Value() / floor.total_torque.Value(),
-              naive.total_torque.Value() / floor.total_torque.Value(), kFloorRatioBound,
-              kNaiveMarginFactor);
+  std::printf(
+      "pipeline_e2e: walk, ratio to the floor (estimated | naive): mean leg force %.3f | "
+      "%.2f, mean leg torque %.3f | %.2f, total force %.3f | %.2f, total torque %.3f | "
+      "%.2f (bound %.1f | at least %.1f)\n",
+      est.MeanLegForce() / floor.MeanLegForce(), naive.MeanLegForce() / floor.MeanLegForce(),
+      est.MeanLegTorque() / floor.MeanLegTorque(), naive.MeanLegTorque() / floor.MeanLegTorque(),
+      est.total_force.Value() / floor.total_force.Value(),
+      naive.total_force.Value() / floor.total_force.Value(),
+      est.total_torque.Value() / floor.total_torque.Value(),
+      naive.total_torque.Value() / floor.total_torque.Value(), kFloorRatioBound,
+      kNaiveMarginFactor);
   for (int k = 0; k < kNumLegs; ++k) {
-    EXPECT_LE(est.leg_force[k].Value(), kFloorRatioBound * floor.leg_force[k].Value()) << kLegNames[k];
-    EXPECT_LE(est.leg_torque[k].Value(), kFloorRatioBound * floor.leg_torque[k].Value()) << kLegNames[k];
+    EXPECT_LE(est.leg_force[k].Value(), kFloorRatioBound * floor.leg_force[k].Value())
+        << kLegNames[k];
+    EXPECT_LE(est.leg_torque[k].Value(), kFloorRatioBound * floor.leg_torque[k].Value())
+        << kLegNames[k];
   }
   EXPECT_LE(est.total_force.Value(), kFloorRatioBound * floor.total_force.Value());
   EXPECT_LE(est.total_torque.Value(), kFloorRatioBound * floor.total_torque.Value());

@@ -17,9 +17,7 @@ namespace testing_twin {
 
 constexpr double kDegree = M_PI / 180.0;
 
-inline config::Config SimConfig() {
-  return LoadConfigFile(FTCAL_SOURCE_DIR "/config/sim.pbtxt");
-}
+inline config::Config SimConfig() { return LoadConfigFile(FTCAL_SOURCE_DIR "/config/sim.pbtxt"); }
 
 inline std::vector<HangingRecording> HangingOf(const BigAntTwin& twin) {
   std::vector<HangingRecording> out;

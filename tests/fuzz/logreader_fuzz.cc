@@ -46,8 +46,8 @@ const std::string& Dir() {
 
 // Every event of `path`, and the reader's error count (damage is counted as an error).
 std::vector<Event> Replay(const std::string& path, int64_t* errors) {
-  static auto log = std::make_shared<spdlog::logger>(
-      "fuzz", std::make_shared<spdlog::sinks::null_sink_mt>());
+  static auto log =
+      std::make_shared<spdlog::logger>("fuzz", std::make_shared<spdlog::sinks::null_sink_mt>());
   ftcal::ServiceStats stats(log);
   std::vector<Event> events;
   {
@@ -61,7 +61,8 @@ std::vector<Event> Replay(const std::string& path, int64_t* errors) {
     if (!bus.finished()) Fail("the reader did not read to the end");
     // Fewer may be dispatched than read: a channel name holding a NUL matches no pattern
     // (POSIX regular expressions, as LCM's C strings, end there; no live LCM message has one).
-    if (bus.events_read() < static_cast<int64_t>(events.size())) Fail("dispatched more events than read");
+    if (bus.events_read() < static_cast<int64_t>(events.size()))
+      Fail("dispatched more events than read");
   }  // the uncommitted output goes with the bus
   *errors = stats.errors();
   return events;

@@ -226,12 +226,14 @@ class AtiBridgeTest : public ::testing::Test {
 // Returns the number of samples that matched.
 int ExpectSamplesMatchTruth(const std::vector<Heard>& heard, const std::vector<TruthRow>& truth) {
   std::multimap<std::tuple<std::string, std::uint32_t, std::uint32_t>, const TruthRow*> index;
-  for (const TruthRow& r : truth) index.emplace(std::make_tuple(r.leg, r.rdt_sequence, r.ft_sequence), &r);
+  for (const TruthRow& r : truth)
+    index.emplace(std::make_tuple(r.leg, r.rdt_sequence, r.ft_sequence), &r);
   int matched = 0;
   for (const Heard& h : heard) {
     const ft_sample_t& m = h.msg;
-    const auto range = index.equal_range(std::make_tuple(
-        m.leg, static_cast<std::uint32_t>(m.rdt_sequence), static_cast<std::uint32_t>(m.ft_sequence)));
+    const auto range =
+        index.equal_range(std::make_tuple(m.leg, static_cast<std::uint32_t>(m.rdt_sequence),
+                                          static_cast<std::uint32_t>(m.ft_sequence)));
     const TruthRow* row = nullptr;
     for (auto it = range.first; it != range.second; ++it) {
       bool same = it->second->status == static_cast<std::uint32_t>(m.status);
@@ -264,9 +266,9 @@ std::map<std::string, std::vector<ft_sample_t>> ByLeg(const std::vector<Heard>& 
 }
 
 TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePublished) {
-  auto emulator = StartEmulator({"--rate", "500", "--duration", "4", "--seed", "7", "--drop",
-                                 "0.02", "--duplicate", "0.02", "--reorder", "0.02", "--corrupt",
-                                 "0.02"});
+  auto emulator =
+      StartEmulator({"--rate", "500", "--duration", "4", "--seed", "7", "--drop", "0.02",
+                     "--duplicate", "0.02", "--reorder", "0.02", "--corrupt", "0.02"});
   ASSERT_FALSE(HasFailure());
   Collector collector;
   SleepS(0.2);
@@ -297,7 +299,8 @@ TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePubl
       if (r.leg != leg) continue;
       ++faults[r.fault];
       streams.insert(r.stream);
-      if (r.fault == "none" || r.fault == "duplicate") last_delivered = std::max(last_delivered, r.rdt_sequence);
+      if (r.fault == "none" || r.fault == "duplicate")
+        last_delivered = std::max(last_delivered, r.rdt_sequence);
     }
     // Records lost after the last one delivered cannot be told from the end of the data.
     std::int64_t lost_at_end = 0;
@@ -307,7 +310,8 @@ TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePubl
     ASSERT_EQ(streams.size(), 1u) << "the bridge restarted the stream: counts are not comparable";
     ASSERT_GT(faults["none"], 1000);
     // Each kind of fault happened (2% of ~1900 records) ...
-    for (const char* kind : {"drop", "duplicate", "reorder", "corrupt"}) EXPECT_GT(faults[kind], 5) << kind;
+    for (const char* kind : {"drop", "duplicate", "reorder", "corrupt"})
+      EXPECT_GT(faults[kind], 5) << kind;
     // ... and was counted as what it is.
     const std::string p = std::string(leg) + ".";
     EXPECT_EQ(Counter(last, p + "duplicates"), faults["duplicate"]);
@@ -347,8 +351,8 @@ TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePubl
     for (std::size_t i = 0; i < samples.size(); ++i) {
       const ft_sample_t& m = samples[i];
       ASSERT_GT(m.rdt_sequence, prev);
-      const auto between = std::distance(publishable.upper_bound(prev),
-                                         publishable.lower_bound(m.rdt_sequence));
+      const auto between =
+          std::distance(publishable.upper_bound(prev), publishable.lower_bound(m.rdt_sequence));
       if (between == 0) {
         EXPECT_EQ(m.gap, m.rdt_sequence - prev - 1) << "rdt " << m.rdt_sequence;
         EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.rdt_sequence - prev > 1);
@@ -496,7 +500,6 @@ TEST_F(AtiBridgeTest, RefusesToStreamWithoutTheCalibrationPage) {
       << ReadFile(Path("emulator.err"));
 }
 
-
 // ---- In process: the emulator and the bridge class driven by one loop, no LCM ----
 
 // A fixed device state: the counts of internal sample n are kBase + n on Fx (so every record
@@ -598,10 +601,10 @@ struct Published {
 };
 
 // The bridge class against one emulated box, driven in one loop; returns what it published.
-std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& box,
-                                 double seconds) {
+std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& box, double seconds) {
   std::vector<Published> out;
-  auto log = std::make_shared<spdlog::logger>("ati-test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  auto log =
+      std::make_shared<spdlog::logger>("ati-test", std::make_shared<spdlog::sinks::null_sink_mt>());
   AtiBridge bridge(
       cfg, {"HL"},
       [&out](const std::string& channel, const void* data, int size) {
@@ -621,7 +624,9 @@ std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& bo
   return out;
 }
 
-config::Config SimConfig() { return LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt"); }
+config::Config SimConfig() {
+  return LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+}
 
 TEST(AtiBridgeInProcess, ConfigSignAndCountsPerUnitOverrideThePage) {
   sim::AtiEmulatorOptions o;
@@ -675,7 +680,8 @@ TEST(AtiBridgeInProcess, SaturationFromStatusBitOrRatedRangeAndStatusErrorAreFla
 }
 
 TEST(AtiBridgeInProcess, UnknownLegAndBadSignAreRefusedByName) {
-  auto log = std::make_shared<spdlog::logger>("ati-test2", std::make_shared<spdlog::sinks::null_sink_mt>());
+  auto log = std::make_shared<spdlog::logger>("ati-test2",
+                                              std::make_shared<spdlog::sinks::null_sink_mt>());
   auto publish = [](const std::string&, const void*, int) {};
   try {
     AtiBridge bridge(SimConfig(), {"XX"}, publish, log);
@@ -701,8 +707,7 @@ class PageServer {
   PageServer(std::size_t body_bytes, std::size_t chunk, double pause_s) {
     server_.Get("/netftapi2.xml", [=](const httplib::Request&, httplib::Response& res) {
       res.set_content_provider(
-          body_bytes, "text/xml",
-          [=](std::size_t offset, std::size_t, httplib::DataSink& sink) {
+          body_bytes, "text/xml", [=](std::size_t offset, std::size_t, httplib::DataSink& sink) {
             static const std::string block(1 << 16, ' ');
             if (stop_) return false;
             if (pause_s > 0 && offset > 0) SleepS(pause_s);
@@ -736,8 +741,10 @@ std::pair<std::string, double> StartAgainst(const PageServer& server) {
   auto* ati = cfg.mutable_robot()->mutable_leg(0)->mutable_ati();
   ati->set_address("127.0.0.1");
   ati->set_http_port(server.port());
-  auto log = std::make_shared<spdlog::logger>("ati-page", std::make_shared<spdlog::sinks::null_sink_mt>());
-  AtiBridge bridge(cfg, {"HL"}, [](const std::string&, const void*, int) {}, log);
+  auto log =
+      std::make_shared<spdlog::logger>("ati-page", std::make_shared<spdlog::sinks::null_sink_mt>());
+  AtiBridge bridge(
+      cfg, {"HL"}, [](const std::string&, const void*, int) {}, log);
   const auto t0 = Clock::now();
   std::string error;
   try {

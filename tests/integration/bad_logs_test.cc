@@ -64,7 +64,8 @@ void PatchFile(const std::string& from, const std::string& to, size_t offset,
   std::string bytes = ReadFile(from);
   ASSERT_LE(offset + xor_mask.size(), bytes.size());
   for (size_t i = 0; i < xor_mask.size(); ++i) bytes[offset + i] ^= static_cast<char>(xor_mask[i]);
-  std::ofstream(to, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+  std::ofstream(to, std::ios::binary)
+      .write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
 }
 
 calibration_t CalibrationMessage(const calibration::Calibration& proto, int64_t utime,
@@ -133,7 +134,8 @@ class BadLogsTest : public ::testing::Test {
     }
     EXPECT_EQ(ev[fx->damaged_index].channel, ch.ft_prefix() + "HL");
     const int64_t end = Utime(fx->frames.back().t_s) + 1000;
-    ev.push_back(Encode(end, ch.experiment(), Marker(end, kSession, experiment_marker_t::STANDING, false)));
+    ev.push_back(
+        Encode(end, ch.experiment(), Marker(end, kSession, experiment_marker_t::STANDING, false)));
     fx->stage_log = fx->dir + "/stage.lcmlog";
     WriteLog(fx->stage_log, ev);
 
@@ -143,7 +145,8 @@ class BadLogsTest : public ::testing::Test {
     sopt.pose_dwell_s = 3.0;
     sopt.settle_cutoff_s = 1.0;
     fx->session_twin = std::make_unique<BigAntTwin>(fx->config, sopt);
-    AppendSession(*fx->session_twin, fx->config, kSession, kCalibrationPoses, 0.0, &fx->session_events);
+    AppendSession(*fx->session_twin, fx->config, kSession, kCalibrationPoses, 0.0,
+                  &fx->session_events);
     fx->session_log = fx->dir + "/session.lcmlog";
     WriteLog(fx->session_log, fx->session_events);
   }
@@ -194,8 +197,7 @@ class BadLogsTest : public ::testing::Test {
                                       const std::vector<std::string>& what,
                                       const std::string& config = kConfig) {
     const std::string out = Path(tag + ".pbtxt");
-    const Result r =
-        Run({FTCAL_CALIBRATOR, "--config", config, "--log", log, "--out", out}, tag);
+    const Result r = Run({FTCAL_CALIBRATOR, "--config", config, "--log", log, "--out", out}, tag);
     EXPECT_EQ(r.exit_code, 2) << r.err;
     for (const std::string& w : what) {
       EXPECT_NE(r.err.find(w), std::string::npos) << "expected '" << w << "' in:\n" << r.err;
@@ -236,7 +238,8 @@ void ExpectSegmenterLostOnlyThatFrame(const std::string& clean, const std::strin
       ASSERT_EQ(b[j].utime, next_utime);
       for (int c = 0; c < 6; ++c) {
         EXPECT_EQ(b[j].wrench[0][c], fx->frames[lost + 1].reading[0][c]);
-        for (int k = 1; k < kNumLegs; ++k) EXPECT_EQ(b[j].wrench[k][c], fx->frames[lost].reading[k][c]);
+        for (int k = 1; k < kNumLegs; ++k)
+          EXPECT_EQ(b[j].wrench[k][c], fx->frames[lost].reading[k][c]);
       }
       EXPECT_EQ(b[j].angle_rad, a[i].angle_rad);  // interpolated to the same sync time
     } else {
@@ -259,9 +262,10 @@ void ExpectSegmenterLostOnlyThatFrame(const std::string& clean, const std::strin
 
 // The corrector's outputs over a log with frame `lost`'s FT_HL sample lost: exactly that
 // leg-sample's output missing, every other one with the clean run's inputs with its numbers
-// exactly (a leg-sample depends on its own sample, the servo state and the attitude only). The sums: the same up to the lost
-// frame; that frame's set never completes, so from then on each set completes at the next
-// frame's HL sample and carries the other legs' samples of the frame before, 10 ms older.
+// exactly (a leg-sample depends on its own sample, the servo state and the attitude only). The
+// sums: the same up to the lost frame; that frame's set never completes, so from then on each set
+// completes at the next frame's HL sample and carries the other legs' samples of the frame before,
+// 10 ms older.
 void ExpectCorrectorLostOnlyThatSample(const std::string& clean, const std::string& dirty,
                                        size_t lost) {
   const auto& ch = fx->config.channels();
@@ -290,7 +294,8 @@ void ExpectCorrectorLostOnlyThatSample(const std::string& clean, const std::stri
     const contact_wrench_sum_t& ref = sa[i < lost ? i : i + 1];
     EXPECT_EQ(sb[i].utime, ref.utime) << "sum " << i;
     if (i < lost) {
-      for (int j = 0; j < 6; ++j) EXPECT_TRUE(SameOrBothNan(sb[i].total_w[j], ref.total_w[j])) << "sum " << i;
+      for (int j = 0; j < 6; ++j)
+        EXPECT_TRUE(SameOrBothNan(sb[i].total_w[j], ref.total_w[j])) << "sum " << i;
       EXPECT_EQ(sb[i].oldest_ft_age_s, ref.oldest_ft_age_s);
     } else {
       EXPECT_NEAR(sb[i].oldest_ft_age_s, 0.01, 1e-6) << "sum " << i;
@@ -377,7 +382,8 @@ TEST_F(BadLogsTest, WrongTypeOnAnFtChannelIsCountedNotDecoded) {
     // The kind is logged (once per kind); the heartbeat carries the count.
     const std::string err = ReadFile(dirty.substr(0, dirty.size() - 7) + ".err");
     EXPECT_NE(err.find("undecodable ft_sample_t on FT_HL"), std::string::npos) << err;
-    for (const std::string& channel : {ch.sync_sample(), ch.contact_wrench(), ch.contact_wrench_sum()}) {
+    for (const std::string& channel :
+         {ch.sync_sample(), ch.contact_wrench(), ch.contact_wrench_sum()}) {
       EXPECT_EQ(RawChannel(clean, channel), RawChannel(dirty, channel)) << channel;
     }
     const auto pa = ReadChannel<steady_pose_t>(clean, ch.steady_pose());
@@ -417,9 +423,9 @@ TEST_F(BadLogsTest, CalibratorRefusesACorruptPayload) {
   const size_t payload = EventOffset(ev, i) + 28 + ev[i].channel.size();
   const std::string log = Path("session_payload.lcmlog");
   PatchFile(fx->session_log, log, payload, {0xff});
-  ExpectCalibratorRefuses(log, "cal_payload",
-                          {"damaged or truncated", "1 undecodable messages",
-                           "undecodable ft_sample_t on FT_HL"});
+  ExpectCalibratorRefuses(
+      log, "cal_payload",
+      {"damaged or truncated", "1 undecodable messages", "undecodable ft_sample_t on FT_HL"});
 }
 
 TEST_F(BadLogsTest, CalibratorRefusesABrokenSyncWord) {
@@ -437,7 +443,8 @@ TEST_F(BadLogsTest, CalibratorRefusesAWrongTypeOnAnFtChannel) {
   const auto& ch = fx->config.channels();
   size_t i = ev.size() / 2;
   while (ev[i].channel != ch.servo_state()) ++i;
-  ev.insert(ev.begin() + static_cast<std::ptrdiff_t>(i), Event{ev[i].utime, ch.ft_prefix() + "HL", ev[i].data});
+  ev.insert(ev.begin() + static_cast<std::ptrdiff_t>(i),
+            Event{ev[i].utime, ch.ft_prefix() + "HL", ev[i].data});
   const std::string log = Path("session_wrong_type.lcmlog");
   WriteLog(log, ev);
   ExpectCalibratorRefuses(log, "cal_wrong_type",
@@ -471,8 +478,8 @@ TEST_F(BadLogsTest, CalibratorRefusesAConfigWithAnotherTotalMass) {
                           {"differs from the config's weight", "total_mass_kg 9 kg"}, heavy);
   // The right config calibrates the same log.
   const std::string out = Path("cal_ok.pbtxt");
-  const Result r = Run({FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->session_log, "--out", out},
-                       "cal_ok");
+  const Result r = Run(
+      {FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->session_log, "--out", out}, "cal_ok");
   EXPECT_EQ(r.exit_code, 0) << r.err;
   EXPECT_TRUE(std::filesystem::exists(out));
 }

@@ -294,8 +294,8 @@ TEST_F(CalibratorTest, RefusesAPhaseThatLostRecordsUnlessAllowedAndCountsThemExa
                 "HANG_X_POS (session 'calibrator-test') FT_HL: " + std::to_string(lost) + " of " +
                     std::to_string(kept + lost) + " records lost");
   {
-    const Result r = Run({"--log", log, "--config", kConfig, "--out", fx->dir + "/gaps.pbtxt"},
-                         "gaps_message");
+    const Result r =
+        Run({"--log", log, "--config", kConfig, "--out", fx->dir + "/gaps.pbtxt"}, "gaps_message");
     EXPECT_NE(r.err.find("--allow-gaps"), std::string::npos) << r.err;
   }
   const std::string out = fx->dir + "/gaps-allowed.pbtxt";
@@ -304,7 +304,8 @@ TEST_F(CalibratorTest, RefusesAPhaseThatLostRecordsUnlessAllowedAndCountsThemExa
   ASSERT_EQ(r.exit_code, 0) << r.err;
   const calibration::Calibration cal = ReadCalibrationFile(out);
   bool warned = false;
-  for (const std::string& w : cal.warning()) warned = warned || w.find("--allow-gaps") != std::string::npos;
+  for (const std::string& w : cal.warning())
+    warned = warned || w.find("--allow-gaps") != std::string::npos;
   EXPECT_TRUE(warned);
   // Four series, STANDING, WALKING: six phases of six channels.
   ASSERT_EQ(cal.recording_gaps_size(), 36);
@@ -354,7 +355,8 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
     const auto& e = cal.leg(k);
     const auto& t = truth.leg(k);
     SCOPED_TRACE(e.name());
-    worst_weight = std::max(worst_weight, std::abs(e.leg_weight_n().value() - t.leg_weight_n().value()));
+    worst_weight =
+        std::max(worst_weight, std::abs(e.leg_weight_n().value() - t.leg_weight_n().value()));
     for (const auto& [a, b] : {std::pair{e.force_offset_n().x(), t.force_offset_n().x()},
                                {e.force_offset_n().y(), t.force_offset_n().y()},
                                {e.force_offset_n().z(), t.force_offset_n().z()}}) {
@@ -377,9 +379,10 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
     EXPECT_NEAR(e.torque_offset_nm().y(), t.torque_offset_nm().y(), 0.002);
     EXPECT_NEAR(e.torque_offset_nm().z(), t.torque_offset_nm().z(), 0.002);
   }
-  std::printf("calibrator vs twin truth: |d mg| <= %.4f N, |d f_o| <= %.4f N, |d tau_o| <= "
-              "%.5f N m\n%s",
-              worst_weight, worst_force, worst_torque, r.out.c_str());
+  std::printf(
+      "calibrator vs twin truth: |d mg| <= %.4f N, |d f_o| <= %.4f N, |d tau_o| <= "
+      "%.5f N m\n%s",
+      worst_weight, worst_force, worst_torque, r.out.c_str());
   EXPECT_GE(cal.standing_poses(), kPoses * 9 / 10);
   ASSERT_EQ(cal.provenance().input_size(), 1);
   EXPECT_EQ(cal.provenance().input(0).sha256(), Sha256File(fx->log));
@@ -399,8 +402,10 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   ASSERT_GE(cal.result_rmse_size(), 2);  // standing poses and the walk (+ legs with --truth)
   for (const auto& row : cal.result_rmse()) {
     EXPECT_GT(row.count(), 0u) << row.samples() << " " << row.wrench();
-    EXPECT_LT(row.force_calibrated_n(), row.force_naive_n()) << row.samples() << " " << row.wrench();
-    EXPECT_LT(row.torque_calibrated_nm(), row.torque_naive_nm()) << row.samples() << " " << row.wrench();
+    EXPECT_LT(row.force_calibrated_n(), row.force_naive_n())
+        << row.samples() << " " << row.wrench();
+    EXPECT_LT(row.torque_calibrated_nm(), row.torque_naive_nm())
+        << row.samples() << " " << row.wrench();
   }
   EXPECT_NE(r.out.find("Ground-contact RMSE"), std::string::npos) << r.out;
 
@@ -509,9 +514,10 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   const double n = static_cast<double>(full.size());
   const double total_f = std::sqrt(total_f2 / (3 * n)), total_t = std::sqrt(total_t2 / (3 * n));
   const double full_f = std::sqrt(full_f2 / (18 * n)), naive_f = std::sqrt(naive_f2 / (18 * n));
-  std::printf("walk (%zu samples): true parameters' total vs (0,0,G,0,0,0) rms %.4f N / %.5f N m; "
-              "leg force rms vs the true parameters' correction: calibration %.5f N, naive %.4f N\n",
-              full.size(), total_f, total_t, full_f, naive_f);
+  std::printf(
+      "walk (%zu samples): true parameters' total vs (0,0,G,0,0,0) rms %.4f N / %.5f N m; "
+      "leg force rms vs the true parameters' correction: calibration %.5f N, naive %.4f N\n",
+      full.size(), total_f, total_t, full_f, naive_f);
   // Noise: 6 readings x 0.05 N, and 0.2 deg of mocap attitude tilting G = 80 N (0.28 N).
   EXPECT_LT(total_f, 0.3);
   EXPECT_LT(total_t, 0.05);
@@ -525,7 +531,7 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
   const std::string bad_dir = fx->dir + "/bad_report";
   ::setenv("FTCAL_PYTHON_DIR", FTCAL_PYTHON_DIR, 1);  // this build's schemas
   Child report_child({std::string(FTCAL_SOURCE_DIR) + "/scripts/report", out, bad_csv, bad_dir},
-               fx->dir + "/bad_report.out", fx->dir + "/bad_report.err");
+                     fx->dir + "/bad_report.out", fx->dir + "/bad_report.err");
   const auto status = report_child.Wait(60);
   ASSERT_TRUE(status.has_value());
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 2);
@@ -552,8 +558,7 @@ TEST_F(CalibratorTest, RefusesAnOutputDirectoryThatDoesNotExistBeforeReading) {
   const std::string out = fx->dir + "/no-such-dir/cal.pbtxt";
   const Result r = Run({"--log", fx->log, "--config", kConfig, "--out", out}, "no_out_dir");
   EXPECT_EQ(r.exit_code, 2) << r.err;
-  EXPECT_NE(r.err.find("directory '" + fx->dir + "/no-such-dir' does not exist"),
-            std::string::npos)
+  EXPECT_NE(r.err.find("directory '" + fx->dir + "/no-such-dir' does not exist"), std::string::npos)
       << r.err;
   // Refused before the log was read: no progress line.
   EXPECT_EQ(r.err.find("events"), std::string::npos) << r.err;
@@ -581,8 +586,9 @@ TEST_F(CalibratorTest, LiveCalibratesWhenStandingStopsPublishesAndWrites) {
   ServiceStats stats(spdlog::default_logger());
   LcmBus bus("memq://", stats);
   std::vector<calibration_t> published;
-  bus.Subscribe<calibration_t>(fx->config.channels().calibration(),
-                               [&](const MessageInfo&, const calibration_t& m) { published.push_back(m); });
+  bus.Subscribe<calibration_t>(
+      fx->config.channels().calibration(),
+      [&](const MessageInfo&, const calibration_t& m) { published.push_back(m); });
   const std::string out = fx->dir + "/live.pbtxt";
   int calibrated = 0;
   CalibratorOptions options;

@@ -27,7 +27,8 @@ class CommandGateTest : public ::testing::Test {
         stats_(std::make_shared<spdlog::logger>("gate",
                                                 std::make_shared<spdlog::sinks::null_sink_mt>())),
         gate_(config_, stats_, kStartS) {
-    for (const auto& leg : config_.robot().leg()) ids_.push_back(static_cast<int>(leg.servo().id()));
+    for (const auto& leg : config_.robot().leg())
+      ids_.push_back(static_cast<int>(leg.servo().id()));
     measured_.assign(ids_.size(), 0.0);
     for (size_t i = 0; i < ids_.size(); ++i) measured_[i] = 0.1 * static_cast<double>(i);
     Measure();
@@ -84,8 +85,7 @@ class CommandGateTest : public ::testing::Test {
 };
 
 TEST_F(CommandGateTest, CommandsInTheFirstMomentsAreIgnored) {
-  EXPECT_EQ(Send("op", Cmd(servo_command_t::ARM), kStartS + 0.5),
-            "servo command ignored_at_start");
+  EXPECT_EQ(Send("op", Cmd(servo_command_t::ARM), kStartS + 0.5), "servo command ignored_at_start");
   EXPECT_EQ(gate_.mode(), Mode::kDisarmed);
   EXPECT_EQ(Send("op", Cmd(servo_command_t::ARM), kStartS + 1.01), "");
   EXPECT_EQ(gate_.mode(), Mode::kArmed);
@@ -203,7 +203,6 @@ TEST_F(CommandGateTest, ADegradedBridgeIsAFaultUntilItRecoversAndIsArmedAgain) {
   EXPECT_EQ(Send("op", Cmd(servo_command_t::MOVE, 0.9), t), "servo command not_armed");
 }
 
-
 // The servos' own limits not read back as configured (the bridge's ArmBlocker): ARM is refused
 // with the reason, and taken once it clears.
 TEST_F(CommandGateTest, NoArmWhileTheBridgeSaysTheLimitsAreWrong) {
@@ -215,7 +214,8 @@ TEST_F(CommandGateTest, NoArmWhileTheBridgeSaysTheLimitsAreWrong) {
   } catch (const BadInput& e) {
     EXPECT_EQ(e.kind(), "servo command limits_unverified");
     EXPECT_NE(std::string(e.what()).find("servo 3 (FL): Profile Velocity (112) written 125"),
-              std::string::npos) << e.what();
+              std::string::npos)
+        << e.what();
   }
   EXPECT_EQ(gate_.mode(), Mode::kDisarmed);
   gate_.SetArmBlock("");

@@ -40,7 +40,8 @@ std::vector<uint8_t> Encode(const Msg& msg) {
   return bytes;
 }
 void PutBe32(std::vector<uint8_t>& b, size_t at, int32_t v) {
-  for (int i = 0; i < 4; ++i) b[at + i] = static_cast<uint8_t>(static_cast<uint32_t>(v) >> (24 - 8 * i));
+  for (int i = 0; i < 4; ++i)
+    b[at + i] = static_cast<uint8_t>(static_cast<uint32_t>(v) >> (24 - 8 * i));
 }
 
 // Peak resident memory of `pid`, kB (/proc/PID/status VmHWM).
@@ -129,7 +130,8 @@ TEST(CraftedMessages, ALiveServiceRefusesThemInBoundedMemoryAndKeepsItsHeartbeat
                 static_cast<unsigned>(marker_empty_string.size()));
     crafted += 4;
     good.utime = std::chrono::duration_cast<std::chrono::microseconds>(
-                     std::chrono::system_clock::now().time_since_epoch()).count();
+                     std::chrono::system_clock::now().time_since_epoch())
+                     .count();
     lcm.publish("MOCAP_BODY", &good);
     ++good_sent;
     std::this_thread::sleep_for(std::chrono::milliseconds(5));
@@ -141,7 +143,8 @@ TEST(CraftedMessages, ALiveServiceRefusesThemInBoundedMemoryAndKeepsItsHeartbeat
   const auto status = seg.Wait(10);
   ASSERT_TRUE(status.has_value());
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << testing::DescribeWaitStatus(*status) << "\n" << testing::ReadFile(dir + "/seg.err");
+      << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(dir + "/seg.err");
   std::cout << "crafted " << crafted << ", good " << good_sent << "; peak memory " << peak_kb
             << " kB (" << baseline_kb << " kB before)\n";
   // 4e8 markers alone would have been 8.8 GB.

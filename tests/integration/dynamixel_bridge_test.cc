@@ -94,8 +94,7 @@ TEST(DynamixelEmulator, SyncReadAnswersInListOrderWithThePresentBlock) {
   sim::DxlEmulatorOptions options;
   options.initial_tick_ms = 1000;
   sim::DynamixelBusEmulator emu(options);
-  const auto req = dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes,
-                                      {6, 2, 4});
+  const auto req = dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, {6, 2, 4});
   const auto statuses = ParseAll(emu.Receive(req.data(), req.size(), 0.25));
   ASSERT_EQ(statuses.size(), 3u);
   const std::uint8_t want[] = {6, 2, 4};
@@ -182,7 +181,8 @@ TEST(DynamixelEmulator, BusWatchdogStopsASilentServoAndRefusesGoalsUntilCleared)
     auto send = [&](const std::vector<std::uint8_t>& p, double t) {
       return ParseAll(emu.Receive(p.data(), p.size(), t));
     };
-    send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {static_cast<std::uint8_t>(armed ? 5 : 0)}), 0.0);
+    send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {static_cast<std::uint8_t>(armed ? 5 : 0)}),
+         0.0);
     send(dxl::BuildTorqueEnable(1, true), 0.0);
     send(dxl::BuildSyncWriteGoalPosition({{1, 2048 + 2000}}), 0.05);
     for (double t = 0.1; t < 0.31; t += 0.05) send(dxl::BuildPing(1), t);  // the last at 0.3
@@ -200,13 +200,16 @@ TEST(DynamixelEmulator, BusWatchdogStopsASilentServoAndRefusesGoalsUntilCleared)
     EXPECT_EQ(emu.TableByte(1, dxl::kAddrBusWatchdog), dxl::kBusWatchdogExpired);
     EXPECT_EQ(emu.TableByte(1, dxl::kAddrTorqueEnable), 1) << "it stops; torque stays on";
     EXPECT_EQ(emu.fault_counts().bus_watchdog_expiries, 1);
-    const auto goal = send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0);
+    const auto goal =
+        send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0);
     ASSERT_EQ(goal.size(), 1u);
     EXPECT_EQ(goal[0].error_number(), 4);
     EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {5}), 2.0).at(0).error_number(), 4);
     EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrBusWatchdog, {0}), 2.0).at(0).error_number(), 0);
     EXPECT_EQ(send(dxl::BuildWrite(1, dxl::kAddrGoalPosition, {0x00, 0x08, 0x00, 0x00}), 2.0)
-                  .at(0).error_number(), 0);
+                  .at(0)
+                  .error_number(),
+              0);
     emu.Advance(20.0);
     EXPECT_NEAR(emu.ExactPosition(1), 2048, 1.0) << "cleared, it takes goals again";
   }
@@ -226,9 +229,9 @@ TEST(DynamixelEmulator, ExtendedPositionModeTakesMultiTurnGoals) {
   };
   auto goal = [](std::int32_t count) {
     const auto u = static_cast<std::uint32_t>(count);
-    return std::vector<std::uint8_t>{static_cast<std::uint8_t>(u), static_cast<std::uint8_t>(u >> 8),
-                                     static_cast<std::uint8_t>(u >> 16),
-                                     static_cast<std::uint8_t>(u >> 24)};
+    return std::vector<std::uint8_t>{
+        static_cast<std::uint8_t>(u), static_cast<std::uint8_t>(u >> 8),
+        static_cast<std::uint8_t>(u >> 16), static_cast<std::uint8_t>(u >> 24)};
   };
   EXPECT_EQ(emu.TableByte(1, dxl::kAddrOperatingMode), 3) << "the factory's position mode";
   EXPECT_EQ(send(dxl::BuildTorqueEnable(1, true), 0.0), 0);
@@ -280,8 +283,8 @@ TEST(DynamixelEmulator, SeededFaultsAreRepeatableAndRecorded) {
     sim::DynamixelBusEmulator emu(options);
     emu.SetReplyObserver([records](const sim::DxlReplyRecord& r) { records->push_back(r); });
     std::vector<std::uint8_t> all;
-    const auto req = dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes,
-                                        {1, 2, 3, 4, 5, 6});
+    const auto req =
+        dxl::BuildSyncRead(dxl::kAddrPresentBlock, dxl::kPresentBlockBytes, {1, 2, 3, 4, 5, 6});
     for (int i = 0; i < 100; ++i) {
       const auto out = emu.Receive(req.data(), req.size(), 0.01 * i);
       all.insert(all.end(), out.begin(), out.end());
@@ -340,8 +343,8 @@ class DynamixelBridgePty : public ::testing::Test {
                                 "operating_mode: " + mode);
     }
     config_ = LoadConfigText(text, "test config");
-    stats_ = std::make_unique<ServiceStats>(
-        std::make_shared<spdlog::logger>("dxl-test", std::make_shared<spdlog::sinks::null_sink_mt>()));
+    stats_ = std::make_unique<ServiceStats>(std::make_shared<spdlog::logger>(
+        "dxl-test", std::make_shared<spdlog::sinks::null_sink_mt>()));
     bridge_ = std::make_unique<DynamixelBridge>(
         config_, DynamixelBridgeOptions{}, *stats_,
         [this](const servo_state_t& m) { published_.push_back(m); },
@@ -402,8 +405,8 @@ TEST_F(DynamixelBridgePty, AMissingServoIsStaleAndTheOtherFiveAreExact) {
   EXPECT_EQ(bridge_->missing_at_start(), std::vector<std::uint8_t>{4});
   lock.lock();
   ASSERT_LT(std::chrono::duration<double>(Clock::now() - t0_).count(), jump_s);
-  t0_ = Clock::now() - std::chrono::duration_cast<Clock::duration>(
-                           std::chrono::duration<double>(jump_s));
+  t0_ = Clock::now() -
+        std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(jump_s));
   lock.unlock();
   for (int i = 0; i < 60; ++i) {
     bridge_->Cycle();
@@ -562,8 +565,8 @@ TEST_F(DynamixelBridgePty, LimitsAreWrittenAtStartAndReadBackAsTheConfigSays) {
     Start(sim::DxlEmulatorOptions{}, 1.5, mode);
     ASSERT_TRUE(bridge_->Connect());
     const auto& d = config_.dynamixel();
-    const auto velocity = static_cast<std::int32_t>(
-        std::floor(d.max_velocity_rad_s() / (0.229 * 2 * M_PI / 60)));
+    const auto velocity =
+        static_cast<std::int32_t>(std::floor(d.max_velocity_rad_s() / (0.229 * 2 * M_PI / 60)));
     const auto acceleration = static_cast<std::int32_t>(
         std::floor(d.max_acceleration_rad_s2() / (214.577 * 2 * M_PI / 3600)));
     const auto watchdog = static_cast<int>(std::lround(d.bus_watchdog_s() / 0.02));
@@ -583,7 +586,8 @@ TEST_F(DynamixelBridgePty, LimitsAreWrittenAtStartAndReadBackAsTheConfigSays) {
       const long b = std::lround(leg.servo().zero_count() + per_rad * leg.servo().max_angle_rad());
       const bool single_turn = mode == "POSITION_MODE";
       EXPECT_EQ(emu_->TableI32(id, dxl::kAddrMinPositionLimit), single_turn ? std::min(a, b) : 0);
-      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrMaxPositionLimit), single_turn ? std::max(a, b) : 4095);
+      EXPECT_EQ(emu_->TableI32(id, dxl::kAddrMaxPositionLimit),
+                single_turn ? std::max(a, b) : 4095);
     }
     EXPECT_EQ(bridge_->ArmBlocker(), "");
     EXPECT_EQ(stats_->counters().at("limit_writes"), mode == "POSITION_MODE" ? 6 * 7 : 6 * 5);
@@ -591,8 +595,9 @@ TEST_F(DynamixelBridgePty, LimitsAreWrittenAtStartAndReadBackAsTheConfigSays) {
     ServiceStats stats2(std::make_shared<spdlog::logger>(
         "dxl-test2", std::make_shared<spdlog::sinks::null_sink_mt>()));
     bridge_.reset();
-    DynamixelBridge again(config_, DynamixelBridgeOptions{}, stats2, [](const servo_state_t&) {},
-                          [] { return std::int64_t{0}; });
+    DynamixelBridge again(
+        config_, DynamixelBridgeOptions{}, stats2, [](const servo_state_t&) {},
+        [] { return std::int64_t{0}; });
     ASSERT_TRUE(again.Connect());
     EXPECT_EQ(again.ArmBlocker(), "");
     EXPECT_EQ(stats2.counters().count("limit_writes"), 0u);
@@ -609,8 +614,8 @@ TEST_F(DynamixelBridgePty, AServoReportingOtherLimitsBlocksArmingAndIsNamed) {
   ASSERT_TRUE(bridge_->Connect());
   const auto velocity = static_cast<std::int32_t>(
       std::floor(config_.dynamixel().max_velocity_rad_s() / (0.229 * 2 * M_PI / 60)));
-  const std::string want = "servo 3 (FL): Profile Velocity (112) written " +
-                           std::to_string(velocity) + ", read back 0";
+  const std::string want =
+      "servo 3 (FL): Profile Velocity (112) written " + std::to_string(velocity) + ", read back 0";
   EXPECT_EQ(bridge_->ArmBlocker(), want);
   bridge_->Cycle();
   std::string why;
@@ -639,17 +644,20 @@ TEST_F(DynamixelBridgePty, AServoReportingOtherLimitsBlocksArmingAndIsNamed) {
 // EEPROM is written only with torque off (§2.7): a servo found holding its leg with other
 // limits is not dropped to rewrite them; arming waits, and says why.
 TEST_F(DynamixelBridgePty, AServoHoldingItsLegWithOtherLimitsIsNotRewritten) {
-  Start(sim::DxlEmulatorOptions{}, M_PI - 0.01, "POSITION_MODE", [](sim::DynamixelBusEmulator& emu) {
-    const auto on = dxl::BuildTorqueEnable(4, true);
-    emu.Receive(on.data(), on.size(), 0.0);
-  });
+  Start(sim::DxlEmulatorOptions{}, M_PI - 0.01, "POSITION_MODE",
+        [](sim::DynamixelBusEmulator& emu) {
+          const auto on = dxl::BuildTorqueEnable(4, true);
+          emu.Receive(on.data(), on.size(), 0.0);
+        });
   ASSERT_TRUE(bridge_->Connect());
   const std::string blocker = bridge_->ArmBlocker();
   EXPECT_NE(blocker.find("servo 4 (HR): Acceleration Limit (40) is 32767, the config wants"),
-            std::string::npos) << blocker;
+            std::string::npos)
+      << blocker;
   EXPECT_NE(blocker.find("Velocity Limit (44) is 210"), std::string::npos) << blocker;
   EXPECT_NE(blocker.find("and torque is on (EEPROM is written only with torque off)"),
-            std::string::npos) << blocker;
+            std::string::npos)
+      << blocker;
   EXPECT_EQ(blocker.find("servo 1 "), std::string::npos) << blocker;
   std::lock_guard<std::mutex> lock(emu_mu_);
   EXPECT_EQ(emu_->TableI32(4, dxl::kAddrVelocityLimit), 210) << "factory value, untouched";
@@ -778,8 +786,9 @@ class DynamixelBridgeProcesses : public ::testing::Test {
   }
   double Now() const { return std::chrono::duration<double>(Clock::now() - t0_).count(); }
   std::unique_ptr<Child> StartEmulator(std::vector<std::string> args) {
-    std::vector<std::string> argv = {FTCAL_EMULATE_DYNAMIXEL, "--link", link_, "--config",
-                                     config_path_, "--truth", dir_ + "/truth.csv"};
+    std::vector<std::string> argv = {
+        FTCAL_EMULATE_DYNAMIXEL, "--link", link_, "--config", config_path_, "--truth",
+        dir_ + "/truth.csv"};
     argv.insert(argv.end(), args.begin(), args.end());
     auto child = std::make_unique<Child>(argv, dir_ + "/emu.out", dir_ + "/emu.err");
     for (int i = 0; i < 1000 && ::access(link_.c_str(), F_OK) != 0; ++i) SleepS(0.01);
@@ -903,7 +912,8 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
 TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePercent) {
   Listener listener(t0_);
   ASSERT_TRUE(listener.good());
-  auto emu = StartEmulator({"--scenario", "tripod-walk", "--missing", "4:0.5:2.5", "--duration", "10"});
+  auto emu =
+      StartEmulator({"--scenario", "tripod-walk", "--missing", "4:0.5:2.5", "--duration", "10"});
   auto bridge = StartBridge("");
   SleepS(4.5);
   Stop(*bridge, "bridge");
@@ -965,7 +975,8 @@ TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePerc
 TEST_F(DynamixelBridgeProcesses, RestartAndVanishingPortResumeWithAVisibleGap) {
   Listener listener(t0_);
   ASSERT_TRUE(listener.good());
-  auto emu = StartEmulator({"--scenario", "tripod-walk", "--disconnect", "2.5:3.0", "--duration", "10"});
+  auto emu =
+      StartEmulator({"--scenario", "tripod-walk", "--disconnect", "2.5:3.0", "--duration", "10"});
   auto bridge = StartBridge("1");
   SleepS(1.2);
   bridge->Signal(SIGKILL);
@@ -1019,7 +1030,8 @@ TEST_F(DynamixelBridgeProcesses, SignedServoCommandsOverLcmMoveTheEmulatedServos
   ASSERT_TRUE(listener.good());
   testing::SignedCommander commander(kUrl);
   std::ofstream(config_path_) << commander.Trusted(TestConfigText(link_, 1.0, 0.05));
-  auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
+  auto emu =
+      StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
   auto bridge = StartBridge("");
   SleepS(1.5);  // past dynamixel.start_quiet_s (1 s)
   const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
@@ -1066,7 +1078,8 @@ TEST_F(DynamixelBridgeProcesses, UnsignedAndUntrustedCommandsWriteNoGoal) {
   ASSERT_TRUE(listener.good());
   testing::SignedCommander trusted(kUrl), intruder(kUrl);
   std::ofstream(config_path_) << trusted.Trusted(TestConfigText(link_, 1.0, 0.05));
-  auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
+  auto emu =
+      StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
   auto bridge = StartBridge("");
   SleepS(1.5);
   const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
@@ -1114,12 +1127,14 @@ TEST_F(DynamixelBridgeProcesses, TheDeadManHoldsTheServosWhenTheCommanderStops) 
   testing::SignedCommander commander(kUrl);
   // 1 rad/s (the default is 3): the legs are still on their way when the commander falls silent.
   // The sequencer's limit may not exceed the bridge's.
-  std::string text = std::regex_replace(TestConfigText(link_, 1.0, 0.05),
-                                        std::regex("(reply_timeout_s: [0-9.]+)"),
-                                        "$1\n  max_velocity_rad_s: 1.0");
-  text = std::regex_replace(text, std::regex("max_velocity_rad_s: 2\\.0"), "max_velocity_rad_s: 1.0");
+  std::string text =
+      std::regex_replace(TestConfigText(link_, 1.0, 0.05), std::regex("(reply_timeout_s: [0-9.]+)"),
+                         "$1\n  max_velocity_rad_s: 1.0");
+  text =
+      std::regex_replace(text, std::regex("max_velocity_rad_s: 2\\.0"), "max_velocity_rad_s: 1.0");
   std::ofstream(config_path_) << commander.Trusted(text);
-  auto emu = StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
+  auto emu =
+      StartEmulator({"--scenario", "dynamics", "--time-constant", "0.05", "--duration", "20"});
   auto bridge = StartBridge("");
   SleepS(1.5);
   const std::vector<int> ids = {1, 2, 3, 4, 5, 6};
@@ -1155,7 +1170,6 @@ TEST_F(DynamixelBridgeProcesses, TheDeadManHoldsTheServosWhenTheCommanderStops) 
   EXPECT_EQ(Counter(statuses.back(), "deadman_holds"), 1);
   EXPECT_EQ(Counter(statuses.back(), "mode"), 2);  // hold
 }
-
 
 // The real bridge process against the emulator in this process (on a pty), so that the test
 // sees the servos between the bridge's requests: what a hung bridge leaves them doing.
@@ -1246,7 +1260,8 @@ TEST_F(DynamixelBridgeOnEmulator, AServoWithOtherLimitsIsNotArmedAndTheStatusSay
   EXPECT_GE(Counter(last, "refused_limits_unverified") + Counter(last, "refused_in_fault"), 3);
   EXPECT_EQ(last.state, static_cast<int8_t>(service_status_t::DEGRADED));
   EXPECT_NE(last.last_error.find("servo 5 (MR): Profile Velocity (112) written 125, read back 0"),
-            std::string::npos) << last.last_error;
+            std::string::npos)
+      << last.last_error;
   WithEmulator([](sim::DynamixelBusEmulator& emu) {
     for (std::uint8_t id = 1; id <= 6; ++id) {
       EXPECT_EQ(emu.TableByte(id, dxl::kAddrTorqueEnable), 0) << "servo " << int(id);
@@ -1267,9 +1282,9 @@ TEST_F(DynamixelBridgeOnEmulator, AHungBridgeStopsTheLegsAndOnlyANewArmMovesThem
   testing::SignedCommander commander(kUrl);
   sim::DxlEmulatorOptions options;
   options.time_constant_s = 1.0;
-  const std::string text = std::regex_replace(TestConfigText(link_, 1.0, 0.05),
-                                              std::regex("(reply_timeout_s: [0-9.]+)"),
-                                              "$1\n  bus_watchdog_s: 0.1\n  deadman_s: 2.0");
+  const std::string text =
+      std::regex_replace(TestConfigText(link_, 1.0, 0.05), std::regex("(reply_timeout_s: [0-9.]+)"),
+                         "$1\n  bus_watchdog_s: 0.1\n  deadman_s: 2.0");
   Start(options, commander.Trusted(text));
   bridge_ = StartBridge("1");
   const std::vector<int> ids = {1, 2, 3, 4, 5, 6};

@@ -37,8 +37,8 @@ using auth::TrustedKey;
 using auth::Verifier;
 
 std::shared_ptr<spdlog::logger> QuietLogger() {
-  static auto log = std::make_shared<spdlog::logger>(
-      "test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  static auto log =
+      std::make_shared<spdlog::logger>("test", std::make_shared<spdlog::sinks::null_sink_mt>());
   return log;
 }
 
@@ -57,8 +57,6 @@ servo_command_t Command(double goal) {
   c.torque_enable = true;
   return c;
 }
-
-
 
 class SignedChannelTest : public ::testing::Test {
  protected:
@@ -136,10 +134,9 @@ TEST_F(SignedChannelTest, AnUntrustedSignerIsRefused) {
 }
 
 TEST_F(SignedChannelTest, AKeyIsTrustedOnlyOnItsChannels) {
-  bus_.SubscribeSigned<experiment_marker_t>("EXPERIMENT", &verifier_, 0, false,
-                                            [](const MessageInfo&, const experiment_marker_t&) {
-                                              FAIL() << "delivered";
-                                            });
+  bus_.SubscribeSigned<experiment_marker_t>(
+      "EXPERIMENT", &verifier_, 0, false,
+      [](const MessageInfo&, const experiment_marker_t&) { FAIL() << "delivered"; });
   Send("EXPERIMENT", Encode(op_next_.Seal("EXPERIMENT", experiment_marker_t{}, NowUs())));
   EXPECT_EQ(Kind("not allowed on channel from operator-next on EXPERIMENT"), 1);
 }
@@ -265,15 +262,16 @@ TEST_F(SeedFileTest, ANonSeedIsRefusedByName) {
 TEST(Ed25519Test, Rfc8032VectorOne) {
   const std::string seed_hex = "9d61b19deffd5a60ba844af492ec2cc44449c5697b326919703bac031cae7f60";
   std::array<uint8_t, 32> seed{};
-  for (int i = 0; i < 32; ++i) seed[i] = static_cast<uint8_t>(std::stoi(seed_hex.substr(2 * i, 2), nullptr, 16));
+  for (int i = 0; i < 32; ++i)
+    seed[i] = static_cast<uint8_t>(std::stoi(seed_hex.substr(2 * i, 2), nullptr, 16));
   const Signer s = Signer::FromSeed(seed);
   EXPECT_EQ(auth::ToHex(s.public_key().data(), 32),
             "d75a980182b10ab7d54bfed3c964073a0ee172f3daa62325af021a68f707511a");
 }
 
 TEST(KeygenTest, WritesAnOwnerOnlySeedWhosePublicKeyItPrints) {
-  const std::string dir = std::filesystem::temp_directory_path() /
-                          ("ftcal_keygen_" + std::to_string(::getpid()));
+  const std::string dir =
+      std::filesystem::temp_directory_path() / ("ftcal_keygen_" + std::to_string(::getpid()));
   std::filesystem::create_directories(dir);
   const std::string key = dir + "/op.key";
   testing::Child gen({FTCAL_KEYGEN, "--out", key}, dir + "/out", dir + "/err");

@@ -72,8 +72,10 @@ Errors Compare(const RobotCalibration& a, const RobotCalibration& b) {
     const LegCalibration& x = a.leg[k];
     const LegCalibration& y = b.leg[k];
     e.weight_n = std::max(e.weight_n, std::abs(x.weight_n - y.weight_n));
-    e.force_n = std::max(e.force_n, (x.offset.head<3>() - y.offset.head<3>()).cwiseAbs().maxCoeff());
-    e.torque_nm = std::max(e.torque_nm, (x.offset.tail<3>() - y.offset.tail<3>()).cwiseAbs().maxCoeff());
+    e.force_n =
+        std::max(e.force_n, (x.offset.head<3>() - y.offset.head<3>()).cwiseAbs().maxCoeff());
+    e.torque_nm =
+        std::max(e.torque_nm, (x.offset.tail<3>() - y.offset.tail<3>()).cwiseAbs().maxCoeff());
     e.com_m = std::max(e.com_m, ComCurveDistance(x.com, y.com));
     e.rotation_deg = std::max(e.rotation_deg, RotationDeg(x.R_tilde, y.R_tilde));
     e.p_tilde_m = std::max(e.p_tilde_m, (x.p_tilde_prime - y.p_tilde_prime).norm());
@@ -121,8 +123,8 @@ struct ExperimentRun {
 void Start(ExperimentRun& run, const std::string& dir) {
   run.out = dir + "/" + run.name;
   run.child = std::make_unique<Child>(
-      std::vector<std::string>{std::string(FTCAL_SOURCE_DIR) + "/scripts/netns-exec", "/usr/bin/env",
-                               std::string("FTCAL_BUILD_DIR=") + FTCAL_BUILD_DIR,
+      std::vector<std::string>{std::string(FTCAL_SOURCE_DIR) + "/scripts/netns-exec",
+                               "/usr/bin/env", std::string("FTCAL_BUILD_DIR=") + FTCAL_BUILD_DIR,
                                "FTCAL_EXPERIMENT_SEED=3", "FTCAL_EXPERIMENT_MOCAP=" + run.mocap,
                                std::string(FTCAL_SOURCE_DIR) + "/scripts/experiment", run.out},
       dir + "/" + run.name + ".out", dir + "/" + run.name + ".err");
@@ -217,7 +219,8 @@ std::multiset<std::vector<int>> KeptPoses(const std::string& log_path) {
     steady_pose_t p;
     if (p.decode(e->data, 0, e->datalen) < 0) continue;
     std::vector<int> key;
-    for (int k = 0; k < p.num_legs; ++k) key.push_back(static_cast<int>(std::lround(p.angle_rad[k] * 10)));
+    for (int k = 0; k < p.num_legs; ++k)
+      key.push_back(static_cast<int>(std::lround(p.angle_rad[k] * 10)));
     poses.insert(key);
   }
   return poses;
@@ -227,8 +230,9 @@ std::multiset<std::vector<int>> KeptPoses(const std::string& log_path) {
 void ExpectAgrees(double a, double sa, double b, double sb, double k, const std::string& what) {
   ASSERT_TRUE(sa > 0 && sb > 0) << what << ": no sigma stated (" << sa << ", " << sb << ")";
   const double s = std::hypot(sa, sb);
-  EXPECT_LE(std::abs(a - b), k * s) << what << ": " << a << " vs " << b << ", " << std::abs(a - b) / s
-                                    << " combined sigmas apart (sigmas " << sa << ", " << sb << ")";
+  EXPECT_LE(std::abs(a - b), k * s)
+      << what << ": " << a << " vs " << b << ", " << std::abs(a - b) / s
+      << " combined sigmas apart (sigmas " << sa << ", " << sb << ")";
 }
 void ExpectAgrees(const calibration::Vec3Estimate& a, const calibration::Vec3Estimate& b, double k,
                   const std::string& what) {
@@ -263,7 +267,8 @@ TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNat
     // 0: its own comparisons passed; 1: they did not (checked below regardless); anything
     // else: the experiment did not run to its end.
     EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) <= 1)
-        << testing::DescribeWaitStatus(*status) << "\n" << testing::ReadFile(r.out + "/logs/sequencer.err");
+        << testing::DescribeWaitStatus(*status) << "\n"
+        << testing::ReadFile(r.out + "/logs/sequencer.err");
     ran = ran && WIFEXITED(*status) && WEXITSTATUS(*status) <= 1;
   }
   ASSERT_TRUE(ran);
@@ -275,7 +280,8 @@ TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNat
   // The swap: the same poses kept, the same calibration within its uncertainty.
   const auto qtm_poses = KeptPoses(runs[0].out + "/session.lcmlog");
   const auto natnet_poses = KeptPoses(runs[1].out + "/session.lcmlog");
-  std::cout << "steady poses kept: qtm " << qtm_poses.size() << ", natnet " << natnet_poses.size() << "\n";
+  std::cout << "steady poses kept: qtm " << qtm_poses.size() << ", natnet " << natnet_poses.size()
+            << "\n";
   // The calibrator needs calibrator.min_poses (30) of the plan's 46.
   EXPECT_GE(qtm_poses.size(), 30u);
   EXPECT_GE(natnet_poses.size(), 30u);

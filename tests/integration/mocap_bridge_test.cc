@@ -58,7 +58,8 @@ sim::QtmPose SyntheticPose(int64_t k) {
   p.R_GC = RotationFromRollPitchYaw(0.05 * std::sin(t), 0.03 * std::cos(t), kYaw0 + kYawRate * k);
   p.p_GoCo_G_m = Vec3(1.0 + 0.001 * k, -2.0, 0.25);
   p.residual_m = 0.0004;
-  const Vec3 points_C[4] = {{0.2, 0.1, 0.05}, {0.2, -0.1, 0.05}, {-0.2, 0.1, 0.05}, {-0.2, -0.1, 0.05}};
+  const Vec3 points_C[4] = {
+      {0.2, 0.1, 0.05}, {0.2, -0.1, 0.05}, {-0.2, 0.1, 0.05}, {-0.2, -0.1, 0.05}};
   for (const Vec3& b : points_C) p.markers_G_m.push_back(p.R_GC * b + p.p_GoCo_G_m);
   if (k >= 10 && k < 20) p.markers_G_m[2].setConstant(kNaN);
   return p;
@@ -112,8 +113,9 @@ PairRun RunWithBridge(sim::QtmEmulatorOptions eo, int64_t ticks, MocapBridgeOpti
   run.stats = std::make_unique<ServiceStats>(QuietLogger());
   if (bo.address.empty()) bo = BridgeOptions(port);
   bo.port = port;
-  MocapBridge bridge(bo, *run.stats, [&run](const mocap_body_t& m) { run.published.push_back(m); },
-                     [] { return int64_t{0}; });
+  MocapBridge bridge(
+      bo, *run.stats, [&run](const mocap_body_t& m) { run.published.push_back(m); },
+      [] { return int64_t{0}; });
   std::atomic<bool> server_done{false};
   std::thread watcher;  // joins the server and flags it, so the bridge loop never blocks
   watcher = std::thread([&] {
@@ -139,25 +141,29 @@ PairRun RunWithBridge(sim::QtmEmulatorOptions eo, int64_t ticks, MocapBridgeOpti
   return run;
 }
 
-void ExpectMatchesWire(const mocap_body_t& m, const sim::QtmSentFrame& s, const std::string& where) {
+void ExpectMatchesWire(const mocap_body_t& m, const sim::QtmSentFrame& s,
+                       const std::string& where) {
   EXPECT_EQ(m.frame_number, s.frame_number) << where;
   EXPECT_EQ(m.device_utime, s.timestamp_us) << where;
   EXPECT_EQ(m.body, "chassis") << where;
   ASSERT_EQ(m.tracked, s.body.tracked()) << where;
   if (m.tracked) {
     const Mat3 R = s.body.R_GB;  // the f32 values on the wire
-    const Mat3 R_from_q = QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
+    const Mat3 R_from_q =
+        QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
     EXPECT_LT((R_from_q - R).cwiseAbs().maxCoeff(), 1e-6) << where;
     const double yaw = std::atan2(R(1, 0), R(0, 0));
     EXPECT_NEAR(m.yaw_rad, yaw, 1e-12) << where;
-    const Mat3 R_WC = QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
+    const Mat3 R_WC =
+        QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
     EXPECT_LT((R_WC - RotZ(-yaw) * R).cwiseAbs().maxCoeff(), 1e-6) << where;
     // Heading removed: W's x axis is C's x projected on the floor.
     EXPECT_NEAR(R_WC(1, 0), 0.0, 1e-6) << where;
     for (int i = 0; i < 3; ++i) EXPECT_EQ(m.position_m[i], s.body.p_GoBo_G_mm(i) / 1000.0) << where;
     EXPECT_EQ(m.residual_m, s.body.residual_mm / 1000.0) << where;
   } else {
-    for (int i = 0; i < 4; ++i) EXPECT_TRUE(std::isnan(m.q_gc[i]) && std::isnan(m.q_wc[i])) << where;
+    for (int i = 0; i < 4; ++i)
+      EXPECT_TRUE(std::isnan(m.q_gc[i]) && std::isnan(m.q_wc[i])) << where;
     for (int i = 0; i < 3; ++i) EXPECT_TRUE(std::isnan(m.position_m[i])) << where;
     EXPECT_TRUE(std::isnan(m.yaw_rad)) << where;
   }
@@ -193,7 +199,11 @@ TEST(MocapBridgeTest, PublishesEveryFrameAsSentAndAsGenerated) {
     const sim::QtmPose truth = SyntheticPose(s.tick);
     EXPECT_NEAR(m.yaw_rad, kYaw0 + kYawRate * s.tick, 2e-6) << where;
     EXPECT_LT((QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3])) -
-               RemoveHeading(truth.R_GC)).cwiseAbs().maxCoeff(), 2e-6) << where;
+               RemoveHeading(truth.R_GC))
+                  .cwiseAbs()
+                  .maxCoeff(),
+              2e-6)
+        << where;
     for (int a = 0; a < 3; ++a) EXPECT_NEAR(m.position_m[a], truth.p_GoCo_G_m(a), 1e-6) << where;
     EXPECT_NEAR(m.residual_m, 0.0004, 1e-9) << where;
     EXPECT_EQ(bool(m.marker_tracked[2]), !(s.tick >= 10 && s.tick < 20)) << where;
@@ -285,10 +295,10 @@ TEST(MocapBridgeTest, CountsEveryFaultAndPublishesNothingCorrupt) {
 
 TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
   auto eo = EmulatorOptions(200);
-  eo.faults.no_more_data = {{100, 60}};   // 0.3 s not capturing; numbering restarts after
-  eo.faults.disconnected = {{300, 60}};   // QTM down 0.3 s, connections refused
-  eo.faults.silent = {{480, 120}};        // 0.6 s without a packet, connection kept
-  eo.reorder_bodies_on_change = true;     // QTM comes back with the bodies in another order
+  eo.faults.no_more_data = {{100, 60}};  // 0.3 s not capturing; numbering restarts after
+  eo.faults.disconnected = {{300, 60}};  // QTM down 0.3 s, connections refused
+  eo.faults.silent = {{480, 120}};       // 0.6 s without a packet, connection kept
+  eo.reorder_bodies_on_change = true;    // QTM comes back with the bodies in another order
   PairRun run = RunWithBridge(eo, 700);
   EXPECT_EQ(run.emulator.disconnects, 1);
   EXPECT_EQ(run.Counter("no_more_data"), 1);
@@ -299,14 +309,13 @@ TEST(MocapBridgeTest, RecoversFromNoMoreDataAServerShutdownAndSilence) {
   EXPECT_EQ(run.Counter("parameter_reads"), 3);
   EXPECT_EQ(run.Counter("published"), static_cast<int64_t>(run.published.size()));
   auto saw = [&](const std::string& needle) {
-    return std::any_of(run.health.begin(), run.health.end(), [&](const std::string& r) {
-      return r.find(needle) != std::string::npos;
-    });
+    return std::any_of(run.health.begin(), run.health.end(),
+                       [&](const std::string& r) { return r.find(needle) != std::string::npos; });
   };
   EXPECT_TRUE(saw("No More Data")) << "DEGRADED while QTM was not capturing";
   EXPECT_TRUE(saw("disconnected")) << "DEGRADED while QTM was down";
   EXPECT_TRUE(saw("no frame from QTM")) << "DEGRADED while QTM was silent";
-  EXPECT_EQ(run.Counter("timeouts"), 1);  // the silence (0.6 s: DEGRADED, no reconnect)
+  EXPECT_EQ(run.Counter("timeouts"), 1);    // the silence (0.6 s: DEGRADED, no reconnect)
   EXPECT_EQ(run.Counter("frame_gaps"), 2);  // after the shutdown and after the silence
   EXPECT_GE(run.Counter("frames_lost"), 60 + 120);
   EXPECT_EQ(run.health.back(), "") << "healthy again at the end";
@@ -424,7 +433,8 @@ class RawClient {
   bool ok() const { return ok_; }
   void Send(const std::string& command) {
     const auto bytes = qtm::EncodeCommand(command);
-    ASSERT_EQ(::send(fd_, bytes.data(), bytes.size(), MSG_NOSIGNAL), static_cast<ssize_t>(bytes.size()));
+    ASSERT_EQ(::send(fd_, bytes.data(), bytes.size(), MSG_NOSIGNAL),
+              static_cast<ssize_t>(bytes.size()));
   }
   // The next packet within 2 s; nullopt on timeout or close.
   std::optional<qtm::Packet> Next() {
@@ -543,7 +553,8 @@ std::map<int64_t, TruthRow> ReadTruth(const std::string& path) {
     for (int j = 0; j < 3; ++j) {
       for (int i = 0; i < 3; ++i) r.R(i, j) = v[8 + 3 * j + i];
     }
-    for (size_t i = 18; i + 2 < v.size(); i += 3) r.markers_mm.emplace_back(v[i], v[i + 1], v[i + 2]);
+    for (size_t i = 18; i + 2 < v.size(); i += 3)
+      r.markers_mm.emplace_back(v[i], v[i + 1], v[i + 2]);
     rows[r.frame_number] = r;
   }
   return rows;
@@ -605,8 +616,8 @@ TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKi
       path("emulator.out"), path("emulator.err"));
   listener.Pump(0.5);
   auto bridge = std::make_unique<testing::Child>(
-      std::vector<std::string>{FTCAL_MOCAP_BRIDGE, "--lcm-url", kUrl},
-      path("bridge1.out"), path("bridge1.err"));
+      std::vector<std::string>{FTCAL_MOCAP_BRIDGE, "--lcm-url", kUrl}, path("bridge1.out"),
+      path("bridge1.err"));
   const pid_t pid1 = bridge->pid();
   listener.Pump(4.0);
   bridge->Signal(SIGKILL);  // mid-run, no goodbye
@@ -615,8 +626,8 @@ TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKi
   listener.Pump(0.5);
   const double restarted_s = SecondsSince(t0);
   bridge = std::make_unique<testing::Child>(
-      std::vector<std::string>{FTCAL_MOCAP_BRIDGE, "--lcm-url", kUrl},
-      path("bridge2.out"), path("bridge2.err"));
+      std::vector<std::string>{FTCAL_MOCAP_BRIDGE, "--lcm-url", kUrl}, path("bridge2.out"),
+      path("bridge2.err"));
   const pid_t pid2 = bridge->pid();
   while (emulator.running() && SecondsSince(t0) < 25) {
     listener.Pump(0.2);
@@ -648,9 +659,11 @@ TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKi
     EXPECT_EQ(m.device_utime, t.timestamp_us) << where;
     ASSERT_EQ(m.tracked, t.tracked) << where;
     if (m.tracked) {
-      const Mat3 R_q = QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
+      const Mat3 R_q =
+          QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
       EXPECT_LT((R_q - t.R).cwiseAbs().maxCoeff(), 1e-6) << where;
-      const Mat3 R_w = QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
+      const Mat3 R_w =
+          QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
       EXPECT_LT((R_w - RotZ(-m.yaw_rad) * t.R).cwiseAbs().maxCoeff(), 1e-6) << where;
       for (int i = 0; i < 3; ++i) EXPECT_EQ(m.position_m[i], t.p_mm(i) / 1000.0) << where;
     } else {
@@ -695,7 +708,8 @@ TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKi
     return s.state == service_status_t::RUNNING;
   }));
   int64_t heard2 = 0;
-  for (const Heard& h : listener.bodies) heard2 += h.msg.frame_number >= first2 && h.t_s > restarted_s;
+  for (const Heard& h : listener.bodies)
+    heard2 += h.msg.frame_number >= first2 && h.t_s > restarted_s;
   EXPECT_EQ(StatusCounter(beats2.back(), "published"), heard2);
   EXPECT_EQ(beats2.back().msgs_out, heard2);
   // (+1: the very first frame sent to the new bridge may itself have been a corrupt one.)

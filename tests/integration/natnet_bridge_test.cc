@@ -45,7 +45,8 @@ int64_t WallUtime() {
 // Synthetic chassis motion with a known heading per tick and four markers on the body; marker
 // 2 is not seen for ticks 10-19.
 constexpr double kYaw0 = 0.3, kYawRate = 0.004;
-const Vec3 kPointsC[4] = {{0.2, 0.1, 0.05}, {0.2, -0.1, 0.05}, {-0.2, 0.1, 0.05}, {-0.2, -0.1, 0.05}};
+const Vec3 kPointsC[4] = {
+    {0.2, 0.1, 0.05}, {0.2, -0.1, 0.05}, {-0.2, 0.1, 0.05}, {-0.2, -0.1, 0.05}};
 sim::NatNetPose SyntheticPose(int64_t k) {
   sim::NatNetPose p;
   const double t = 0.01 * static_cast<double>(k);
@@ -112,8 +113,8 @@ PairRun RunWithBridge(sim::NatNetEmulatorOptions eo, int64_t ticks, NatNetBridge
   bo.command_port = emulator.command_port();
   bo.data_port = emulator.data_port();
   run.stats = std::make_unique<ServiceStats>(QuietLogger());
-  NatNetBridge bridge(bo, *run.stats,
-                      [&run](const mocap_body_t& m) { run.published.push_back(m); }, WallUtime);
+  NatNetBridge bridge(
+      bo, *run.stats, [&run](const mocap_body_t& m) { run.published.push_back(m); }, WallUtime);
   std::atomic<bool> done{false};
   std::thread server([&] {
     emulator.Run(ticks);
@@ -139,22 +140,26 @@ PairRun RunWithBridge(sim::NatNetEmulatorOptions eo, int64_t ticks, NatNetBridge
 }
 
 // The published message against the pose that generated it.
-void ExpectMatchesTruth(const mocap_body_t& m, const sim::NatNetSentFrame& s, const std::string& where) {
+void ExpectMatchesTruth(const mocap_body_t& m, const sim::NatNetSentFrame& s,
+                        const std::string& where) {
   EXPECT_EQ(m.frame_number, s.frame_number) << where;
   EXPECT_EQ(m.body, "chassis") << where;
   EXPECT_EQ(m.device_utime, std::llround(s.timestamp_s * 1e6)) << where;
   ASSERT_EQ(bool(m.tracked), s.tracked) << where;
   if (m.tracked) {
-    const Mat3 R_GC = QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
+    const Mat3 R_GC =
+        QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
     EXPECT_LT((R_GC - s.R_GC).cwiseAbs().maxCoeff(), 2e-6) << where;
     const double yaw = std::atan2(s.R_GC(1, 0), s.R_GC(0, 0));
     EXPECT_NEAR(m.yaw_rad, yaw, 2e-6) << where;
-    const Mat3 R_WC = QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
+    const Mat3 R_WC =
+        QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
     EXPECT_LT((R_WC - RemoveHeading(s.R_GC)).cwiseAbs().maxCoeff(), 2e-6) << where;
     for (int a = 0; a < 3; ++a) EXPECT_NEAR(m.position_m[a], s.p_GoCo_G_m(a), 2e-6) << where;
     EXPECT_NEAR(m.residual_m, 0.0004, 1e-9) << where;
   } else {
-    for (int i = 0; i < 4; ++i) EXPECT_TRUE(std::isnan(m.q_gc[i]) && std::isnan(m.q_wc[i])) << where;
+    for (int i = 0; i < 4; ++i)
+      EXPECT_TRUE(std::isnan(m.q_gc[i]) && std::isnan(m.q_wc[i])) << where;
     for (int i = 0; i < 3; ++i) EXPECT_TRUE(std::isnan(m.position_m[i])) << where;
     EXPECT_TRUE(std::isnan(m.yaw_rad)) << where;
   }
@@ -225,20 +230,21 @@ TEST_P(NatNetBridgeTransportTest, PublishesEveryFrameAsGeneratedWithTheExposureT
   std::sort(residual_us.begin(), residual_us.end());
   const double median = residual_us[residual_us.size() / 2];
   const double p95 = residual_us[residual_us.size() * 95 / 100];
-  std::printf("[ residual ] %s: utime - exposure median %.0f us, p95 %.0f us, min %.0f, max %.0f "
-              "(system latency 2000 us removed)\n",
-              Name(t).c_str(), median, p95, residual_us.front(), residual_us.back());
+  std::printf(
+      "[ residual ] %s: utime - exposure median %.0f us, p95 %.0f us, min %.0f, max %.0f "
+      "(system latency 2000 us removed)\n",
+      Name(t).c_str(), median, p95, residual_us.front(), residual_us.back());
   EXPECT_LT(std::abs(median), 1000.0) << Name(t);
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    VersionsAndTransports, NatNetBridgeTransportTest,
-    ::testing::Values(Transport{{3, 1}, false}, Transport{{4, 1}, false}, Transport{{3, 1}, true},
-                      Transport{{4, 1}, true}),
-    [](const ::testing::TestParamInfo<Transport>& info) {
-      return "v" + std::to_string(info.param.version.major) + std::to_string(info.param.version.minor) +
-             (info.param.multicast ? "_multicast" : "_unicast");
-    });
+INSTANTIATE_TEST_SUITE_P(VersionsAndTransports, NatNetBridgeTransportTest,
+                         ::testing::Values(Transport{{3, 1}, false}, Transport{{4, 1}, false},
+                                           Transport{{3, 1}, true}, Transport{{4, 1}, true}),
+                         [](const ::testing::TestParamInfo<Transport>& info) {
+                           return "v" + std::to_string(info.param.version.major) +
+                                  std::to_string(info.param.version.minor) +
+                                  (info.param.multicast ? "_multicast" : "_unicast");
+                         });
 
 TEST(NatNetBridgeTest, UnicastClientAsksForItsBitstream) {
   // Motive speaks 4.1; the bridge asks for 3.1 in NAT_CONNECT and reads 3.1 frames.
@@ -320,9 +326,9 @@ TEST(NatNetBridgeTest, CountsEveryFaultAndPublishesNothingCorrupt) {
   EXPECT_EQ(run.Counter("duplicates"), clean_duplicates);
   EXPECT_GE(run.Counter("frame_gaps"), e.gaps);  // a corrupt frame between two makes a gap too
   EXPECT_EQ(run.Counter("model_changes"), 2);
-  EXPECT_EQ(run.Counter("edit_mode_frames"), 30 - std::count_if(run.sent.begin(), run.sent.end(), [](const auto& s) {
-                                                 return s.edit_mode && s.corrupt;
-                                               }));
+  EXPECT_EQ(run.Counter("edit_mode_frames"),
+            30 - std::count_if(run.sent.begin(), run.sent.end(),
+                               [](const auto& s) { return s.edit_mode && s.corrupt; }));
   EXPECT_TRUE(run.SawHealth("edit mode"));
   // Nothing corrupt, duplicated or in edit mode was published; after each model change (the
   // body renumbered and moved in the list) the body is found again by name.
@@ -407,7 +413,8 @@ TEST(NatNetBridgeProcessTest, RefusesAConfigThatRunsTheQualisysBridge) {
   testing::Child child({FTCAL_NATNET_BRIDGE}, dir + "/out", dir + "/err");
   const auto status = child.Wait(10);
   ASSERT_TRUE(status.has_value());
-  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 2) << testing::DescribeWaitStatus(*status);
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 2)
+      << testing::DescribeWaitStatus(*status);
   EXPECT_NE(testing::ReadFile(dir + "/err").find("mocap.system"), std::string::npos)
       << testing::ReadFile(dir + "/err");
   testing::RemoveTree(dir);

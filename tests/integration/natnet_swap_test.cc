@@ -65,7 +65,8 @@ void Terminate(Child& child, const std::string& what, const std::string& err_pat
   const auto status = child.Wait(15);
   ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n" << testing::ReadFile(err_path);
+      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(err_path);
 }
 
 struct Session {
@@ -93,27 +94,34 @@ Session RunSession(bool natnet) {
   const std::string config_path = path("config.pbtxt");
   std::ofstream(config_path) << ConfigText(link, natnet);
 
-  std::vector<std::string> sim_argv = {FTCAL_SIM, "live", "--config", config_path, "--pty-link",
-                                       link, "--truth-dir", dir, "--ready", path("ready"),
-                                       "--scenario", "stand", "--seed", std::to_string(kSeed),
-                                       "--ati-rate", "500"};
+  std::vector<std::string> sim_argv = {FTCAL_SIM,     "live",
+                                       "--config",    config_path,
+                                       "--pty-link",  link,
+                                       "--truth-dir", dir,
+                                       "--ready",     path("ready"),
+                                       "--scenario",  "stand",
+                                       "--seed",      std::to_string(kSeed),
+                                       "--ati-rate",  "500"};
   if (natnet) {
-    for (const char* a : {"--mocap", "natnet", "--natnet-version", "4.1", "--natnet-transport", "multicast"}) {
+    for (const char* a :
+         {"--mocap", "natnet", "--natnet-version", "4.1", "--natnet-transport", "multicast"}) {
       sim_argv.push_back(a);
     }
   }
   Child sim(sim_argv, path("sim.out"), path("sim.err"));
   const auto deadline = Clock::now() + std::chrono::seconds(30);
   while (::access(path("ready").c_str(), F_OK) != 0) {
-    EXPECT_FALSE(sim.Wait(0.02).has_value()) << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
+    EXPECT_FALSE(sim.Wait(0.02).has_value())
+        << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
     if (!sim.running() || Clock::now() > deadline) return out;
   }
   Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", path("run.lcmlog")}, path("logger.out"),
                path("logger.err"));
   SleepS(0.3);
   const std::string url = "udpm://239.255.76.67:7667?ttl=0";
-  Child ati({FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", url, "--silence-timeout", "1.0"},
-            path("ati.out"), path("ati.err"));
+  Child ati(
+      {FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", url, "--silence-timeout", "1.0"},
+      path("ati.out"), path("ati.err"));
   Child dxl({FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path, "--lcm-url", url}, path("dxl.out"),
             path("dxl.err"));
   Child mocap({natnet ? FTCAL_NATNET_BRIDGE : FTCAL_MOCAP_BRIDGE, "--config", config_path,
@@ -125,7 +133,8 @@ Session RunSession(bool natnet) {
   auto marker = [&](bool start) {
     experiment_marker_t m{};
     m.utime = std::chrono::duration_cast<std::chrono::microseconds>(
-                  std::chrono::system_clock::now().time_since_epoch()).count();
+                  std::chrono::system_clock::now().time_since_epoch())
+                  .count();
     m.session_id = "swap";
     m.phase = experiment_marker_t::STANDING;
     m.start = start;
@@ -171,7 +180,8 @@ Session RunSession(bool natnet) {
     if (e == nullptr) break;
     if (e->channel == "FTCAL_STATUS") {
       service_status_t st;
-      if (st.decode(e->data, 0, e->datalen) >= 0 && st.name == "ftcal-pose-segmenter") out.segmenter = st;
+      if (st.decode(e->data, 0, e->datalen) >= 0 && st.name == "ftcal-pose-segmenter")
+        out.segmenter = st;
     }
     if (e->channel != "STEADY_POSE") continue;
     steady_pose_t p;
@@ -183,7 +193,8 @@ Session RunSession(bool natnet) {
 
 double MaxAngleDiff(const steady_pose_t& a, const steady_pose_t& b) {
   double worst = 0;
-  for (int k = 0; k < a.num_legs; ++k) worst = std::max(worst, std::abs(a.angle_rad[k] - b.angle_rad[k]));
+  for (int k = 0; k < a.num_legs; ++k)
+    worst = std::max(worst, std::abs(a.angle_rad[k] - b.angle_rad[k]));
   return worst;
 }
 
@@ -195,9 +206,10 @@ TEST(NatNetSwap, TheSegmenterKeepsTheSamePosesWhicheverMocapBridge) {
   const Session qtm = RunSession(false);
   ASSERT_FALSE(::testing::Test::HasFatalFailure());
   const Session natnet = RunSession(true);
-  std::cout << "qtm: " << qtm.mocap_messages << " MOCAP_BODY (" << qtm.mocap_tracked << " tracked), "
-            << qtm.poses.size() << " steady poses; natnet: " << natnet.mocap_messages
-            << " MOCAP_BODY (" << natnet.mocap_tracked << " tracked), " << natnet.poses.size()
+  std::cout << "qtm: " << qtm.mocap_messages << " MOCAP_BODY (" << qtm.mocap_tracked
+            << " tracked), " << qtm.poses.size()
+            << " steady poses; natnet: " << natnet.mocap_messages << " MOCAP_BODY ("
+            << natnet.mocap_tracked << " tracked), " << natnet.poses.size()
             << " steady poses\nqtm segmenter:" << Counters(qtm.segmenter)
             << "\nnatnet segmenter:" << Counters(natnet.segmenter) << "\n";
   // 1. Message by message: the same twin frame (same frame number: both emulations number
@@ -214,11 +226,15 @@ TEST(NatNetSwap, TheSegmenterKeepsTheSamePosesWhicheverMocapBridge) {
     EXPECT_EQ(a.device_utime, b.device_utime) << where;
     ASSERT_EQ(bool(a.tracked), bool(b.tracked)) << where;
     if (a.tracked) {
-      const Mat3 Ra = QuaternionToRotation(Eigen::Vector4d(a.q_gc[0], a.q_gc[1], a.q_gc[2], a.q_gc[3]));
-      const Mat3 Rb = QuaternionToRotation(Eigen::Vector4d(b.q_gc[0], b.q_gc[1], b.q_gc[2], b.q_gc[3]));
+      const Mat3 Ra =
+          QuaternionToRotation(Eigen::Vector4d(a.q_gc[0], a.q_gc[1], a.q_gc[2], a.q_gc[3]));
+      const Mat3 Rb =
+          QuaternionToRotation(Eigen::Vector4d(b.q_gc[0], b.q_gc[1], b.q_gc[2], b.q_gc[3]));
       EXPECT_LT(LogSO3(Ra.transpose() * Rb).norm(), 2e-6) << where;
-      const Mat3 Wa = QuaternionToRotation(Eigen::Vector4d(a.q_wc[0], a.q_wc[1], a.q_wc[2], a.q_wc[3]));
-      const Mat3 Wb = QuaternionToRotation(Eigen::Vector4d(b.q_wc[0], b.q_wc[1], b.q_wc[2], b.q_wc[3]));
+      const Mat3 Wa =
+          QuaternionToRotation(Eigen::Vector4d(a.q_wc[0], a.q_wc[1], a.q_wc[2], a.q_wc[3]));
+      const Mat3 Wb =
+          QuaternionToRotation(Eigen::Vector4d(b.q_wc[0], b.q_wc[1], b.q_wc[2], b.q_wc[3]));
       EXPECT_LT(LogSO3(Wa.transpose() * Wb).norm(), 2e-6) << where;
       EXPECT_NEAR(a.yaw_rad, b.yaw_rad, 2e-6) << where;
       for (int i = 0; i < 3; ++i) EXPECT_NEAR(a.position_m[i], b.position_m[i], 2e-6) << where;
@@ -254,8 +270,10 @@ TEST(NatNetSwap, TheSegmenterKeepsTheSamePosesWhicheverMocapBridge) {
     const steady_pose_t& b = *best;
     const std::string where = "qtm pose " + std::to_string(a.pose_index) + " / natnet pose " +
                               std::to_string(b.pose_index);
-    const Mat3 Ra = QuaternionToRotation(Eigen::Vector4d(a.q_wc[0], a.q_wc[1], a.q_wc[2], a.q_wc[3]));
-    const Mat3 Rb = QuaternionToRotation(Eigen::Vector4d(b.q_wc[0], b.q_wc[1], b.q_wc[2], b.q_wc[3]));
+    const Mat3 Ra =
+        QuaternionToRotation(Eigen::Vector4d(a.q_wc[0], a.q_wc[1], a.q_wc[2], a.q_wc[3]));
+    const Mat3 Rb =
+        QuaternionToRotation(Eigen::Vector4d(b.q_wc[0], b.q_wc[1], b.q_wc[2], b.q_wc[3]));
     // Not to f32 rounding as the messages above: the two runs' steady windows start and end
     // on different samples (the machine's load shifts them), and the twin's chassis still
     // settles a little within a pose, so the medians are of slightly different sets.
@@ -266,7 +284,8 @@ TEST(NatNetSwap, TheSegmenterKeepsTheSamePosesWhicheverMocapBridge) {
     // the spread of a steady window's edges.
     double worst = 0;
     for (int k = 0; k < a.num_legs; ++k) {
-      for (int i = 0; i < 6; ++i) worst = std::max(worst, std::abs(a.wrench[k][i] - b.wrench[k][i]));
+      for (int i = 0; i < 6; ++i)
+        worst = std::max(worst, std::abs(a.wrench[k][i] - b.wrench[k][i]));
     }
     EXPECT_LT(worst, 0.05) << where;
     std::cout << where << ": attitude differs by " << attitude << " rad, wrenches by " << worst

@@ -68,11 +68,11 @@ class OffsetDriftTest : public ::testing::Test {
   static std::string DriftSession(const std::string& tag, const std::string& scenarios,
                                   int tripod_stances) {
     const std::string log = *dir_ + "/" + tag + ".lcmlog";
-    const Result r = Run({FTCAL_SIM, "log", "--config", kConfig, "--out", log, "--truth",
-                          BasePath(tag), "--seed", std::to_string(kSeed), "--scenarios",
-                          scenarios, "--poses", "60", "--tripod-stances",
-                          std::to_string(tripod_stances), "--drift-at-s", "0"},
-                         tag + "_sim");
+    const Result r =
+        Run({FTCAL_SIM, "log", "--config", kConfig, "--out", log, "--truth", BasePath(tag),
+             "--seed", std::to_string(kSeed), "--scenarios", scenarios, "--poses", "60",
+             "--tripod-stances", std::to_string(tripod_stances), "--drift-at-s", "0"},
+            tag + "_sim");
     EXPECT_EQ(r.exit_code, 0) << r.err;
     return log;
   }
@@ -81,7 +81,8 @@ class OffsetDriftTest : public ::testing::Test {
   static Result Reestimate(const std::string& tag, const std::string& log,
                            const std::vector<std::string>& extra = {}) {
     std::vector<std::string> argv = {FTCAL_CALIBRATOR, "--config", kConfig, "--reestimate-offsets",
-                                     BasePath(tag), "--log", log, "--out", OutPath(tag)};
+                                     BasePath(tag),    "--log",    log,     "--out",
+                                     OutPath(tag)};
     argv.insert(argv.end(), extra.begin(), extra.end());
     return Run(argv, tag + "_cal");
   }
@@ -140,9 +141,10 @@ TEST_F(OffsetDriftTest, StandingPosesAndTripodStancesRecoverEveryDriftedOffset) 
       EXPECT_EQ(out.offset_reestimation().previous_offset(6 * k + i), base.leg[k].offset[i]);
     }
   }
-  std::printf("offset drift: 60 poses + 20 tripod stances: largest error force %.4f N (bound "
-              "%.3f), torque %.5f N*m (bound %.4f); worst |error| / reported sigma %.1f\n",
-              force, kForceBoundN, torque, kTorqueBoundNm, worst_sigmas);
+  std::printf(
+      "offset drift: 60 poses + 20 tripod stances: largest error force %.4f N (bound "
+      "%.3f), torque %.5f N*m (bound %.4f); worst |error| / reported sigma %.1f\n",
+      force, kForceBoundN, torque, kTorqueBoundNm, worst_sigmas);
   EXPECT_LT(force, kForceBoundN);
   EXPECT_LT(torque, kTorqueBoundNm);
   EXPECT_LT(worst_sigmas, 5.0);

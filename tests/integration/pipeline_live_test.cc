@@ -62,8 +62,8 @@ const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
 const std::string kSession = "pipeline-live-test";
 // 30 poses is the config's min_poses; two more in case the segmenter drops a short one.
 constexpr int kPoses = 32;
-constexpr double kWalkS = 20.0;   // after STANDING: the corrector's data once calibrated
-constexpr char kSpeed[] = "4";    // lcm-logplayer -s: about 190 s of robot time in ~48 s
+constexpr double kWalkS = 20.0;  // after STANDING: the corrector's data once calibrated
+constexpr char kSpeed[] = "4";   // lcm-logplayer -s: about 190 s of robot time in ~48 s
 
 struct Fixture {
   std::string dir;
@@ -110,7 +110,8 @@ class PipelineLiveTest : public ::testing::Test {
     ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
         << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
     ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
-    ASSERT_STRNE(FTCAL_LCM_LOGPLAYER, "") << "lcm-logplayer (liblcm-bin) not found at configure time";
+    ASSERT_STRNE(FTCAL_LCM_LOGPLAYER, "")
+        << "lcm-logplayer (liblcm-bin) not found at configure time";
   }
 
   static std::string Path(const std::string& name) { return fx->dir + "/" + name; }
@@ -121,7 +122,8 @@ class PipelineLiveTest : public ::testing::Test {
     const auto status = child.Wait(120);
     ASSERT_TRUE(status.has_value()) << tag << " did not finish";
     ASSERT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-        << tag << ": " << DescribeWaitStatus(*status) << "\n" << ReadFile(Path(tag + ".err"));
+        << tag << ": " << DescribeWaitStatus(*status) << "\n"
+        << ReadFile(Path(tag + ".err"));
   }
 
   static void StopWithSigint(Child& child, const std::string& tag) {
@@ -129,7 +131,8 @@ class PipelineLiveTest : public ::testing::Test {
     const auto rc = child.Wait(20);
     ASSERT_TRUE(rc.has_value()) << tag << " did not stop on SIGINT";
     EXPECT_TRUE(WIFEXITED(*rc) && WEXITSTATUS(*rc) == 0)
-        << tag << ": " << DescribeWaitStatus(*rc) << "\n" << ReadFile(Path(tag + ".err"));
+        << tag << ": " << DescribeWaitStatus(*rc) << "\n"
+        << ReadFile(Path(tag + ".err"));
   }
 };
 
@@ -159,7 +162,8 @@ std::string HangingSummary(const std::string& err_path) {
   while (std::getline(in, line)) {
     const auto at = line.find("] [info] ");
     if (at == std::string::npos) continue;
-    if (line.find(" complete: ") != std::string::npos || line.find("calibrating: ") != std::string::npos) {
+    if (line.find(" complete: ") != std::string::npos ||
+        line.find("calibrating: ") != std::string::npos) {
       out += line.substr(at) + "\n";
     }
   }
@@ -203,7 +207,8 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   Child player({FTCAL_LCM_LOGPLAYER, "-s", kSpeed, "-l", kUrl, fx->log}, Path("player.out"),
                Path("player.err"));
   const auto played = player.Wait(90);
-  ASSERT_TRUE(played && WIFEXITED(*played) && WEXITSTATUS(*played) == 0) << ReadFile(Path("player.err"));
+  ASSERT_TRUE(played && WIFEXITED(*played) && WEXITSTATUS(*played) == 0)
+      << ReadFile(Path("player.err"));
   const double play_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
   std::this_thread::sleep_for(std::chrono::milliseconds(700));  // the last outputs
@@ -219,9 +224,9 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   RunToEnd({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", seg_ref},
            "seg_ref");
   // The calibrator reads the poses the segmenter published, as the live one heard them.
-  RunToEnd({FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->log, "--log", seg_ref, "--out",
-            ref_cal},
-           "cal_ref");
+  RunToEnd(
+      {FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->log, "--log", seg_ref, "--out", ref_cal},
+      "cal_ref");
 
   // UDP multicast may lose a datagram when the machine is busy (lcm-logplayer does not wait):
   // each stage logs how many inputs it handled ("in N out M"); a live stage that handled fewer
@@ -291,7 +296,8 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
     int64_t calibrations = 0, refused = 0;
     for (const service_status_t& b : beats) {
       for (int i = 0; i < b.num_counters; ++i) {
-        if (b.counter_name[i] == "calibrations") calibrations = std::max(calibrations, b.counter_value[i]);
+        if (b.counter_name[i] == "calibrations")
+          calibrations = std::max(calibrations, b.counter_value[i]);
         if (b.counter_name[i] == "refused") refused = std::max(refused, b.counter_value[i]);
       }
     }
@@ -305,9 +311,10 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   if (seg_lost == 0 && HangingSummary(Path("cal.err")) == HangingSummary(Path("cal_ref.err"))) {
     ExpectSameCalibration(from_bus, reference, 1e-6);
   } else {
-    std::printf("calibration not compared at 1e-6: the live calibrator's inputs differ "
-                "(datagrams lost):\n%s--- replay:\n%s", HangingSummary(Path("cal.err")).c_str(),
-                HangingSummary(Path("cal_ref.err")).c_str());
+    std::printf(
+        "calibration not compared at 1e-6: the live calibrator's inputs differ "
+        "(datagrams lost):\n%s--- replay:\n%s",
+        HangingSummary(Path("cal.err")).c_str(), HangingSummary(Path("cal_ref.err")).c_str());
   }
   // And a calibration at all: the leg weights near the truth (calibrator_test's bound).
   const calibration::Calibration truth = ReadCalibrationFile(fx->truth);
@@ -328,22 +335,25 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   const auto live_w = ReadChannel<contact_wrench_t>(recorded, ch.contact_wrench());
   const auto ref_w = ReadChannel<contact_wrench_t>(cor_ref, ch.contact_wrench());
   const WrenchComparison c = CompareWrenches(live_w, ref_w);
-  std::printf("CONTACT_WRENCH: %zu live, %zu replayed; %zu with the same inputs (max |diff| %.3g), "
-              "%zu with reordered/lost inputs, %zu without a replayed counterpart\n",
-              c.outputs, ref_w.size(), c.same_inputs, c.worst, c.inputs_differ, c.missing_ref);
+  std::printf(
+      "CONTACT_WRENCH: %zu live, %zu replayed; %zu with the same inputs (max |diff| %.3g), "
+      "%zu with reordered/lost inputs, %zu without a replayed counterpart\n",
+      c.outputs, ref_w.size(), c.same_inputs, c.worst, c.inputs_differ, c.missing_ref);
   EXPECT_EQ(c.missing_ref, 0u);
   EXPECT_EQ(c.duplicate, 0u);
   EXPECT_LE(c.worst, 1e-6);
   // The walk after the calibration, 100 Hz x 6 legs, minus the time Calibrate() took live.
-  EXPECT_GT(c.outputs, static_cast<size_t>(kWalkS * 100 * kNumLegs / 3)) << ReadFile(Path("cor.err"));
+  EXPECT_GT(c.outputs, static_cast<size_t>(kWalkS * 100 * kNumLegs / 3))
+      << ReadFile(Path("cor.err"));
   // Reordering or loss is the exception on loopback, not the rule (even on a busy machine).
-  EXPECT_LE(c.inputs_differ, c.outputs / 20) << "first at utime "
-                                           << (c.differ_utimes.empty() ? 0 : c.differ_utimes[0]);
+  EXPECT_LE(c.inputs_differ, c.outputs / 20)
+      << "first at utime " << (c.differ_utimes.empty() ? 0 : c.differ_utimes[0]);
   // CONTACT_WRENCH_SUM: the replay's sums are the sums of its leg-samples, one per six; the live
   // sums carry the published calibration (the recorder may lose a leg-sample, so the live sums
   // are not checked against the recorded legs).
   const double weight = CalibrationFromProto(from_bus, fx->config.robot()).TotalWeightN();
-  const SumCheck ref_sums = CheckSums(cor_ref, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
+  const SumCheck ref_sums =
+      CheckSums(cor_ref, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
   EXPECT_EQ(ref_sums.worst, 0.0);
   EXPECT_LT(ref_sums.worst_age, 1e-6);
   EXPECT_GE(ref_sums.sums * kNumLegs + kNumLegs, ref_w.size());
@@ -363,8 +373,9 @@ TEST_F(PipelineLiveTest, LiveCalibratorOnALosslessBusGivesTheOfflineCalibration)
   LcmBus bus("memq://", stats);
   PoseSegmenterStage segmenter(fx->config, bus);
   std::vector<calibration_t> published;
-  bus.Subscribe<calibration_t>(ch.calibration(),
-                               [&](const MessageInfo&, const calibration_t& m) { published.push_back(m); });
+  bus.Subscribe<calibration_t>(ch.calibration(), [&](const MessageInfo&, const calibration_t& m) {
+    published.push_back(m);
+  });
   CalibratorOptions options;
   options.config_path = kConfig;
   LiveCalibrator live(fx->config, bus, Path("memq_cal.pbtxt"), options, nullptr);
@@ -382,14 +393,15 @@ TEST_F(PipelineLiveTest, LiveCalibratorOnALosslessBusGivesTheOfflineCalibration)
   EXPECT_EQ(live.refused(), 0) << live.last_refusal();
   ASSERT_EQ(published.size(), 1u);
   calibration::Calibration from_bus;
-  ASSERT_TRUE(from_bus.ParseFromString(std::string(published[0].data.begin(), published[0].data.end())));
+  ASSERT_TRUE(
+      from_bus.ParseFromString(std::string(published[0].data.begin(), published[0].data.end())));
 
   const std::string seg_ref = Path("memq_seg_ref.lcmlog"), ref_cal = Path("memq_ref_cal.pbtxt");
   RunToEnd({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", seg_ref},
            "memq_seg_ref");
-  RunToEnd({FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->log, "--log", seg_ref, "--out",
-            ref_cal},
-           "memq_cal_ref");
+  RunToEnd(
+      {FTCAL_CALIBRATOR, "--config", kConfig, "--log", fx->log, "--log", seg_ref, "--out", ref_cal},
+      "memq_cal_ref");
   const calibration::Calibration reference = ReadCalibrationFile(ref_cal);
   EXPECT_EQ(from_bus.standing_poses(), reference.standing_poses());
   EXPECT_GE(reference.standing_poses(), 30u);
@@ -416,8 +428,8 @@ TEST_F(PipelineLiveTest, CorrectorKilledAndRestartedCorruptsNothing) {
 
   Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", recorded}, Path("klogger.out"),
                Path("klogger.err"));
-  const std::vector<std::string> argv = {FTCAL_CORRECTOR, "--config", kConfig, "--calibration",
-                                         fx->truth, "--lcm-url", kUrl};
+  const std::vector<std::string> argv = {FTCAL_CORRECTOR, "--config",  kConfig, "--calibration",
+                                         fx->truth,       "--lcm-url", kUrl};
   auto first = std::make_unique<Child>(argv, Path("kcor1.out"), Path("kcor1.err"));
   std::this_thread::sleep_for(std::chrono::milliseconds(700));
   Child player({FTCAL_LCM_LOGPLAYER, "-s", "3", "-l", kUrl, in}, Path("kplayer.out"),
@@ -428,7 +440,8 @@ TEST_F(PipelineLiveTest, CorrectorKilledAndRestartedCorruptsNothing) {
   ASSERT_TRUE(killed && WIFSIGNALED(*killed) && WTERMSIG(*killed) == SIGKILL);
   Child second(argv, Path("kcor2.out"), Path("kcor2.err"));
   const auto played = player.Wait(60);
-  ASSERT_TRUE(played && WIFEXITED(*played) && WEXITSTATUS(*played) == 0) << ReadFile(Path("kplayer.err"));
+  ASSERT_TRUE(played && WIFEXITED(*played) && WEXITSTATUS(*played) == 0)
+      << ReadFile(Path("kplayer.err"));
   std::this_thread::sleep_for(std::chrono::milliseconds(500));
   StopWithSigint(second, "kcor2");
   logger.Signal(SIGINT);
@@ -455,10 +468,11 @@ TEST_F(PipelineLiveTest, CorrectorKilledAndRestartedCorruptsNothing) {
       gap_to = times[i];
     }
   }
-  std::printf("killed and restarted: %zu live outputs of %zu, gap %.2f s of robot time, %zu with "
-              "other inputs (max |diff| %.3g over %zu)\n",
-              live_w.size(), ref_w.size(), 1e-6 * static_cast<double>(gap_to - gap_from),
-              c.inputs_differ, c.worst, c.same_inputs);
+  std::printf(
+      "killed and restarted: %zu live outputs of %zu, gap %.2f s of robot time, %zu with "
+      "other inputs (max |diff| %.3g over %zu)\n",
+      live_w.size(), ref_w.size(), 1e-6 * static_cast<double>(gap_to - gap_from), c.inputs_differ,
+      c.worst, c.same_inputs);
   EXPECT_GE(gap_to - gap_from, 30'000) << "no gap: was the corrector killed at all?";
   // Inputs differ in the restarted process's first frames (legs not heard yet, legs corrected
   // before its first servo state and mocap frame came) and wherever a datagram was lost on the

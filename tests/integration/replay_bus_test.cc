@@ -124,7 +124,8 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
   const std::string in = dir_ + "/in.lcmlog";
   {
     AtomicLogFile log(in, "test input");
-    for (const Event& e : events) log.Write(e.utime, e.channel, e.data.data(), static_cast<int>(e.data.size()));
+    for (const Event& e : events)
+      log.Write(e.utime, e.channel, e.data.data(), static_cast<int>(e.data.size()));
     log.Commit();
   }
   // Insert garbage after event 1500 and cut the last event short, with the raw bytes.
@@ -133,7 +134,8 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
     FILE* f = std::fopen(in.c_str(), "rb");
     ASSERT_NE(f, nullptr);
     uint8_t buf[65536];
-    for (size_t n; (n = std::fread(buf, 1, sizeof buf, f)) > 0;) bytes.insert(bytes.end(), buf, buf + n);
+    for (size_t n; (n = std::fread(buf, 1, sizeof buf, f)) > 0;)
+      bytes.insert(bytes.end(), buf, buf + n);
     std::fclose(f);
   }
   size_t at = 0;

@@ -57,7 +57,8 @@ std::string TestConfigText(const std::string& device) {
                             "max_input_age_s: " + std::to_string(kMaxInputAgeS));
   // The twin's motion capture drops markers now and then, and the segmenter leaves such poses
   // out; here every pose the sequencer held must come out.
-  text = std::regex_replace(text, std::regex("require_all_markers: true"), "require_all_markers: false");
+  text = std::regex_replace(text, std::regex("require_all_markers: true"),
+                            "require_all_markers: false");
   text += "\nplan { name: \"live\" phase { kind: PHASE_STANDING_GRID pose_stride: " +
           std::to_string(kStride) + " dwell_s: 3 } }\n";
   return text;
@@ -86,7 +87,8 @@ void Terminate(Child& child, const std::string& what, const std::string& err_pat
   const auto status = child.Wait(15);
   ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n" << testing::ReadFile(err_path);
+      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(err_path);
 }
 
 template <typename T>
@@ -114,7 +116,8 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
              "--ready", path("ready"), "--scenario", "commanded", "--seed", "5", "--ati-rate",
              "500", "--servo-tau", "0.1"},
             path("sim.out"), path("sim.err"));
-  ASSERT_TRUE(WaitFor([&] { return ::access(path("ready").c_str(), F_OK) == 0 || sim.Wait(0).has_value(); }, 30))
+  ASSERT_TRUE(WaitFor(
+      [&] { return ::access(path("ready").c_str(), F_OK) == 0 || sim.Wait(0).has_value(); }, 30))
       << testing::ReadFile(path("sim.err"));
   ASSERT_TRUE(sim.running()) << testing::ReadFile(path("sim.err"));
   Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kLoggerUrl, "-f", path("run.lcmlog")},
@@ -131,17 +134,19 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
             path("dxl.err"));
   Child mocap({FTCAL_MOCAP_BRIDGE, "--config", config_path, "--lcm-url", kUrl}, path("mocap.out"),
               path("mocap.err"));
-  Child segmenter({FTCAL_SEGMENTER, "--config", config_path, "--lcm-url", kUrl},
-                  path("seg.out"), path("seg.err"));
+  Child segmenter({FTCAL_SEGMENTER, "--config", config_path, "--lcm-url", kUrl}, path("seg.out"),
+                  path("seg.err"));
   SleepS(2.5);
 
-  const std::vector<std::string> seq_argv = {FTCAL_SEQUENCER, "--config", config_path, "--lcm-url",
-                                             kUrl, "--plan", "live", "--yes", "--progress",
-                                             path("progress"), "--session", "live1",
-                                             "--signing-key", key_path};
+  const std::vector<std::string> seq_argv = {
+      FTCAL_SEQUENCER, "--config", config_path,     "--lcm-url",  kUrl,
+      "--plan",        "live",     "--yes",         "--progress", path("progress"),
+      "--session",     "live1",    "--signing-key", key_path};
   // ---- first run: killed bridge mid-grid ----
   Child seq1(seq_argv, path("seq1.out"), path("seq1.err"));
-  ASSERT_TRUE(WaitFor([&] { return Contains(path("seq1.err"), "STANDING_GRID 4/8") || seq1.Wait(0).has_value(); }, 90))
+  ASSERT_TRUE(WaitFor(
+      [&] { return Contains(path("seq1.err"), "STANDING_GRID 4/8") || seq1.Wait(0).has_value(); },
+      90))
       << testing::ReadFile(path("seq1.err"));
   ASSERT_TRUE(seq1.running()) << testing::ReadFile(path("seq1.err"));
   SleepS(1.0);  // inside the fourth pose's dwell
@@ -153,7 +158,8 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
   ASSERT_TRUE(status1.has_value()) << "the sequencer kept going without the transducers\n"
                                    << testing::ReadFile(path("seq1.err"));
   EXPECT_TRUE(WIFEXITED(*status1) && WEXITSTATUS(*status1) == 2)
-      << testing::DescribeWaitStatus(*status1) << "\n" << testing::ReadFile(path("seq1.err"));
+      << testing::DescribeWaitStatus(*status1) << "\n"
+      << testing::ReadFile(path("seq1.err"));
   EXPECT_TRUE(Contains(path("seq1.err"), "above sequencer.max_input_age_s"))
       << testing::ReadFile(path("seq1.err"));
   std::cout << "sequencer stopped " << stop_s << " s after the ATI bridge was killed (limit "
@@ -166,20 +172,24 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
   Child seq2(seq_argv, path("seq2.out"), path("seq2.err"));
   // The segmenter dies (kill -9) inside the phase and comes back: the repeated start marker
   // (once a second) tells the new one it is inside STANDING, so the later poses still come out.
-  ASSERT_TRUE(WaitFor([&] { return Contains(path("seq2.err"), "STANDING_GRID 6/8") || seq2.Wait(0).has_value(); }, 90))
+  ASSERT_TRUE(WaitFor(
+      [&] { return Contains(path("seq2.err"), "STANDING_GRID 6/8") || seq2.Wait(0).has_value(); },
+      90))
       << testing::ReadFile(path("seq2.err"));
   segmenter.Signal(SIGKILL);
   ASSERT_TRUE(segmenter.Wait(5).has_value());
-  Child segmenter2({FTCAL_SEGMENTER, "--config", config_path, "--lcm-url", kUrl},
-                   path("seg2.out"), path("seg2.err"));
+  Child segmenter2({FTCAL_SEGMENTER, "--config", config_path, "--lcm-url", kUrl}, path("seg2.out"),
+                   path("seg2.err"));
   // On the logger's clock: the log's event times are its receipt times (wall clock, s).
   const double segmenter_restart_t =
       std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
   const auto status2 = seq2.Wait(120);
   ASSERT_TRUE(status2.has_value()) << testing::ReadFile(path("seq2.err"));
   EXPECT_TRUE(WIFEXITED(*status2) && WEXITSTATUS(*status2) == 0)
-      << testing::DescribeWaitStatus(*status2) << "\n" << testing::ReadFile(path("seq2.err"));
-  EXPECT_TRUE(Contains(path("seq2.err"), "resuming plan 'live'")) << testing::ReadFile(path("seq2.err"));
+      << testing::DescribeWaitStatus(*status2) << "\n"
+      << testing::ReadFile(path("seq2.err"));
+  EXPECT_TRUE(Contains(path("seq2.err"), "resuming plan 'live'"))
+      << testing::ReadFile(path("seq2.err"));
   SleepS(1.0);
 
   Terminate(segmenter2, "ftcal-pose-segmenter (restarted)", path("seg2.err"));

@@ -40,8 +40,8 @@ using testing::DescribeWaitStatus;
 using testing::ReadFile;
 
 std::shared_ptr<spdlog::logger> QuietLogger() {
-  static auto log = std::make_shared<spdlog::logger>(
-      "test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  static auto log =
+      std::make_shared<spdlog::logger>("test", std::make_shared<spdlog::sinks::null_sink_mt>());
   return log;
 }
 
@@ -75,7 +75,8 @@ TEST(ServiceStatsTest, RepeatsAreLoggedOncePerPeriodWithTheirCount) {
       "stats", std::make_shared<spdlog::sinks::ostream_sink_st>(out));
   log->set_pattern("%v");
   ServiceStats stats(log, std::chrono::milliseconds(200));
-  for (int i = 0; i < 1000; ++i) stats.Error("box refused", "connection refused #" + std::to_string(i));
+  for (int i = 0; i < 1000; ++i)
+    stats.Error("box refused", "connection refused #" + std::to_string(i));
   for (int i = 0; i < 10; ++i) stats.Drop("bad record", "short");
   auto lines = [&] {
     std::vector<std::string> v;
@@ -88,8 +89,9 @@ TEST(ServiceStatsTest, RepeatsAreLoggedOncePerPeriodWithTheirCount) {
   std::this_thread::sleep_for(std::chrono::milliseconds(250));
   stats.Error("box refused", "connection refused #1000");
   ASSERT_EQ(lines().size(), 3u) << out.str();
-  EXPECT_EQ(lines()[2],
-            "box refused: 1000 more since the last line (1001 in all); latest: connection refused #1000");
+  EXPECT_EQ(
+      lines()[2],
+      "box refused: 1000 more since the last line (1001 in all); latest: connection refused #1000");
   EXPECT_EQ(stats.kinds().at("box refused"), 1001);
   EXPECT_EQ(stats.errors(), 1001);
   stats.ClearLastError();
@@ -100,7 +102,8 @@ TEST(ServiceStatsTest, RepeatsAreLoggedOncePerPeriodWithTheirCount) {
 
 TEST(LcmUrlTest, TtlAboveZeroAndARecvBufferAboveTheKernelLimitAreNamed) {
   EXPECT_TRUE(LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=0", 212992).empty());
-  EXPECT_TRUE(LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=0&recv_buf_size=212992", 212992).empty());
+  EXPECT_TRUE(
+      LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=0&recv_buf_size=212992", 212992).empty());
   EXPECT_TRUE(LcmUrlWarnings("memq://", 0).empty());
   const auto ttl = LcmUrlWarnings("udpm://239.255.76.67:7667?ttl=1", 212992);
   ASSERT_EQ(ttl.size(), 1u);
@@ -151,7 +154,8 @@ TEST(AtomicLogFileTest, TemporaryFileBesideTheTargetAndLeftoversOfDeadRunsRemove
   }
   EXPECT_FALSE(Exists(out)) << "an uncommitted log appeared under the final name";
   std::vector<std::string> names;
-  for (const auto& e : std::filesystem::directory_iterator(dir)) names.push_back(e.path().filename());
+  for (const auto& e : std::filesystem::directory_iterator(dir))
+    names.push_back(e.path().filename());
   EXPECT_EQ(names.size(), 2u) << "the uncommitted temporary file stayed";
   {
     AtomicLogFile log(out, "test output");
@@ -194,15 +198,15 @@ TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
     got.push_back(s);
   });
   const uint8_t garbage[7] = {1, 2, 3, 4, 5, 6, 7};
-  bus.PublishRaw("FT_HL", garbage, sizeof(garbage));                 // drop: undecodable
-  bus.Publish("FT_ML", experiment_marker_t{});                       // drop: wrong type
-  bus.Publish("FT_FL", Sample("FL", 10, 1.0));                       // ok
-  bus.Publish("FT_XX", Sample("XX", 11, 1.0));                       // drop: BadInput
+  bus.PublishRaw("FT_HL", garbage, sizeof(garbage));  // drop: undecodable
+  bus.Publish("FT_ML", experiment_marker_t{});        // drop: wrong type
+  bus.Publish("FT_FL", Sample("FL", 10, 1.0));        // ok
+  bus.Publish("FT_XX", Sample("XX", 11, 1.0));        // drop: BadInput
   ft_sample_t failing = Sample("HR", 12, 1.0);
   failing.status = 666;
-  bus.Publish("FT_HR", failing);                                     // error: exception
-  bus.Publish("FT_MR", Sample("MR", 13, 2.0));                       // ok
-  bus.Publish("OTHER", Sample("FR", 14, 1.0));                       // not subscribed
+  bus.Publish("FT_HR", failing);                // error: exception
+  bus.Publish("FT_MR", Sample("MR", 13, 2.0));  // ok
+  bus.Publish("OTHER", Sample("FR", 14, 1.0));  // not subscribed
   while (bus.HandleOnce(0) > 0) {
   }
   ASSERT_EQ(got.size(), 2u);
@@ -251,7 +255,11 @@ TEST(UserErrorsTest, LibraryTextsAreNamedAsWhatTheyAreAndFtcalTextsPassThrough) 
       {caught([] { (void)std::stoi("99999999999999999999"); }), "stoi"},
       {caught([&] { empty.reserve(empty.max_size() + 1); }), "basic_string"},
       {caught([] { throw std::bad_alloc(); }), "bad_alloc"},
-      {caught([] { std::function<void()> f; f(); }), "bad_function_call"},
+      {caught([] {
+         std::function<void()> f;
+         f();
+       }),
+       "bad_function_call"},
   };
   for (const Case& c : internal) {
     ASSERT_TRUE(c.thrown) << c.library_text;
@@ -265,10 +273,9 @@ TEST(UserErrorsTest, LibraryTextsAreNamedAsWhatTheyAreAndFtcalTextsPassThrough) 
   const char* ours[] = {"robot.leg[2].servo.id: 300 is above 252",
                         "channel pattern '[' is not a valid regular expression",
                         "replay input '/x.lcmlog': No such file or directory"};
-  const std::exception_ptr ftcal_thrown[] = {
-      caught([&] { throw ConfigError(ours[0]); }),
-      caught([&] { throw std::invalid_argument(ours[1]); }),
-      caught([&] { throw std::runtime_error(ours[2]); })};
+  const std::exception_ptr ftcal_thrown[] = {caught([&] { throw ConfigError(ours[0]); }),
+                                             caught([&] { throw std::invalid_argument(ours[1]); }),
+                                             caught([&] { throw std::runtime_error(ours[2]); })};
   for (int i = 0; i < 3; ++i) {
     const auto [shown, rc] = text(ftcal_thrown[i], "reading the logs");
     EXPECT_EQ(shown, ours[i]);
@@ -542,16 +549,18 @@ TEST_F(ReplayStageTest, OutputsCarryTheInputTimesAndBadEventsAreCounted) {
   const auto status = Decode<service_status_t>(out[i]);
   EXPECT_EQ(status.name, "ftcal-echo-stage");
   EXPECT_EQ(status.state, int8_t{service_status_t::STOPPING});
-  EXPECT_EQ(status.msgs_in, 11 + 4);    // every ECHO_IN event, bad ones included
-  EXPECT_EQ(status.msgs_out, 11 + 2);   // echoes and ticks; the status does not count itself
-  EXPECT_EQ(status.drops, 3);           // corrupt, wrong type, unknown leg
-  EXPECT_EQ(status.errors, 2);          // the damaged bytes, the handler's exception
+  EXPECT_EQ(status.msgs_in, 11 + 4);   // every ECHO_IN event, bad ones included
+  EXPECT_EQ(status.msgs_out, 11 + 2);  // echoes and ticks; the status does not count itself
+  EXPECT_EQ(status.drops, 3);          // corrupt, wrong type, unknown leg
+  EXPECT_EQ(status.errors, 2);         // the damaged bytes, the handler's exception
   EXPECT_EQ(status.last_error, "handler for ECHO_IN: handler failure requested by status 666");
   ASSERT_EQ(status.num_counters, 1);
   EXPECT_EQ(status.counter_name[0], "echoed");
   EXPECT_EQ(status.counter_value[0], 11);
   // The damage was reported with where it is.
-  EXPECT_NE(ReadFile(Path("stage.err")).find("skipped " + std::to_string(damaged_bytes) + " unreadable bytes"), std::string::npos)
+  EXPECT_NE(ReadFile(Path("stage.err"))
+                .find("skipped " + std::to_string(damaged_bytes) + " unreadable bytes"),
+            std::string::npos)
       << ReadFile(Path("stage.err"));
   // Written atomically: nothing but the input and the output in the directory.
   int files = 0;

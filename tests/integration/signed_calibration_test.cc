@@ -23,11 +23,8 @@ namespace ftcal {
 namespace {
 
 using testing::Encode;
-using testing::NowUs;
 using testing::NewSigner;
-
-
-
+using testing::NowUs;
 
 TEST(SignedCalibration, AForgedCalibrationIsNotAppliedAndTheCalibratorsIs) {
   auth::Signer calibrator = NewSigner(), intruder = NewSigner();
@@ -38,8 +35,8 @@ TEST(SignedCalibration, AForgedCalibrationIsNotAppliedAndTheCalibratorsIs) {
   key->set_public_key_hex(auth::ToHex(calibrator.public_key().data(), 32));
   key->add_channel("CALIBRATION");
 
-  ServiceStats stats(std::make_shared<spdlog::logger>(
-      "test", std::make_shared<spdlog::sinks::null_sink_mt>()));
+  ServiceStats stats(
+      std::make_shared<spdlog::logger>("test", std::make_shared<spdlog::sinks::null_sink_mt>()));
   LcmBus bus("memq://", stats);
   CorrectorStage stage(config, bus, [](int8_t) {});
 
@@ -63,9 +60,9 @@ TEST(SignedCalibration, AForgedCalibrationIsNotAppliedAndTheCalibratorsIs) {
     return it == stats.kinds().end() ? 0 : it->second;
   };
 
-  send(Encode(cal));                                              // bare
-  send(Encode(intruder.Seal("CALIBRATION", cal, NowUs())));       // another key
-  send(Encode(calibrator.Seal("EXPERIMENT", cal, NowUs())));      // moved between channels
+  send(Encode(cal));                                          // bare
+  send(Encode(intruder.Seal("CALIBRATION", cal, NowUs())));   // another key
+  send(Encode(calibrator.Seal("EXPERIMENT", cal, NowUs())));  // moved between channels
   EXPECT_FALSE(stage.has_calibration());
   EXPECT_EQ(kind("unsigned on CALIBRATION"), 1);
   EXPECT_EQ(kind("untrusted signer on CALIBRATION"), 1);

@@ -65,7 +65,8 @@ inline std::string WriteKeyFile(const std::string& path) {
 inline std::string TrustKey(std::string config_text, const std::string& name,
                             const std::string& public_key_hex,
                             const std::vector<std::string>& channels) {
-  std::string key = "trusted_key { name: \"" + name + "\" public_key_hex: \"" + public_key_hex + "\"";
+  std::string key =
+      "trusted_key { name: \"" + name + "\" public_key_hex: \"" + public_key_hex + "\"";
   for (const std::string& c : channels) key += " channel: \"" + c + "\"";
   key += " }\n";
   const std::regex auth_open("(^|\n)auth \\{");
@@ -124,9 +125,7 @@ class SignedCommander {
     if (heartbeat_.joinable()) heartbeat_.join();
   }
 
-
  private:
-
   auth::Signer signer_;
   lcm::LCM lcm_;
   std::string channel_;

@@ -1,7 +1,8 @@
 // ftcal-sim live --scenario commanded with the real ATI and Dynamixel bridges and lcm-logger, as
 // real processes over UDP, a pseudo-terminal and LCM multicast inside a private network
 // namespace (ctest runs this binary through scripts/netns-exec). The test publishes SERVO_CMD
-// (signed: arm, then torque on and two poses in turn, with heartbeats) and checks the loop the twin closes:
+// (signed: arm, then torque on and two poses in turn, with heartbeats) and checks the loop the twin
+// closes:
 //   - SERVO_STATE: each servo leaves its start only after the command, approaches the goal as a
 //     first-order response (log-linear fit of the remaining error against the servos' own
 //     Realtime Tick: the time constant given to ftcal-sim, a third of the way left one time
@@ -48,8 +49,8 @@ constexpr char kLoggerUrl[] = "udpm://239.255.76.67:7667?ttl=0&recv_buf_size=838
 constexpr double kOneCountRad = 2.0 * M_PI / 4096.0;
 constexpr std::uint64_t kSeed = 11;
 constexpr int kAtiRateHz = 500;
-constexpr double kTauS = 0.5;       // --servo-tau
-constexpr double kHoldS = 6.5;      // per pose: ten time constants, then the averaging window
+constexpr double kTauS = 0.5;   // --servo-tau
+constexpr double kHoldS = 6.5;  // per pose: ten time constants, then the averaging window
 constexpr double kSettledS = 10 * kTauS;
 constexpr double kForceSigmaN = 0.05, kTorqueSigmaNm = 0.002;  // TwinOptions' defaults
 constexpr double kTwinRateHz = 100.0;  // a new twin frame (a new noise draw) every 10 ms
@@ -77,7 +78,8 @@ void Terminate(Child& child, const std::string& what, const std::string& err_pat
   const auto status = child.Wait(15);
   ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n" << testing::ReadFile(err_path);
+      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(err_path);
 }
 
 // The recorded log, decoded; times are the logger's (s).
@@ -128,7 +130,10 @@ Recorded ReadLog(const std::string& path) {
       r.ft.push_back({t, *k, w});
     } else if (ch == "SERVO_STATE") {
       servo_state_t m;
-      if (!Decode(e, &m)) ++r.undecodable; else r.servo.push_back({t, m});
+      if (!Decode(e, &m))
+        ++r.undecodable;
+      else
+        r.servo.push_back({t, m});
     } else if (ch == "SERVO_CMD") {  // signed envelopes; the goals are in the MOVEs
       signed_envelope_t envelope;
       servo_command_t m;
@@ -172,7 +177,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
   }
   // A goal as the servo holds it: the bridge rounds it to a whole count.
   auto held = [&](double goal, int k) {
-    return direction[k] * (dxl::RadToPosition(goal, zero[k], direction[k]) - zero[k]) * kOneCountRad;
+    return direction[k] * (dxl::RadToPosition(goal, zero[k], direction[k]) - zero[k]) *
+           kOneCountRad;
   };
 
   Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--truth-dir", dir,
@@ -181,16 +187,18 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
             path("sim.out"), path("sim.err"));
   const auto deadline = Clock::now() + std::chrono::seconds(30);
   while (::access(path("ready").c_str(), F_OK) != 0) {
-    ASSERT_FALSE(sim.Wait(0.02).has_value()) << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
-    ASSERT_LT(Clock::now(), deadline) << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
+    ASSERT_FALSE(sim.Wait(0.02).has_value())
+        << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
+    ASSERT_LT(Clock::now(), deadline)
+        << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
   }
   Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kLoggerUrl, "-f", path("run.lcmlog")},
                path("logger.out"), path("logger.err"));
   SleepS(0.3);
   // A long silence timeout: a loaded machine must not make the bridge restart the stream.
-  Child ati({FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", kUrl, "--silence-timeout",
-             "1.0"},
-            path("ati.out"), path("ati.err"));
+  Child ati(
+      {FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", kUrl, "--silence-timeout", "1.0"},
+      path("ati.out"), path("ati.err"));
   Child dxl({FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path, "--lcm-url", kUrl}, path("dxl.out"),
             path("dxl.err"));
   SleepS(2.5);  // the bridges start; the last second of it is the start pose's window
@@ -232,8 +240,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
       const auto k = LegIndex(s.m.leg[j]);
       ASSERT_TRUE(k.has_value()) << s.m.leg[j];
       const double tick_s = static_cast<double>(s.m.device_tick_ms[j]) * 1e-3;
-      servo[*k].push_back({s.t_s, tick_s, s.m.angle_rad[j],
-                           (s.m.flags[j] & servo_state_t::FLAG_TORQUE_OFF) != 0});
+      servo[*k].push_back(
+          {s.t_s, tick_s, s.m.angle_rad[j], (s.m.flags[j] & servo_state_t::FLAG_TORQUE_OFF) != 0});
       tick_offset = std::min(tick_offset, s.t_s - tick_s);
     }
   }
@@ -258,7 +266,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
         if (s.t_s < w.from_s || s.t_s > w.to_s) continue;
         ++n;
         const double counts = std::abs(s.angle - w.goal[k]) / kOneCountRad;
-        EXPECT_LE(counts, 1.0) << kLegNames[k] << " at " << s.t_s - t_a << " s after the first command";
+        EXPECT_LE(counts, 1.0) << kLegNames[k] << " at " << s.t_s - t_a
+                               << " s after the first command";
         worst_settled_counts = std::max(worst_settled_counts, counts);
         EXPECT_EQ(s.torque_off, !w.torque_on) << kLegNames[k];
       }
@@ -294,7 +303,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
         sx += x, sy += y, sxx += x * x, sxy += x * y;
       }
       const double n = static_cast<double>(used.size());
-      ASSERT_GE(n, 0.5 * 100 * kTauS * std::log(9.0)) << kLegNames[k] << ": too few samples on the way";
+      ASSERT_GE(n, 0.5 * 100 * kTauS * std::log(9.0))
+          << kLegNames[k] << ": too few samples on the way";
       const double slope = (n * sxy - sx * sy) / (n * sxx - sx * sx);
       const double intercept = (sy - slope * sx) / n;
       const double tau = -1.0 / slope;
@@ -318,7 +328,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
         if (s.t_s < st.t_cmd - 0.5 || s.t_s > st.t_cmd + kSettledS) continue;
         const double x = s.tick_s - cmd_tick;
         if (x < t0 - 0.005) {
-          EXPECT_LE(std::abs(s.angle - from), kOneCountRad) << kLegNames[k] << " moved before the command";
+          EXPECT_LE(std::abs(s.angle - from), kOneCountRad)
+              << kLegNames[k] << " moved before the command";
         }
         if (x <= t0 + kTauS) before = &s;
         if (x > t0 + kTauS && after == nullptr) after = &s;
@@ -335,8 +346,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
       start_lo = std::min(start_lo, t0), start_hi = std::max(start_hi, t0);
     }
     std::cout << "servos " << st.name << ": fitted time constant " << tau_lo << " .. " << tau_hi
-              << " s (given " << kTauS << "), worst |ln residual| " << worst_fit
-              << ", start " << start_lo * 1e3 << " .. " << start_hi * 1e3
+              << " s (given " << kTauS << "), worst |ln residual| " << worst_fit << ", start "
+              << start_lo * 1e3 << " .. " << start_hi * 1e3
               << " ms after the command, left after one time constant " << frac_lo << " .. "
               << frac_hi << " (exp(-1) = " << std::exp(-1.0) << ")\n";
   }
@@ -376,7 +387,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
         const double miss = std::abs(measured[i][k][j] - expected[i][k][j]);
         EXPECT_LT(miss, 5.0 * se + 1e-5) << kLegNames[k] << " axis " << j << ": measured "
                                          << measured[i][k][j] << ", twin " << expected[i][k][j];
-        (j < 3 ? worst_force : worst_torque) = std::max(j < 3 ? worst_force : worst_torque, miss / se);
+        (j < 3 ? worst_force : worst_torque) =
+            std::max(j < 3 ? worst_force : worst_torque, miss / se);
       }
     }
     std::cout << "wrenches " << w.name << ": " << n[0] << ".. samples per transducer over "
@@ -401,8 +413,8 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
               << " N, one sample's noise " << kForceSigmaN << " N), worst |change - twin's| "
               << worst_change_miss << " N\n";
   }
-  std::cout << "test ran "
-            << std::chrono::duration<double>(Clock::now() - test_started).count() << " s\n";
+  std::cout << "test ran " << std::chrono::duration<double>(Clock::now() - test_started).count()
+            << " s\n";
 
   if (!HasFailure()) {
     testing::RemoveTree(dir);

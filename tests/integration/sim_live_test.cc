@@ -146,7 +146,8 @@ std::map<std::int64_t, QtmRow> ReadQtmTruth(const std::string& path) {
     for (int j = 0; j < 3; ++j) {
       for (int i = 0; i < 3; ++i) r.R(i, j) = num(8 + 3 * j + i);
     }
-    EXPECT_TRUE(rows.emplace(r.frame_number, r).second) << "frame " << r.frame_number << " sent twice";
+    EXPECT_TRUE(rows.emplace(r.frame_number, r).second)
+        << "frame " << r.frame_number << " sent twice";
   }
   return rows;
 }
@@ -180,13 +181,22 @@ Recorded ReadLog(const std::string& path) {
       r.ft.push_back(m);
     } else if (ch == "SERVO_STATE") {
       servo_state_t m;
-      if (!Decode(e, &m)) ++r.undecodable; else r.servo.push_back(m);
+      if (!Decode(e, &m))
+        ++r.undecodable;
+      else
+        r.servo.push_back(m);
     } else if (ch == "MOCAP_BODY") {
       mocap_body_t m;
-      if (!Decode(e, &m)) ++r.undecodable; else r.mocap.push_back(m);
+      if (!Decode(e, &m))
+        ++r.undecodable;
+      else
+        r.mocap.push_back(m);
     } else if (ch == "FTCAL_STATUS") {
       service_status_t m;
-      if (!Decode(e, &m)) ++r.undecodable; else r.status.push_back(m);
+      if (!Decode(e, &m))
+        ++r.undecodable;
+      else
+        r.status.push_back(m);
     }
   }
   return r;
@@ -233,7 +243,8 @@ void Terminate(Child& child, const std::string& what, const std::string& err_pat
   const auto status = child.Wait(15);
   ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n" << testing::ReadFile(err_path);
+      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(err_path);
 }
 
 TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
@@ -249,27 +260,42 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
   const config::Config config = LoadConfigFile(config_path);
 
   // The twin's devices, faults on all three.
-  Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--truth-dir", dir,
-             "--ready", path("ready"), "--scenario", "walk", "--seed", std::to_string(kSeed),
-             "--ati-rate", std::to_string(kAtiRateHz), "--ati-drop", "0.005", "--ati-duplicate",
-             "0.005", "--ati-reorder", "0.005", "--ati-corrupt", "0.005", "--dxl-drop", "0.01",
-             "--dxl-corrupt", "0.01", "--dxl-noise", "0.02", "--dxl-missing", "3:8:9",
-             "--dxl-silent", "15:15.5", "--qtm-gap", "0.01", "--qtm-corrupt", "0.01",
+  Child sim({FTCAL_SIM,         "live",
+             "--config",        config_path,
+             "--pty-link",      link,
+             "--truth-dir",     dir,
+             "--ready",         path("ready"),
+             "--scenario",      "walk",
+             "--seed",          std::to_string(kSeed),
+             "--ati-rate",      std::to_string(kAtiRateHz),
+             "--ati-drop",      "0.005",
+             "--ati-duplicate", "0.005",
+             "--ati-reorder",   "0.005",
+             "--ati-corrupt",   "0.005",
+             "--dxl-drop",      "0.01",
+             "--dxl-corrupt",   "0.01",
+             "--dxl-noise",     "0.02",
+             "--dxl-missing",   "3:8:9",
+             "--dxl-silent",    "15:15.5",
+             "--qtm-gap",       "0.01",
+             "--qtm-corrupt",   "0.01",
              "--qtm-untracked", "5:0.5"},
             path("sim.out"), path("sim.err"));
   const auto deadline = Clock::now() + std::chrono::seconds(30);
   while (::access(path("ready").c_str(), F_OK) != 0) {
-    ASSERT_FALSE(sim.Wait(0.02).has_value()) << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
-    ASSERT_LT(Clock::now(), deadline) << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
+    ASSERT_FALSE(sim.Wait(0.02).has_value())
+        << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
+    ASSERT_LT(Clock::now(), deadline)
+        << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
   }
   Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", path("run.lcmlog")}, path("logger.out"),
                path("logger.err"));
   SleepS(0.3);
   const std::string url = "udpm://239.255.76.67:7667?ttl=0";
   // A long silence timeout: a loaded machine must not make the bridge restart the stream.
-  Child ati({FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", url, "--silence-timeout",
-             "1.0"},
-            path("ati.out"), path("ati.err"));
+  Child ati(
+      {FTCAL_ATI_BRIDGE, "--config", config_path, "--lcm-url", url, "--silence-timeout", "1.0"},
+      path("ati.out"), path("ati.err"));
   Child dxl({FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path, "--lcm-url", url}, path("dxl.out"),
             path("dxl.err"));
   Child mocap({FTCAL_MOCAP_BRIDGE, "--config", config_path, "--lcm-url", url}, path("mocap.out"),
@@ -310,16 +336,19 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
     const service_status_t last = LastStatus(rec, ati.pid());
     EXPECT_EQ(int{last.state}, int{service_status_t::STOPPING});
     std::multimap<std::tuple<std::string, std::uint32_t, std::uint32_t>, const AtiRow*> index;
-    for (const AtiRow& r : truth) index.emplace(std::make_tuple(r.leg, r.rdt_sequence, r.ft_sequence), &r);
+    for (const AtiRow& r : truth)
+      index.emplace(std::make_tuple(r.leg, r.rdt_sequence, r.ft_sequence), &r);
     std::map<std::string, std::int64_t> heard;
     double worst_quantization = 0;
     for (const ft_sample_t& m : rec.ft) {
-      const auto range = index.equal_range(std::make_tuple(
-          m.leg, static_cast<std::uint32_t>(m.rdt_sequence), static_cast<std::uint32_t>(m.ft_sequence)));
+      const auto range =
+          index.equal_range(std::make_tuple(m.leg, static_cast<std::uint32_t>(m.rdt_sequence),
+                                            static_cast<std::uint32_t>(m.ft_sequence)));
       const AtiRow* row = nullptr;
       for (auto it = range.first; it != range.second; ++it) {
         bool same_counts = it->second->status == static_cast<std::uint32_t>(m.status);
-        for (int i = 0; i < 6; ++i) same_counts = same_counts && it->second->counts[i] == m.counts[i];
+        for (int i = 0; i < 6; ++i)
+          same_counts = same_counts && it->second->counts[i] == m.counts[i];
         if (same_counts) row = it->second;
       }
       ASSERT_NE(row, nullptr) << m.leg << " published rdt " << m.rdt_sequence
@@ -353,14 +382,16 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
         if (r.leg != leg) continue;
         ++faults[r.fault];
         streams.insert(r.stream);
-        if (r.fault == "none" || r.fault == "duplicate") last_delivered = std::max(last_delivered, r.rdt_sequence);
+        if (r.fault == "none" || r.fault == "duplicate")
+          last_delivered = std::max(last_delivered, r.rdt_sequence);
       }
       std::int64_t lost_at_end = 0;  // cannot be told from the end of the data
       for (const AtiRow& r : truth) {
         if (r.leg == leg && r.rdt_sequence > last_delivered) ++lost_at_end;
       }
       ASSERT_EQ(streams.size(), 1u) << "the bridge restarted the stream: counts are not comparable";
-      for (const char* kind : {"drop", "duplicate", "reorder", "corrupt"}) EXPECT_GT(faults[kind], 5) << kind;
+      for (const char* kind : {"drop", "duplicate", "reorder", "corrupt"})
+        EXPECT_GT(faults[kind], 5) << kind;
       const std::string p = leg + ".";
       EXPECT_EQ(Counter(last, p + "duplicates"), faults["duplicate"]);
       EXPECT_EQ(Counter(last, p + "late"), faults["reorder"]);
@@ -377,13 +408,16 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
       EXPECT_GE(heard[leg], publishable * 9 / 10);
       // Rate (loose): the bridge ran about ran_s at kAtiRateHz.
       EXPECT_GT(publishable, 0.7 * kAtiRateHz * (ran_s - 2.0));
-      std::cout << "ati " << leg << ": generated " << faults["none"] + faults["drop"] + faults["duplicate"] + faults["reorder"] + faults["corrupt"]
+      std::cout << "ati " << leg << ": generated "
+                << faults["none"] + faults["drop"] + faults["duplicate"] + faults["reorder"] +
+                       faults["corrupt"]
                 << " records (drop " << faults["drop"] << ", duplicate " << faults["duplicate"]
                 << ", reorder " << faults["reorder"] << ", corrupt " << faults["corrupt"]
                 << "), published " << Counter(last, p + "published") << ", logged " << heard[leg]
                 << "; counted duplicates " << Counter(last, p + "duplicates") << " late "
-                << Counter(last, p + "late") << " wrong_length " << Counter(last, p + "wrong_length")
-                << " lost " << Counter(last, p + "lost") << "\n";
+                << Counter(last, p + "late") << " wrong_length "
+                << Counter(last, p + "wrong_length") << " lost " << Counter(last, p + "lost")
+                << "\n";
     }
   }
 
@@ -420,7 +454,8 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
       }
       if (!taken) {
         const auto n = truth.size();
-        for (const auto& r : truth) corrupted_unfinished += r.t_s >= last_t && r.fate == "corrupted";
+        for (const auto& r : truth)
+          corrupted_unfinished += r.t_s >= last_t && r.fate == "corrupted";
         truth.erase(std::remove_if(truth.begin(), truth.end(),
                                    [last_t](const DxlRow& r) { return r.t_s >= last_t; }),
                     truth.end());
@@ -541,7 +576,8 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
     // the following present read as malformed; the bridge may also count the stale servos of a
     // last cycle it did not get to publish.
     const std::int64_t late = CounterOr0(last, "late_replies") + CounterOr0(last, "repeated_tick") +
-                              CounterOr0(last, "unexpected_replies") + CounterOr0(last, "malformed");
+                              CounterOr0(last, "unexpected_replies") +
+                              CounterOr0(last, "malformed");
     EXPECT_LE(mispaired, late) << "a tick paired with another reply's values without a late reply";
     EXPECT_GE(Counter(last, "stale"), present_lost);
     EXPECT_LE(Counter(last, "stale"), present_lost + late + lost_cycles + 6);
@@ -556,8 +592,8 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
               << " (missing " << missing3 << ", silent " << silent << "), corrupted " << corrupted
               << "; published " << rec.servo.size() << " cycles, " << fresh << " fresh, " << stale
               << " stale (+" << stale_tail << " after the end); counted stale "
-              << Counter(last, "stale") << " crc_errors " << Counter(last, "crc_errors")
-              << " late " << late << ", mispaired " << mispaired << "; replies sharing a tick "
+              << Counter(last, "stale") << " crc_errors " << Counter(last, "crc_errors") << " late "
+              << late << ", mispaired " << mispaired << "; replies sharing a tick "
               << std::count_if(sent.begin(), sent.end(),
                                [](const auto& e) { return e.second.size() > 1; })
               << "\n";
@@ -585,7 +621,8 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
         ++untracked;
         continue;
       }
-      const Mat3 R_q = QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
+      const Mat3 R_q =
+          QuaternionToRotation(Eigen::Vector4d(m.q_gc[0], m.q_gc[1], m.q_gc[2], m.q_gc[3]));
       EXPECT_LT((R_q - t.R).cwiseAbs().maxCoeff(), 1e-6) << where;
       // Against the twin: the frame of that tick.
       const Mat3& R_twin = series.At(static_cast<double>(t.tick) / 100.0).R_GC;
@@ -684,8 +721,10 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
             path("sim.out"), path("sim.err"));
   const auto deadline = Clock::now() + std::chrono::seconds(30);
   while (::access(path("ready").c_str(), F_OK) != 0) {
-    ASSERT_FALSE(sim.Wait(0.02).has_value()) << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
-    ASSERT_LT(Clock::now(), deadline) << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
+    ASSERT_FALSE(sim.Wait(0.02).has_value())
+        << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
+    ASSERT_LT(Clock::now(), deadline)
+        << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
   }
   struct Bridge {
     std::string name;
@@ -695,9 +734,12 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
   };
   std::vector<Bridge> bridges;
   // A long silence timeout: a loaded machine must not make the ATI bridge restart the stream.
-  bridges.push_back({"ati", {FTCAL_ATI_BRIDGE, "--config", config_path, "--silence-timeout", "1.0"},
-                     nullptr, nullptr});
-  bridges.push_back({"dynamixel", {FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path}, nullptr, nullptr});
+  bridges.push_back({"ati",
+                     {FTCAL_ATI_BRIDGE, "--config", config_path, "--silence-timeout", "1.0"},
+                     nullptr,
+                     nullptr});
+  bridges.push_back(
+      {"dynamixel", {FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path}, nullptr, nullptr});
   bridges.push_back({"mocap", {FTCAL_MOCAP_BRIDGE, "--config", config_path}, nullptr, nullptr});
   for (Bridge& b : bridges) {
     b.socket = std::make_unique<NotifySocket>(path(b.name + ".notify"));
@@ -716,7 +758,8 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
     EXPECT_GE(b.socket->Count("WATCHDOG=1"), 2) << "one per heartbeat for ~3 s";
     EXPECT_EQ(b.socket->Count("STOPPING=1"), 0);
   }
-  for (Bridge& b : bridges) Terminate(*b.child, "ftcal-" + b.name + "-bridge", path(b.name + ".err"));
+  for (Bridge& b : bridges)
+    Terminate(*b.child, "ftcal-" + b.name + "-bridge", path(b.name + ".err"));
   for (Bridge& b : bridges) {
     SCOPED_TRACE(b.name);
     b.socket->Drain();

@@ -79,11 +79,11 @@ struct Fixture {
   config::Config config;
   std::unique_ptr<BigAntTwin> twin;
   std::vector<TwinFrame> frames;
-  std::string log_path;              // calibration v1, a corrupt one, then v2 halfway
-  std::string log_no_cal_path;       // no calibration at all
-  std::string log_bad_path;          // log_path with kBadEvents bad inputs at frame 100
-  std::string log_head_path;         // log_path up to the middle of pose 1's dwell ...
-  std::string log_tail_path;         // ... and the rest, opened by a repeated STANDING marker
+  std::string log_path;         // calibration v1, a corrupt one, then v2 halfway
+  std::string log_no_cal_path;  // no calibration at all
+  std::string log_bad_path;     // log_path with kBadEvents bad inputs at frame 100
+  std::string log_head_path;    // log_path up to the middle of pose 1's dwell ...
+  std::string log_tail_path;    // ... and the rest, opened by a repeated STANDING marker
   int64_t v2_utime = 0;
 };
 Fixture* fx = nullptr;
@@ -116,7 +116,8 @@ class StagesTest : public ::testing::Test {
       }
       if (i == half) {
         fx->v2_utime = Utime(fx->frames[i].t_s) - 1;
-        events.push_back(Encode(fx->v2_utime, ch.calibration(), CalibrationMessage(truth_v2, 2, false)));
+        events.push_back(
+            Encode(fx->v2_utime, ch.calibration(), CalibrationMessage(truth_v2, 2, false)));
       }
       AppendFrame(fx->frames[i], fx->config, &events);
       AppendFrame(fx->frames[i], fx->config, &no_cal);
@@ -196,13 +197,14 @@ class StagesTest : public ::testing::Test {
   // Runs a stage over a log to completion; returns the output log's path.
   static std::string Replay(const std::string& exe, const std::string& in, const std::string& tag) {
     const std::string out = fx->dir + "/" + tag + ".lcmlog";
-    Child child({exe, "--config", kConfig, "--replay", in, "--out", out}, fx->dir + "/" + tag + ".out",
-                fx->dir + "/" + tag + ".err");
+    Child child({exe, "--config", kConfig, "--replay", in, "--out", out},
+                fx->dir + "/" + tag + ".out", fx->dir + "/" + tag + ".err");
     const auto status = child.Wait(120);
     EXPECT_TRUE(status.has_value()) << tag << " did not finish";
     if (status) {
       EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-          << tag << ": " << DescribeWaitStatus(*status) << "\n" << ReadFile(fx->dir + "/" + tag + ".err");
+          << tag << ": " << DescribeWaitStatus(*status) << "\n"
+          << ReadFile(fx->dir + "/" + tag + ".err");
     }
     return out;
   }
@@ -255,11 +257,13 @@ TEST_F(StagesTest, SegmenterReplayAlignsEveryFrameAndFindsEachPoseWithTrueMedian
     EXPECT_EQ(last.segment, p);
     // The truth at the last steady frame (the settling is over by then).
     ASSERT_TRUE(last.steady);
-    const Mat3 R_WC_med = QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
+    const Mat3 R_WC_med =
+        QuaternionToRotation(Eigen::Vector4d(m.q_wc[0], m.q_wc[1], m.q_wc[2], m.q_wc[3]));
     EXPECT_LT(LogSO3(R_WC_med * last.R_WC.transpose()).norm(), 0.08 * M_PI / 180) << "pose " << p;
     for (int k = 0; k < kNumLegs; ++k) {
       EXPECT_EQ(m.angle_rad[k], last.angle_rad[k]);
-      const Vec6 clean = TransducerReading(truth, k, last.ground_w_C[k], last.angle_rad[k], last.R_WC);
+      const Vec6 clean =
+          TransducerReading(truth, k, last.ground_w_C[k], last.angle_rad[k], last.R_WC);
       for (int i = 0; i < 6; ++i) {
         EXPECT_NEAR(m.wrench[k][i], clean[i], i < 3 ? 0.03 : 0.0015)
             << "pose " << p << " leg " << k << " component " << i;
@@ -310,7 +314,8 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
     // the legs corrected with the old one: no sum mixes the two (CheckSums below), and the sum
     // of the frame where v2 arrives is all v2 (the calibration arrives between frames).
     if (s.utime == kT0) {
-      EXPECT_EQ(s.flags, contact_wrench_sum_t::FLAG_STALE_SERVO | contact_wrench_sum_t::FLAG_STALE_MOCAP);
+      EXPECT_EQ(s.flags,
+                contact_wrench_sum_t::FLAG_STALE_SERVO | contact_wrench_sum_t::FLAG_STALE_MOCAP);
       EXPECT_TRUE(std::isnan(s.total_w[2]));
       continue;
     }
@@ -322,7 +327,8 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
     if (f.steady) EXPECT_NEAR(s.total_w[2], weight, 1.0);
     EXPECT_NEAR(s.residual_w[2], s.total_w[2] - weight, 1e-9);
   }
-  const twin_log::SumCheck sc = twin_log::CheckSums(out, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
+  const twin_log::SumCheck sc =
+      twin_log::CheckSums(out, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
   EXPECT_EQ(sc.sums, fx->frames.size());
   EXPECT_EQ(sc.nan_sums, 1u);  // the first frame's
   EXPECT_EQ(sc.worst, 0.0) << "a sum is not the sum of the legs published before it";
@@ -333,8 +339,10 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
   EXPECT_LT(max_f, 0.6);
   EXPECT_LT(rms_tau, 0.03);
   EXPECT_LT(max_tau, 0.15);
-  std::printf("corrector vs twin truth over %d leg samples: force rms %.4f N max %.4f N, "
-              "torque rms %.5f N*m max %.5f N*m\n", n, rms_f, max_f, rms_tau, max_tau);
+  std::printf(
+      "corrector vs twin truth over %d leg samples: force rms %.4f N max %.4f N, "
+      "torque rms %.5f N*m max %.5f N*m\n",
+      n, rms_f, max_f, rms_tau, max_tau);
 
   const auto status = ReadChannel<service_status_t>(out, ch.status());
   ASSERT_EQ(status.size(), 1u);
@@ -382,9 +390,12 @@ TEST_F(StagesTest, BadInputsAreCountedAsDropsAndChangeNoOutput) {
 // after it come out as in one uninterrupted run (the index restarts with the process).
 TEST_F(StagesTest, SegmenterRestartedMidPoseLosesAtMostThatPose) {
   const auto& ch = fx->config.channels();
-  const auto whole = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_path, "whole"), ch.steady_pose());
-  const auto head = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_head_path, "head"), ch.steady_pose());
-  const auto tail = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_tail_path, "tail"), ch.steady_pose());
+  const auto whole = ReadChannel<steady_pose_t>(Replay(FTCAL_POSE_SEGMENTER, fx->log_path, "whole"),
+                                                ch.steady_pose());
+  const auto head = ReadChannel<steady_pose_t>(
+      Replay(FTCAL_POSE_SEGMENTER, fx->log_head_path, "head"), ch.steady_pose());
+  const auto tail = ReadChannel<steady_pose_t>(
+      Replay(FTCAL_POSE_SEGMENTER, fx->log_tail_path, "tail"), ch.steady_pose());
   ASSERT_EQ(whole.size(), static_cast<size_t>(kPoses));
   auto same = [](const steady_pose_t& a, const steady_pose_t& b) {
     return a.session_id == b.session_id && a.start_utime == b.start_utime &&
@@ -433,7 +444,8 @@ TEST_F(StagesTest, CorrectorStartsWithACalibrationFile) {
       << ReadFile(fx->dir + "/corrector_file.err");
   const auto wrenches = ReadChannel<contact_wrench_t>(out, fx->config.channels().contact_wrench());
   ASSERT_EQ(wrenches.size(), fx->frames.size() * kNumLegs);
-  const auto sums = ReadChannel<contact_wrench_sum_t>(out, fx->config.channels().contact_wrench_sum());
+  const auto sums =
+      ReadChannel<contact_wrench_sum_t>(out, fx->config.channels().contact_wrench_sum());
   ASSERT_FALSE(sums.empty());
   EXPECT_EQ(sums.back().calibration_version, 5);
 
@@ -461,17 +473,21 @@ TEST_F(StagesTest, SegmenterLiveGivesTheSamePosesAsReplay) {
   const std::string replayed = Replay(FTCAL_POSE_SEGMENTER, fx->log_path, "segmenter_for_live");
   const std::string recorded = fx->dir + "/live.lcmlog";
   const std::string d = fx->dir + "/";
-  Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", recorded}, d + "logger.out", d + "logger.err");
-  Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--lcm-url", kUrl}, d + "live.out", d + "live.err");
+  Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", recorded}, d + "logger.out",
+               d + "logger.err");
+  Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--lcm-url", kUrl}, d + "live.out",
+            d + "live.err");
   std::this_thread::sleep_for(std::chrono::milliseconds(700));  // both subscribed
   Child player({FTCAL_LCM_LOGPLAYER, "-s", "2", "-l", kUrl, fx->log_path}, d + "player.out",
                d + "player.err");
   const auto played = player.Wait(60);
-  ASSERT_TRUE(played && WIFEXITED(*played) && WEXITSTATUS(*played) == 0) << ReadFile(d + "player.err");
+  ASSERT_TRUE(played && WIFEXITED(*played) && WEXITSTATUS(*played) == 0)
+      << ReadFile(d + "player.err");
   std::this_thread::sleep_for(std::chrono::milliseconds(500));  // the last outputs
   seg.Signal(SIGINT);
   const auto seg_rc = seg.Wait(10);
-  ASSERT_TRUE(seg_rc && WIFEXITED(*seg_rc) && WEXITSTATUS(*seg_rc) == 0) << ReadFile(d + "live.err");
+  ASSERT_TRUE(seg_rc && WIFEXITED(*seg_rc) && WEXITSTATUS(*seg_rc) == 0)
+      << ReadFile(d + "live.err");
   logger.Signal(SIGINT);
   ASSERT_TRUE(logger.Wait(10));
 
@@ -494,7 +510,8 @@ TEST_F(StagesTest, SegmenterLiveGivesTheSamePosesAsReplay) {
   }
   // The recorder may miss a datagram when the machine is busy (UDP): the aligned samples are
   // checked exactly on replay; here only that the live stage kept up.
-  EXPECT_GT(ReadChannel<sync_sample_t>(recorded, ch.sync_sample()).size(), fx->frames.size() * 9 / 10);
+  EXPECT_GT(ReadChannel<sync_sample_t>(recorded, ch.sync_sample()).size(),
+            fx->frames.size() * 9 / 10);
 }
 
 }  // namespace

@@ -163,7 +163,8 @@ inline size_t AppendSession(const BigAntTwin& twin, const config::Config& cfg,
   const auto& ch = cfg.channels();
   const auto sink = [&](const TwinFrame& f) { AppendFrame(f, cfg, events); };
   auto marker = [&](double t_s, int8_t phase, bool start, const Vec3& g) {
-    events->push_back(Encode(Utime(t_s), ch.experiment(), Marker(Utime(t_s), session, phase, start, g)));
+    events->push_back(
+        Encode(Utime(t_s), ch.experiment(), Marker(Utime(t_s), session, phase, start, g)));
   };
   double t = 0.0;
   for (int s = 0; s < kNumHangSeries; ++s) {
@@ -271,8 +272,8 @@ inline WrenchComparison CompareWrenches(const std::vector<contact_wrench_t>& tes
 struct SumCheck {
   size_t sums = 0;
   size_t nan_sums = 0;
-  size_t legs = 0;       // leg-samples read
-  double worst = 0.0;    // total and residual against the legs, N or N*m
+  size_t legs = 0;     // leg-samples read
+  double worst = 0.0;  // total and residual against the legs, N or N*m
   double worst_age = 0.0;
 };
 
@@ -299,7 +300,8 @@ inline SumCheck CheckSums(const std::string& path, const std::string& leg_channe
         continue;
       }
       ++c.sums;
-      if (std::isnan(s.total_w[0]) || !std::all_of(have.begin(), have.end(), [](bool b) { return b; })) {
+      if (std::isnan(s.total_w[0]) ||
+          !std::all_of(have.begin(), have.end(), [](bool b) { return b; })) {
         ++c.nan_sums;
         continue;
       }

@@ -41,8 +41,8 @@ namespace ftcal {
 namespace {
 
 std::shared_ptr<spdlog::logger> QuietLogger() {
-  static auto log = std::make_shared<spdlog::logger>(
-      "test", std::make_shared<spdlog::sinks::null_sink_mt>());
+  static auto log =
+      std::make_shared<spdlog::logger>("test", std::make_shared<spdlog::sinks::null_sink_mt>());
   return log;
 }
 
@@ -202,8 +202,7 @@ TEST(WireGuardTest, The153ByteMocapClaiming400MillionMarkersIsRefusedInBoundedTi
   }
   EXPECT_EQ(delivered, 1);
   EXPECT_EQ(stats.drops(), kMessages);
-  EXPECT_EQ(stats.kinds().at("undecodable mocap_body_t on MOCAP_BODY: length over cap"),
-            kMessages);
+  EXPECT_EQ(stats.kinds().at("undecodable mocap_body_t on MOCAP_BODY: length over cap"), kMessages);
   // Bounds, not speed figures: unguarded, one such message took a minute and 8.8 GB.
   EXPECT_LT(MaxRssKb() - rss_before_kb, 16 * 1024);
   EXPECT_LT(seconds, 2.0);
@@ -212,7 +211,7 @@ TEST(WireGuardTest, The153ByteMocapClaiming400MillionMarkersIsRefusedInBoundedTi
 TEST(WireGuardTest, A20ByteMessageWithLengthMinusOneIsRefusedNotThrown) {
   servo_state_t state{};
   auto bytes = Encode(state);
-  bytes.resize(20);                       // fingerprint, utime, num_servos
+  bytes.resize(20);  // fingerprint, utime, num_servos
   PutBe32(bytes, 16, -1);
   const auto refused = Guard<servo_state_t>(bytes);
   ASSERT_TRUE(refused);
@@ -223,12 +222,12 @@ TEST(WireGuardTest, A20ByteMessageWithLengthMinusOneIsRefusedNotThrown) {
 TEST(WireGuardTest, AStringOfLengthZeroIsRefusedNotThrown) {
   experiment_marker_t m{};
   auto bytes = Encode(m);
-  PutBe32(bytes, 16, 0);                  // session_id's length
+  PutBe32(bytes, 16, 0);  // session_id's length
   auto refused = Guard<experiment_marker_t>(bytes);
   ASSERT_TRUE(refused);
   EXPECT_EQ(refused->kind, "bad string length");
   EXPECT_NE(refused->detail.find("session_id"), std::string::npos) << refused->detail;
-  bytes.resize(20);                       // the 20-byte message of the issue
+  bytes.resize(20);  // the 20-byte message of the issue
   refused = Guard<experiment_marker_t>(bytes);
   ASSERT_TRUE(refused);
   EXPECT_EQ(refused->kind, "bad string length");

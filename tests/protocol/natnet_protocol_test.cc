@@ -17,7 +17,10 @@ using Bytes = std::vector<uint8_t>;
 struct Fields {
   Bytes b;
   void U8(uint8_t v) { b.push_back(v); }
-  void U16(uint16_t v) { U8(v & 0xFF); U8(v >> 8); }
+  void U16(uint16_t v) {
+    U8(v & 0xFF);
+    U8(v >> 8);
+  }
   void I16(int16_t v) { U16(static_cast<uint16_t>(v)); }
   void I32(int32_t v) {
     for (int i = 0; i < 4; ++i) U8(static_cast<uint8_t>(static_cast<uint32_t>(v) >> (8 * i)));
@@ -42,7 +45,8 @@ struct Fields {
   size_t size() const { return b.size(); }
   // The i32 at `offset`, written once the bytes after it are known (4.1 byte counts).
   void PatchI32(size_t offset, int32_t v) {
-    for (int i = 0; i < 4; ++i) b[offset + i] = static_cast<uint8_t>(static_cast<uint32_t>(v) >> (8 * i));
+    for (int i = 0; i < 4; ++i)
+      b[offset + i] = static_cast<uint8_t>(static_cast<uint32_t>(v) >> (8 * i));
   }
 };
 
@@ -65,36 +69,53 @@ Bytes HandBuiltFrame(bool v41) {
     records();
     if (v41) f.PatchI32(at, static_cast<int32_t>(f.size() - start));
   };
-  f.I32(1234);                           // frame number
-  section(0, [] {});                     // marker sets
-  section(0, [] {});                     // legacy unlabeled markers
-  section(1, [&] {                       // rigid bodies
+  f.I32(1234);        // frame number
+  section(0, [] {});  // marker sets
+  section(0, [] {});  // legacy unlabeled markers
+  section(1, [&] {    // rigid bodies
     f.I32(7);
-    f.F32(0.5f); f.F32(1.25f); f.F32(-2.0f);             // x y z, m
-    f.F32(0.0f); f.F32(0.0f); f.F32(0.6f); f.F32(0.8f);  // qx qy qz qw
-    f.F32(0.0004f);                                       // mean error
-    f.I16(0x0001);                                        // params: tracked
+    f.F32(0.5f);
+    f.F32(1.25f);
+    f.F32(-2.0f);  // x y z, m
+    f.F32(0.0f);
+    f.F32(0.0f);
+    f.F32(0.6f);
+    f.F32(0.8f);     // qx qy qz qw
+    f.F32(0.0004f);  // mean error
+    f.I16(0x0001);   // params: tracked
   });
-  section(0, [] {});                     // skeletons
-  if (v41) section(0, [] {});            // assets
-  section(2, [&] {                       // labeled markers
-    f.I32((7 << 16) | 1); f.F32(0.1f); f.F32(0.2f); f.F32(0.3f); f.F32(0.014f); f.I16(0); f.F32(0.0002f);
-    f.I32((7 << 16) | 2); f.F32(0.4f); f.F32(0.5f); f.F32(0.6f); f.F32(0.014f); f.I16(0x0001); f.F32(0.0f);
+  section(0, [] {});           // skeletons
+  if (v41) section(0, [] {});  // assets
+  section(2, [&] {             // labeled markers
+    f.I32((7 << 16) | 1);
+    f.F32(0.1f);
+    f.F32(0.2f);
+    f.F32(0.3f);
+    f.F32(0.014f);
+    f.I16(0);
+    f.F32(0.0002f);
+    f.I32((7 << 16) | 2);
+    f.F32(0.4f);
+    f.F32(0.5f);
+    f.F32(0.6f);
+    f.F32(0.014f);
+    f.I16(0x0001);
+    f.F32(0.0f);
   });
-  section(0, [] {});                     // force plates
-  section(0, [] {});                     // devices
-  f.I32(0x01020304);                     // timecode
-  f.I32(5);                              // subframe
-  f.F64(12.5);                           // timestamp, s
-  f.U64(1000);                           // mid-exposure ticks
-  f.U64(1500);                           // data received
-  f.U64(2500);                           // transmit
+  section(0, [] {});  // force plates
+  section(0, [] {});  // devices
+  f.I32(0x01020304);  // timecode
+  f.I32(5);           // subframe
+  f.F64(12.5);        // timestamp, s
+  f.U64(1000);        // mid-exposure ticks
+  f.U64(1500);        // data received
+  f.U64(2500);        // transmit
   if (v41) {
     f.I32(0);
     f.I32(0);
   }
-  f.I16(0x0002);                         // params: model list changed
-  f.I32(0);                              // end-of-data tag
+  f.I16(0x0002);  // params: model list changed
+  f.I32(0);       // end-of-data tag
   return f.b;
 }
 
@@ -221,14 +242,26 @@ Bytes HandBuiltDescriptions(Version v, bool with_asset) {
   }
   description(1, [&] {
     f.Str("chassis");
-    f.I32(3);                            // streaming id
-    f.I32(-1);                           // parent
-    f.F32(0); f.F32(0); f.F32(0);        // offset
-    if (v.AtLeast(4, 2)) { f.F32(0); f.F32(0); f.F32(0); f.F32(1); }
-    f.I32(2);                            // markers
-    f.F32(0.1f); f.F32(0.0f); f.F32(0.0f);
-    f.F32(0.0f); f.F32(0.2f); f.F32(0.0f);
-    f.I32(0); f.I32(0);                  // required active labels
+    f.I32(3);   // streaming id
+    f.I32(-1);  // parent
+    f.F32(0);
+    f.F32(0);
+    f.F32(0);  // offset
+    if (v.AtLeast(4, 2)) {
+      f.F32(0);
+      f.F32(0);
+      f.F32(0);
+      f.F32(1);
+    }
+    f.I32(2);  // markers
+    f.F32(0.1f);
+    f.F32(0.0f);
+    f.F32(0.0f);
+    f.F32(0.0f);
+    f.F32(0.2f);
+    f.F32(0.0f);
+    f.I32(0);
+    f.I32(0);  // required active labels
     if (v.AtLeast(4, 0)) {
       f.Str("chassis_m01");
       f.Str("chassis_m02");
@@ -245,7 +278,8 @@ TEST(NatNetDescriptions, HandBuilt41SkipsAnAssetByItsByteCount) {
   EXPECT_EQ(d.rigid_bodies[0].parent_id, -1);
   ASSERT_EQ(d.rigid_bodies[0].marker_positions.size(), 2u);
   EXPECT_EQ(d.rigid_bodies[0].marker_positions[1], (Vec3f{0.0f, 0.2f, 0.0f}));
-  EXPECT_EQ(d.rigid_bodies[0].marker_names, (std::vector<std::string>{"chassis_m01", "chassis_m02"}));
+  EXPECT_EQ(d.rigid_bodies[0].marker_names,
+            (std::vector<std::string>{"chassis_m01", "chassis_m02"}));
   ASSERT_EQ(d.marker_sets.size(), 1u);
   EXPECT_EQ(d.marker_sets[0].marker_names.size(), 2u);
   EXPECT_EQ(d.other, 1);
@@ -296,12 +330,21 @@ TEST(NatNetServerInfo, HandBuilt279Bytes) {
   Fields f;
   f.b.resize(256, 0);
   std::memcpy(f.b.data(), "Motive", 6);
-  f.U8(3); f.U8(1); f.U8(0); f.U8(0);      // app 3.1.0.0
-  f.U8(4); f.U8(1); f.U8(0); f.U8(0);      // NatNet 4.1.0.0
-  f.U64(10'000'000);                        // 10 MHz
+  f.U8(3);
+  f.U8(1);
+  f.U8(0);
+  f.U8(0);  // app 3.1.0.0
+  f.U8(4);
+  f.U8(1);
+  f.U8(0);
+  f.U8(0);            // NatNet 4.1.0.0
+  f.U64(10'000'000);  // 10 MHz
   f.U16(1511);
-  f.U8(1);                                  // multicast
-  f.U8(239); f.U8(255); f.U8(42); f.U8(99);
+  f.U8(1);  // multicast
+  f.U8(239);
+  f.U8(255);
+  f.U8(42);
+  f.U8(99);
   ASSERT_EQ(f.size(), kServerInfoBytes);
   const ServerInfo s = DecodeServerInfo(f.b);
   EXPECT_EQ(s.app_name, "Motive");

@@ -16,9 +16,9 @@ using Bytes = std::vector<std::uint8_t>;
 
 // Data packet with one 3D component, every byte written out (offsets in the packet):
 //   0 size 64 | 4 type 3 | 8 timestamp i64 = 2^32 + 2 us | 16 frame 7 | 20 component count 1
-//  24 component size 40 | 28 component type 1 (3D) | 32 marker count 2 | 36 drop 5 | 38 out of sync 0
-//  40 marker 1: 1.0f (00 00 80 3F), -2.5f (00 00 20 C0), 100.0f (00 00 C8 42)
-//  52 marker 2: not seen, every bit set (FF FF FF FF) x 3
+//  24 component size 40 | 28 component type 1 (3D) | 32 marker count 2 | 36 drop 5 | 38 out of sync
+//  0 40 marker 1: 1.0f (00 00 80 3F), -2.5f (00 00 20 C0), 100.0f (00 00 C8 42) 52 marker 2: not
+//  seen, every bit set (FF FF FF FF) x 3
 const Bytes k3DPacket = {
     0x40, 0x00, 0x00, 0x00, 0x03, 0x00, 0x00, 0x00, 0x02, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00,
     0x07, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x28, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00,
@@ -54,19 +54,36 @@ TEST(QtmData, HandBuilt3DWithUntrackedMarker) {
   EXPECT_EQ(EncodeData(f).size(), k3DPacket.size());
   Bytes encoded = EncodeData(f);
   // NaN payload bits are not preserved through double; compare all but the untracked marker.
-  EXPECT_EQ(Bytes(encoded.begin(), encoded.begin() + 52), Bytes(k3DPacket.begin(), k3DPacket.begin() + 52));
+  EXPECT_EQ(Bytes(encoded.begin(), encoded.begin() + 52),
+            Bytes(k3DPacket.begin(), k3DPacket.begin() + 52));
 }
 
 // Little-endian writers for the layouts below; each call is one field of the tables in §3.6.
 struct Writer {
   Bytes b;
-  void I32(std::int32_t v) { for (int i = 0; i < 4; ++i) b.push_back(static_cast<std::uint8_t>(static_cast<std::uint32_t>(v) >> (8 * i))); }
-  void U16(std::uint16_t v) { b.push_back(v & 0xFF); b.push_back(v >> 8); }
-  void I64(std::int64_t v) { I32(static_cast<std::int32_t>(v)); I32(static_cast<std::int32_t>(static_cast<std::uint64_t>(v) >> 32)); }
-  void F32(float f) { std::uint32_t u; std::memcpy(&u, &f, 4); I32(static_cast<std::int32_t>(u)); }
+  void I32(std::int32_t v) {
+    for (int i = 0; i < 4; ++i)
+      b.push_back(static_cast<std::uint8_t>(static_cast<std::uint32_t>(v) >> (8 * i)));
+  }
+  void U16(std::uint16_t v) {
+    b.push_back(v & 0xFF);
+    b.push_back(v >> 8);
+  }
+  void I64(std::int64_t v) {
+    I32(static_cast<std::int32_t>(v));
+    I32(static_cast<std::int32_t>(static_cast<std::uint64_t>(v) >> 32));
+  }
+  void F32(float f) {
+    std::uint32_t u;
+    std::memcpy(&u, &f, 4);
+    I32(static_cast<std::int32_t>(u));
+  }
   void Nan() { I32(-1); }  // FF FF FF FF
   // Patch the i32 at `offset` (sizes known only at the end).
-  void PatchI32(std::size_t offset, std::int32_t v) { for (int i = 0; i < 4; ++i) b[offset + i] = static_cast<std::uint8_t>(static_cast<std::uint32_t>(v) >> (8 * i)); }
+  void PatchI32(std::size_t offset, std::int32_t v) {
+    for (int i = 0; i < 4; ++i)
+      b[offset + i] = static_cast<std::uint8_t>(static_cast<std::uint32_t>(v) >> (8 * i));
+  }
 };
 
 // Data packet: 6DRes with two bodies (the second untracked), then 3DRes with one marker:

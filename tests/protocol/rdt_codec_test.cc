@@ -49,10 +49,9 @@ TEST(RdtRequest, DecodeRoundTripAndRejects) {
 //   0 rdt_sequence 0xFFFFFFFF | 4 ft_sequence 0x00010203 | 8 status 0x80020000 (saturation)
 //  12 Fx = 1 | 16 Fy = -1 | 20 Fz = -2,000,000 (0xFFE17B80) | 24 Tx = 0x7FFFFFFF
 //  28 Ty = INT32_MIN | 32 Tz = 250,000 (0x0003D090)
-const Bytes kRecordA = {
-    0xFF, 0xFF, 0xFF, 0xFF, 0x00, 0x01, 0x02, 0x03, 0x80, 0x02, 0x00, 0x00,
-    0x00, 0x00, 0x00, 0x01, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xE1, 0x7B, 0x80,
-    0x7F, 0xFF, 0xFF, 0xFF, 0x80, 0x00, 0x00, 0x00, 0x00, 0x03, 0xD0, 0x90};
+const Bytes kRecordA = {0xFF, 0xFF, 0xFF, 0xFF, 0x00, 0x01, 0x02, 0x03, 0x80, 0x02, 0x00, 0x00,
+                        0x00, 0x00, 0x00, 0x01, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xE1, 0x7B, 0x80,
+                        0x7F, 0xFF, 0xFF, 0xFF, 0x80, 0x00, 0x00, 0x00, 0x00, 0x03, 0xD0, 0x90};
 // The next record of the stream: sequence wrapped to 0, status healthy, counts all zero.
 const Bytes kRecordB = {0x00, 0x00, 0x00, 0x00, 0x00, 0x01, 0x02, 0x49, 0, 0, 0, 0,
                         0,    0,    0,    0,    0,    0,    0,    0,    0, 0, 0, 0,
@@ -98,8 +97,8 @@ TEST(RdtRecord, SingleRecordPathMatchesHandBuiltBytes) {
   EXPECT_EQ(r.rdt_sequence, 0xFFFFFFFFu);
   EXPECT_EQ(r.ft_sequence, 0x00010203u);
   EXPECT_EQ(r.status, 0x80020000u);
-  EXPECT_EQ(r.counts, (std::array<std::int32_t, 6>{1, -1, -2000000, 2147483647,
-                                                   -2147483647 - 1, 250000}));
+  EXPECT_EQ(r.counts,
+            (std::array<std::int32_t, 6>{1, -1, -2000000, 2147483647, -2147483647 - 1, 250000}));
   Bytes out(kRecordBytes, 0xAA);
   EncodeRecord(r, out.data());
   EXPECT_EQ(out, kRecordA);
@@ -159,7 +158,7 @@ TEST(RdtSequence, ReorderedDroppedAndLossNotUndone) {
   SequenceTracker t;
   t.Update(1, Ft(1));
   EXPECT_EQ(t.Update(3, Ft(3)).lost, 1u);  // 2 looks lost
-  const auto r = t.Update(2, Ft(2));        // ... then arrives late
+  const auto r = t.Update(2, Ft(2));       // ... then arrives late
   EXPECT_EQ(r.verdict, V::kLate);
   EXPECT_FALSE(r.accept());
   EXPECT_EQ(t.late(), 1u);
@@ -187,9 +186,9 @@ TEST(RdtSequence, ResetOnStartIgnoresPreviousStreamLeftovers) {
   SequenceTracker t;
   t.Update(1, Ft(1));
   t.Update(5000, Ft(5000));
-  t.Reset();                                                // a start command was sent
+  t.Reset();                                               // a start command was sent
   EXPECT_EQ(t.Update(5001, Ft(5001)).verdict, V::kStale);  // in flight from the old stream
-  const auto r = t.Update(3, Ft(5010));  // the new stream, records 1 and 2 lost
+  const auto r = t.Update(3, Ft(5010));                    // the new stream, records 1 and 2 lost
   EXPECT_EQ(r.verdict, V::kStart);
   EXPECT_EQ(r.lost, 2u);
   EXPECT_EQ(t.Update(4, Ft(5011)).verdict, V::kNext);
@@ -203,7 +202,7 @@ TEST(RdtSequence, FirstTwoRecordsSwappedAreAStartAndALateRecord) {
   SequenceTracker t;
   const auto first = t.Update(2, Ft(2));
   EXPECT_EQ(first.verdict, V::kStart);
-  EXPECT_EQ(first.lost, 1u);  // 1 looks lost ...
+  EXPECT_EQ(first.lost, 1u);                        // 1 looks lost ...
   EXPECT_EQ(t.Update(1, Ft(1)).verdict, V::kLate);  // ... then arrives late
   EXPECT_EQ(t.Update(3, Ft(3)).verdict, V::kNext);
   EXPECT_EQ(t.Update(5, Ft(5)).verdict, V::kGap);
@@ -259,7 +258,7 @@ TEST(RdtSequence, DuplicatesAndReorderingAcrossTheWrap) {
   t.Update(0xE0000000u, 0xE0000004u);
   ASSERT_EQ(t.Update(0xFFFFFFFEu, 0x00000002u).verdict, V::kGap);
   EXPECT_EQ(t.Update(0xFFFFFFFEu, 0x00000002u).verdict, V::kDuplicate);
-  EXPECT_EQ(t.Update(0u, 0x00000004u).verdict, V::kGap);         // 0xFFFFFFFF overtaken
+  EXPECT_EQ(t.Update(0u, 0x00000004u).verdict, V::kGap);            // 0xFFFFFFFF overtaken
   EXPECT_EQ(t.Update(0xFFFFFFFFu, 0x00000003u).verdict, V::kLate);  // ... arrives late
   EXPECT_EQ(t.Update(0xFFFFFFFFu, 0x00000003u).verdict, V::kLate);  // ... twice
   EXPECT_EQ(t.Update(0u, 0x00000004u).verdict, V::kDuplicate);
@@ -395,8 +394,8 @@ TEST(RdtCalibrationPage, ImplausibleCountsPerUnitRefusedWithValueAndRange) {
                 "[102.4, 2.14748e+08]");
   // The edges are plausible: exactly 2^10 and 2^31 - 1 counts over the largest rated range.
   EXPECT_NO_THROW(CheckCountsPerUnit(1024.0 / 130, 102.4, {130, 130, 400, 10, 10, 10}, "x"));
-  EXPECT_NO_THROW(CheckCountsPerUnit(2147483647.0 / 400, 2147483647.0 / 10,
-                                     {130, 130, 400, 10, 10, 10}, "x"));
+  EXPECT_NO_THROW(
+      CheckCountsPerUnit(2147483647.0 / 400, 2147483647.0 / 10, {130, 130, 400, 10, 10, 10}, "x"));
   // A rated range of 1e-300 N would need 1e303 counts/N to span 2^10 counts: refused.
   EXPECT_THROW(CheckCountsPerUnit(1e6, 1e6, {130, 130, 1e-300, 10, 10, 10}, "x"), RdtError);
 }

@@ -221,7 +221,11 @@ TEST(Aligner, SameInputOrderGivesIdenticalOutput) {
     s.servo.utime = t + jitter(rng);
     for (int k = 0; k < kNumLegs; ++k) s.servo.angle_rad[k] = std::sin(0.003 * i + k);
     frame.push_back(s);
-    Event m{2, {}, {}, {t + jitter(rng), i % 50 != 0, RotationFromRollPitchYaw(0.01 * std::sin(0.02 * i), 0, 0), i % 7 != 0}};
+    Event m{2,
+            {},
+            {},
+            {t + jitter(rng), i % 50 != 0,
+             RotationFromRollPitchYaw(0.01 * std::sin(0.02 * i), 0, 0), i % 7 != 0}};
     frame.push_back(m);
     std::shuffle(frame.begin(), frame.end(), rng);
     events.insert(events.end(), frame.begin(), frame.end());

@@ -130,7 +130,8 @@ TEST(Config, UnknownFieldIsAParseError) {
 TEST(Config, BadRotationNamesLineAndField) {
   const std::string e = LoadError(kBadDir / "bad_rotation.pbtxt");
   EXPECT_CONTAINS(e, "bad_rotation.pbtxt:9:");
-  EXPECT_CONTAINS(e, "robot.leg[4].x_b_ft.rotation_row_major: not a rotation matrix (|R^T R - I| = ");
+  EXPECT_CONTAINS(e,
+                  "robot.leg[4].x_b_ft.rotation_row_major: not a rotation matrix (|R^T R - I| = ");
 }
 
 TEST(Config, ReflectionIsNotARotation) {
@@ -219,41 +220,60 @@ TEST(Config, RangeChecks) {
     std::string from, to, expect;
   };
   const std::vector<Case> cases = {
-      {"servo { id: 6 }", "servo { id: 253 }", "robot.leg[5].servo.id: Dynamixel id must be in 0..252"},
-      {"\"127.0.1.6\" }", "\"127.0.1.6\" sign: 0 }", "robot.leg[5].ati.sign: must be +1 or -1, got 0"},
-      {"\"127.0.1.6\" }", "\"127.0.1.6\" rdt_port: 70000 }", "robot.leg[5].ati.rdt_port: port must be in 1..65535"},
-      {"\"127.0.1.6\" }", "\"127.0.1.6\" rated_range: [1, 2, 3, 4, 5] }", "robot.leg[5].ati.rated_range: needs 0 or 6 entries"},
-      {"\"127.0.1.6\" }", "\"127.0.1.6\" rated_range: [1, 2, 3, 4, 5, -6] }", "robot.leg[5].ati.rated_range[5]: must be > 0"},
-      {"\"127.0.1.6\" }", "\"127.0.1.6\" counts_per_force: 0 }", "robot.leg[5].ati.counts_per_force: must be > 0"},
+      {"servo { id: 6 }", "servo { id: 253 }",
+       "robot.leg[5].servo.id: Dynamixel id must be in 0..252"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" sign: 0 }",
+       "robot.leg[5].ati.sign: must be +1 or -1, got 0"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" rdt_port: 70000 }",
+       "robot.leg[5].ati.rdt_port: port must be in 1..65535"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" rated_range: [1, 2, 3, 4, 5] }",
+       "robot.leg[5].ati.rated_range: needs 0 or 6 entries"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" rated_range: [1, 2, 3, 4, 5, -6] }",
+       "robot.leg[5].ati.rated_range[5]: must be > 0"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" counts_per_force: 0 }",
+       "robot.leg[5].ati.counts_per_force: must be > 0"},
       {"\"127.0.1.6\"", "\"127.0.1\"", "robot.leg[5].ati.address: not an IPv4 address"},
       {"total_mass_kg: 8.18", "total_mass_kg: nan", "robot.total_mass_kg: must be a finite number"},
-      {"total_mass_kg: 8.18", "total_mass_kg: 8.18 g0_m_s2: 1.62", "robot.g0_m_s2: must be in (9.7, 9.9)"},
-      {"x: 0.2 y: -0.15", "x: inf y: -0.15", "robot.leg[5].x_b_ft.translation_m.x: must be a finite number"},
+      {"total_mass_kg: 8.18", "total_mass_kg: 8.18 g0_m_s2: 1.62",
+       "robot.g0_m_s2: must be in (9.7, 9.9)"},
+      {"x: 0.2 y: -0.15", "x: inf y: -0.15",
+       "robot.leg[5].x_b_ft.translation_m.x: must be a finite number"},
       {"rpy_deg { z: 180 } } ati { address: \"127.0.1.6\"",
-       "rpy_deg { z: 180 } rotation_row_major: [1, 0, 0, 0, 1, 0, 0, 0, 1] } ati { address: \"127.0.1.6\"",
-       "robot.leg[5].x_b_ft.rpy_deg: give the rotation either as rotation_row_major or as rpy_deg, not both"},
+       "rpy_deg { z: 180 } rotation_row_major: [1, 0, 0, 0, 1, 0, 0, 0, 1] } ati { address: "
+       "\"127.0.1.6\"",
+       "robot.leg[5].x_b_ft.rpy_deg: give the rotation either as rotation_row_major or as rpy_deg, "
+       "not both"},
       {"rpy_deg { z: 180 } } ati { address: \"127.0.1.6\"", "} ati { address: \"127.0.1.6\"",
        "robot.leg[5].x_b_ft: missing rotation"},
       {"x: -0.2 y: 0.15 z: -0.03 } rotation_row_major: [1, 0, 0, 0, 1, 0, 0, 0, 1]",
        "x: -0.2 y: 0.15 z: -0.03 } rotation_row_major: [1, 0, 0, 0, 1, 0, 0, 0]",
        "robot.leg[0].x_b_ft.rotation_row_major: needs 9 numbers"},
-      {"\n}\n", "\n}\nsegmenter { savgol_window: 3 savgol_order: 3 }\n", "segmenter.savgol_window: must be greater than savgol_order"},
+      {"\n}\n", "\n}\nsegmenter { savgol_window: 3 savgol_order: 3 }\n",
+       "segmenter.savgol_window: must be greater than savgol_order"},
       {"\n}\n", "\n}\nsegmenter { savgol_order: 0 }\n", "segmenter.savgol_order: must be >= 1"},
-      {"\n}\n", "\n}\nsegmenter { max_force_rate_n_s: 0 }\n", "segmenter.max_force_rate_n_s: must be > 0"},
-      {"\n}\n", "\n}\ncalibrator { k_weights: [1, 1, 1, 10, 10] }\n", "calibrator.k_weights: needs 0 or 6 entries"},
-      {"\n}\n", "\n}\ncalibrator { k_weights: [1, 1, 1, 10, 0, 10] }\n", "calibrator.k_weights[4]: must be > 0"},
+      {"\n}\n", "\n}\nsegmenter { max_force_rate_n_s: 0 }\n",
+       "segmenter.max_force_rate_n_s: must be > 0"},
+      {"\n}\n", "\n}\ncalibrator { k_weights: [1, 1, 1, 10, 10] }\n",
+       "calibrator.k_weights: needs 0 or 6 entries"},
+      {"\n}\n", "\n}\ncalibrator { k_weights: [1, 1, 1, 10, 0, 10] }\n",
+       "calibrator.k_weights[4]: must be > 0"},
       {"\n}\n", "\n}\ncalibrator { cv_folds: 1 }\n", "calibrator.cv_folds: must be >= 2"},
       {"\n}\n", "\n}\ncalibrator { phase_bins: 7 }\n", "calibrator.phase_bins: must be >= 8"},
-      {"\n}\n", "\n}\ncalibrator { unloaded_leg_min_angle_deg: 180 }\n", "calibrator.unloaded_leg_min_angle_deg: must be in (0, 180), got 180"},
+      {"\n}\n", "\n}\ncalibrator { unloaded_leg_min_angle_deg: 180 }\n",
+       "calibrator.unloaded_leg_min_angle_deg: must be in (0, 180), got 180"},
       {"\n}\n", "\n}\ncorrector { max_ft_age_s: -1 }\n", "corrector.max_ft_age_s: must be > 0"},
-      {"\n}\n", "\n}\nmocap { server_address: \"127.0.0.1\" port: 0 }\n", "mocap.port: port must be in 1..65535"},
+      {"\n}\n", "\n}\nmocap { server_address: \"127.0.0.1\" port: 0 }\n",
+       "mocap.port: port must be in 1..65535"},
       {"\n}\n", "\n}\nmocap { port: 22223 }\n", "mocap.server_address: required field is missing"},
-      {"\n}\n", "\n}\ndynamixel { baud: 1000000 }\n", "dynamixel.device: required field is missing"},
+      {"\n}\n", "\n}\ndynamixel { baud: 1000000 }\n",
+       "dynamixel.device: required field is missing"},
 
-      {"\n}\n", "\n}\nchannels { status: \"\" }\n", "channels.status: channel name must not be empty"},
+      {"\n}\n", "\n}\nchannels { status: \"\" }\n",
+       "channels.status: channel name must not be empty"},
       {"\n}\n", "\n}\nlcm_url: \"\"\n", "lcm_url: must not be empty"},
       // Absurd values a typo makes (issue 14): refused with the field named.
-      {"total_mass_kg: 8.18", "total_mass_kg: 8180", "robot.total_mass_kg: must be at most 1000 kg"},
+      {"total_mass_kg: 8.18", "total_mass_kg: 8180",
+       "robot.total_mass_kg: must be at most 1000 kg"},
       {"x: 0.2 y: -0.15", "x: 2000 y: -0.15", "robot.leg[5].x_b_ft.translation_m: is 2000"},
       {"\"127.0.1.6\" }", "\"127.0.1.6\" rated_range: [130, 130, 400, 10, 10, 1e-300] }",
        "robot.leg[5].ati.rated_range[5]: must be in [0.001, 1000000] N or N*m, got 1e-300"},
@@ -263,17 +283,47 @@ TEST(Config, RangeChecks) {
        "channels.contact_wrench: channel 'SYNC_SAMPLE' is also channels.sync_sample"},
       {"\n}\n", "\n}\nchannels { ft_prefix: \"SERVO_\" servo_state: \"SERVO_HL\" }\n",
        "channels.servo_state: channel 'SERVO_HL' is also channels.ft_prefix (SERVO_HL)"},
-      {"\n}\n", "\n}\nauth { trusted_key { name: \"op\" public_key_hex: \"abc\" channel: \"SERVO_CMD\" } }\n", "auth.trusted_key[0].public_key_hex: must be 64 hex digits"},
-      {"\n}\n", "\n}\nauth { trusted_key { name: \"op\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"FT_HL\" } }\n", "auth.trusted_key[0].channel: 'FT_HL' is not a signed channel"},
-      {"\n}\n", "\n}\nauth { trusted_key { name: \"a\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"b\" public_key_hex: \"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"c\" public_key_hex: \"20112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } }\n", "auth.trusted_key[2].channel: more than two trusted keys for 'SERVO_CMD'"},
-      {"\n}\n", "\n}\nauth { trusted_key { name: \"a\" public_key_hex: \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"SERVO_CMD\" } trusted_key { name: \"a\" public_key_hex: \"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"EXPERIMENT\" } }\n", "auth.trusted_key[1].name: duplicate trusted key name 'a'"},
-      {"\n}\n", "\n}\nauth { servo_cmd_window_s: 0 }\n", "auth.servo_cmd_window_s: must be in (0, 10] s"},
-      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" deadman_s: 0 }\n", "dynamixel.deadman_s: must be > 0"},
-      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_velocity_rad_s: 0.02 }\n", "dynamixel.max_velocity_rad_s: must be at least one unit of the servos' Velocity Limit (0.229 rpm = "},
-      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_acceleration_rad_s2: 0.3 }\n", "dynamixel.max_acceleration_rad_s2: must be at least one unit of the servos' Acceleration Limit"},
-      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 0.05 }\n", "dynamixel.bus_watchdog_s: must be a multiple of 0.02 s within 0.02-2.54 s"},
-      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 2.56 }\n", "dynamixel.bus_watchdog_s: must be a multiple of 0.02 s within 0.02-2.54 s"},
-      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 0.04 }\n", "dynamixel.bus_watchdog_s: must span at least five bridge cycles (5 / rate_hz = 0.05 s)"},
+      {"\n}\n",
+       "\n}\nauth { trusted_key { name: \"op\" public_key_hex: \"abc\" channel: \"SERVO_CMD\" } "
+       "}\n",
+       "auth.trusted_key[0].public_key_hex: must be 64 hex digits"},
+      {"\n}\n",
+       "\n}\nauth { trusted_key { name: \"op\" public_key_hex: "
+       "\"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: \"FT_HL\" } "
+       "}\n",
+       "auth.trusted_key[0].channel: 'FT_HL' is not a signed channel"},
+      {"\n}\n",
+       "\n}\nauth { trusted_key { name: \"a\" public_key_hex: "
+       "\"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: "
+       "\"SERVO_CMD\" } trusted_key { name: \"b\" public_key_hex: "
+       "\"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: "
+       "\"SERVO_CMD\" } trusted_key { name: \"c\" public_key_hex: "
+       "\"20112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: "
+       "\"SERVO_CMD\" } }\n",
+       "auth.trusted_key[2].channel: more than two trusted keys for 'SERVO_CMD'"},
+      {"\n}\n",
+       "\n}\nauth { trusted_key { name: \"a\" public_key_hex: "
+       "\"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: "
+       "\"SERVO_CMD\" } trusted_key { name: \"a\" public_key_hex: "
+       "\"10112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\" channel: "
+       "\"EXPERIMENT\" } }\n",
+       "auth.trusted_key[1].name: duplicate trusted key name 'a'"},
+      {"\n}\n", "\n}\nauth { servo_cmd_window_s: 0 }\n",
+       "auth.servo_cmd_window_s: must be in (0, 10] s"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" deadman_s: 0 }\n",
+       "dynamixel.deadman_s: must be > 0"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_velocity_rad_s: 0.02 }\n",
+       "dynamixel.max_velocity_rad_s: must be at least one unit of the servos' Velocity Limit "
+       "(0.229 rpm = "},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_acceleration_rad_s2: 0.3 }\n",
+       "dynamixel.max_acceleration_rad_s2: must be at least one unit of the servos' Acceleration "
+       "Limit"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 0.05 }\n",
+       "dynamixel.bus_watchdog_s: must be a multiple of 0.02 s within 0.02-2.54 s"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 2.56 }\n",
+       "dynamixel.bus_watchdog_s: must be a multiple of 0.02 s within 0.02-2.54 s"},
+      {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" bus_watchdog_s: 0.04 }\n",
+       "dynamixel.bus_watchdog_s: must span at least five bridge cycles (5 / rate_hz = 0.05 s)"},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.to);
@@ -346,20 +396,21 @@ TEST(ConfigLaunch, UnknownHostCycleAndBadGateAreRefusedByPath) {
   EXPECT_CONTAINS(TextError(Replace(sim, R"(name: "corrector" host: "local")",
                                     R"(name: "corrector" host: "robot")")),
                   "launch.group[0].process[7].host: no host 'robot' in launch.host");
-  EXPECT_CONTAINS(TextError(Replace(sim, R"(name: "twin" host: "local" command: "ftcal-sim")",
-                                    R"(name: "twin" host: "local" command: "ftcal-sim" after: "corrector")")),
-                  "the dependencies form a cycle");
+  EXPECT_CONTAINS(
+      TextError(Replace(sim, R"(name: "twin" host: "local" command: "ftcal-sim")",
+                        R"(name: "twin" host: "local" command: "ftcal-sim" after: "corrector")")),
+      "the dependencies form a cycle");
   EXPECT_CONTAINS(TextError(Replace(sim, R"("${run_dir}/calibration.pbtxt"]
       after: ["segmenter"])",
                                     R"("${run_dir}/calibration.pbtxt"]
       after: ["segmenter", "sequencer"])")),
                   "launch.group[0].process[6].after[1]: no process 'sequencer' in group 'sim'");
-  EXPECT_CONTAINS(TextError(Replace(sim, R"(channel: "FT_*" rate_hz: 500)",
-                                    R"(channel: "FT_*" rate_hz: -5)")),
-                  "launch.group[0].process[2].gate[1].rate_hz: must be in (0, 1e5] Hz, got -5");
-  EXPECT_CONTAINS(TextError(Replace(sim, R"(channel: "FT_*" rate_hz: 500)",
-                                    R"(channel: "F*T_" rate_hz: 500)")),
-                  "'*' may only end a prefix");
+  EXPECT_CONTAINS(
+      TextError(Replace(sim, R"(channel: "FT_*" rate_hz: 500)", R"(channel: "FT_*" rate_hz: -5)")),
+      "launch.group[0].process[2].gate[1].rate_hz: must be in (0, 1e5] Hz, got -5");
+  EXPECT_CONTAINS(
+      TextError(Replace(sim, R"(channel: "FT_*" rate_hz: 500)", R"(channel: "F*T_" rate_hz: 500)")),
+      "'*' may only end a prefix");
   EXPECT_CONTAINS(TextError(Replace(sim, R"(restart { startsecs_s: 2 })",
                                     R"(restart { startsecs_s: 2 stopsignal: "STOP" })")),
                   "launch.group[0].process[1].restart.stopsignal: must be one of TERM");

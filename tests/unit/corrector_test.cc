@@ -45,7 +45,9 @@ Vec6 RandomGroundWrenchC(std::mt19937_64& rng) {
   return w;
 }
 
-Vec6 ToW(const Mat3& R_WC, const Vec6& w_C) { return TransformWrench(Pose3(R_WC, Vec3::Zero()), w_C); }
+Vec6 ToW(const Mat3& R_WC, const Vec6& w_C) {
+  return TransformWrench(Pose3(R_WC, Vec3::Zero()), w_C);
+}
 
 std::array<double, kNumLegs> Fill(double a) {
   std::array<double, kNumLegs> x;
@@ -156,8 +158,9 @@ TEST(Corrector, FlagsStaleInputsAndMissingLegsAndAssumesLevelWithoutFreshMocap) 
   EXPECT_NEAR(out->ft_age_s[0], 0.08, 1e-9);
   EXPECT_NEAR(out->servo_age_s, 0.08, 1e-9);
   EXPECT_NEAR(out->mocap_age_s, 0.08, 1e-9);
-  EXPECT_LT((out->wrench_W[2] - GroundWrenchW(cal, 2, w, 0.3, Mat3::Identity())).cwiseAbs().maxCoeff(),
-            1e-12);
+  EXPECT_LT(
+      (out->wrench_W[2] - GroundWrenchW(cal, 2, w, 0.3, Mat3::Identity())).cwiseAbs().maxCoeff(),
+      1e-12);
 
   // An untracked frame is no attitude either, however fresh.
   c.AddMocap({1'190'000, false, Mat3::Identity(), false});
@@ -195,7 +198,9 @@ TEST(Corrector, ANewCalibrationReplacesTheOldAndForgetsWrenchesCorrectedWithIt) 
   c.SetCalibration(b, 2);
   const auto out = c.AddFt({2000, 0, w, 0}, false);
   EXPECT_EQ(out->calibration_version, 2);
-  EXPECT_LT((out->wrench_W[0] - GroundWrenchW(b, 0, w, 0.1, Mat3::Identity())).cwiseAbs().maxCoeff(), 1e-12);
+  EXPECT_LT(
+      (out->wrench_W[0] - GroundWrenchW(b, 0, w, 0.1, Mat3::Identity())).cwiseAbs().maxCoeff(),
+      1e-12);
   EXPECT_TRUE(out->wrench_W[1].array().isNaN().all());
   EXPECT_TRUE(out->flags & kFlagStaleFt);
 }
@@ -233,7 +238,7 @@ TEST(Corrector, TheSumIsDueOncePerSetOfSixOrWhenALegFallsSilent) {
         EXPECT_EQ(sum.residual_W[2], total[2] - cal.TotalWeightN());
         EXPECT_EQ(sum.calibration_version, 3);
         EXPECT_NEAR(sum.oldest_ft_age_s, 5e-6, 1e-12);  // leg 0, 5 us before leg 5
-        EXPECT_EQ(sum.flags, kFlagSaturated);            // leg 2's, or-ed in
+        EXPECT_EQ(sum.flags, kFlagSaturated);           // leg 2's, or-ed in
       }
     }
   }

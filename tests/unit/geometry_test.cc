@@ -16,11 +16,14 @@ constexpr int kTrials = 2000;
 class Random {
  public:
   explicit Random(unsigned seed) : rng_(seed) {}
-  double Uniform(double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(rng_); }
+  double Uniform(double lo, double hi) {
+    return std::uniform_real_distribution<double>(lo, hi)(rng_);
+  }
   Vec3 UnitVector() {
     std::normal_distribution<double> n;
     Vec3 v;
-    do v = Vec3(n(rng_), n(rng_), n(rng_)); while (v.norm() < 1e-3);
+    do v = Vec3(n(rng_), n(rng_), n(rng_));
+    while (v.norm() < 1e-3);
     return v.normalized();
   }
   // A rotation about a random axis by an angle in [lo, hi] rad, built with Eigen (independent
@@ -28,7 +31,9 @@ class Random {
   Mat3 Rotation(double lo = 0.0, double hi = M_PI) {
     return Eigen::AngleAxisd(Uniform(lo, hi), UnitVector()).toRotationMatrix();
   }
-  Pose3 PoseSample() { return Pose3(Rotation(), Vec3(Uniform(-2, 2), Uniform(-2, 2), Uniform(-2, 2))); }
+  Pose3 PoseSample() {
+    return Pose3(Rotation(), Vec3(Uniform(-2, 2), Uniform(-2, 2), Uniform(-2, 2)));
+  }
   Vec6 Vector6() {
     Vec6 v;
     for (int i = 0; i < 6; ++i) v[i] = Uniform(-10, 10);

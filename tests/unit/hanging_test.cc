@@ -51,8 +51,10 @@ TEST(HangingEquations, SPlusFromOneKnownRotation) {
   const Vec3 f_exact = mg * (RotVec(s) * Vec3::UnitX());
   EXPECT_LT((SPlusClosedForm(f_exact, Vec3::UnitX(), true) - s).norm(), 1e-14);
   // z axis: (I + [s]) e_z with s = (0.01, -0.04, 0) is (s_y, -s_x, 1) = (-0.04, -0.01, 1).
-  EXPECT_LT((SPlusClosedForm(Vec3(-0.24, -0.06, 6.0), Vec3::UnitZ(), false) -
-             Vec3(0.01, -0.04, 0.0)).norm(), 1e-15);
+  EXPECT_LT(
+      (SPlusClosedForm(Vec3(-0.24, -0.06, 6.0), Vec3::UnitZ(), false) - Vec3(0.01, -0.04, 0.0))
+          .norm(),
+      1e-15);
   // The report's objective is zero at s and positive elsewhere.
   const std::vector<Vec3> f(5, f_first);
   EXPECT_LT(SPlusObjective(s, f, Vec3::UnitX(), false), 1e-15);
@@ -86,11 +88,10 @@ TEST(HangingEquations, NullSpaceResolvedByTheOtherPair) {
   // r = (0.01, 0.02, -0.03); the x pair gives r - 0.004 f, the z pair r + 0.002 f'.
   const Vec3 f(6.0, 0.0, 0.0), f_prime(0.0, 0.0, 6.0);
   const Vec3 r_est(-0.014, 0.02, -0.03), r_est_prime(0.01, 0.02, -0.018);
-  EXPECT_LT((ResolveComNullSpace(r_est, f, r_est_prime, f_prime) - Vec3(0.01, 0.02, -0.03))
-                .norm(), 1e-15);
+  EXPECT_LT((ResolveComNullSpace(r_est, f, r_est_prime, f_prime) - Vec3(0.01, 0.02, -0.03)).norm(),
+            1e-15);
   // Disagreeing components across both weights are averaged: y 0.02 vs 0.024 -> 0.022.
-  EXPECT_NEAR(ResolveComNullSpace(r_est, f, Vec3(0.01, 0.024, -0.018), f_prime).y(), 0.022,
-              1e-15);
+  EXPECT_NEAR(ResolveComNullSpace(r_est, f, Vec3(0.01, 0.024, -0.018), f_prime).y(), 0.022, 1e-15);
   EXPECT_THROW(ResolveComNullSpace(r_est, f, r_est_prime, 2.0 * f), std::invalid_argument);
 }
 
@@ -231,13 +232,14 @@ TEST(Hanging, SensingModelTwinExactOption) {
     rec.series = series;
     rec.gravity_b = SeriesGravityB(series);
     // R_WC takes the stated gravity_b to world down, then a small tilt.
-    const Mat3 R_nominal =
-        Quat::FromTwoVectors(rec.gravity_b, Vec3(0, 0, -1)).toRotationMatrix();
-    R_WC[s] = RotVec(Vec3(0, 0, tilts[s].z())) * R_nominal * RotVec(Vec3(tilts[s].x(), tilts[s].y(), 0));
+    const Mat3 R_nominal = Quat::FromTwoVectors(rec.gravity_b, Vec3(0, 0, -1)).toRotationMatrix();
+    R_WC[s] =
+        RotVec(Vec3(0, 0, tilts[s].z())) * R_nominal * RotVec(Vec3(tilts[s].x(), tilts[s].y(), 0));
     rec.attitude.assign(10, R_WC[s]);
     for (int k = 0; k < kNumLegs; ++k) {
       for (int i = 0; i < 5 * bins; ++i) {
-        const double th = std::remainder((k < 3 ? 1 : -1) * kTwoPi * (i + 0.5 + 17 * s) / bins, kTwoPi);
+        const double th =
+            std::remainder((k < 3 ? 1 : -1) * kTwoPi * (i + 0.5 + 17 * s) / bins, kTwoPi);
         rec.legs[k].t_s.push_back(0.01 * i);
         rec.legs[k].angle_rad.push_back(th);
         rec.legs[k].wrench.push_back(TransducerReading(cal, k, Vec6::Zero(), th, R_WC[s]));
@@ -262,8 +264,8 @@ TEST(Hanging, SensingModelTwinExactOption) {
       const HangSeries series_of[2] = {pr.down_series, pr.up_series};
       for (int d = 0; d < 2; ++d) {
         const Mat3 R_C_ft = cal.X_C_ft(k).R;
-        const Vec3 g_ft = R_C_ft.transpose() * R_WC[static_cast<int>(series_of[d])].transpose() *
-                          Vec3(0, 0, -1);
+        const Vec3 g_ft =
+            R_C_ft.transpose() * R_WC[static_cast<int>(series_of[d])].transpose() * Vec3(0, 0, -1);
         const Eigen::AngleAxisd aa(Quat::FromTwoVectors(axis, (d == 0 ? 1.0 : -1.0) * g_ft));
         s_of[d] = aa.angle() * aa.axis();
       }
@@ -526,7 +528,8 @@ TEST_F(HangingRefuses, PhaseCoverage) {
 TEST_F(HangingRefuses, NonFiniteSample) {
   recs_[0].legs[1].wrench[17](4) = std::numeric_limits<double>::quiet_NaN();
   const std::string msg = Message();
-  EXPECT_NE(msg.find("HANG_X_POS, leg ML: non-finite value in sample 17"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("HANG_X_POS, leg ML: non-finite value in sample 17"), std::string::npos)
+      << msg;
   SetUp();
   recs_[3].legs[0].angle_rad[5] = std::numeric_limits<double>::infinity();
   EXPECT_NE(Message().find("HANG_Z_NEG, leg HL: non-finite value in sample 5"), std::string::npos);
@@ -552,7 +555,8 @@ TEST_F(HangingRefuses, StatedAxisOffTheTransducerAxes) {
   recs_[2].gravity_b = Vec3(0.0, 1.0, 1.0).normalized();
   const std::string msg = Message();
   EXPECT_NE(msg.find("HANG_Z_POS, leg HL: stated gravity in the transducer frame"),
-            std::string::npos) << msg;
+            std::string::npos)
+      << msg;
   EXPECT_NE(msg.find("45 deg from the nearest transducer x or z axis"), std::string::npos) << msg;
 }
 
@@ -560,7 +564,8 @@ TEST_F(HangingRefuses, TwoSeriesOnOneAxis) {
   recs_[1].gravity_b = Vec3::UnitX();  // HANG_X_NEG stated like HANG_X_POS
   const std::string msg = Message();
   EXPECT_NE(msg.find("leg HL: series HANG_X_POS and HANG_X_NEG both have gravity along +x"),
-            std::string::npos) << msg;
+            std::string::npos)
+      << msg;
 }
 
 TEST_F(HangingRefuses, MotionCaptureDisagreesWithStatedAxis) {

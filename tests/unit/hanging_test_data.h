@@ -17,7 +17,9 @@ namespace hanging_testdata {
 
 constexpr double kTwoPi = 2.0 * M_PI;
 
-inline Mat3 Rot(const Vec3& axis, double angle) { return Eigen::AngleAxisd(angle, axis).toRotationMatrix(); }
+inline Mat3 Rot(const Vec3& axis, double angle) {
+  return Eigen::AngleAxisd(angle, axis).toRotationMatrix();
+}
 
 // Rotation by rotation vector v, via Eigen (independent of ftcal::ExpSO3).
 inline Mat3 RotVec(const Vec3& v) {
@@ -42,10 +44,14 @@ inline std::array<Pose3, kNumLegs> NominalPoses() {
 // Stated gravity per series: the body axis of the report's naming (left legs).
 inline Vec3 SeriesGravityB(HangSeries s) {
   switch (s) {
-    case HangSeries::kXPos: return Vec3::UnitX();
-    case HangSeries::kXNeg: return -Vec3::UnitX();
-    case HangSeries::kZPos: return Vec3::UnitZ();
-    case HangSeries::kZNeg: return -Vec3::UnitZ();
+    case HangSeries::kXPos:
+      return Vec3::UnitX();
+    case HangSeries::kXNeg:
+      return -Vec3::UnitX();
+    case HangSeries::kZPos:
+      return Vec3::UnitZ();
+    case HangSeries::kZNeg:
+      return -Vec3::UnitZ();
   }
   return Vec3::Zero();
 }
@@ -84,14 +90,14 @@ inline std::array<LegTruth, kNumLegs> MakeTruth(double s_scale) {
 }
 
 struct Motion {
-  int bins = 200;          // aligned mode: one sample at each bin centre
+  int bins = 200;  // aligned mode: one sample at each bin centre
   bool aligned = true;
   double cycles = 10.0;
   double start_phase = 0.0;
   double samples_per_cycle = 1000.0;  // unaligned mode (100 Hz, 10 s per cycle)
   double angle_quantum_rad = 0.0;
   double f_noise_n = 0.0, tau_noise_nm = 0.0;
-  bool exact = false;      // finite rotations exp([s]) instead of I + [s]
+  bool exact = false;  // finite rotations exp([s]) instead of I + [s]
 };
 
 // Shaft angles of one series, wrapped to (-pi, pi] as a servo reports them.
@@ -116,8 +122,8 @@ inline std::vector<double> Angles(const Motion& m, int direction) {
 
 // Eq. 4-7 written out.
 inline HangingRecording MakeSeries(HangSeries series, const std::array<Pose3, kNumLegs>& X,
-                            const std::array<LegTruth, kNumLegs>& truth, const Motion& m,
-                            std::mt19937* rng) {
+                                   const std::array<LegTruth, kNumLegs>& truth, const Motion& m,
+                                   std::mt19937* rng) {
   HangingRecording rec;
   rec.series = series;
   rec.gravity_b = SeriesGravityB(series);
@@ -150,8 +156,8 @@ inline HangingRecording MakeSeries(HangSeries series, const std::array<Pose3, kN
 }
 
 inline std::vector<HangingRecording> MakeRecordings(const std::array<Pose3, kNumLegs>& X,
-                                             const std::array<LegTruth, kNumLegs>& truth,
-                                             Motion m, std::mt19937* rng) {
+                                                    const std::array<LegTruth, kNumLegs>& truth,
+                                                    Motion m, std::mt19937* rng) {
   std::vector<HangingRecording> recs;
   for (int s = 0; s < kNumHangSeries; ++s) {
     m.start_phase += 0.137;  // each series starts elsewhere in the cycle
@@ -159,7 +165,6 @@ inline std::vector<HangingRecording> MakeRecordings(const std::array<Pose3, kNum
   }
   return recs;
 }
-
 
 }  // namespace hanging_testdata
 }  // namespace ftcal

@@ -48,16 +48,21 @@ TEST(LaunchPlan, GroupConfHasEveryProgramOfTheHostWithItsPolicyAndNoHttpServer) 
   Placeholders v{"/r/config.pbtxt", "/r", config.lcm_url()};
   const std::string robot = GroupConf(config, g, "robot", v, {"ftcal-supervisor-events"});
   EXPECT_NE(robot.find("[program:ati-bridge]\ncommand=ftcal-ati-bridge --config /r/config.pbtxt\n"),
-            std::string::npos) << robot;
+            std::string::npos)
+      << robot;
   EXPECT_NE(robot.find("autostart=false\nautorestart=true\nstartsecs=2\nstartretries=3\n"),
-            std::string::npos) << robot;
-  EXPECT_EQ(robot.find("[program:segmenter]"), std::string::npos) << "segmenter is the workstation's";
+            std::string::npos)
+      << robot;
+  EXPECT_EQ(robot.find("[program:segmenter]"), std::string::npos)
+      << "segmenter is the workstation's";
   EXPECT_NE(robot.find("programs=lcm-logger,ati-bridge,dynamixel-bridge,mocap-bridge\n"),
-            std::string::npos) << robot;
+            std::string::npos)
+      << robot;
   // The LCM URL goes into shlex as one word, and '%' would be supervisor's expansion.
   EXPECT_NE(robot.find("'udpm://239.255.76.67:7667?ttl=1'"), std::string::npos) << robot;
   const std::string sup = SupervisordConf("robot", "/r");
-  EXPECT_NE(sup.find("[unix_http_server]\nfile=/r/supervisor.sock\nchmod=0700\n"), std::string::npos);
+  EXPECT_NE(sup.find("[unix_http_server]\nfile=/r/supervisor.sock\nchmod=0700\n"),
+            std::string::npos);
   EXPECT_EQ(sup.find("\n[inet_http_server]"), std::string::npos) << "no HTTP control server";
 }
 
@@ -70,7 +75,8 @@ TEST(LaunchPlan, ExpandRefusesAnUnknownPlaceholderNamingWhere) {
   } catch (const LaunchError& e) {
     EXPECT_NE(std::string(e.what()).find("launch.group[sim].process[twin].args[1]: '${home}/x': "
                                          "unknown ${home}"),
-              std::string::npos) << e.what();
+              std::string::npos)
+        << e.what();
   }
 }
 

@@ -276,7 +276,8 @@ TEST(Messages, ContactWrenchSumRoundTrip) {
 }
 
 TEST(Messages, Phases) {
-  for (const HangSeries s : {HangSeries::kXPos, HangSeries::kXNeg, HangSeries::kZPos, HangSeries::kZNeg}) {
+  for (const HangSeries s :
+       {HangSeries::kXPos, HangSeries::kXNeg, HangSeries::kZPos, HangSeries::kZNeg}) {
     EXPECT_EQ(HangSeriesOfPhase(PhaseOfHangSeries(s)), s);
   }
   EXPECT_EQ(PhaseOfHangSeries(HangSeries::kZNeg), int{experiment_marker_t::HANG_Z_NEG});
@@ -325,8 +326,8 @@ TEST(Messages, DeviceInputsOverAReplayedLog) {
     write(ch.mocap_body(), ToLcm(mocap, "another body", markers));
     write(ch.mocap_body(), ToLcm(mocap, config.mocap().body_name(), markers));
   }
-  ServiceStats stats(std::make_shared<spdlog::logger>("messages_test",
-                                                      std::make_shared<spdlog::sinks::null_sink_mt>()));
+  ServiceStats stats(std::make_shared<spdlog::logger>(
+      "messages_test", std::make_shared<spdlog::sinks::null_sink_mt>()));
   LogReplayBus bus(in_path, in_path + ".out", stats);
   const DeviceInputs inputs(config);
   EXPECT_EQ(inputs.FtChannel(3), config.channels().ft_prefix() + "HR");

@@ -25,8 +25,9 @@ RobotCalibration Drifted(const RobotCalibration& cal, uint64_t seed) {
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   RobotCalibration out = cal;
   for (LegCalibration& l : out.leg) {
-    l.offset += (Vec6() << 10 * u(rng), 10 * u(rng), 10 * u(rng), 0.3 * u(rng), 0.3 * u(rng),
-                 0.3 * u(rng)).finished();
+    l.offset +=
+        (Vec6() << 10 * u(rng), 10 * u(rng), 10 * u(rng), 0.3 * u(rng), 0.3 * u(rng), 0.3 * u(rng))
+            .finished();
   }
   return out;
 }
@@ -67,8 +68,8 @@ TEST(OffsetReestimation, NoiseFreeStandingAndBothTripodsRecoverEveryOffsetExactl
   const RobotCalibration before = MakeTruth(71, Mounting::kFull);
   const RobotCalibration now = Drifted(before, 72);
   const auto standing = MakePoses(now, GridSubset(40, 73), Noise{0, 0, 0, 0}, false, 74);
-  const auto samples = Concat(TripodSamples(now, kTripodA, 5, 0, 0, 75),
-                              TripodSamples(now, kTripodB, 5, 0, 0, 76));
+  const auto samples =
+      Concat(TripodSamples(now, kTripodA, 5, 0, 0, 75), TripodSamples(now, kTripodB, 5, 0, 0, 76));
   const OffsetReestimate r = ReestimateOffsets(before, standing, samples, {});
   EXPECT_EQ(r.rank, 36);
   EXPECT_TRUE(r.undetermined.empty());
@@ -97,8 +98,10 @@ TEST(OffsetReestimation, NoisyDataRecoverOffsetsWithConsistentSigma) {
       drift = std::max(drift, std::abs(now.leg[k].offset[i] - before.leg[k].offset[i]));
     }
   }
-  std::printf("drift up to %.2f; error after re-estimation: force %.4f N, torque %.5f N*m, "
-              "worst |error|/sigma %.2f\n", drift, worst_f, worst_t, worst_z);
+  std::printf(
+      "drift up to %.2f; error after re-estimation: force %.4f N, torque %.5f N*m, "
+      "worst |error|/sigma %.2f\n",
+      drift, worst_f, worst_t, worst_z);
   EXPECT_LT(worst_f, 0.03);
   EXPECT_LT(worst_t, 0.002);
   EXPECT_LT(worst_z, 5.0);
@@ -150,8 +153,8 @@ TEST(OffsetReestimation, ReturnsOnlyTheDeterminedComponentsWhenAsked) {
 
 TEST(OffsetReestimation, StandingAloneDeterminesNoSingleOffset) {
   const RobotCalibration before = MakeTruth(111, Mounting::kFull);
-  const auto standing = MakePoses(Drifted(before, 112), GridSubset(40, 113), Noise{0, 0, 0, 0},
-                                  false, 114);
+  const auto standing =
+      MakePoses(Drifted(before, 112), GridSubset(40, 113), Noise{0, 0, 0, 0}, false, 114);
   OffsetReestimationOptions options;
   options.require_all = false;
   const OffsetReestimate r = ReestimateOffsets(before, standing, {}, options);

@@ -108,9 +108,10 @@ void ExpectRotationsWithinBoundButCommonYaw(const StandingFit& fit, const RobotC
     tilt = std::max(tilt, e.head<2>().norm());
     differential = std::max(differential, (e - Vec3(0, 0, common.z())).norm());
   }
-  std::printf("recovery: %s: rotation error about x,y max %.3f deg; relative to the common yaw "
-              "max %.3f deg (bound 0.15); common yaw %.3f deg = %.1f reported sigma (%.3f deg)\n",
-              name.c_str(), tilt, differential, common.z(), common.z() / sigma_z, sigma_z);
+  std::printf(
+      "recovery: %s: rotation error about x,y max %.3f deg; relative to the common yaw "
+      "max %.3f deg (bound 0.15); common yaw %.3f deg = %.1f reported sigma (%.3f deg)\n",
+      name.c_str(), tilt, differential, common.z(), common.z() / sigma_z, sigma_z);
   EXPECT_LT(tilt, 0.15) << name;
   EXPECT_LT(differential, 0.15) << name;
   EXPECT_LT(std::abs(common.z()), 3.0 * sigma_z) << name;
@@ -176,14 +177,15 @@ void CheckMountingParametersAgainstTheTruth() {
           "recovery: %s: leg %d rotation error (%.3f %.3f %.3f) deg, sigma (%.3f %.3f %.3f); "
           "p~' error (%.3f %.3f %.3f) mm, sigma (%.3f %.3f %.3f)\n",
           name, k, e.x(), e.y(), e.z(), fit.sigma_rotation_deg[k].x(),
-          fit.sigma_rotation_deg[k].y(), fit.sigma_rotation_deg[k].z(), ep.x() * 1e3,
-          ep.y() * 1e3, ep.z() * 1e3, fit.sigma_p_tilde_prime_m[k].x() * 1e3,
+          fit.sigma_rotation_deg[k].y(), fit.sigma_rotation_deg[k].z(), ep.x() * 1e3, ep.y() * 1e3,
+          ep.z() * 1e3, fit.sigma_p_tilde_prime_m[k].x() * 1e3,
           fit.sigma_p_tilde_prime_m[k].y() * 1e3, fit.sigma_p_tilde_prime_m[k].z() * 1e3);
     }
-    std::printf("recovery: %s: common rotation error of the six R~ (%.3f %.3f %.3f) deg, mean "
-                "per-leg sigma (%.3f %.3f %.3f) deg\n",
-                name, common.x(), common.y(), common.z(), common_sigma.x(), common_sigma.y(),
-                common_sigma.z());
+    std::printf(
+        "recovery: %s: common rotation error of the six R~ (%.3f %.3f %.3f) deg, mean "
+        "per-leg sigma (%.3f %.3f %.3f) deg\n",
+        name, common.x(), common.y(), common.z(), common_sigma.x(), common_sigma.y(),
+        common_sigma.z());
     std::printf("recovery: %s: mounting rotation max error %.3f deg (bound 0.15)\n", name, rot);
     std::printf("recovery: %s: p~' max error %.3f mm (bound 0.5)\n", name, pp * 1e3);
     EXPECT_LT(pp, 0.5e-3) << name;
@@ -212,20 +214,22 @@ void CheckResidualAtTheNoiseFloorAndBaselinesWorse() {
   const double exact = Rms(DefaultFtcal().standing.residual_full, k);
   const double without = Rms(DefaultFtcal().standing.residual_without, k);
   const double naive = Rms(s.run.standing.residual_naive, k);
-  std::printf("recovery: %zu poses; K-weighted rms total-wrench residual: true parameters %.4f; "
-              "full calibration: ftcal %.4f (ratio %.3f, bound 1.2), first-order "
-              "%.4f (ratio %.3f); step 1 only %.4f (ratio %.1f); naive tare %.4f (ratio %.1f)\n",
-              s.poses.size(), truth_rms, exact, exact / truth_rms, first, first / truth_rms,
-              without, without / truth_rms, naive, naive / truth_rms);
+  std::printf(
+      "recovery: %zu poses; K-weighted rms total-wrench residual: true parameters %.4f; "
+      "full calibration: ftcal %.4f (ratio %.3f, bound 1.2), first-order "
+      "%.4f (ratio %.3f); step 1 only %.4f (ratio %.1f); naive tare %.4f (ratio %.1f)\n",
+      s.poses.size(), truth_rms, exact, exact / truth_rms, first, first / truth_rms, without,
+      without / truth_rms, naive, naive / truth_rms);
   // Per component (K-weighted): the mocap attitude noise lands in fx, fy only (why the
   // covariance takes each component's residual variance; see the common yaw).
   const calibration::ResidualStats stats =
       ResidualStatsOf("full", DefaultFtcal().standing.residual_full);
-  std::printf("recovery: ftcal: sqrt(K) * rms residual per component [fx fy fz tx ty "
-              "tz]: %.4f %.4f %.4f %.4f %.4f %.4f\n",
-              std::sqrt(k[0]) * stats.rms(0), std::sqrt(k[1]) * stats.rms(1),
-              std::sqrt(k[2]) * stats.rms(2), std::sqrt(k[3]) * stats.rms(3),
-              std::sqrt(k[4]) * stats.rms(4), std::sqrt(k[5]) * stats.rms(5));
+  std::printf(
+      "recovery: ftcal: sqrt(K) * rms residual per component [fx fy fz tx ty "
+      "tz]: %.4f %.4f %.4f %.4f %.4f %.4f\n",
+      std::sqrt(k[0]) * stats.rms(0), std::sqrt(k[1]) * stats.rms(1),
+      std::sqrt(k[2]) * stats.rms(2), std::sqrt(k[3]) * stats.rms(3),
+      std::sqrt(k[4]) * stats.rms(4), std::sqrt(k[5]) * stats.rms(5));
   EXPECT_LE(exact, 1.2 * truth_rms);
   // The first-order weights miss sum_k m_k g by ~0.1 N in total: above the floor, but far
   // below the baselines.
@@ -262,10 +266,11 @@ void CheckCoMOffsetFromModelTwo() {
   const StandingFit& fit = s.run.standing.fits[1];
   ASSERT_EQ(fit.model, StandingModel::kRotationsOneTranslation);
   const Vec3 e = fit.p_C_B - s.twin->Truth().p_C_B;
-  std::printf("recovery: p^C_B (model 2) error (%.3f %.3f %.3f) mm, |e| %.3f mm (bound 1.5), "
-              "sigma (%.3f %.3f %.3f) mm\n",
-              e.x() * 1e3, e.y() * 1e3, e.z() * 1e3, e.norm() * 1e3, fit.sigma_p_C_B_m.x() * 1e3,
-              fit.sigma_p_C_B_m.y() * 1e3, fit.sigma_p_C_B_m.z() * 1e3);
+  std::printf(
+      "recovery: p^C_B (model 2) error (%.3f %.3f %.3f) mm, |e| %.3f mm (bound 1.5), "
+      "sigma (%.3f %.3f %.3f) mm\n",
+      e.x() * 1e3, e.y() * 1e3, e.z() * 1e3, e.norm() * 1e3, fit.sigma_p_C_B_m.x() * 1e3,
+      fit.sigma_p_C_B_m.y() * 1e3, fit.sigma_p_C_B_m.z() * 1e3);
   EXPECT_LT(e.norm(), 1.5e-3);
 }
 
@@ -279,9 +284,10 @@ void CheckAlternatingSchemeAgainstTheJointOptimum() {
     rot = std::max(rot, RotationErrorDeg(alt.R_tilde[k], joint.R_tilde[k]).norm());
     pp = std::max(pp, (alt.p_tilde_prime[k] - joint.p_tilde_prime[k]).norm());
   }
-  std::printf("recovery: alternating scheme: %d sweeps, rss %.4f vs joint %.4f; distance from "
-              "the joint optimum: rotations %.3f deg, p~' %.3f mm (max over legs)\n",
-              alt.iterations, alt.rss, joint.rss, rot, pp * 1e3);
+  std::printf(
+      "recovery: alternating scheme: %d sweeps, rss %.4f vs joint %.4f; distance from "
+      "the joint optimum: rotations %.3f deg, p~' %.3f mm (max over legs)\n",
+      alt.iterations, alt.rss, joint.rss, rot, pp * 1e3);
   // The joint solve is the optimum of the same cost.
   EXPECT_GE(alt.rss, joint.rss * (1.0 - 1e-9));
 }
@@ -295,17 +301,18 @@ void CheckExactHangingRotationsRemoveTheWeightBias() {
     const double t = truth.leg[k].weight_n;
     const double e1 = first.calibration.leg[k].weight_n - t;
     const double e2 = exact.calibration.leg[k].weight_n - t;
-    std::printf("recovery: leg %d m g %.4f N: first-order error %+.4f N (%+.3f%%), exact %+.4f N "
-                "(%+.3f%%), sigma %.4f N\n",
-                k, t, e1, 100 * e1 / t, e2, 100 * e2 / t,
-                exact.hanging.leg[k].with_s.weight_n.sigma);
+    std::printf(
+        "recovery: leg %d m g %.4f N: first-order error %+.4f N (%+.3f%%), exact %+.4f N "
+        "(%+.3f%%), sigma %.4f N\n",
+        k, t, e1, 100 * e1 / t, e2, 100 * e2 / t, exact.hanging.leg[k].with_s.weight_n.sigma);
     mean_first += e1 / t / kNumLegs;
     mean_exact += e2 / t / kNumLegs;
     max_exact = std::max(max_exact, std::abs(e2));
   }
-  std::printf("recovery: mean relative m g error: first-order %+.3f%%, exact %+.3f%%; exact max "
-              "|error| %.4f N (bound 0.015)\n",
-              100 * mean_first, 100 * mean_exact, max_exact);
+  std::printf(
+      "recovery: mean relative m g error: first-order %+.3f%%, exact %+.3f%%; exact max "
+      "|error| %.4f N (bound 0.015)\n",
+      100 * mean_first, 100 * mean_exact, max_exact);
   EXPECT_LT(mean_first, -0.0005);
   EXPECT_GT(mean_first, -0.003);
   EXPECT_LT(std::abs(mean_exact), 0.1 * std::abs(mean_first));
@@ -337,14 +344,15 @@ void CheckLegAwareComRemovesTheBiasOfAMovingCoM() {
     const StandingFit fit = FitStandingJoint(step1, poses, StandingModel::kFull, options);
     if (aware) aware_fit = fit;
     for (int k = 0; k < kNumLegs; ++k) {
-      rot[aware] = std::max(
-          rot[aware], RotationErrorDeg(fit.R_tilde[k], twin.Truth().leg[k].R_tilde).norm());
-      pp[aware] = std::max(pp[aware],
-                           (fit.p_tilde_prime[k] - twin.Truth().leg[k].p_tilde_prime).norm());
+      rot[aware] = std::max(rot[aware],
+                            RotationErrorDeg(fit.R_tilde[k], twin.Truth().leg[k].R_tilde).norm());
+      pp[aware] =
+          std::max(pp[aware], (fit.p_tilde_prime[k] - twin.Truth().leg[k].p_tilde_prime).norm());
     }
-    std::printf("recovery: physical CoM, %s target: rotation max error %.3f deg, p~' max error "
-                "%.3f mm (bounds 0.15 deg, 0.5 mm)\n",
-                aware ? "leg-aware" : "fixed-CoM (report)", rot[aware], pp[aware] * 1e3);
+    std::printf(
+        "recovery: physical CoM, %s target: rotation max error %.3f deg, p~' max error "
+        "%.3f mm (bounds 0.15 deg, 0.5 mm)\n",
+        aware ? "leg-aware" : "fixed-CoM (report)", rot[aware], pp[aware] * 1e3);
   }
   EXPECT_GT(pp[0], 0.5e-3);
   EXPECT_LT(pp[1], 0.5e-3);
@@ -452,10 +460,11 @@ void ExpectRecovered(const CalibrationRun& run, const RobotCalibration& truth,
     rot = std::max(rot, RotationErrorDeg(e.R_tilde, t.R_tilde).norm());
     pp = std::max(pp, (e.p_tilde_prime - t.p_tilde_prime).norm());
   }
-  std::printf("recovery: %s: max errors: m g %.4f N (bound 0.015), force offset %.4f N (0.02), "
-              "torque offset %.5f N*m (0.001), CoM curve %.3f mm (0.2), R~ %.3f deg (0.15), "
-              "p~' %.3f mm (0.5)\n",
-              name.c_str(), weight, force, torque, com * 1e3, rot, pp * 1e3);
+  std::printf(
+      "recovery: %s: max errors: m g %.4f N (bound 0.015), force offset %.4f N (0.02), "
+      "torque offset %.5f N*m (0.001), CoM curve %.3f mm (0.2), R~ %.3f deg (0.15), "
+      "p~' %.3f mm (0.5)\n",
+      name.c_str(), weight, force, torque, com * 1e3, rot, pp * 1e3);
   EXPECT_LT(weight, 0.015) << name;
   EXPECT_LT(force, 0.02) << name;
   EXPECT_LT(torque, 0.001) << name;
@@ -474,10 +483,11 @@ void PrintModelSelection(const CalibrationRun& run, const std::string& name) {
                 CandidateName(row.model, row.leg_aware_com).c_str(), row.dof, row.cv_mse, row.rss,
                 row.bic, row.selected ? " (selected)" : "");
   }
-  std::printf("recovery: %s: selected by a BIC margin of %.1f over %s; %.1f over the other "
-              "robot-CoM model\n",
-              name.c_str(), run.proto.solver().bic_margin(), run.proto.solver().runner_up().c_str(),
-              run.proto.solver().com_bic_margin());
+  std::printf(
+      "recovery: %s: selected by a BIC margin of %.1f over %s; %.1f over the other "
+      "robot-CoM model\n",
+      name.c_str(), run.proto.solver().bic_margin(), run.proto.solver().runner_up().c_str(),
+      run.proto.solver().com_bic_margin());
 }
 
 // The default as shipped picks the robot-CoM model each twin was made with, and recovers the
@@ -502,12 +512,13 @@ void CheckDefaultOnTheLegAwareTwin() {
   // The noise floor: the right model's residual is at it; the report's fixed C is well above.
   const StandingResult& st = s.run.standing;
   ASSERT_EQ(st.poses_with_scatter, st.poses);
-  const double wrong = std::sqrt(st.FitOf(StandingModel::kFull, false).residual_variance /
-                                 st.floor_variance);
-  std::printf("recovery: leg-aware twin: residual / noise floor %.2f (leg-aware CoM, selected), "
-              "%.2f (fixed CoM); floor rms [fx fy fz tx ty tz] %.4f %.4f %.4f %.5f %.5f %.5f\n",
-              st.residual_to_floor, wrong, st.floor_rms[0], st.floor_rms[1], st.floor_rms[2],
-              st.floor_rms[3], st.floor_rms[4], st.floor_rms[5]);
+  const double wrong =
+      std::sqrt(st.FitOf(StandingModel::kFull, false).residual_variance / st.floor_variance);
+  std::printf(
+      "recovery: leg-aware twin: residual / noise floor %.2f (leg-aware CoM, selected), "
+      "%.2f (fixed CoM); floor rms [fx fy fz tx ty tz] %.4f %.4f %.4f %.5f %.5f %.5f\n",
+      st.residual_to_floor, wrong, st.floor_rms[0], st.floor_rms[1], st.floor_rms[2],
+      st.floor_rms[3], st.floor_rms[4], st.floor_rms[5]);
   EXPECT_LT(st.residual_to_floor, s.run.proto.noise_floor().warn_factor());
   EXPECT_FALSE(s.run.proto.noise_floor().above_floor());
   EXPECT_GT(wrong, 2.0 * st.residual_to_floor);
@@ -559,9 +570,10 @@ void CheckMassMismatchIsCaught() {
 
   const CalibrationRun right = Calibrate(hanging, poses, truth_config);
   const calibration::MassCheck& ok = right.proto.mass_check();
-  std::printf("recovery: mass check, right config: configured %.4f kg, implied %.4f +- %.4f kg, "
-              "allowed %.4f kg\n",
-              ok.configured_kg(), ok.implied_kg(), ok.sigma_kg(), ok.allowed_kg());
+  std::printf(
+      "recovery: mass check, right config: configured %.4f kg, implied %.4f +- %.4f kg, "
+      "allowed %.4f kg\n",
+      ok.configured_kg(), ok.implied_kg(), ok.sigma_kg(), ok.allowed_kg());
   EXPECT_TRUE(ok.consistent());
   EXPECT_NEAR(ok.implied_kg(), true_kg, ok.allowed_kg());
 
@@ -604,9 +616,10 @@ void CheckSaturatedSamplesAreExcluded() {
   const CalibrationRun run = Calibrate(hanging, s.poses, FtcalConfig());
   const double com = MaxComCurveError(run.calibration.leg[kLeg].com, truth.leg[kLeg].com);
   const double weight = std::abs(run.calibration.leg[kLeg].weight_n - truth.leg[kLeg].weight_n);
-  std::printf("recovery: 1 s of 300 N in HANG_X_POS leg FL: %u samples left out; CoM curve max "
-              "error %.3f mm (bound 0.2), m g error %.4f N (bound 0.015)\n",
-              run.proto.leg(kLeg).saturated_samples(), com * 1e3, weight);
+  std::printf(
+      "recovery: 1 s of 300 N in HANG_X_POS leg FL: %u samples left out; CoM curve max "
+      "error %.3f mm (bound 0.2), m g error %.4f N (bound 0.015)\n",
+      run.proto.leg(kLeg).saturated_samples(), com * 1e3, weight);
   EXPECT_EQ(run.proto.leg(kLeg).saturated_samples(), 100u);
   EXPECT_EQ(run.proto.leg(0).saturated_samples(), 0u);
   EXPECT_LT(com, 0.2e-3);
@@ -627,8 +640,9 @@ void CheckSaturatedSamplesAreExcluded() {
 
 // The data checks the config's leg map: two legs' servo ids swapped in the Dynamixel bridge's
 // config give each of them the other's shaft angles (the bridge names each servo's leg by its
-// id); two transducer addresses swapped in the ATI bridge's give each the other's readings. Both are refused naming the legs, unless
-// accepted; with the config right every transducer follows its own shaft.
+// id); two transducer addresses swapped in the ATI bridge's give each the other's readings. Both
+// are refused naming the legs, unless accepted; with the config right every transducer follows its
+// own shaft.
 void CheckLegMapMismatchIsCaught() {
   const Small& s = SmallScenario();
   const CalibrationRun right = Calibrate(s.hanging, s.poses, FtcalConfig());
@@ -642,9 +656,10 @@ void CheckLegMapMismatchIsCaught() {
       if (j != k) other = std::min(other, ok.rms_nm(kNumLegs * k + j));
     }
     const double own = ok.rms_nm(kNumLegs * k + k);
-    std::printf("recovery: leg map, right config: %s own shaft rms %.4f N m, best other %.4f N m "
-                "(%.0f times worse)\n",
-                std::string(kLegNames[k]).c_str(), own, other, other / own);
+    std::printf(
+        "recovery: leg map, right config: %s own shaft rms %.4f N m, best other %.4f N m "
+        "(%.0f times worse)\n",
+        std::string(kLegNames[k]).c_str(), own, other, other / own);
     EXPECT_LT(own * LegMapResult::kRatioLimit, other) << kLegNames[k];
   }
 
@@ -683,12 +698,12 @@ void CheckLegMapMismatchIsCaught() {
 // One test per twin scenario: ctest runs every test in its own process, and the scenarios (twin
 // data and calibration) are the cost.
 TEST(Recovery, DefaultTwin) {
-  for (void (*check)() : {CheckStep1ParametersAgainstTheTruth, CheckMountingParametersAgainstTheTruth,
-                          CheckResidualAtTheNoiseFloorAndBaselinesWorse,
-                          CheckModelSelectionPicksFullWithMountingErrors,
-                          CheckAlternatingSchemeAgainstTheJointOptimum,
-                          CheckExactHangingRotationsRemoveTheWeightBias,
-                          CheckCalibrationFileIsComplete, CheckDegenerateInputNamesTheStage}) {
+  for (void (*check)() :
+       {CheckStep1ParametersAgainstTheTruth, CheckMountingParametersAgainstTheTruth,
+        CheckResidualAtTheNoiseFloorAndBaselinesWorse,
+        CheckModelSelectionPicksFullWithMountingErrors,
+        CheckAlternatingSchemeAgainstTheJointOptimum, CheckExactHangingRotationsRemoveTheWeightBias,
+        CheckCalibrationFileIsComplete, CheckDegenerateInputNamesTheStage}) {
     check();
   }
 }

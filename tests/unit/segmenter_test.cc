@@ -41,8 +41,8 @@ TEST(SavitzkyGolay, RejectsBadWindow) {
 // oscillation after each change, 0.05 N noise, at 100 Hz.
 struct Plateau {
   double duration_s;
-  double level;          // force level added to every leg's fz
-  bool marker_dropout;   // one sample with a marker missing in the middle
+  double level;         // force level added to every leg's fz
+  bool marker_dropout;  // one sample with a marker missing in the middle
 };
 
 std::vector<SyncSample> MakeSession(const std::vector<Plateau>& plateaus, unsigned seed) {
@@ -89,10 +89,11 @@ std::vector<SyncSample> MakeSession(const std::vector<Plateau>& plateaus, unsign
 }
 
 TEST(PoseSegmenter, FindsEachSteadyPlateauWithItsMedian) {
-  const std::vector<Plateau> plateaus = {
-      {5.0, 10.0, false}, {5.0, 14.0, false}, {1.0, 18.0, false},  // too short
-      {5.0, 12.0, true},                                           // marker dropout
-      {5.0, 9.0, false}};
+  const std::vector<Plateau> plateaus = {{5.0, 10.0, false},
+                                         {5.0, 14.0, false},
+                                         {1.0, 18.0, false},  // too short
+                                         {5.0, 12.0, true},   // marker dropout
+                                         {5.0, 9.0, false}};
   const std::vector<SyncSample> session = MakeSession(plateaus, 7);
   std::vector<SteadyPoseOut> poses;
   PoseSegmenter seg(SegmenterOptions{}, [&](const SteadyPoseOut& p) { poses.push_back(p); });

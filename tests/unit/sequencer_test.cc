@@ -209,10 +209,11 @@ TEST(Expand, BigAntsReportPlanIsTheReportsExperiment) {
       EXPECT_DOUBLE_EQ(st.duration_s, 120.0);
     }
   }
-  EXPECT_EQ(phases, (std::vector<int8_t>{experiment_marker_t::TARE, +experiment_marker_t::HANG_X_POS,
-                                         experiment_marker_t::HANG_X_NEG, experiment_marker_t::HANG_Z_POS,
-                                         experiment_marker_t::HANG_Z_NEG, experiment_marker_t::STANDING,
-                                         experiment_marker_t::TRIPOD, experiment_marker_t::WALKING}));
+  EXPECT_EQ(phases,
+            (std::vector<int8_t>{experiment_marker_t::TARE, +experiment_marker_t::HANG_X_POS,
+                                 experiment_marker_t::HANG_X_NEG, experiment_marker_t::HANG_Z_POS,
+                                 experiment_marker_t::HANG_Z_NEG, experiment_marker_t::STANDING,
+                                 experiment_marker_t::TRIPOD, experiment_marker_t::WALKING}));
   EXPECT_EQ(standing_holds, 729);
   EXPECT_EQ(turns, 4);
   EXPECT_EQ(tripod_lifts, 20);
@@ -262,7 +263,8 @@ TEST(PlanConfig, BadPhasesAndLimitsAreRefusedWithTheFieldNamed) {
   EXPECT_NE(e.find("plan[2].phase[0].orientation: a hanging phase needs"), std::string::npos) << e;
   e = error_of("plan { name: \"short\" phase { kind: PHASE_TARE } }");
   EXPECT_NE(e.find("plan[2].name: duplicate plan name 'short'"), std::string::npos) << e;
-  e = error_of("plan { name: \"g\" phase { kind: PHASE_STANDING_GRID grid_angles_deg: [0, 120] } }");
+  e = error_of(
+      "plan { name: \"g\" phase { kind: PHASE_STANDING_GRID grid_angles_deg: [0, 120] } }");
   EXPECT_NE(e.find("plan[2].phase[0].grid_angles_deg[1]: a standing angle must be within +-90 deg"),
             std::string::npos)
       << e;
@@ -366,7 +368,8 @@ TEST_F(SafetyTest, StaleOverRangeSaturatedAndFailedBridgeAreNamed) {
   EXPECT_NE(over->find("FT_MR is flagged saturated"), std::string::npos) << *over;
   in.ft[4]->flags = 0;
 
-  in.status["ftcal-ati-bridge"] = StatusReading{10'000'000, service_status_t::DEGRADED, "box 3 refuses"};
+  in.status["ftcal-ati-bridge"] =
+      StatusReading{10'000'000, service_status_t::DEGRADED, "box 3 refuses"};
   auto failed = safety.Stale(in, 10'000'000, false);
   ASSERT_TRUE(failed.has_value());
   EXPECT_NE(failed->find("ftcal-ati-bridge reports state 2 (box 3 refuses)"), std::string::npos)
@@ -550,8 +553,8 @@ class Robot {
   BigAntTwin twin_;
   BigAntTwin::Driven driven_;
   static std::shared_ptr<spdlog::logger> QuietBridgeLog() {
-    static auto log = std::make_shared<spdlog::logger>(
-        "bridge", std::make_shared<spdlog::sinks::null_sink_mt>());
+    static auto log =
+        std::make_shared<spdlog::logger>("bridge", std::make_shared<spdlog::sinks::null_sink_mt>());
     return log;
   }
   ServiceStats bridge_stats_;
@@ -567,8 +570,8 @@ class Robot {
 };
 
 std::shared_ptr<spdlog::logger> QuietLog() {
-  static auto log = std::make_shared<spdlog::logger>("sequencer_test",
-                                                     std::make_shared<spdlog::sinks::null_sink_mt>());
+  static auto log = std::make_shared<spdlog::logger>(
+      "sequencer_test", std::make_shared<spdlog::sinks::null_sink_mt>());
   return log;
 }
 
@@ -614,8 +617,8 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID pose_stride: 100 dwell_s: 
 )";
 
 std::string TempPath(const std::string& name) {
-  return (std::filesystem::temp_directory_path() /
-          (name + "." + std::to_string(::getpid()))).string();
+  return (std::filesystem::temp_directory_path() / (name + "." + std::to_string(::getpid())))
+      .string();
 }
 
 TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
@@ -657,7 +660,8 @@ TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
     for (int k = 0; k < kNumLegs; ++k) a[k] = cmd.goal_angle_rad[k];
     if (last && p.utime > last->first) {
       for (int k = 0; k < kNumLegs; ++k) {
-        fastest = std::max(fastest, std::abs(a[k] - last->second[k]) / ((p.utime - last->first) * 1e-6));
+        fastest =
+            std::max(fastest, std::abs(a[k] - last->second[k]) / ((p.utime - last->first) * 1e-6));
       }
     }
     last = {p.utime, a};
@@ -700,7 +704,8 @@ TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThat
     }
     return servo_command_t{};
   }();
-  for (int k = 0; k < kNumLegs; ++k) EXPECT_DOUBLE_EQ(last_cmd.goal_angle_rad[k], robot.angles()[k]);
+  for (int k = 0; k < kNumLegs; ++k)
+    EXPECT_DOUBLE_EQ(last_cmd.goal_angle_rad[k], robot.angles()[k]);
   EXPECT_TRUE(last_cmd.torque_enable);
   const Markers m = MarkersOf(bus);
   ASSERT_EQ(m.all.size(), 2u);
@@ -742,8 +747,9 @@ plan { name: "hang" phase { kind: PHASE_HANG orientation: HANG_X_POS cycles: 1 c
   Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"hang", true, "", "s3"});
   robot.Run(seq, 5.0);
   ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
-  EXPECT_NE(seq.stop_reason().find("PHASE_HANG HANG_X_POS cannot start: the robot is not in the air"),
-            std::string::npos)
+  EXPECT_NE(
+      seq.stop_reason().find("PHASE_HANG HANG_X_POS cannot start: the robot is not in the air"),
+      std::string::npos)
       << seq.stop_reason();
   EXPECT_TRUE(MarkersOf(bus).all.empty());
   for (int k = 0; k < kNumLegs; ++k) EXPECT_NEAR(robot.angles()[k], 0.0, 1e-9);

@@ -136,14 +136,15 @@ Expected MakeExpected(const BigAntTwin& twin, const ExperimentPlan& plan) {
   };
   add(ExperimentPhase::kTare, [&](const RunOptions& r) { return twin.Tare(r, sink); });
   for (int s = 0; s < kNumHangSeries; ++s) {
-    add(static_cast<ExperimentPhase>(1 + s), [&](const RunOptions& r) {
-      return twin.Hanging(static_cast<HangSeries>(s), r, sink);
-    });
+    add(static_cast<ExperimentPhase>(1 + s),
+        [&](const RunOptions& r) { return twin.Hanging(static_cast<HangSeries>(s), r, sink); });
   }
-  add(ExperimentPhase::kStanding, [&](const RunOptions& r) { return twin.Standing(plan.poses, r, sink); });
+  add(ExperimentPhase::kStanding,
+      [&](const RunOptions& r) { return twin.Standing(plan.poses, r, sink); });
   add(ExperimentPhase::kTripod,
       [&](const RunOptions& r) { return twin.TripodStances(plan.tripod_stances, r, sink); });
-  add(ExperimentPhase::kWalking, [&](const RunOptions& r) { return twin.TripodWalk(plan.walk_s, r, sink); });
+  add(ExperimentPhase::kWalking,
+      [&](const RunOptions& r) { return twin.TripodWalk(plan.walk_s, r, sink); });
   return x;
 }
 
@@ -193,7 +194,8 @@ TEST_F(SimLogTest, EveryEventDecodesAndTimeNeverGoesBack) {
   EXPECT_EQ(log_->undecodable, 0);
   ASSERT_FALSE(log_->timestamp.empty());
   for (size_t i = 1; i < log_->timestamp.size(); ++i) {
-    ASSERT_GE(log_->timestamp[i], log_->timestamp[i - 1]) << "event " << i << " on " << log_->channel[i];
+    ASSERT_GE(log_->timestamp[i], log_->timestamp[i - 1])
+        << "event " << i << " on " << log_->channel[i];
   }
   EXPECT_EQ(static_cast<int64_t>(log_->timestamp.size()), counts_.Total());
 }
@@ -218,7 +220,8 @@ TEST_F(SimLogTest, FtSamplesAreTheTwinReadingsWithDeviceCounters) {
       ASSERT_EQ(m.leg, kLegNames[k]);
       ASSERT_EQ(m.rdt_sequence, static_cast<int64_t>(i) + 1);
       if (i > 0) {
-        ASSERT_EQ((m.ft_sequence - ft[i - 1].ft_sequence + (int64_t{1} << 32)) % (int64_t{1} << 32), 70);
+        ASSERT_EQ((m.ft_sequence - ft[i - 1].ft_sequence + (int64_t{1} << 32)) % (int64_t{1} << 32),
+                  70);
       }
       ASSERT_GE(m.ft_sequence, 0);
       ASSERT_LT(m.ft_sequence, int64_t{1} << 32);
@@ -325,9 +328,9 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
   const auto& frames = expected_->frames;
   ASSERT_EQ(log_->markers.size(), 2 * phases.size());
   const std::vector<ExperimentPhase> order = {
-      ExperimentPhase::kTare, ExperimentPhase::kHangXPos, ExperimentPhase::kHangXNeg, ExperimentPhase::kHangZPos,
-      ExperimentPhase::kHangZNeg, ExperimentPhase::kStanding, ExperimentPhase::kTripod,
-      ExperimentPhase::kWalking};
+      ExperimentPhase::kTare,     ExperimentPhase::kHangXPos, ExperimentPhase::kHangXNeg,
+      ExperimentPhase::kHangZPos, ExperimentPhase::kHangZNeg, ExperimentPhase::kStanding,
+      ExperimentPhase::kTripod,   ExperimentPhase::kWalking};
   ASSERT_EQ(phases.size(), order.size());
   for (size_t p = 0; p < phases.size(); ++p) {
     const experiment_marker_t& start = log_->markers[2 * p];
@@ -361,9 +364,9 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
     const double span_s = (last.t_s - first.t_s);
     const double rate = static_cast<double>(phases[p].end - phases[p].first - 1) / span_s;
     EXPECT_NEAR(rate, 100.0, 1e-6) << p;
-    const double host_rate =
-        static_cast<double>(phases[p].end - phases[p].first - 1) /
-        (1e-6 * static_cast<double>(log_->ft[0][phases[p].end - 1].utime - log_->ft[0][phases[p].first].utime));
+    const double host_rate = static_cast<double>(phases[p].end - phases[p].first - 1) /
+                             (1e-6 * static_cast<double>(log_->ft[0][phases[p].end - 1].utime -
+                                                         log_->ft[0][phases[p].first].utime));
     EXPECT_NEAR(host_rate, 100.0, 1.0) << p;
   }
 }

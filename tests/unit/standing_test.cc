@@ -31,18 +31,21 @@ Errors MaxErrors(const StandingFit& fit, const RobotCalibration& truth) {
   Errors e;
   for (int k = 0; k < kNumLegs; ++k) {
     e.rot_deg = std::max(e.rot_deg, RotationErrorDeg(fit.R_tilde[k], truth.leg[k].R_tilde));
-    e.p_prime_m =
-        std::max(e.p_prime_m, (fit.p_tilde_prime[k] - truth.leg[k].p_tilde_prime).norm());
+    e.p_prime_m = std::max(e.p_prime_m, (fit.p_tilde_prime[k] - truth.leg[k].p_tilde_prime).norm());
   }
   return e;
 }
 
 Mounting TruthFor(StandingModel m) {
   switch (m) {
-    case StandingModel::kFull: return Mounting::kFull;
-    case StandingModel::kRotationsOneTranslation: return Mounting::kRotationsOnly;
-    case StandingModel::kTranslationsOnly: return Mounting::kTranslationsOnly;
-    case StandingModel::kOneTranslation: return Mounting::kNone;
+    case StandingModel::kFull:
+      return Mounting::kFull;
+    case StandingModel::kRotationsOneTranslation:
+      return Mounting::kRotationsOnly;
+    case StandingModel::kTranslationsOnly:
+      return Mounting::kTranslationsOnly;
+    case StandingModel::kOneTranslation:
+      return Mounting::kNone;
   }
   return Mounting::kFull;
 }
@@ -80,7 +83,8 @@ TEST(Standing, PoseCostJacobianPassesGradientChecker) {
           for (int i = 0; i < 3; ++i) rot[3 * k + i] = 0.05 * u(rng);
         } else {
           const Quat q(ExpSO3(0.1 * Vec3(u(rng), u(rng), u(rng))));
-          rot[4 * k] = q.x(), rot[4 * k + 1] = q.y(), rot[4 * k + 2] = q.z(), rot[4 * k + 3] = q.w();
+          rot[4 * k] = q.x(), rot[4 * k + 1] = q.y(), rot[4 * k + 2] = q.z(),
+                  rot[4 * k + 3] = q.w();
         }
       }
       for (double& t : trans) t = 0.01 * u(rng);
@@ -117,8 +121,8 @@ class NoisyGrid : public ::testing::Test {
   static void SetUpTestSuite() {
     truth_ = new RobotCalibration(MakeTruth(21, Mounting::kFull));
     poses_ = new std::vector<StandingPose>(MakePoses(*truth_, Grid(), kReportNoise, false, 22));
-    result_ = new StandingResult(CalibrateStanding(Step1Of(*truth_), *poses_, NaiveOffsets(),
-                                                   StandingOptions()));
+    result_ = new StandingResult(
+        CalibrateStanding(Step1Of(*truth_), *poses_, NaiveOffsets(), StandingOptions()));
   }
   static void TearDownTestSuite() {
     delete result_;
@@ -144,13 +148,12 @@ StandingResult* NoisyGrid::result_ = nullptr;
 TEST_F(NoisyGrid, FullModelSelectedAndWithinTolerance) {
   std::printf("model  dof  cv_mse  rss  bic  selected\n");
   for (const ModelSelectionRow& r : result_->model_selection) {
-    std::printf("%-26s %2d %10.4g %10.4g %10.1f %d\n", StandingModelName(r.model), r.dof,
-                r.cv_mse, r.rss, r.bic, r.selected);
+    std::printf("%-26s %2d %10.4g %10.4g %10.1f %d\n", StandingModelName(r.model), r.dof, r.cv_mse,
+                r.rss, r.bic, r.selected);
   }
   EXPECT_EQ(result_->selected, StandingModel::kFull);
   const Errors e = MaxErrors(result_->fit, *truth_);
-  std::printf("max rotation error %.4f deg, max p~' error %.4f mm\n", e.rot_deg,
-              e.p_prime_m * 1e3);
+  std::printf("max rotation error %.4f deg, max p~' error %.4f mm\n", e.rot_deg, e.p_prime_m * 1e3);
   EXPECT_LT(e.rot_deg, 0.15);
   EXPECT_LT(e.p_prime_m, 0.5e-3);
 }
@@ -208,10 +211,10 @@ TEST_F(NoisyGrid, AlternatingSchemeStopsShortOfTheJointOptimum) {
     p_gap = std::max(p_gap, (alt.p_tilde_prime[k] - joint.p_tilde_prime[k]).norm());
   }
   const Errors e = MaxErrors(alt, *truth_);
-  std::printf("alternating: %d sweeps, RSS %.4g vs joint %.4g; distance from the joint optimum: "
-              "rotation %.3f deg, p~' %.3f mm; from the truth: %.3f deg, %.3f mm\n",
-              alt.iterations, alt.rss, joint.rss, rot_gap, p_gap * 1e3, e.rot_deg,
-              e.p_prime_m * 1e3);
+  std::printf(
+      "alternating: %d sweeps, RSS %.4g vs joint %.4g; distance from the joint optimum: "
+      "rotation %.3f deg, p~' %.3f mm; from the truth: %.3f deg, %.3f mm\n",
+      alt.iterations, alt.rss, joint.rss, rot_gap, p_gap * 1e3, e.rot_deg, e.p_prime_m * 1e3);
   EXPECT_EQ(alt.solver, "alternating");
   EXPECT_TRUE(alt.converged);  // its own 1e-3 rule fired
   EXPECT_GE(alt.iterations, 1);
@@ -307,9 +310,8 @@ TEST(Standing, CorrelationOfAHandBuiltCovariance) {
 TEST(Standing, NoisyRotationsOneTranslationRecoversCoMOffset) {
   const RobotCalibration truth = MakeTruth(31, Mounting::kRotationsOnly);
   const auto poses = MakePoses(truth, Grid(), kReportNoise, false, 32);
-  const StandingFit fit = FitStandingJoint(Step1Of(truth), poses,
-                                           StandingModel::kRotationsOneTranslation,
-                                           StandingOptions());
+  const StandingFit fit = FitStandingJoint(
+      Step1Of(truth), poses, StandingModel::kRotationsOneTranslation, StandingOptions());
   const Errors e = MaxErrors(fit, truth);
   const Vec3 err = fit.p_C_B - truth.p_C_B;
   std::printf("model 2: p^C_B error %.3f mm (sigma %.3f %.3f %.3f mm), rotation %.4f deg\n",
@@ -361,10 +363,10 @@ TEST(Standing, RobustLossResistsOutlierPoses) {
   StandingOptions plain, huber;
   huber.robust_loss = StandingLoss::kHuber;
   huber.robust_loss_scale = 0.1;  // residual units: sqrt(K)-weighted N, typical |r_p| ~ 0.04
-  const Errors ep = MaxErrors(
-      FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, plain), truth);
-  const Errors eh = MaxErrors(
-      FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, huber), truth);
+  const Errors ep =
+      MaxErrors(FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, plain), truth);
+  const Errors eh =
+      MaxErrors(FitStandingJoint(Step1Of(truth), poses, StandingModel::kFull, huber), truth);
   std::printf("outliers: plain %.3f deg / %.3f mm, Huber %.3f deg / %.3f mm\n", ep.rot_deg,
               ep.p_prime_m * 1e3, eh.rot_deg, eh.p_prime_m * 1e3);
   EXPECT_LT(eh.rot_deg, 0.15);
@@ -488,7 +490,7 @@ TEST(Standing, ResidualStatsOfAHandComputedCase) {
   EXPECT_DOUBLE_EQ(s.rms(0), std::sqrt(11.0));
   EXPECT_DOUBLE_EQ(s.p05(0), 1.2);
   EXPECT_DOUBLE_EQ(s.p95(0), 4.8);
-  EXPECT_DOUBLE_EQ(s.mean(5), 1.0);  // (1 + 2 + 3 + 4 - 5) / 5
+  EXPECT_DOUBLE_EQ(s.mean(5), 1.0);              // (1 + 2 + 3 + 4 - 5) / 5
   EXPECT_DOUBLE_EQ(s.p05(5), -5.0 + 0.2 * 6.0);  // sorted -5, 1, ...: 0.05 * 4 = 0.2 of the way
 }
 

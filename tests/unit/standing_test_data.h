@@ -91,10 +91,10 @@ inline std::vector<std::array<double, kNumLegs>> GridSubset(size_t count, uint64
 }
 
 struct Noise {
-  double force_n = 0.0;        // per sample
-  double torque_nm = 0.0;      // per sample
-  int samples = 150;           // per pose, median taken
-  double attitude_deg = 0.0;   // per sample, per axis (rotation vector)
+  double force_n = 0.0;       // per sample
+  double torque_nm = 0.0;     // per sample
+  int samples = 150;          // per pose, median taken
+  double attitude_deg = 0.0;  // per sample, per axis (rotation vector)
 };
 
 inline double Median(std::vector<double>& v) {
@@ -107,8 +107,8 @@ inline double Median(std::vector<double>& v) {
 // per foot) so their sum at the CoM in W is exactly the target: (0,0,G,0,0,0), or with
 // moving_com the torque delta_W x (0,0,G) of the shifted whole-robot CoM.
 inline std::vector<StandingPose> MakePoses(const RobotCalibration& truth,
-                                    const std::vector<std::array<double, kNumLegs>>& angles,
-                                    const Noise& noise, bool moving_com, uint64_t seed) {
+                                           const std::vector<std::array<double, kNumLegs>>& angles,
+                                           const Noise& noise, bool moving_com, uint64_t seed) {
   std::mt19937_64 rng(seed);
   std::normal_distribution<double> n01(0.0, 1.0);
   std::uniform_real_distribution<double> u(-1.0, 1.0);

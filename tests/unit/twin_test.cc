@@ -33,7 +33,8 @@ TwinOptions NoiseFree(uint64_t seed = 7) {
 
 Vec6 SumInW(const TwinFrame& f) {
   Vec6 sum = Vec6::Zero();
-  for (int k = 0; k < kNumLegs; ++k) sum += TransformWrench(Pose3(f.R_WC, Vec3::Zero()), f.ground_w_C[k]);
+  for (int k = 0; k < kNumLegs; ++k)
+    sum += TransformWrench(Pose3(f.R_WC, Vec3::Zero()), f.ground_w_C[k]);
   return sum;
 }
 
@@ -79,7 +80,8 @@ TEST(Twin, EveryStandingPoseIsInEquilibriumWithTheTarget) {
     std::array<bool, kNumLegs> all;
     all.fill(true);
     std::array<Vec3, kNumLegs> internal;
-    for (int k = 0; k < kNumLegs; ++k) internal[k] = Vec3(3.0 * std::sin(k + 1.0), 3.0 * std::cos(2.0 * k), 0.0);
+    for (int k = 0; k < kNumLegs; ++k)
+      internal[k] = Vec3(3.0 * std::sin(k + 1.0), 3.0 * std::cos(2.0 * k), 0.0);
     double largest_shift = 0.0, largest_horizontal = 0.0;
     for (int p = 0; p < 729; ++p) {
       const std::array<double, kNumLegs> angle = twin.StandingPoseAngles(p);
@@ -97,7 +99,7 @@ TEST(Twin, EveryStandingPoseIsInEquilibriumWithTheTarget) {
       // The chassis tilts a little, as on the lab robot; never by much.
       ASSERT_LT(LogSO3(st.R_WC).norm(), 3.0 * kDeg);
     }
-    EXPECT_GT(largest_shift, 5e-4);   // the legs move the CoM by about a millimetre
+    EXPECT_GT(largest_shift, 5e-4);      // the legs move the CoM by about a millimetre
     EXPECT_GT(largest_horizontal, 1.0);  // self-balancing forces of a few newtons
     EXPECT_LT(largest_horizontal, 20.0);
   }
@@ -141,7 +143,8 @@ TEST(Twin, WalkingFramesAreQuasiStaticAndSwingFeetCarryNothing) {
     three += n == 3;
     six += n == 6;
     ASSERT_TRUE(n == 3 || n == 6) << n;
-    ASSERT_LT((SumInW(f) - Target(twin.Truth(), false, f.angle_rad, f.R_WC)).cwiseAbs().maxCoeff(), 1e-9);
+    ASSERT_LT((SumInW(f) - Target(twin.Truth(), false, f.angle_rad, f.R_WC)).cwiseAbs().maxCoeff(),
+              1e-9);
   });
   EXPECT_GT(swing, 0);
   EXPECT_GT(three, 0);
@@ -179,7 +182,8 @@ TEST(Twin, FeetInTheAirHaveZeroGroundWrench) {
   for (int i = 0; i < 4; ++i) {
     // Stances alternate tripods: {HL, FL, MR} first, then {ML, HR, FR}.
     for (int k = 0; k < kNumLegs; ++k) {
-      const bool first_tripod = kLegNames[k] == "HL" || kLegNames[k] == "FL" || kLegNames[k] == "MR";
+      const bool first_tripod =
+          kLegNames[k] == "HL" || kLegNames[k] == "FL" || kLegNames[k] == "MR";
       EXPECT_EQ(samples[i].unloaded[k], first_tripod == (i % 2 == 0)) << kLegNames[k];
     }
   }
@@ -248,7 +252,8 @@ TEST(Twin, HangingRecordingHasTenCyclesAtOneHundredHertz) {
 TEST(Twin, TruthFileRoundTrip) {
   const config::Config config = SimConfig();
   const BigAntTwin twin(config, TwinOptions{});
-  const std::string path = ::testing::TempDir() + "twin_truth_" + std::to_string(::getpid()) + ".pbtxt";
+  const std::string path =
+      ::testing::TempDir() + "twin_truth_" + std::to_string(::getpid()) + ".pbtxt";
   twin.WriteTruthFile(path);
   const calibration::Calibration proto = ReadCalibrationFile(path);
   std::remove(path.c_str());
@@ -299,7 +304,8 @@ TEST(Twin, SameSeedSameOutputDifferentSeedDifferentParameters) {
   const BigAntTwin c(config, o);
   c.TripodWalk(5.0, RunOptions{}, [](const TwinFrame&) {});
   size_t i = 0;
-  c.Standing(3, RunOptions{}, [&](const TwinFrame& f) { ASSERT_EQ(f.reading[2], fa[i++].reading[2]); });
+  c.Standing(3, RunOptions{},
+             [&](const TwinFrame& f) { ASSERT_EQ(f.reading[2], fa[i++].reading[2]); });
 
   TwinOptions o2 = o;
   o2.seed = 43;
@@ -393,7 +399,8 @@ TEST(Twin, SteadyPosesBalanceTheWeightAndSkipDropouts) {
   const double G = twin.Truth().TotalWeightN();
   for (const StandingPose& p : poses) {
     Vec6 sum = Vec6::Zero();
-    for (int k = 0; k < kNumLegs; ++k) sum += GroundWrenchW(twin.Truth(), k, p.wrench[k], p.angle_rad[k], p.R_WC);
+    for (int k = 0; k < kNumLegs; ++k)
+      sum += GroundWrenchW(twin.Truth(), k, p.wrench[k], p.angle_rad[k], p.R_WC);
     EXPECT_LT((sum.head<3>() - Vec3(0, 0, G)).norm(), 0.1);
     EXPECT_LT(sum.tail<3>().norm(), 0.02);
   }
@@ -436,9 +443,11 @@ TEST(Twin, OffsetDriftAppliesFromItsTimeOnAndChangesOnlyTheOffsets) {
     ASSERT_EQ(drifted[i].drifted, drifted[i].t_s >= 10.0);
     after += drifted[i].drifted;
     for (int k = 0; k < kNumLegs; ++k) {
-      const Vec6 expected = drifted[i].drifted ? Vec6(twin.DriftedTruth().leg[k].offset - twin.Truth().leg[k].offset)
-                                               : Vec6::Zero();
-      ASSERT_LT((drifted[i].reading[k] - plain[i].reading[k] - expected).cwiseAbs().maxCoeff(), 1e-12);
+      const Vec6 expected =
+          drifted[i].drifted ? Vec6(twin.DriftedTruth().leg[k].offset - twin.Truth().leg[k].offset)
+                             : Vec6::Zero();
+      ASSERT_LT((drifted[i].reading[k] - plain[i].reading[k] - expected).cwiseAbs().maxCoeff(),
+                1e-12);
     }
   }
   EXPECT_GT(after, 100);
@@ -453,7 +462,8 @@ TEST(Twin, TripodWalkTurnsRightAtTheConfiguredRate) {
   ASSERT_EQ(frames.size(), 2500u);
   const TwinFrame& a = frames.front();
   const TwinFrame& b = frames[1250];  // one gait cycle later
-  EXPECT_NEAR(std::remainder(HeadingYaw(b.R_GC) - HeadingYaw(a.R_GC), 2 * M_PI), -9.08 * kDeg, 0.1 * kDeg);
+  EXPECT_NEAR(std::remainder(HeadingYaw(b.R_GC) - HeadingYaw(a.R_GC), 2 * M_PI), -9.08 * kDeg,
+              0.1 * kDeg);
   const Vec3 heading(std::cos(HeadingYaw(a.R_GC)), std::sin(HeadingYaw(a.R_GC)), 0.0);
   EXPECT_GT((b.p_GB_m - a.p_GB_m).dot(heading), 0.02);
   // Every leg turns one full turn per cycle, the right ones the other way.
@@ -494,7 +504,8 @@ TEST(Twin, DrivenFramesStandInEquilibriumAndReadAsTheSensingModel) {
       EXPECT_EQ(f->phase, ExperimentPhase::kStanding);
       for (int k = 0; k < kNumLegs; ++k) EXPECT_TRUE(f->in_contact[k]);
       // Equilibrium: the ground wrenches sum to the weight (fixed CoM).
-      ASSERT_LT((SumInW(*f) - Target(a.Truth(), false, angle, f->R_WC)).cwiseAbs().maxCoeff(), 1e-9);
+      ASSERT_LT((SumInW(*f) - Target(a.Truth(), false, angle, f->R_WC)).cwiseAbs().maxCoeff(),
+                1e-9);
       // The same state as Equilibrium on all six feet with the Driven's internal forces.
       const StanceState st = a.Equilibrium(angle, all, da.InternalForces());
       for (int k = 0; k < kNumLegs; ++k) {
@@ -539,14 +550,16 @@ TEST(Twin, DrivenChassisStaysPutAndFramesAreDeterministic) {
   EXPECT_FALSE(f2.steady);  // the legs moved since the last frame
   EXPECT_TRUE(f3.steady);
   // Same heading (no attitude noise: R_GC = Rz(yaw0) R_WC) and position over the origin.
-  EXPECT_NEAR(HeadingYaw(f0.R_GC * f0.R_WC.transpose()), HeadingYaw(f2.R_GC * f2.R_WC.transpose()), 1e-12);
+  EXPECT_NEAR(HeadingYaw(f0.R_GC * f0.R_WC.transpose()), HeadingYaw(f2.R_GC * f2.R_WC.transpose()),
+              1e-12);
   const Vec3 c0 = f0.p_GB_m - f0.R_GC * twin.Truth().p_C_B;
   const Vec3 c2 = f2.p_GB_m - f2.R_GC * twin.Truth().p_C_B;
   EXPECT_LT((c0 - c2).head<2>().norm(), 1e-12);
   EXPECT_GT(c0.z(), 0.05);  // standing on its feet
   // Moving the legs moves load between the feet by far more than the noise.
   double largest = 0.0;
-  for (int k = 0; k < kNumLegs; ++k) largest = std::max(largest, (f2.reading[k] - f0.reading[k]).head<3>().norm());
+  for (int k = 0; k < kNumLegs; ++k)
+    largest = std::max(largest, (f2.reading[k] - f0.reading[k]).head<3>().norm());
   EXPECT_GT(largest, 1.0);
 
   // The same seed and calls give the same frames, noise and dropouts included.
@@ -612,7 +625,8 @@ TEST(Twin, DrivenHangsAndLiftsAsTheRecordedHangingAndTare) {
       driven.SetSupport(BigAntTwin::Driven::Support::kHanging, series);
       for (std::size_t i = 0; i < recorded.size(); i += 137) {
         const TwinFrame& want = recorded[i];
-        const TwinFrame& got = driven.Frame(static_cast<double>(s) * 100 + i * 0.01, want.angle_rad);
+        const TwinFrame& got =
+            driven.Frame(static_cast<double>(s) * 100 + i * 0.01, want.angle_rad);
         EXPECT_EQ(static_cast<int>(got.phase), static_cast<int>(want.phase));
         EXPECT_LT((got.R_WC - twin.HangingAttitude(series)).norm(), 1e-15);
         EXPECT_LT((got.R_GC - want.R_GC).norm(), 1e-12);

@@ -91,8 +91,8 @@ struct CalibrateOptions {
 
 struct CalibrationRun {
   HangingResult hanging;
-  RobotCalibration step1;          // nominal robot + step 1 (R~ = I, p~' = 0)
-  StandingResult standing;         // the four fits, Table I, residuals
+  RobotCalibration step1;   // nominal robot + step 1 (R~ = I, p~' = 0)
+  StandingResult standing;  // the four fits, Table I, residuals
   bool has_alternating = false;
   StandingFit alternating;         // the report's scheme on the selected model
   RobotCalibration calibration;    // step 1 + the selected model: the parameters of eq. 3

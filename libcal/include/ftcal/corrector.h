@@ -2,7 +2,8 @@
 // "Correction"; pipeline item 4).
 //
 // Model: eq. 3 rotated to W (the same as GroundWrenchW in sensing_model.h),
-//   w^W_gc,k = X(R_WC) [ X(X_C_ft,k) (w_m,k - w_o,k) - (m_k g^C ; (X_C_ft,k r_k(phi_k)) x m_k g^C) ],
+//   w^W_gc,k = X(R_WC) [ X(X_C_ft,k) (w_m,k - w_o,k) - (m_k g^C ; (X_C_ft,k r_k(phi_k)) x m_k g^C)
+//   ],
 // g^C = R_WC^T (0, 0, -g0), phi_k = wrap(theta_k / 2 pi). Nothing is estimated here: the
 // calibration fixes every parameter, so there are no unknowns and no null spaces. The sum of
 // the six, standing still, is (0, 0, G, 0, 0, 0) (eq. 8's target); its difference from that is
@@ -51,15 +52,15 @@ inline constexpr int32_t kFlagStaleMocap = 4;  // no fresh attitude: level assum
 inline constexpr int32_t kFlagSaturated = 8;
 
 struct ContactWrenches {
-  int64_t utime = 0;      // the triggering sample's time
+  int64_t utime = 0;  // the triggering sample's time
   int updated_leg = 0;
   std::array<Vec6, kNumLegs> wrench_W;  // NaN for a leg that has no sample yet
   Vec6 total_W = Vec6::Zero();
-  Vec6 residual_W = Vec6::Zero();       // total_W - (0, 0, G, 0, 0, 0)
+  Vec6 residual_W = Vec6::Zero();  // total_W - (0, 0, G, 0, 0, 0)
   int64_t calibration_version = 0;
   std::array<double, kNumLegs> ft_age_s{};  // -1: no sample yet
-  double servo_age_s = -1.0;               // -1: no servo state
-  double mocap_age_s = -1.0;               // -1: no mocap frame
+  double servo_age_s = -1.0;                // -1: no servo state
+  double mocap_age_s = -1.0;                // -1: no mocap frame
   int32_t flags = 0;
   // The flags of the triggering sample's own correction (kFlagStaleServo, kFlagStaleMocap,
   // kFlagSaturated), and those of every leg's latest sample or-ed with kFlagStaleFt (the sum's).
@@ -96,7 +97,7 @@ struct CorrectorCounters {
   int64_t no_calibration = 0;  // samples that came before any calibration
   int64_t out_of_order = 0;
   int64_t non_finite = 0;
-  int64_t no_servo = 0;        // samples before any servo state (corrected, flagged)
+  int64_t no_servo = 0;  // samples before any servo state (corrected, flagged)
 };
 
 class Corrector {
@@ -122,8 +123,8 @@ class Corrector {
 
  private:
   struct LegConst {
-    Mat3 R_C_ft;      // rotation of X_C_ft
-    Vec3 p_C_ft;      // translation of X_C_ft
+    Mat3 R_C_ft;  // rotation of X_C_ft
+    Vec3 p_C_ft;  // translation of X_C_ft
     Vec6 offset;
     double weight_n;
     LegComModel com;

@@ -18,14 +18,14 @@ inline constexpr int kNumHangSeries = 4;
 
 // One leg's samples in time order.
 struct LegSamples {
-  std::vector<double> t_s;          // sample time, s
-  std::vector<double> angle_rad;    // shaft angle at that time
-  std::vector<Vec6> wrench;         // reading [f; tau] in ft_k
+  std::vector<double> t_s;        // sample time, s
+  std::vector<double> angle_rad;  // shaft angle at that time
+  std::vector<Vec6> wrench;       // reading [f; tau] in ft_k
 };
 
 struct HangingRecording {
   HangSeries series = HangSeries::kXPos;
-  Vec3 gravity_b = Vec3::Zero();    // stated direction of gravity in body frame B (unit)
+  Vec3 gravity_b = Vec3::Zero();  // stated direction of gravity in body frame B (unit)
   std::array<LegSamples, kNumLegs> legs;
   // Attitude samples R^W_C (or the mocap's R^G_C) during the series, when motion capture ran:
   // used only to check the stated axis.
@@ -34,9 +34,9 @@ struct HangingRecording {
 
 // One steady standing pose (the segmenter's STEADY_POSE).
 struct StandingPose {
-  std::array<Vec6, kNumLegs> wrench;      // median readings in ft_k
-  std::array<double, kNumLegs> angle_rad; // median shaft angles
-  Mat3 R_WC = Mat3::Identity();           // median attitude
+  std::array<Vec6, kNumLegs> wrench;       // median readings in ft_k
+  std::array<double, kNumLegs> angle_rad;  // median shaft angles
+  Mat3 R_WC = Mat3::Identity();            // median attitude
   double t_s = 0.0;
   // Within-pose scatter: the standard error of the medians above (readings per component;
   // attitude as a rotation vector about W's axes, rad), from the samples' robust spread. The

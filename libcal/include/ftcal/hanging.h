@@ -80,16 +80,16 @@ struct Vec3Sigma {
 
 // One pair (x or z) before the two pairs are combined.
 struct HangingPairResult {
-  char axis = 'x';                           // transducer axis along gravity: 'x' or 'z'
+  char axis = 'x';                             // transducer axis along gravity: 'x' or 'z'
   HangSeries down_series = HangSeries::kXPos;  // gravity along +axis in ft_k
   HangSeries up_series = HangSeries::kXNeg;    // gravity along -axis in ft_k
-  Vec3Sigma s_plus_rad;    // (s_down + s_up)/2; component about the axis held at 0
-  Vec3Sigma s_minus_rad;   // (s_down - s_up)/2; component about the axis held at 0
-  ScalarSigma weight_n;    // m g
+  Vec3Sigma s_plus_rad;   // (s_down + s_up)/2; component about the axis held at 0
+  Vec3Sigma s_minus_rad;  // (s_down - s_up)/2; component about the axis held at 0
+  ScalarSigma weight_n;   // m g
   Vec3Sigma force_offset_n;
   Vec3Sigma torque_offset_nm;
   int matched_samples = 0;
-  int cycles = 0;          // full cycles behind the sigmas
+  int cycles = 0;  // full cycles behind the sigmas
 };
 
 // Statistics of a wrench residual [f; tau] per component.
@@ -116,7 +116,7 @@ struct HangingVariant {
 
 // The fitted CoM curve with the 1-sigma of its coefficients.
 struct ComFitResult {
-  LegComModel model;          // r(phi) in ft_k, m
+  LegComModel model;            // r(phi) in ft_k, m
   Vec3 sigma_x = Vec3::Zero();  // sigma of (a_m, c_rad, d_m) of the x sinusoid
   double sigma_y_m = 0.0;
   Vec3 sigma_z = Vec3::Zero();  // sigma of (a_m, c_rad, d_m) of the z sinusoid
@@ -171,8 +171,7 @@ struct HangingResult {
 // gravity off every transducer x/z axis or off the motion capture, too few cycles, too little
 // phase coverage, non-finite samples, mismatched vector lengths, unordered times).
 HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
-                         const std::array<Pose3, kNumLegs>& X_B_ft,
-                         const HangingOptions& options);
+                         const std::array<Pose3, kNumLegs>& X_B_ft, const HangingOptions& options);
 
 // Offsets, leg weights and CoM curves of step 1 into the parameters of eq. 3.
 void ApplyHangingResult(const HangingResult& result, RobotCalibration* cal);
@@ -197,9 +196,8 @@ double SPlusObjective(const Vec3& s_plus, const std::vector<Vec3>& f_minus, cons
 
 // RTS smoother of the leg CoM over matched samples: tau_minus_i = -[f_minus_i] r_i + noise,
 // r_{i+1} = r_i + process noise. Returns r_est,i (known up to + p_i f_minus_i).
-std::vector<Vec3> SmoothLegCom(const std::vector<Vec3>& f_minus,
-                               const std::vector<Vec3>& tau_minus, double transition_var_m2,
-                               double observation_var_nm2);
+std::vector<Vec3> SmoothLegCom(const std::vector<Vec3>& f_minus, const std::vector<Vec3>& tau_minus,
+                               double transition_var_m2, double observation_var_nm2);
 
 // Resolves the null space of one sample: the least-squares (p, p') of
 // r + p f = r' + p' f', and the average of the two resulting CoMs.

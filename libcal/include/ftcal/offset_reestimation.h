@@ -46,9 +46,9 @@ struct OffsetReestimate {
   std::array<std::array<bool, 6>, kNumLegs> determined{};
   std::vector<std::string> undetermined;  // e.g. "ML fx", "HR tz"
   int rank = 0;
-  Eigen::VectorXd singular_values;        // of the K-weighted design matrix, descending
+  Eigen::VectorXd singular_values;  // of the K-weighted design matrix, descending
   int standing_rows = 0, unloaded_rows = 0;
-  double residual_rms = 0.0;              // K-weighted rms of the rows at the solution
+  double residual_rms = 0.0;  // K-weighted rms of the rows at the solution
 };
 
 // Throws std::invalid_argument on no data, non-finite input, or (require_all) undetermined

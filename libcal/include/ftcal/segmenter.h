@@ -31,8 +31,8 @@ std::vector<double> SavitzkyGolayDerivative(int window, int order);
 
 // One time-aligned sample of all legs (the segmenter's SYNC_SAMPLE).
 struct SyncSample {
-  int64_t utime = 0;                        // us
-  std::array<Vec6, kNumLegs> wrench;        // readings in ft_k
+  int64_t utime = 0;                  // us
+  std::array<Vec6, kNumLegs> wrench;  // readings in ft_k
   std::array<double, kNumLegs> angle_rad{};
   Mat3 R_WC = Mat3::Identity();
   bool attitude_ok = false;
@@ -53,7 +53,7 @@ struct SegmenterOptions {
 };
 
 struct SteadyPoseOut {
-  StandingPose pose;          // medians; pose.t_s = centre of the run, s
+  StandingPose pose;  // medians; pose.t_s = centre of the run, s
   int64_t start_utime = 0;
   int64_t end_utime = 0;
   int num_samples = 0;
@@ -63,10 +63,10 @@ struct SteadyPoseOut {
 struct SegmenterCounters {
   int64_t samples = 0;
   int64_t poses = 0;
-  int64_t dropped_short = 0;      // steady runs shorter than min_steady_s
-  int64_t dropped_markers = 0;    // runs with an untracked marker or attitude
-  int64_t window_resets = 0;      // time gaps or non-finite samples
-  int64_t rejected_samples = 0;   // non-finite or out-of-order samples
+  int64_t dropped_short = 0;     // steady runs shorter than min_steady_s
+  int64_t dropped_markers = 0;   // runs with an untracked marker or attitude
+  int64_t window_resets = 0;     // time gaps or non-finite samples
+  int64_t rejected_samples = 0;  // non-finite or out-of-order samples
 };
 
 class PoseSegmenter {

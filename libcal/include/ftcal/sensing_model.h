@@ -36,19 +36,19 @@ struct LegComModel {
 };
 
 struct LegCalibration {
-  Vec6 offset = Vec6::Zero();     // w_o,k = [f_o; tau_o] in ft_k (N, N*m)
-  double weight_n = 0.0;          // m_k g
-  LegComModel com;                // r_k(phi), m, in ft_k
-  Mat3 R_tilde = Mat3::Identity();  // R~_k
+  Vec6 offset = Vec6::Zero();         // w_o,k = [f_o; tau_o] in ft_k (N, N*m)
+  double weight_n = 0.0;              // m_k g
+  LegComModel com;                    // r_k(phi), m, in ft_k
+  Mat3 R_tilde = Mat3::Identity();    // R~_k
   Vec3 p_tilde_prime = Vec3::Zero();  // p~'_k = R~_k^T (p~_k + p^C_B), m
 };
 
 // Everything eq. 3 needs for all legs.
 struct RobotCalibration {
-  std::array<Pose3, kNumLegs> X_B_ft;      // nominal transducer poses (config)
+  std::array<Pose3, kNumLegs> X_B_ft;  // nominal transducer poses (config)
   std::array<LegCalibration, kNumLegs> leg;
-  Vec3 p_C_B = Vec3::Zero();               // body origin -> CoM, m (informational for correction)
-  double g0 = 9.80665;                     // m/s^2
+  Vec3 p_C_B = Vec3::Zero();  // body origin -> CoM, m (informational for correction)
+  double g0 = 9.80665;        // m/s^2
   double total_mass_kg = 0.0;
 
   double TotalWeightN() const { return total_mass_kg * g0; }

@@ -47,8 +47,8 @@ enum class StandingModel {
   kOneTranslation = 4,           // p^C_B only              (3)
 };
 inline constexpr std::array<StandingModel, 4> kStandingModels = {
-    StandingModel::kFull, StandingModel::kRotationsOneTranslation,
-    StandingModel::kTranslationsOnly, StandingModel::kOneTranslation};
+    StandingModel::kFull, StandingModel::kRotationsOneTranslation, StandingModel::kTranslationsOnly,
+    StandingModel::kOneTranslation};
 int StandingModelDof(StandingModel model);
 const char* StandingModelName(StandingModel model);
 // "FULL, fixed CoM", "ONE_TRANSLATION, leg-aware CoM", ...
@@ -86,10 +86,10 @@ StandingOptions StandingOptionsFromConfig(const config::Calibrator& calibrator);
 struct StandingFit {
   StandingModel model = StandingModel::kFull;
   int dof = 0;
-  std::array<Mat3, kNumLegs> R_tilde;         // I where the model has no rotations
-  std::array<Vec3, kNumLegs> p_tilde_prime;   // m; R~^T p^C_B in models 2 and 4
-  bool has_p_C_B = false;                     // models 2 and 4
-  Vec3 p_C_B = Vec3::Zero();                  // m
+  std::array<Mat3, kNumLegs> R_tilde;        // I where the model has no rotations
+  std::array<Vec3, kNumLegs> p_tilde_prime;  // m; R~^T p^C_B in models 2 and 4
+  bool has_p_C_B = false;                    // models 2 and 4
+  Vec3 p_C_B = Vec3::Zero();                 // m
   // 1-sigma from the sandwich covariance with per-component residual variances (standing.cc,
   // AddCovariance); zero for what the model fixes.
   // Rotations: sigma of the left rotation-vector perturbation R~ = Exp(dv) R~_hat, in degrees.
@@ -102,12 +102,12 @@ struct StandingFit {
   // or "HL p~' x".."FR p~' z"), named in correlation_names. Empty without the covariance.
   std::vector<std::string> correlation_names;
   Eigen::MatrixXd correlation;
-  double rss = 0.0;                 // sum_p ||r_p||^2_K at the solution (robust loss or not)
-  double residual_variance = 0.0;   // rss / (6 P - dof)
+  double rss = 0.0;                // sum_p ||r_p||^2_K at the solution (robust loss or not)
+  double residual_variance = 0.0;  // rss / (6 P - dof)
   int poses = 0;
-  bool leg_aware_com = false;       // the robot-CoM target it was fitted with
-  std::string solver;               // "joint" or "alternating"
-  int iterations = 0;               // LM iterations (joint) or sweeps (alternating)
+  bool leg_aware_com = false;                   // the robot-CoM target it was fitted with
+  std::string solver;                           // "joint" or "alternating"
+  int iterations = 0;                           // LM iterations (joint) or sweeps (alternating)
   double initial_cost = 0.0, final_cost = 0.0;  // Ceres cost (1/2 sum of squares, robustified)
   bool converged = false;
 
@@ -172,14 +172,14 @@ struct StandingResult {
   // Every candidate fitted by the configured solver, Table I order, the fixed-CoM rows first
   // (only the configured robot-CoM target's rows without select_com).
   std::vector<StandingFit> fits;
-  std::vector<ModelSelectionRow> model_selection;    // Table I, same order as fits
-  StandingModel selected = StandingModel::kFull;     // lowest BIC
-  bool selected_leg_aware_com = false;               // ... and its robot-CoM target
-  bool com_selected_by_data = false;                 // both robot-CoM targets were candidates
-  StandingFit fit;               // the selected candidate (a copy of its entry in fits)
+  std::vector<ModelSelectionRow> model_selection;  // Table I, same order as fits
+  StandingModel selected = StandingModel::kFull;   // lowest BIC
+  bool selected_leg_aware_com = false;             // ... and its robot-CoM target
+  bool com_selected_by_data = false;               // both robot-CoM targets were candidates
+  StandingFit fit;  // the selected candidate (a copy of its entry in fits)
   // The candidate of `model` with the given robot-CoM target; throws when it was not fitted.
   const StandingFit& FitOf(StandingModel model, bool leg_aware_com) const;
-  RobotCalibration calibration;  // step 1 + the selected fit
+  RobotCalibration calibration;                                       // step 1 + the selected fit
   std::vector<Vec6> residual_naive, residual_without, residual_full;  // per pose
   int poses = 0;
   StandingOptions options;  // as given, with leg_aware_com set to the selected target
@@ -200,9 +200,9 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
                                  const std::array<Vec6, kNumLegs>& naive_offset,
                                  const StandingOptions& options);
 
-// C_ij / sqrt(C_ii C_jj) of a covariance matrix (C_ij averaged with C_ji); a parameter with zero variance (fixed) gets 0
-// off the diagonal and 1 on it. Throws std::invalid_argument for a non-square matrix or a
-// negative or non-finite variance.
+// C_ij / sqrt(C_ii C_jj) of a covariance matrix (C_ij averaged with C_ji); a parameter with zero
+// variance (fixed) gets 0 off the diagonal and 1 on it. Throws std::invalid_argument for a
+// non-square matrix or a negative or non-finite variance.
 Eigen::MatrixXd CorrelationOfCovariance(const Eigen::MatrixXd& covariance);
 
 // Mean, std (sample), rms, 5th and 95th percentiles (linear interpolation) per component.

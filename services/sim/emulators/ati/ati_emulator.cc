@@ -37,12 +37,18 @@ std::int32_t SaturatingSub(std::int32_t a, std::int32_t b) {
 
 const char* AtiFaultName(AtiFault fault) {
   switch (fault) {
-    case AtiFault::kNone: return "none";
-    case AtiFault::kDrop: return "drop";
-    case AtiFault::kDuplicate: return "duplicate";
-    case AtiFault::kReorder: return "reorder";
-    case AtiFault::kCorrupt: return "corrupt";
-    case AtiFault::kSilent: return "silent";
+    case AtiFault::kNone:
+      return "none";
+    case AtiFault::kDrop:
+      return "drop";
+    case AtiFault::kDuplicate:
+      return "duplicate";
+    case AtiFault::kReorder:
+      return "reorder";
+    case AtiFault::kCorrupt:
+      return "corrupt";
+    case AtiFault::kSilent:
+      return "silent";
   }
   return "?";
 }
@@ -62,7 +68,8 @@ AtiEmulator::AtiEmulator(AtiEmulatorOptions options, AtiStateSource source, AtiE
                            " outside 1..7000");
   }
   for (double p : {f.drop, f.duplicate, f.reorder, f.corrupt}) {
-    if (!(p >= 0 && p <= 1)) throw AtiEmulatorError(options_.name + ": fault probability outside [0, 1]");
+    if (!(p >= 0 && p <= 1))
+      throw AtiEmulatorError(options_.name + ": fault probability outside [0, 1]");
   }
   if (f.drop + f.duplicate + f.reorder + f.corrupt > 1) {
     throw AtiEmulatorError(options_.name + ": fault probabilities sum to more than 1");
@@ -153,7 +160,8 @@ double AtiEmulator::Seconds(Clock::time_point t) const {
 
 bool AtiEmulator::SilentAt(double t_s) const {
   for (const auto& e : options_.faults.events) {
-    if (e.kind == AtiScheduledEvent::Kind::kSilence && t_s >= e.at_s && t_s < e.at_s + e.duration_s) {
+    if (e.kind == AtiScheduledEvent::Kind::kSilence && t_s >= e.at_s &&
+        t_s < e.at_s + e.duration_s) {
       return true;
     }
   }

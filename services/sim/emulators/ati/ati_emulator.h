@@ -79,21 +79,21 @@ struct AtiFaultOptions {
 };
 
 struct AtiEmulatorOptions {
-  std::string name = "HL";        // for messages and the page's cfgnam
+  std::string name = "HL";  // for messages and the page's cfgnam
   std::string address = "127.0.1.1";
   std::uint16_t rdt_port = rdt::kUdpPort;
   std::uint16_t http_port = 8080;  // 0: no calibration page
   double counts_per_force = 1e6;
   double counts_per_torque = 1e6;
   std::array<double, 6> rated_range{130, 130, 400, 10, 10, 10};
-  int rdt_rate_hz = 7000;          // comrdtrate, 1..7000
+  int rdt_rate_hz = 7000;  // comrdtrate, 1..7000
   int send_buffer_bytes = 1 << 20;
   AtiFaultOptions faults;
 };
 
 // One generated record and what was done with it.
 struct AtiEmitted {
-  double t_s = 0;           // emulator time of the record's internal sample
+  double t_s = 0;            // emulator time of the record's internal sample
   std::uint32_t stream = 0;  // 1 for the first start command answered, +1 per start
   rdt::Record record;
   AtiFault fault = AtiFault::kNone;
@@ -101,15 +101,15 @@ struct AtiEmitted {
 using AtiEmitSink = std::function<void(const AtiEmitted&)>;
 
 struct AtiEmulatorCounters {
-  std::uint64_t commands = 0;      // valid requests received
-  std::uint64_t bad_commands = 0;  // undecodable datagrams on the RDT port
+  std::uint64_t commands = 0;          // valid requests received
+  std::uint64_t bad_commands = 0;      // undecodable datagrams on the RDT port
   std::uint64_t ignored_commands = 0;  // received while silent or booting
   std::uint64_t starts = 0;
   std::uint64_t stops = 0;
-  std::uint64_t records = 0;   // generated while streaming
+  std::uint64_t records = 0;    // generated while streaming
   std::uint64_t datagrams = 0;  // sent (a duplicate counts twice)
   std::uint64_t send_errors = 0;
-  std::uint64_t http_requests = 0;  // pages served
+  std::uint64_t http_requests = 0;        // pages served
   std::array<std::uint64_t, 6> faults{};  // by AtiFault
   std::uint64_t reboots = 0;
 };
@@ -161,7 +161,7 @@ class AtiEmulator {
   std::thread http_thread_;
 
   Clock::time_point created_;
-  Clock::time_point power_up_;     // ft_sequence 0
+  Clock::time_point power_up_;  // ft_sequence 0
   Clock::time_point booting_until_;
   bool streaming_ = false;
   bool ended_ = false;

@@ -32,7 +32,6 @@
 #include "sim/live.h"
 #include "sim/twin.h"
 
-
 namespace {
 
 using ftcal::sim::AtiEmitted;
@@ -145,7 +144,8 @@ int main(int argc, char** argv) {
         twin, scenario == "walk" ? "walk" : "stand", span_s);
 
     std::vector<ftcal::sim::AtiTruthRow> truth;
-    if (!truth_path.empty()) truth.reserve(static_cast<std::size_t>(legs.size() * rate_hz * (span_s + 1)));
+    if (!truth_path.empty())
+      truth.reserve(static_cast<std::size_t>(legs.size() * rate_hz * (span_s + 1)));
     std::vector<ftcal::sim::AtiFaultOptions> faults(ftcal::kNumLegs);
     for (int k = 0; k < ftcal::kNumLegs; ++k) {
       faults[k].seed = seed * 1000 + static_cast<std::uint64_t>(k);
@@ -173,7 +173,8 @@ int main(int argc, char** argv) {
     std::vector<std::unique_ptr<AtiEmulator>> boxes;
     for (int k : legs) {
       const ftcal::config::Leg& leg = config.robot().leg(k);
-      if (!leg.has_ati()) throw std::invalid_argument("leg " + leg.name() + " has no ati in the config");
+      if (!leg.has_ati())
+        throw std::invalid_argument("leg " + leg.name() + " has no ati in the config");
       ftcal::sim::AtiEmulatorOptions o;
       o.name = leg.name();
       o.address = leg.ati().address();

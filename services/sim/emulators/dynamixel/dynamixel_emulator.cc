@@ -15,7 +15,8 @@
 namespace ftcal::sim {
 namespace {
 
-// MX-106(2.0) control-table addresses (docs/device-protocols.md §2.7) the emulator gives meaning to.
+// MX-106(2.0) control-table addresses (docs/device-protocols.md §2.7) the emulator gives meaning
+// to.
 constexpr std::uint16_t kAddrModelNumber = 0;
 constexpr std::uint16_t kAddrFirmware = 6;
 constexpr std::uint16_t kAddrId = 7;
@@ -80,19 +81,24 @@ bool Writable(std::uint16_t a) {
 }
 
 std::int32_t RoundToI32(double v) {
-  return static_cast<std::int32_t>(std::clamp(std::round(v), static_cast<double>(INT32_MIN),
-                                              static_cast<double>(INT32_MAX)));
+  return static_cast<std::int32_t>(
+      std::clamp(std::round(v), static_cast<double>(INT32_MIN), static_cast<double>(INT32_MAX)));
 }
 
 }  // namespace
 
 const char* DxlReplyFateName(DxlReplyFate fate) {
   switch (fate) {
-    case DxlReplyFate::kSent: return "sent";
-    case DxlReplyFate::kDropped: return "dropped";
-    case DxlReplyFate::kCorrupted: return "corrupted";
-    case DxlReplyFate::kMissing: return "missing";
-    case DxlReplyFate::kSilent: return "silent";
+    case DxlReplyFate::kSent:
+      return "sent";
+    case DxlReplyFate::kDropped:
+      return "dropped";
+    case DxlReplyFate::kCorrupted:
+      return "corrupted";
+    case DxlReplyFate::kMissing:
+      return "missing";
+    case DxlReplyFate::kSilent:
+      return "silent";
   }
   return "?";
 }
@@ -367,7 +373,8 @@ std::uint8_t DynamixelBusEmulator::ApplyWrite(Servo& s, std::uint16_t address,
     return kErrDataRange;
   }
   for (const std::uint16_t item : {kAddrMaxPosition, kAddrMinPosition}) {
-    if (const auto v = after(item, 4); v && *v > static_cast<std::uint32_t>(dxl::kPositionModeMaxCount)) {
+    if (const auto v = after(item, 4);
+        v && *v > static_cast<std::uint32_t>(dxl::kPositionModeMaxCount)) {
       return kErrDataRange;
     }
   }
@@ -380,9 +387,9 @@ std::uint8_t DynamixelBusEmulator::ApplyWrite(Servo& s, std::uint16_t address,
   }
   if (address <= kAddrGoalPosition && address + n >= kAddrGoalPosition + 4u) {
     const std::size_t off = kAddrGoalPosition - address;
-    const auto goal = static_cast<std::int32_t>(
-        data[off] | (data[off + 1] << 8) | (data[off + 2] << 16) |
-        (static_cast<std::uint32_t>(data[off + 3]) << 24));
+    const auto goal =
+        static_cast<std::int32_t>(data[off] | (data[off + 1] << 8) | (data[off + 2] << 16) |
+                                  (static_cast<std::uint32_t>(data[off + 3]) << 24));
     // Position mode keeps goals within the Min/Max Position Limits; the multi-turn modes (4, 5)
     // ignore those limits and take +-256 turns (§2.7).
     const std::uint8_t mode = t[kAddrOperatingMode];
@@ -400,9 +407,8 @@ std::uint8_t DynamixelBusEmulator::ApplyWrite(Servo& s, std::uint16_t address,
   for (std::size_t i = 0; i < n; ++i) {
     std::uint16_t a = static_cast<std::uint16_t>(address + i);
     if (a >= kAddrIndirectData1 && a < kAddrIndirectData1 + kIndirectCount) {
-      a = static_cast<std::uint16_t>(
-          GetLe(t, static_cast<std::uint16_t>(kAddrIndirectAddress1 + 2 * (a - kAddrIndirectData1)),
-                2));
+      a = static_cast<std::uint16_t>(GetLe(
+          t, static_cast<std::uint16_t>(kAddrIndirectAddress1 + 2 * (a - kAddrIndirectData1)), 2));
       if (a >= t.size()) return kErrAccess;
     }
     const bool ignored = std::any_of(
@@ -443,8 +449,8 @@ void DynamixelBusEmulator::Handle(const dxl::InstructionPacket& p, double now_s,
       std::uint16_t a = static_cast<std::uint16_t>(address + i);
       if (a >= kAddrIndirectData1 && a < kAddrIndirectData1 + kIndirectCount) {
         a = static_cast<std::uint16_t>(GetLe(
-            s.table, static_cast<std::uint16_t>(kAddrIndirectAddress1 + 2 * (a - kAddrIndirectData1)),
-            2));
+            s.table,
+            static_cast<std::uint16_t>(kAddrIndirectAddress1 + 2 * (a - kAddrIndirectData1)), 2));
         if (a >= s.table.size()) return kErrAccess;
       }
       params->push_back(s.table[a]);
@@ -476,8 +482,8 @@ void DynamixelBusEmulator::Handle(const dxl::InstructionPacket& p, double now_s,
         std::vector<std::uint8_t> params;
         const std::uint8_t err = read_bytes(*s, address, length, &params);
         if (err != 0) params.clear();
-        Reply(*s, p, address, length, static_cast<std::uint8_t>(err | AlertBit(*s)), params,
-              now_s, out);
+        Reply(*s, p, address, length, static_cast<std::uint8_t>(err | AlertBit(*s)), params, now_s,
+              out);
       }
       return;
     }
@@ -506,8 +512,8 @@ void DynamixelBusEmulator::Handle(const dxl::InstructionPacket& p, double now_s,
       case dxl::kRead: {
         if (broadcast || level < 1) break;
         std::vector<std::uint8_t> params;
-        std::uint8_t err = p.params.size() == 4 ? read_bytes(s, u16(0), u16(2), &params)
-                                                : kErrDataLength;
+        std::uint8_t err =
+            p.params.size() == 4 ? read_bytes(s, u16(0), u16(2), &params) : kErrDataLength;
         if (err != 0) params.clear();
         Reply(s, p, p.params.size() == 4 ? u16(0) : 0, p.params.size() == 4 ? u16(2) : 0,
               static_cast<std::uint8_t>(err | AlertBit(s)), params, now_s, out);
@@ -515,9 +521,8 @@ void DynamixelBusEmulator::Handle(const dxl::InstructionPacket& p, double now_s,
       }
       case dxl::kWrite: {
         const std::uint8_t err =
-            p.params.size() >= 3
-                ? ApplyWrite(s, u16(0), p.params.data() + 2, p.params.size() - 2)
-                : kErrDataLength;
+            p.params.size() >= 3 ? ApplyWrite(s, u16(0), p.params.data() + 2, p.params.size() - 2)
+                                 : kErrDataLength;
         Advance(now_s);
         if (!broadcast && level >= 2) {
           Reply(s, p, 0, 0, static_cast<std::uint8_t>(err | AlertBit(s)), {}, now_s, out);

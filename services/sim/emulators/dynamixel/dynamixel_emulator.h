@@ -175,8 +175,7 @@ class DynamixelBusEmulator {
   // The moment s's Bus Watchdog runs out, if it is armed and torque is on; -1 otherwise.
   double WatchdogDeadline(const Servo& s) const;
   // Applies a WRITE (or one servo's part of a SYNC WRITE); returns the status error byte.
-  std::uint8_t ApplyWrite(Servo& s, std::uint16_t address, const std::uint8_t* data,
-                          std::size_t n);
+  std::uint8_t ApplyWrite(Servo& s, std::uint16_t address, const std::uint8_t* data, std::size_t n);
   std::uint8_t AlertBit(const Servo& s) const;
   void Handle(const dxl::InstructionPacket& p, double now_s, std::vector<std::uint8_t>* out);
   // Emits one status packet through the fault layer.

@@ -67,11 +67,10 @@ void WriteTruth(const std::string& path, const std::vector<ftcal::sim::DxlReplyR
          "current,torque_enable,hardware_error,position_exact_counts\n";
     char line[256];
     for (const auto& r : records) {
-      std::snprintf(line, sizeof line, "%.6f,%u,%u,%u,%u,%s,%u,%zu,%u,%d,%d,%d,%u,%u,%.6f\n",
-                    r.t_s, r.id, r.instruction, r.address, r.length,
-                    ftcal::sim::DxlReplyFateName(r.fate), r.error, r.noise_bytes, r.tick_ms,
-                    r.position, r.velocity, r.current, r.torque_enable, r.hardware_error,
-                    r.position_exact_counts);
+      std::snprintf(line, sizeof line, "%.6f,%u,%u,%u,%u,%s,%u,%zu,%u,%d,%d,%d,%u,%u,%.6f\n", r.t_s,
+                    r.id, r.instruction, r.address, r.length, ftcal::sim::DxlReplyFateName(r.fate),
+                    r.error, r.noise_bytes, r.tick_ms, r.position, r.velocity, r.current,
+                    r.torque_enable, r.hardware_error, r.position_exact_counts);
       f << line;
     }
     f.flush();
@@ -200,14 +199,15 @@ int main(int argc, char** argv) {
       for (std::size_t k = 0; k < options.ids.size(); ++k) {
         leg_of_id[options.ids[k]] = static_cast<int>(k);
       }
-      emulator.SetStateSource([&series, leg_of_id, zero, direction](std::uint8_t id, double now_s)
-                                  -> std::optional<ftcal::sim::DxlDrivenState> {
-        const int k = leg_of_id[id];
-        if (k < 0) return std::nullopt;
-        double rate = 0;
-        const double angle = series->AngleAt(k, now_s, &rate);
-        return ftcal::sim::DxlStateFromAngle(angle, rate, zero[k], direction[k]);
-      });
+      emulator.SetStateSource(
+          [&series, leg_of_id, zero, direction](
+              std::uint8_t id, double now_s) -> std::optional<ftcal::sim::DxlDrivenState> {
+            const int k = leg_of_id[id];
+            if (k < 0) return std::nullopt;
+            double rate = 0;
+            const double angle = series->AngleAt(k, now_s, &rate);
+            return ftcal::sim::DxlStateFromAngle(angle, rate, zero[k], direction[k]);
+          });
 #else
       throw std::invalid_argument("--scenario " + scenario +
                                   ": this build has no BigAnt twin (services/sim)");
@@ -253,13 +253,13 @@ int main(int argc, char** argv) {
     }
     bus.Close();
     const auto& c = emulator.fault_counts();
-    std::printf("ftcal-emulate-dynamixel: %zu replies; dropped %lld corrupted %lld noise bursts "
-                "%lld missing %lld silent %lld hardware errors %lld bus watchdog expiries %lld\n",
-                records.size(), static_cast<long long>(c.dropped),
-                static_cast<long long>(c.corrupted), static_cast<long long>(c.noise_bursts),
-                static_cast<long long>(c.missing), static_cast<long long>(c.silent),
-                static_cast<long long>(c.hardware_errors),
-                static_cast<long long>(c.bus_watchdog_expiries));
+    std::printf(
+        "ftcal-emulate-dynamixel: %zu replies; dropped %lld corrupted %lld noise bursts "
+        "%lld missing %lld silent %lld hardware errors %lld bus watchdog expiries %lld\n",
+        records.size(), static_cast<long long>(c.dropped), static_cast<long long>(c.corrupted),
+        static_cast<long long>(c.noise_bursts), static_cast<long long>(c.missing),
+        static_cast<long long>(c.silent), static_cast<long long>(c.hardware_errors),
+        static_cast<long long>(c.bus_watchdog_expiries));
     if (!truth_path.empty()) WriteTruth(truth_path, records);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "ftcal-emulate-dynamixel: %s\n", e.what());

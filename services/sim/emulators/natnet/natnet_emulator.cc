@@ -34,9 +34,7 @@ int64_t WallUtime() {
 Eigen::Matrix3d R_MG(bool z_up) {
   if (z_up) return Eigen::Matrix3d::Identity();
   Eigen::Matrix3d R;
-  R << 1, 0, 0,
-       0, 0, 1,
-       0, -1, 0;
+  R << 1, 0, 0, 0, 0, 1, 0, -1, 0;
   return R;
 }
 
@@ -72,7 +70,8 @@ NatNetEmulator::~NatNetEmulator() { Close(); }
 void NatNetEmulator::Bind() {
   auto open = [&](uint16_t port, const char* what) {
     const int fd = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
-    if (fd < 0) throw std::runtime_error(std::string("NatNetEmulator: socket: ") + std::strerror(errno));
+    if (fd < 0)
+      throw std::runtime_error(std::string("NatNetEmulator: socket: ") + std::strerror(errno));
     const int one = 1;
     // A bridge on this host binds INADDR_ANY on the data port too (SO_REUSEADDR on both).
     ::setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
@@ -126,7 +125,8 @@ natnet::Version NatNetEmulator::VersionFor(const sockaddr_in& from) const {
   return it == clients_.end() ? options_.version : it->second.version;
 }
 
-void NatNetEmulator::Reply(const sockaddr_in& to, uint16_t id, const std::vector<uint8_t>& payload) {
+void NatNetEmulator::Reply(const sockaddr_in& to, uint16_t id,
+                           const std::vector<uint8_t>& payload) {
   const std::vector<uint8_t> bytes = natnet::EncodePacket(id, payload);
   ::sendto(command_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<const sockaddr*>(&to),
            sizeof to);
@@ -145,7 +145,8 @@ natnet::Descriptions NatNetEmulator::CurrentDescriptions() const {
     ms.marker_names.push_back(name);
     rb.marker_names.push_back(name);
     // Positions in the body's own (pivot) frame.
-    rb.marker_positions.push_back(F3(options_.R_PC * options_.body_points_C_m[i] + options_.p_PoCo_P_m));
+    rb.marker_positions.push_back(
+        F3(options_.R_PC * options_.body_points_C_m[i] + options_.p_PoCo_P_m));
     rb.marker_required_labels.push_back(0);
   }
   d.marker_sets.push_back(ms);
@@ -163,8 +164,8 @@ void NatNetEmulator::ReadCommands() {
   for (;;) {
     sockaddr_in from{};
     socklen_t len = sizeof from;
-    const ssize_t n = ::recvfrom(command_fd_, buf, sizeof buf, 0,
-                                 reinterpret_cast<sockaddr*>(&from), &len);
+    const ssize_t n =
+        ::recvfrom(command_fd_, buf, sizeof buf, 0, reinterpret_cast<sockaddr*>(&from), &len);
     if (n < 0) {
       if (errno == EINTR) continue;
       return;
@@ -246,7 +247,8 @@ void NatNetEmulator::HandleCommand(const natnet::Packet& p, const sockaddr_in& f
 }
 
 bool NatNetEmulator::InAny(const std::vector<NatNetWindow>& w, int64_t tick) const {
-  return std::any_of(w.begin(), w.end(), [tick](const NatNetWindow& x) { return x.Contains(tick); });
+  return std::any_of(w.begin(), w.end(),
+                     [tick](const NatNetWindow& x) { return x.Contains(tick); });
 }
 
 void NatNetEmulator::Tick() {
@@ -351,8 +353,8 @@ void NatNetEmulator::Tick() {
   frame.transmit_ticks = transmit;
   frame.data_received_ticks = transmit - latency_ticks / 2;
   frame.mid_exposure_ticks = f.mid_exposure_zero ? 0 : transmit - latency_ticks;
-  const int64_t exposure_utime =
-      WallUtime() - std::llround((f.mid_exposure_zero ? 0.5 : 1.0) * options_.system_latency_s * 1e6);
+  const int64_t exposure_utime = WallUtime() - std::llround((f.mid_exposure_zero ? 0.5 : 1.0) *
+                                                            options_.system_latency_s * 1e6);
 
   // One encoding per version in use.
   std::map<std::pair<int, int>, std::vector<uint8_t>> packets;
@@ -364,7 +366,9 @@ void NatNetEmulator::Tick() {
     std::vector<uint8_t> payload = natnet::EncodeFrame(fv, v);
     // A damaged frame whose datagram is still whole: the decoder must find bytes left over.
     if (corrupt) payload.push_back(0);
-    return packets.emplace(std::make_pair(v.major, v.minor), natnet::EncodePacket(natnet::kFrameOfData, payload))
+    return packets
+        .emplace(std::make_pair(v.major, v.minor),
+                 natnet::EncodePacket(natnet::kFrameOfData, payload))
         .first->second;
   };
   int receivers = 0;
@@ -376,7 +380,8 @@ void NatNetEmulator::Tick() {
     ::inet_pton(AF_INET, options_.multicast_group.c_str(), &to.sin_addr);
     const auto& bytes = packet_for(options_.version);
     for (int c = 0; c < copies; ++c) {
-      ::sendto(data_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to), sizeof to);
+      ::sendto(data_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to),
+               sizeof to);
     }
     receivers = 1;
   } else {
@@ -387,7 +392,8 @@ void NatNetEmulator::Tick() {
       to.sin_port = endpoint.second;
       const auto& bytes = packet_for(client.version);
       for (int c = 0; c < copies; ++c) {
-        ::sendto(data_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to), sizeof to);
+        ::sendto(data_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to),
+                 sizeof to);
       }
       ++receivers;
     }
@@ -427,7 +433,8 @@ void NatNetEmulator::Run(int64_t max_ticks, const std::function<bool()>& keep_go
     const auto wait = std::clamp<int64_t>(
         std::chrono::duration_cast<std::chrono::nanoseconds>(deadline - Clock::now()).count(), 0,
         100'000'000);
-    const timespec ts{static_cast<time_t>(wait / 1'000'000'000), static_cast<long>(wait % 1'000'000'000)};
+    const timespec ts{static_cast<time_t>(wait / 1'000'000'000),
+                      static_cast<long>(wait % 1'000'000'000)};
     if (command_fd_ >= 0) {
       pollfd p{command_fd_, POLLIN, 0};
       if (::ppoll(&p, 1, &ts, nullptr) > 0) ReadCommands();

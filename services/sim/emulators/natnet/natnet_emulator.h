@@ -16,10 +16,11 @@
 //
 // Faults, deterministic for a seed and schedule (ticks count from the first frame): frame
 // gaps, duplicated frames, corrupt frames (a byte after the end tag, the datagram's length
-// agreeing: only a decoder that checks it consumed everything refuses it), untracked windows (tracked bit clear, the last pose resent), silent
-// windows (Motive up, answering, no frames), edit-mode windows, down windows (Motive gone: no
-// answers; afterwards it restarts with frame numbers and ticks from zero and the body renumbered),
-// model-list changes (bit 1 set, the two bodies swap order and ids), mid-exposure 0.
+// agreeing: only a decoder that checks it consumed everything refuses it), untracked windows
+// (tracked bit clear, the last pose resent), silent windows (Motive up, answering, no frames),
+// edit-mode windows, down windows (Motive gone: no answers; afterwards it restarts with frame
+// numbers and ticks from zero and the body renumbered), model-list changes (bit 1 set, the two
+// bodies swap order and ids), mid-exposure 0.
 #pragma once
 
 #include <netinet/in.h>
@@ -78,8 +79,8 @@ struct NatNetEmulatorOptions {
   double rate_hz = 100.0;
   std::string body_name = "chassis";
   int32_t body_id = 3;
-  bool decoy_body = true;         // "wand" (id 1) listed first: a client must map by name
-  bool z_up = false;              // Motive's Up Axis: Y (default) or Z
+  bool decoy_body = true;  // "wand" (id 1) listed first: a client must map by name
+  bool z_up = false;       // Motive's Up Axis: Y (default) or Z
   // The chassis frame C in the rigid body's pivot frame P (the bridge's configured X_PC).
   Eigen::Matrix3d R_PC = Eigen::Matrix3d::Identity();
   Eigen::Vector3d p_PoCo_P_m = Eigen::Vector3d::Zero();
@@ -176,8 +177,8 @@ class NatNetEmulator {
   int64_t tick_ = 0;
   int64_t frame_base_ = 0;
   int64_t skipped_ = 0;
-  double start_s_ = 0;       // steady seconds at the (re)start: tick origin
-  bool swapped_ = false;     // the bodies' order and ids after model changes
+  double start_s_ = 0;    // steady seconds at the (re)start: tick origin
+  bool swapped_ = false;  // the bodies' order and ids after model changes
   std::optional<NatNetPose> last_tracked_;
   std::mt19937_64 rng_;
   NatNetEmulatorCounters counters_;

@@ -64,8 +64,9 @@ int main(int argc, char** argv) {
   cli.add_option("--duration", duration_s, "seconds to serve (then exit)")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
-  cli.add_option("--rate-hz", rate_hz, "frames per second (the twin's 100 Hz frames repeat "
-                                       "cyclically at other rates)")
+  cli.add_option("--rate-hz", rate_hz,
+                 "frames per second (the twin's 100 Hz frames repeat "
+                 "cyclically at other rates)")
       ->check(CLI::Range(1.0, 20000.0))
       ->capture_default_str();
   cli.add_option("--port", port, "TCP port (default: the config's mocap.port; 0: any)")
@@ -99,7 +100,8 @@ int main(int argc, char** argv) {
 
   try {
     faults.seed = seed;
-    for (const auto& w : untracked) faults.untracked.push_back(ParseWindow(w, rate_hz, "--untracked"));
+    for (const auto& w : untracked)
+      faults.untracked.push_back(ParseWindow(w, rate_hz, "--untracked"));
     for (const auto& w : silent) faults.silent.push_back(ParseWindow(w, rate_hz, "--silent"));
     for (const auto& w : no_more_data) {
       faults.no_more_data.push_back(ParseWindow(w, rate_hz, "--no-more-data"));
@@ -122,8 +124,8 @@ int main(int argc, char** argv) {
       const ftcal::sim::TwinSeries series(twin, scenario == "walk" ? "walk" : "stand", twin_s);
       for (std::size_t i = 0; i < series.size(); ++i) {
         // The residual QtmPose always carried (its default), not the twin's marker noise.
-        poses.push_back(ftcal::sim::QtmPoseFromFrame(series.Frame(i),
-                                                     ftcal::sim::QtmPose{}.residual_m));
+        poses.push_back(
+            ftcal::sim::QtmPoseFromFrame(series.Frame(i), ftcal::sim::QtmPose{}.residual_m));
       }
     }
 
@@ -139,11 +141,11 @@ int main(int argc, char** argv) {
     options.reorder_bodies_on_change = reorder_bodies;
 
     const int64_t total_ticks = std::llround(duration_s * rate_hz);
-    ftcal::sim::QtmEmulator emulator(options, [&poses, total_ticks](int64_t tick)
-                                                  -> std::optional<ftcal::sim::QtmPose> {
-      if (tick >= total_ticks) return std::nullopt;
-      return poses[static_cast<size_t>(tick) % poses.size()];
-    });
+    ftcal::sim::QtmEmulator emulator(
+        options, [&poses, total_ticks](int64_t tick) -> std::optional<ftcal::sim::QtmPose> {
+          if (tick >= total_ticks) return std::nullopt;
+          return poses[static_cast<size_t>(tick) % poses.size()];
+        });
 
     std::vector<ftcal::sim::QtmSentFrame> truth;
     emulator.SetObserver([&truth](const ftcal::sim::QtmSentFrame& s) { truth.push_back(s); });

@@ -241,11 +241,16 @@ void QtmEmulator::HandleCommand(Client& c, const std::string& text) {
     bool m = false, mr = false, b = false, br = false;
     for (size_t i = 2; i < words.size(); ++i) {
       const std::string comp = Lower(words[i]);
-      if (comp == "3d") m = true;
-      else if (comp == "3dres") mr = true;
-      else if (comp == "6d") b = true;
-      else if (comp == "6dres") br = true;
-      else return error("Parse Error");  // UDP and components the twin has no data for
+      if (comp == "3d")
+        m = true;
+      else if (comp == "3dres")
+        mr = true;
+      else if (comp == "6d")
+        b = true;
+      else if (comp == "6dres")
+        br = true;
+      else
+        return error("Parse Error");  // UDP and components the twin has no data for
     }
     if ((m && mr) || (b && br) || !(m || mr || b || br)) return error("Parse Error");
     c.streaming = true;
@@ -523,7 +528,8 @@ void QtmEmulator::Run(int64_t max_ticks, const std::function<bool()>& keep_going
     const auto wait = std::clamp<int64_t>(
         std::chrono::duration_cast<std::chrono::nanoseconds>(deadline - Clock::now()).count(), 0,
         100'000'000);
-    const timespec ts{static_cast<time_t>(wait / 1'000'000'000), static_cast<long>(wait % 1'000'000'000)};
+    const timespec ts{static_cast<time_t>(wait / 1'000'000'000),
+                      static_cast<long>(wait % 1'000'000'000)};
     const int ready = ::ppoll(fds.data(), fds.size(), &ts, nullptr);
     if (ready > 0) {
       size_t i = 0;

@@ -65,7 +65,7 @@ struct QtmFaults {
   std::vector<TickWindow> silent;        // nothing sent, connections kept
   std::vector<TickWindow> no_more_data;  // one No More Data at the start; frames restart at 1 after
   std::vector<TickWindow> disconnected;  // event 12, all clients closed, refused meanwhile
-  std::vector<int64_t> settings_changed; // event 11 to every client at these ticks
+  std::vector<int64_t> settings_changed;  // event 11 to every client at these ticks
 };
 
 struct QtmEmulatorOptions {
@@ -90,25 +90,25 @@ struct QtmSentFrame {
   int64_t tick = 0;
   int32_t frame_number = 0;
   int64_t timestamp_us = 0;
-  bool corrupt = false;       // sent with a broken component: a client must not use it
-  qtm::Body body;             // NaN when untracked
+  bool corrupt = false;  // sent with a broken component: a client must not use it
+  qtm::Body body;        // NaN when untracked
   std::vector<qtm::Marker> markers;
-  int clients = 0;            // streaming clients it was written to
+  int clients = 0;  // streaming clients it was written to
 };
 
 struct QtmEmulatorCounters {
   int64_t ticks = 0;
-  int64_t frames_sent = 0;      // frames written to at least one client
+  int64_t frames_sent = 0;  // frames written to at least one client
   int64_t frames_corrupt = 0;
   int64_t frames_untracked = 0;
-  int64_t gaps = 0;             // frame-number jumps emitted
-  int64_t frames_skipped = 0;   // numbers skipped by those jumps
+  int64_t gaps = 0;            // frame-number jumps emitted
+  int64_t frames_skipped = 0;  // numbers skipped by those jumps
   int64_t connections = 0;
   int64_t refused_clients = 0;  // max clients reached
   int64_t versions_refused = 0;
   int64_t parameters_sent = 0;
   int64_t events_sent = 0;
-  int64_t disconnects = 0;      // disconnect windows begun
+  int64_t disconnects = 0;  // disconnect windows begun
   int64_t no_more_data_sent = 0;
 };
 
