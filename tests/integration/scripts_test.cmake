@@ -12,3 +12,7 @@ set_tests_properties(scripts_spy_without_a_display_names_the_reason PROPERTIES
 add_test(NAME scripts_readme_package_list_matches_setup
   COMMAND bash "${CMAKE_CURRENT_LIST_DIR}/readme_packages_test.sh" "${PROJECT_SOURCE_DIR}")
 set_tests_properties(scripts_readme_package_list_matches_setup PROPERTIES LABELS integration TIMEOUT 30)
+
+# The C++ is formatted as .clang-format says (issue 15, house rules): scripts/format fixes it.
+add_test(NAME clang_format_check COMMAND "${PROJECT_SOURCE_DIR}/scripts/format" --check)
+set_tests_properties(clang_format_check PROPERTIES LABELS unit TIMEOUT 120)
