@@ -401,6 +401,20 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       EXPECT_GE(segmenter_spawn_s, 0) << "the segmenter was not restarted within 5 s";
       EXPECT_LT(segmenter_spawn_s, kRestartBoundS);
       ASSERT_GT(new_logger, 0);
+      // The restarted logger runs as the first did: SCHED_FIFO (policy 1, /proc/PID/stat field 41).
+      {
+        std::ifstream stat("/proc/" + std::to_string(new_logger) + "/stat");
+        std::string line;
+        std::getline(stat, line);
+        std::istringstream rest(line.substr(line.rfind(')') + 2));
+        std::vector<std::string> fields;
+        for (std::string f; rest >> f;) fields.push_back(f);
+        // fields[0] is field 3 (state): field 41 (policy) is fields[38].
+        const std::string policy = fields.size() > 38 ? fields[38] : "?";
+        std::cout << "restarted lcm-logger pid " << new_logger << ": scheduling policy " << policy
+                  << " (1: SCHED_FIFO)\n";
+        EXPECT_EQ(policy, "1");
+      }
       ear.PumpUntil(
           [&] {
             segmenter_back = Restarted(ear, from, "ftcal-pose-segmenter", old_segmenter, t_kill);
@@ -552,6 +566,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
   // streams (rdt_sequence from 1 again); that is counted and printed, not held against it.
   ASSERT_GT(rec.first_marker, 0) << "no EXPERIMENT marker in the recording";
   int64_t lost_before_plan = 0, restarts_before_plan = 0;
+  int losses_printed = 0;
   ASSERT_EQ(rec.ft.size(), 6u) << "FT_<LEG> channels in the recording";
   std::ostringstream gaps;
   for (const auto& [channel, records] : rec.ft) {
@@ -581,6 +596,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       } else {
         lost_outside += missing;
         lost_outside_at_bridge += std::min<int64_t>(b.bridge_gap, missing);
+        if (++losses_printed > 24) continue;  // the first ones say when; the sum says how many
         std::cout << channel << ": " << missing << " records lost outside the outage, "
                   << (a.utime - t_kill_us) / 1e3 << " ms from the kill, "
                   << (a.utime - rec.first_marker) / 1e6 << " s into the plan (files " << a.file << "/"
