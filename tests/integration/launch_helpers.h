@@ -55,7 +55,9 @@ inline double Since(Clock::time_point t) {
   return std::chrono::duration<double>(Clock::now() - t).count();
 }
 
-inline std::string Dir(const char* path) { return std::filesystem::path(path).parent_path().string(); }
+inline std::string Dir(const char* path) {
+  return std::filesystem::path(path).parent_path().string();
+}
 
 // The programs' directories at the front of PATH (each once): supervisord hands its children
 // this PATH, so the groups' commands are found by name.
@@ -130,7 +132,8 @@ class Ear {
   // without copying every heartbeat it has heard.
   std::vector<Beat> beats_since(std::size_t from) const {
     std::lock_guard<std::mutex> lock(mutex_);
-    return {beats_.begin() + static_cast<std::ptrdiff_t>(std::min(from, beats_.size())), beats_.end()};
+    return {beats_.begin() + static_cast<std::ptrdiff_t>(std::min(from, beats_.size())),
+            beats_.end()};
   }
   std::size_t beat_count() const {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -323,10 +326,14 @@ inline std::string TwoHostLaunchConfig(const std::string& base, const TwoNamespa
   }
   return text + R"(
 launch {
-  host { name: "robot" address: "10.77.0.1" run_dir: ")" + robot_run + R"("
-         shell: ["ip", "netns", "exec", ")" + ns.robot + R"(", "sh", "-c"] }
-  host { name: "workstation" address: "10.77.0.2" run_dir: ")" + ws_run + R"(" }
-)" + groups + "}\n";
+  host { name: "robot" address: "10.77.0.1" run_dir: ")" +
+         robot_run + R"("
+         shell: ["ip", "netns", "exec", ")" +
+         ns.robot + R"(", "sh", "-c"] }
+  host { name: "workstation" address: "10.77.0.2" run_dir: ")" +
+         ws_run + R"(" }
+)" + groups +
+         "}\n";
 }
 
 // The new pid's first heartbeat after `from` (index into ear.beats()), as seconds after t_kill.

@@ -69,7 +69,8 @@ class LaunchTest : public ::testing::Test {
   void TearDown() override {
     if (HasFailure()) {
       std::cout << RunShell({}, "tail -n 5 " + dir_ + "/run/logs/*.err " + dir_ +
-                                    "/run/supervisord.log 2>/dev/null").output;
+                                    "/run/supervisord.log 2>/dev/null")
+                       .output;
     }
   }
   std::string dir_;
@@ -88,9 +89,7 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
 
   // Started in dependency order: supervisord's own log says when it spawned each.
   const std::string log = testing::ReadFile(run + "/supervisord.log");
-  auto spawned_at = [&log](const std::string& name) {
-    return log.find("spawned: '" + name + "'");
-  };
+  auto spawned_at = [&log](const std::string& name) { return log.find("spawned: '" + name + "'"); };
   for (const char* bridge : {"ati-bridge", "dynamixel-bridge", "mocap-bridge"}) {
     ASSERT_NE(spawned_at(bridge), std::string::npos) << bridge << "\n" << log;
     EXPECT_LT(spawned_at("twin"), spawned_at(bridge)) << log;
@@ -180,14 +179,15 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
     heard += m.host + "/" + m.group + ":" + m.name + " " + m.from_state + "->" + m.to_state +
              " pid " + std::to_string(m.pid) + " restarts " + std::to_string(m.restarts) + "\n";
   }
-  EXPECT_TRUE(restart_published) << "no PROCESS_STATE RUNNING with restarts=1 for ati-bridge; heard:\n"
-                                 << heard;
+  EXPECT_TRUE(restart_published)
+      << "no PROCESS_STATE RUNNING with restarts=1 for ati-bridge; heard:\n"
+      << heard;
 
   // ftcal-launch status shows it RUNNING with the new pid and a live heartbeat.
   const Ran status = Launch({"--config", config, "status", "sim"});
   EXPECT_EQ(status.rc, 0) << status.out;
-  EXPECT_TRUE(std::regex_search(status.out, std::regex("sim:ati-bridge +RUNNING +pid " +
-                                                       std::to_string(new_pid))))
+  EXPECT_TRUE(std::regex_search(
+      status.out, std::regex("sim:ati-bridge +RUNNING +pid " + std::to_string(new_pid))))
       << status.out;
 
   // restart NAME: a new corrector behind its gate, the rest untouched.
@@ -249,7 +249,8 @@ TEST_F(LaunchTest, ProcessThatKeepsDyingEndsFatalNotRestartedForever) {
   const std::string starts = testing::ReadFile(run + "/starts");
   EXPECT_EQ(std::count(starts.begin(), starts.end(), '\n'), 3) << "1 start + 2 retries";
   bool fatal_published = false;
-  for (const auto& m : ear.states()) fatal_published |= m.name == "crasher" && m.to_state == "FATAL";
+  for (const auto& m : ear.states())
+    fatal_published |= m.name == "crasher" && m.to_state == "FATAL";
   EXPECT_TRUE(fatal_published);
   EXPECT_EQ(Launch({"--config", config, "down", "dying"}).rc, 0);
 }
@@ -261,7 +262,8 @@ TEST_F(LaunchTest, FailingGateStopsTheStartAndNamesProcessGateAndFigure) {
   // Ask the ATI bridge for ten times what the twin serves.
   const std::string gate = R"(rate_hz: 500 min_channels: 6 window_s: 2 within_s: 10)";
   ASSERT_NE(text.find(gate), std::string::npos);
-  text.replace(text.find(gate), gate.size(), R"(rate_hz: 5000 min_channels: 6 window_s: 2 within_s: 4)");
+  text.replace(text.find(gate), gate.size(),
+               R"(rate_hz: 5000 min_channels: 6 window_s: 2 within_s: 4)");
   WriteText(config, text);
   const Ran up = Launch({"--config", config, "up", "sim"});
   EXPECT_EQ(up.rc, 2) << up.out;
@@ -280,7 +282,6 @@ TEST_F(LaunchTest, FailingGateStopsTheStartAndNamesProcessGateAndFigure) {
   EXPECT_EQ(status["sim:corrector"].state, "STOPPED");
   EXPECT_EQ(Launch({"--config", config, "down", "sim"}).rc, 0);
 }
-
 
 // systemd's notify protocol, as systemd would receive it: a datagram socket at NOTIFY_SOCKET.
 TEST_F(LaunchTest, AServiceSaysReadyFeedsTheWatchdogAndSaysStoppingUnderSystemd) {
@@ -376,7 +377,8 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
 
   const Ran up = Launch({"--config", config, "up", "two"});
   ASSERT_EQ(up.rc, 0) << up.out;
-  std::cout << "FIGURE ftcal-launch up two (2 hosts, 8 processes): " << up.seconds << " s\n" << up.out;
+  std::cout << "FIGURE ftcal-launch up two (2 hosts, 8 processes): " << up.seconds << " s\n"
+            << up.out;
 
   // Every FT_* sample heard here crossed the link: the twin and the bridges run on the robot.
   ear.Pump(2.0);
@@ -449,7 +451,8 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
   EXPECT_EQ(robot_after["two:ati-bridge"].pid, ati_back->first);
   EXPECT_EQ(ws_after["two:corrector"].pid, corrector_back->first);
   for (const char* p : {"lcm-logger", "twin", "dynamixel-bridge", "mocap-bridge"}) {
-    EXPECT_EQ(robot_after["two:" + std::string(p)].pid, robot_before["two:" + std::string(p)].pid) << p;
+    EXPECT_EQ(robot_after["two:" + std::string(p)].pid, robot_before["two:" + std::string(p)].pid)
+        << p;
   }
   for (const char* p : {"segmenter", "calibrator"}) {
     EXPECT_EQ(ws_after["two:" + std::string(p)].pid, ws_before["two:" + std::string(p)].pid) << p;
@@ -478,9 +481,9 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
   int restarts_heard = 0;
   for (const auto& m : ear.states()) {
     if (m.to_state != "RUNNING" || m.restarts != 1) continue;
-    restarts_heard += (m.host == "robot" && m.name == "ati-bridge" && m.pid == ati_back->first) ||
-                      (m.host == "workstation" && m.name == "corrector" &&
-                       m.pid == corrector_back->first);
+    restarts_heard +=
+        (m.host == "robot" && m.name == "ati-bridge" && m.pid == ati_back->first) ||
+        (m.host == "workstation" && m.name == "corrector" && m.pid == corrector_back->first);
   }
   EXPECT_EQ(restarts_heard, 2);
 
