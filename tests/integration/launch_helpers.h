@@ -5,7 +5,8 @@
 //
 // The including target defines FTCAL_LAUNCH, FTCAL_EVENTS, FTCAL_SIM, FTCAL_ATI_BRIDGE,
 // FTCAL_DYNAMIXEL_BRIDGE, FTCAL_MOCAP_BRIDGE, FTCAL_SEGMENTER, FTCAL_CALIBRATOR,
-// FTCAL_CORRECTOR and FTCAL_LCM_LOGGER (the programs' paths), as launch_test.cmake does.
+// FTCAL_CORRECTOR, FTCAL_LCM_LOGGER and FTCAL_RECORD (the programs' paths), as launch_test.cmake
+// does.
 #pragma once
 
 #include <fcntl.h>
@@ -75,7 +76,7 @@ inline void PutOnPath(const std::vector<std::string>& programs) {
 inline void PutProgramsOnPath() {
   PutOnPath({FTCAL_LAUNCH, FTCAL_EVENTS, FTCAL_SIM, FTCAL_ATI_BRIDGE, FTCAL_DYNAMIXEL_BRIDGE,
              FTCAL_MOCAP_BRIDGE, FTCAL_SEGMENTER, FTCAL_CALIBRATOR, FTCAL_CORRECTOR,
-             FTCAL_LCM_LOGGER});
+             FTCAL_LCM_LOGGER, FTCAL_RECORD});
 }
 
 // What the test itself hears on the bus, read on a thread of its own: the test blocks in

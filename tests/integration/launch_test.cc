@@ -98,7 +98,7 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
   EXPECT_LT(spawned_at("segmenter"), spawned_at("corrector")) << log;
 
   auto before = SupervisorStatus(run);
-  for (const char* p : {"lcm-logger", "twin", "ati-bridge", "dynamixel-bridge", "mocap-bridge",
+  for (const char* p : {"recorder", "twin", "ati-bridge", "dynamixel-bridge", "mocap-bridge",
                         "segmenter", "calibrator", "corrector"}) {
     ASSERT_EQ(before["sim:" + std::string(p)].state, "RUNNING") << p;
   }
@@ -163,7 +163,7 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
       5.0));
   ear.Pump(0.5);  // the listener's event of that RUNNING
   EXPECT_EQ(after["sim:ati-bridge"].pid, new_pid);
-  for (const char* p : {"lcm-logger", "twin", "dynamixel-bridge", "mocap-bridge", "segmenter",
+  for (const char* p : {"recorder", "twin", "dynamixel-bridge", "mocap-bridge", "segmenter",
                         "calibrator", "corrector"}) {
     EXPECT_EQ(after["sim:" + std::string(p)].pid, before["sim:" + std::string(p)].pid) << p;
   }
@@ -328,15 +328,15 @@ TEST_F(LaunchTest, AServiceSaysReadyFeedsTheWatchdogAndSaysStoppingUnderSystemd)
 // ---- Two hosts: network namespaces "robot" and "workstation" joined by a veth pair ----
 
 // The sim config at ttl=1 with a two-host group: the robot runs the twin's devices, the
-// bridges and lcm-logger; the workstation (where ftcal-launch runs) the stages.
+// bridges and the recorder; the workstation (where ftcal-launch runs) the stages.
 std::string TwoHostConfig(const TwoNamespaces& ns, const std::string& robot_run,
                           const std::string& ws_run) {
   return TwoHostLaunchConfig(testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt"),
                              ns, robot_run, ws_run, R"(  group {
     name: "two"
-    process { name: "lcm-logger" host: "robot" command: "lcm-logger"
-              args: ["--lcm-url=${lcm_url}", "-i", "${run_dir}/session.lcmlog"]
-              sd_notify: false status_name: "-" }
+    process { name: "recorder" host: "robot" command: "ftcal-record"
+              args: ["--config", "${config}", "--lcm-url", "${lcm_url}", "-i",
+                     "${run_dir}/session.lcmlog"] }
     process { name: "twin" host: "robot" command: "ftcal-sim"
               args: ["live", "--config", "${config}", "--pty-link", "${run_dir}/dynamixel",
                      "--ati-rate", "500"]
@@ -450,7 +450,7 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
       5.0));
   EXPECT_EQ(robot_after["two:ati-bridge"].pid, ati_back->first);
   EXPECT_EQ(ws_after["two:corrector"].pid, corrector_back->first);
-  for (const char* p : {"lcm-logger", "twin", "dynamixel-bridge", "mocap-bridge"}) {
+  for (const char* p : {"recorder", "twin", "dynamixel-bridge", "mocap-bridge"}) {
     EXPECT_EQ(robot_after["two:" + std::string(p)].pid, robot_before["two:" + std::string(p)].pid)
         << p;
   }

@@ -3,7 +3,7 @@
 // the process group brought up by `ftcal-launch up` on one supervisord per host, and one
 // process killed with -9 on each side in the middle of the run.
 //
-//   robot:       lcm-logger (SCHED_FIFO, as scripts/record runs it), the twin as the robot
+//   robot:       ftcal-record (SCHED_FIFO, as scripts/record runs it), the twin as the robot
 //                (ftcal-sim live --scenario commanded --control FIFO), the ATI, Dynamixel and
 //                mocap bridges;
 //   workstation: the pose segmenter, the live calibrator, the corrector and the sequencer with
@@ -13,12 +13,12 @@
 //                sets down the twin through the twin's FIFO and sends a signed CONFIRM
 //                (ftcal-sequencer-control).
 //
-// In the standing phase it kills the robot's lcm-logger and the workstation's segmenter, and
+// In the standing phase it kills the robot's recorder and the workstation's segmenter, and
 // checks against what does not come from the processes it judges:
 //   1. each host's supervisord spawned a new child for each (read from /proc) within
 //      kRestartBoundS, and supervisorctl, ftcal-launch status, ftcal-status and the listeners'
 //      PROCESS_STATE show the restart with the new pid;
-//   2. the recording lost nothing outside the logger's outage: the two files of `lcm-logger -i`
+//   2. the recording lost nothing outside the logger's outage: the two files of `ftcal-record -i`
 //      counted by each FT_<LEG> channel's rdt_sequence (the twin's, one per record): every gap
 //      lies inside the outage, between the killed logger's last event and the restarted
 //      logger's first;
@@ -99,11 +99,12 @@ std::string ExperimentConfig(const std::string& public_key) {
 std::string ExperimentGroup(const std::string& key) {
   return R"(  group {
     name: "two"
-    # scripts/record's recorder: SCHED_FIFO (without it a descheduled logger lost records
-    # here outside its outage) and a large socket buffer; -i: a restarted logger writes the
-    # next file (session.lcmlog.01) instead of refusing the first.
-    process { name: "lcm-logger" host: "robot" command: "chrt"
-              args: ["-f", "10", "lcm-logger", "--lcm-url=${lcm_url}&recv_buf_size=8388608",
+    # scripts/record's recorder: ftcal-record (lcm-logger's 30-message queue lost records
+    # here), SCHED_FIFO and a large socket buffer; -i: a restarted recorder writes the next file
+    # (session.lcmlog.01) instead of refusing the first.
+    process { name: "recorder" host: "robot" command: "chrt"
+              args: ["-f", "10", "ftcal-record", "--config", "${config}",
+                     "--lcm-url", "${lcm_url}&recv_buf_size=8388608",
                      "-i", "${run_dir}/session.lcmlog"]
               sd_notify: false status_name: "-" }
     process { name: "twin" host: "robot" command: "ftcal-sim"
@@ -237,7 +238,7 @@ int64_t WallUtime() {
       .count();
 }
 
-// The recording as lcm-logger wrote it: every file of `-i` (session.lcmlog.00, .01, ...), the
+// The recording as ftcal-record wrote it: every file of `-i` (session.lcmlog.00, .01, ...), the
 // first and last event time of each, and each FT_<LEG> channel's records in log order.
 struct Recording {
   struct Ft {
@@ -310,22 +311,12 @@ class TwoHostExperiment : public ::testing::Test {
 
 TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMidRun) {
   if (::geteuid() != 0) GTEST_SKIP() << "two network namespaces need root (CI runs as root)";
-  // Opt-in until the recorder holds: in 3 of 3 runs here lcm-logger (SCHED_FIFO, its socket
-  // dropping nothing: the kernel counted no drop) lost 271-3007 records outside the outage.
-  // Debian's lcm-logger subscribes with LCM's default 30-message queue and drops beyond it when
-  // its dispatch falls ~20 ms behind; every other check (restarts, status, the restarted
-  // segmenter picking the phase up, the calibration against the truth) passed each time.
-  const char* opt_in = std::getenv("FTCAL_TWO_HOST_EXPERIMENT");
-  if (opt_in == nullptr || std::string(opt_in) != "1") {
-    GTEST_SKIP() << "opt-in (FTCAL_TWO_HOST_EXPERIMENT=1): lcm-logger's 30-message queue loses "
-                    "records under load, so the recording check fails; see the comment above";
-  }
   // Ahead of whatever else the machine runs (CI, builds): this test and everything it starts,
   // supervisord and the group included, inherit it.
   errno = 0;
   ASSERT_EQ(::setpriority(PRIO_PROCESS, 0, -10), 0) << std::strerror(errno);
   PutProgramsOnPath();
-  PutOnPath({FTCAL_SEQUENCER});
+  PutOnPath({FTCAL_SEQUENCER, FTCAL_RECORD});
 
   // Its own key for the four channels that act (scripts/experiment's step 1).
   const std::string keys = dir_ + "/keys";
@@ -381,7 +372,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       killed = true;
       robot_before = SupervisorStatus(robot_run, robot_shell);
       ws_before = SupervisorStatus(ws_run);
-      old_logger = static_cast<pid_t>(robot_before["two:lcm-logger"].pid);
+      old_logger = static_cast<pid_t>(robot_before["two:recorder"].pid);
       old_segmenter = static_cast<pid_t>(ws_before["two:segmenter"].pid);
       ASSERT_GT(old_logger, 0);
       ASSERT_GT(old_segmenter, 0);
@@ -401,7 +392,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       double logger_spawn_s = -1, segmenter_spawn_s = -1;
       while (Since(t_kill) < 5 && (logger_spawn_s < 0 || segmenter_spawn_s < 0)) {
         if (logger_spawn_s < 0 &&
-            (new_logger = ChildRunning(robot_supervisord, "lcm-logger", old_logger)) > 0) {
+            (new_logger = ChildRunning(robot_supervisord, "ftcal-record", old_logger)) > 0) {
           logger_spawn_s = Since(t_kill);
         }
         if (segmenter_spawn_s < 0 &&
@@ -410,7 +401,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
         }
         std::this_thread::sleep_for(std::chrono::milliseconds(5));
       }
-      std::cout << "FIGURE kill -9 -> supervisord's new child: robot/lcm-logger " << logger_spawn_s
+      std::cout << "FIGURE kill -9 -> supervisord's new child: robot/recorder " << logger_spawn_s
                 << " s, workstation/segmenter " << segmenter_spawn_s << " s (after "
                 << poses_at_kill << " steady poses, " << Since(t_plan) << " s into the plan)\n";
       EXPECT_GE(logger_spawn_s, 0) << "the logger was not restarted within 5 s";
@@ -428,7 +419,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
         for (std::string f; rest >> f;) fields.push_back(f);
         // fields[0] is field 3 (state): field 41 (policy) is fields[38].
         const std::string policy = fields.size() > 38 ? fields[38] : "?";
-        std::cout << "restarted lcm-logger pid " << new_logger << ": scheduling policy " << policy
+        std::cout << "restarted recorder pid " << new_logger << ": scheduling policy " << policy
                   << " (1: SCHED_FIFO)\n";
         EXPECT_EQ(policy, "1");
       }
@@ -451,11 +442,11 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
           [&] {
             robot_after = SupervisorStatus(robot_run, robot_shell);
             ws_after = SupervisorStatus(ws_run);
-            return robot_after["two:lcm-logger"].state == "RUNNING" &&
+            return robot_after["two:recorder"].state == "RUNNING" &&
                    ws_after["two:segmenter"].state == "RUNNING";
           },
           8.0));
-      EXPECT_EQ(robot_after["two:lcm-logger"].pid, new_logger);
+      EXPECT_EQ(robot_after["two:recorder"].pid, new_logger);
       EXPECT_EQ(ws_after["two:segmenter"].pid, segmenter_back->first);
       for (const char* p : {"twin", "ati-bridge", "dynamixel-bridge", "mocap-bridge"}) {
         EXPECT_EQ(robot_after["two:" + std::string(p)].pid,
@@ -468,7 +459,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       }
       const Ran launch_status = Launch({"--config", config, "status", "two"});
       EXPECT_EQ(launch_status.rc, 0) << launch_status.out;
-      EXPECT_TRUE(std::regex_search(launch_status.out, std::regex("two:lcm-logger +RUNNING +pid " +
+      EXPECT_TRUE(std::regex_search(launch_status.out, std::regex("two:recorder +RUNNING +pid " +
                                                                   std::to_string(new_logger))))
           << launch_status.out;
       EXPECT_TRUE(std::regex_search(
@@ -481,7 +472,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       EXPECT_TRUE(status_rc.has_value()) << "ftcal-status --once-after 8 did not exit";
       const std::string table = testing::ReadFile(dir_ + "/status.out");
       std::cout << table;
-      const auto logger_row = GroupRow(table, "two:lcm-logger");
+      const auto logger_row = GroupRow(table, "two:recorder");
       const auto segmenter_row = GroupRow(table, "two:segmenter");
       EXPECT_FALSE(logger_row.empty()) << table;
       EXPECT_FALSE(segmenter_row.empty()) << table;
@@ -490,7 +481,8 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
         EXPECT_EQ(logger_row[2], "RUNNING") << table;
         EXPECT_EQ(logger_row[3], std::to_string(new_logger)) << table;
         EXPECT_EQ(logger_row[4], "1") << table << " (restarts)";
-        EXPECT_EQ(logger_row[5], "-") << table << " (lcm-logger sends no heartbeat)";
+        EXPECT_EQ(logger_row[5], "-")
+            << table << " (status_name " - ": not matched to a heartbeat)";
       }
       if (!segmenter_row.empty()) {
         EXPECT_EQ(segmenter_row[0], "workstation") << table;
@@ -504,7 +496,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       for (const auto& m : ear.states()) {
         if (m.to_state != "RUNNING" || m.restarts != 1) continue;
         restarts_heard +=
-            (m.host == "robot" && m.name == "lcm-logger" && m.pid == new_logger) ||
+            (m.host == "robot" && m.name == "recorder" && m.pid == new_logger) ||
             (m.host == "workstation" && m.name == "segmenter" && m.pid == segmenter_back->first);
       }
       EXPECT_EQ(restarts_heard, 2);
@@ -566,7 +558,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
 
   // 2. The recording: two files, one gap per FT channel, inside the outage.
   const Recording rec = ReadRecording(robot_run);
-  ASSERT_EQ(rec.files.size(), 2u) << "lcm-logger -i: one file before the kill, one after";
+  ASSERT_EQ(rec.files.size(), 2u) << "ftcal-record -i: one file before the kill, one after";
   const int64_t outage_from = rec.span[0].second, outage_to = rec.span[1].first;
   std::cout << "FIGURE outage of the recording: the killed logger's last event "
             << (t_kill_us - outage_from) / 1e3 << " ms before the kill, the restarted logger's "
@@ -641,7 +633,7 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
     if (m.to_state != "RUNNING" || m.restarts != 1) continue;
     segmenter_recorded |=
         m.host == "workstation" && m.name == "segmenter" && m.pid == segmenter_back->first;
-    logger_recorded |= m.host == "robot" && m.name == "lcm-logger" && m.pid == new_logger;
+    logger_recorded |= m.host == "robot" && m.name == "recorder" && m.pid == new_logger;
   }
   EXPECT_TRUE(segmenter_recorded)
       << "no PROCESS_STATE RUNNING of the new segmenter in the recording";

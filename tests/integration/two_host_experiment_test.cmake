@@ -1,11 +1,11 @@
 # Two hosts, tested here (issue 12): the short experiment plan live across two network
 # namespaces joined by a veth pair, the group brought up by ftcal-launch on one supervisord per
-# host, lcm-logger (robot) and the segmenter (workstation) killed with -9 mid-run; the restarts
+# host, the recorder (robot) and the segmenter (workstation) killed with -9 mid-run; the restarts
 # against /proc, the recording against the transducers' sequence numbers, the live calibration
 # against the twin's truth. About six minutes of real time, root only (two namespaces of its
 # own; the test skips otherwise), inside scripts/netns-exec like the other multicast tests.
 find_program(FTCAL_SUPERVISORD supervisord)
-if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftcal-sequencer AND
+if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-record AND
    TARGET ftcal-sequencer-control AND TARGET ftcal-keygen AND LCM_LOGGER)
   add_executable(two_host_experiment_test "${CMAKE_CURRENT_LIST_DIR}/two_host_experiment_test.cc")
   target_link_libraries(two_host_experiment_test PRIVATE
@@ -26,10 +26,11 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftc
     FTCAL_SEQUENCER="$<TARGET_FILE:ftcal-sequencer>"
     FTCAL_SEQUENCER_CONTROL="$<TARGET_FILE:ftcal-sequencer-control>"
     FTCAL_KEYGEN="$<TARGET_FILE:ftcal-keygen>"
+    FTCAL_RECORD="$<TARGET_FILE:ftcal-record>"
     FTCAL_LCM_LOGGER="${LCM_LOGGER}")
   add_dependencies(two_host_experiment_test ftcal-launch ftcal-supervisor-events ftcal-status
     ftcal-sim ftcal-ati-bridge ftcal-dynamixel-bridge ftcal-mocap-bridge ftcal-pose-segmenter
-    ftcal-calibrator ftcal-corrector ftcal-sequencer ftcal-sequencer-control ftcal-keygen)
+    ftcal-calibrator ftcal-corrector ftcal-sequencer ftcal-sequencer-control ftcal-keygen ftcal-record)
   set_target_properties(two_host_experiment_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   # RUN_SERIAL: timing-sensitive (restart bounds, a recording that must lose nothing outside the
