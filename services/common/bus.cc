@@ -290,13 +290,18 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
 
     // Periodic work on the log's clock, as it would have run live between these events; the
     // first tick is at the first event, as a live loop's is at its start.
-    if (!ticking) {
+    // Only on a plausible clock: a damaged or forged event's timestamp near the int64 limits
+    // overflowed the arithmetic below (found by logreader_fuzz); such an event is delivered but
+    // runs no periodic work. [0, 2^62) us is the epoch to the year 148 000.
+    constexpr int64_t kMaxPlausibleUtime = int64_t{1} << 62;
+    const bool plausible = timestamp >= 0 && timestamp < kMaxPlausibleUtime;
+    if (plausible && !ticking) {
       ticking = true;
       next_tick = timestamp;
-    } else if (timestamp - next_tick > 1000 * tick_us) {
+    } else if (plausible && timestamp - next_tick > 1000 * tick_us) {
       next_tick = timestamp - (timestamp - next_tick) % tick_us;  // a long gap
     }
-    while (timestamp >= next_tick) {
+    while (plausible && timestamp >= next_tick) {
       now_utime_ = next_tick;
       Guarded("periodic work", tick);
       next_tick += tick_us;

@@ -1,7 +1,7 @@
 // ftcal-sequencer drives the twin through the real bridges: ftcal-sim live --scenario commanded
 // (the twin's servos follow the goals the Dynamixel bridge writes; the transducers and motion
 // capture report the twin standing at those angles), the ATI, Dynamixel and mocap bridges, the
-// pose segmenter and lcm-logger, as real processes over LCM inside a private network namespace.
+// pose segmenter and ftcal-record, as real processes over LCM inside a private network namespace.
 //
 // A standing grid of 8 poses runs; in the middle of the fourth pose the ATI bridge is killed:
 //   - the sequencer stops within the stale-input limit (exit 2), holds the legs where they are
@@ -120,7 +120,9 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
       [&] { return ::access(path("ready").c_str(), F_OK) == 0 || sim.Wait(0).has_value(); }, 30))
       << testing::ReadFile(path("sim.err"));
   ASSERT_TRUE(sim.running()) << testing::ReadFile(path("sim.err"));
-  Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kLoggerUrl, "-f", path("run.lcmlog")},
+  // ftcal-record, not lcm-logger: lcm-logger's 30-message queue dropped a STEADY_POSE among the
+  // FT bursts in a CI run (pose 1 never recorded), failing a check the segmenter had passed.
+  Child logger({FTCAL_RECORD, "--config", config_path, "--lcm-url", kLoggerUrl, path("run.lcmlog")},
                path("logger.out"), path("logger.err"));
   SleepS(0.3);
   auto start_ati = [&](const std::string& tag) {

@@ -16,8 +16,9 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
     FTCAL_MOCAP_BRIDGE="$<TARGET_FILE:ftcal-mocap-bridge>"
     FTCAL_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>"
     FTCAL_SEQUENCER="$<TARGET_FILE:ftcal-sequencer>"
-    FTCAL_LCM_LOGGER="${LCM_LOGGER}")
-  add_dependencies(sequencer_live_test ftcal-sim ftcal-ati-bridge ftcal-dynamixel-bridge
+    FTCAL_LCM_LOGGER="${LCM_LOGGER}"
+    FTCAL_RECORD="$<TARGET_FILE:ftcal-record>")
+  add_dependencies(sequencer_live_test ftcal-record ftcal-sim ftcal-ati-bridge ftcal-dynamixel-bridge
     ftcal-mocap-bridge ftcal-pose-segmenter ftcal-sequencer)
   set_target_properties(sequencer_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")

@@ -38,7 +38,7 @@ TEST(LaunchPlan, StartOrderPutsEveryProcessAfterWhatItWaitsFor) {
   // Hand-checked: the config's order among the free ones.
   const auto sim = Shipped("sim.pbtxt");
   EXPECT_EQ(Names(sim.launch().group(0), StartOrder(sim.launch().group(0))),
-            (std::vector<std::string>{"lcm-logger", "twin", "ati-bridge", "dynamixel-bridge",
+            (std::vector<std::string>{"recorder", "twin", "ati-bridge", "dynamixel-bridge",
                                       "mocap-bridge", "segmenter", "calibrator", "corrector"}));
 }
 
@@ -55,7 +55,7 @@ TEST(LaunchPlan, GroupConfHasEveryProgramOfTheHostWithItsPolicyAndNoHttpServer) 
       << robot;
   EXPECT_EQ(robot.find("[program:segmenter]"), std::string::npos)
       << "segmenter is the workstation's";
-  EXPECT_NE(robot.find("programs=lcm-logger,ati-bridge,dynamixel-bridge,mocap-bridge\n"),
+  EXPECT_NE(robot.find("programs=recorder,ati-bridge,dynamixel-bridge,mocap-bridge\n"),
             std::string::npos)
       << robot;
   // The LCM URL goes into shlex as one word, and '%' would be supervisor's expansion.
@@ -90,9 +90,11 @@ TEST(LaunchPlan, SystemdUnitCarriesRestartWatchdogAndMemory) {
                            "ExecStart=ftcal-ati-bridge --config /etc/ftcal/lab.pbtxt\n"}) {
     EXPECT_NE(unit.find(line), std::string::npos) << line << " in\n" << unit;
   }
-  const std::string logger = SystemdUnit(config, g, *FindProcess(g, "lcm-logger"), v);
-  EXPECT_NE(logger.find("Type=simple\n"), std::string::npos) << logger;
-  EXPECT_EQ(logger.find("WatchdogSec"), std::string::npos) << "lcm-logger does not notify";
+  // ftcal-record is a ServiceApp: READY=1 and the watchdog fed by its heartbeat (Type=notify),
+  // where lcm-logger was Type=simple with no watchdog.
+  const std::string recorder = SystemdUnit(config, g, *FindProcess(g, "recorder"), v);
+  EXPECT_NE(recorder.find("Type=notify\n"), std::string::npos) << recorder;
+  EXPECT_NE(recorder.find("WatchdogSec="), std::string::npos) << recorder;
   const std::string seq = SystemdUnit(config, g, *FindProcess(g, "sequencer"), v);
   EXPECT_NE(seq.find("Restart=no\n"), std::string::npos) << seq;
 }
@@ -109,7 +111,7 @@ TEST(LaunchPlan, WavesStartTogetherWhatWaitsForNothingInEachOther) {
   std::vector<std::vector<std::string>> names;
   for (const auto& wave : StartWaves(g)) names.push_back(Names(g, wave));
   EXPECT_EQ(names, (std::vector<std::vector<std::string>>{
-                       {"lcm-logger", "twin"},
+                       {"recorder", "twin"},
                        {"ati-bridge", "dynamixel-bridge", "mocap-bridge"},
                        {"segmenter"},
                        {"calibrator", "corrector"}}));
