@@ -237,6 +237,16 @@ std::string TestConfigText(const std::string& device) {
   return text;
 }
 
+// Waits (30 s at most) for ftcal-sim live's --ready file; fails naming its stderr if it ends
+// or is late.
+void WaitUntilReady(Child& sim, const std::string& ready, const std::string& err) {
+  const auto deadline = Clock::now() + std::chrono::seconds(30);
+  while (::access(ready.c_str(), F_OK) != 0) {
+    ASSERT_FALSE(sim.Wait(0.02).has_value()) << "ftcal-sim ended: " << testing::ReadFile(err);
+    ASSERT_LT(Clock::now(), deadline) << "ftcal-sim not ready: " << testing::ReadFile(err);
+  }
+}
+
 void Terminate(Child& child, const std::string& what, const std::string& err_path) {
   if (!child.running()) return;
   child.Signal(SIGTERM);
@@ -281,13 +291,8 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
              "--qtm-corrupt",   "0.01",
              "--qtm-untracked", "5:0.5"},
             path("sim.out"), path("sim.err"));
-  const auto deadline = Clock::now() + std::chrono::seconds(30);
-  while (::access(path("ready").c_str(), F_OK) != 0) {
-    ASSERT_FALSE(sim.Wait(0.02).has_value())
-        << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
-    ASSERT_LT(Clock::now(), deadline)
-        << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
-  }
+  WaitUntilReady(sim, path("ready"), path("sim.err"));
+  if (HasFatalFailure()) return;
   Child logger({FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", path("run.lcmlog")}, path("logger.out"),
                path("logger.err"));
   SleepS(0.3);
@@ -719,13 +724,8 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
              path("ready"), "--scenario", "walk", "--seed", std::to_string(kSeed), "--ati-rate",
              std::to_string(kAtiRateHz)},
             path("sim.out"), path("sim.err"));
-  const auto deadline = Clock::now() + std::chrono::seconds(30);
-  while (::access(path("ready").c_str(), F_OK) != 0) {
-    ASSERT_FALSE(sim.Wait(0.02).has_value())
-        << "ftcal-sim ended: " << testing::ReadFile(path("sim.err"));
-    ASSERT_LT(Clock::now(), deadline)
-        << "ftcal-sim not ready: " << testing::ReadFile(path("sim.err"));
-  }
+  WaitUntilReady(sim, path("ready"), path("sim.err"));
+  if (HasFatalFailure()) return;
   struct Bridge {
     std::string name;
     std::vector<std::string> argv;
