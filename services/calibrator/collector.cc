@@ -47,8 +47,13 @@ void CalibrationCollector::Attach(Bus& bus) {
 }
 
 int CalibrationCollector::LegOfChannel(const std::string& channel) {
+  if (channel == last_channel_) return last_leg_;
   const auto it = channel_leg_.find(channel);
-  if (it != channel_leg_.end()) return it->second;
+  if (it != channel_leg_.end()) {
+    last_channel_ = channel;
+    last_leg_ = it->second;
+    return last_leg_;
+  }
   // First event on this channel.
   channels_seen_.insert(channel);
   if (std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
@@ -57,6 +62,8 @@ int CalibrationCollector::LegOfChannel(const std::string& channel) {
     if (channel == inputs_.FtChannel(k)) leg = k;
   }
   channel_leg_.emplace(channel, leg);
+  last_channel_ = channel;
+  last_leg_ = leg;
   return leg;
 }
 

@@ -165,6 +165,10 @@ class CalibrationCollector {
   // not an FT channel). One hash lookup per event instead of a std::set insertion (two per FT
   // event) and six name comparisons: a report-scale log has 4 M events on ten channels.
   std::unordered_map<std::string, int> channel_leg_;
+  // The last channel looked up: every FT event asks twice in a row (the ".*" subscription, then
+  // OnFtRaw), and a compare is cheaper than a hash lookup.
+  std::string last_channel_;
+  int last_leg_ = -1;
   // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
   // config's).
   std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};

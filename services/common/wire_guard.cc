@@ -1,5 +1,6 @@
 #include "common/wire_guard.h"
 
+#include <algorithm>
 #include <cstring>
 #include <string>
 
@@ -40,11 +41,34 @@ bool IsInteger(Prim p) {
   return p == Prim::kInt8 || p == Prim::kInt16 || p == Prim::kInt32 || p == Prim::kInt64;
 }
 
+// Big-endian, as LCM encodes. The fixed widths are spelled out because this runs for every
+// integer member of every message received (a replay decodes millions).
 int64_t ReadSigned(const uint8_t* p, int64_t n) {
-  uint64_t v = 0;
-  for (int64_t i = 0; i < n; ++i) v = v << 8 | p[i];
-  const int shift = static_cast<int>(64 - 8 * n);
-  return static_cast<int64_t>(v << shift) >> shift;  // sign-extends
+  switch (n) {
+    case 1:
+      return static_cast<int8_t>(p[0]);
+    case 2: {
+      uint16_t v;
+      std::memcpy(&v, p, 2);
+      return static_cast<int16_t>(__builtin_bswap16(v));
+    }
+    case 4: {
+      uint32_t v;
+      std::memcpy(&v, p, 4);
+      return static_cast<int32_t>(__builtin_bswap32(v));
+    }
+    case 8: {
+      uint64_t v;
+      std::memcpy(&v, p, 8);
+      return static_cast<int64_t>(__builtin_bswap64(v));
+    }
+    default: {
+      uint64_t v = 0;
+      for (int64_t i = 0; i < n; ++i) v = v << 8 | p[i];
+      const int shift = static_cast<int>(64 - 8 * n);
+      return static_cast<int64_t>(v << shift) >> shift;  // sign-extends
+    }
+  }
 }
 
 }  // namespace
@@ -83,18 +107,44 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
   // The integer members' values (array sizes), on the stack for every ftcal type (the largest
   // has a few dozen fields): this runs for every message received.
   constexpr int kStackFields = 64;
-  int64_t stack_values[kStackFields] = {};
+  // Only the schema's own fields are cleared: clearing all 64 was a fifth of this function.
+  int64_t stack_values[kStackFields];
   std::vector<int64_t> heap_values;
   int64_t* values = stack_values;
   if (schema.num_fields > kStackFields) {
     heap_values.assign(static_cast<size_t>(schema.num_fields), 0);
     values = heap_values.data();
+  } else {
+    std::fill_n(values, schema.num_fields, int64_t{0});
   }
   for (int i = 0; i < schema.num_fields; ++i) {
     const Field& f = schema.fields[i];
     auto where = [&] {
       return std::string(schema.name) + "." + f.name + " at byte " + std::to_string(pos);
     };
+    // Most members are single numbers: the general path below, with its 128-bit products,
+    // was a tenth of a replay's time. Same checks, same refusals.
+    if (f.ndims == 0 && f.type != Prim::kString) {
+      const int64_t elem = WireBytes(f.type);
+      const int64_t remaining = total - pos;
+      if (elem > remaining) {
+        return Refusal{"array past the end", where() + ": needs at least " + std::to_string(elem) +
+                                                 " bytes, " + std::to_string(remaining) +
+                                                 " remain"};
+      }
+      if (f.type == Prim::kBoolean && bytes[pos] > 1) {
+        return Refusal{"bad boolean", where() + ": element 0 is " + std::to_string(bytes[pos])};
+      }
+      if (IsInteger(f.type)) values[static_cast<size_t>(i)] = ReadSigned(bytes + pos, elem);
+      pos += elem;
+      decoded += DecodedBytes(f.type);
+      if (decoded > decoded_bound) {
+        return Refusal{"decoded size over bound", where() + ": would decode into " +
+                                                      std::to_string(decoded) + " bytes from " +
+                                                      std::to_string(total)};
+      }
+      continue;
+    }
     // Elements, and the vector headers of the outer levels, multiplied out level by level;
     // each level is at most kMaxLength (2^24), so three levels fit in 128 bits.
     unsigned __int128 count = 1;
