@@ -61,6 +61,24 @@ const std::vector<size_t>& Bus::HandlersFor(const std::string& channel) {
   return list;
 }
 
+void Bus::ShedLate(const std::string& channel, int64_t max_queue_us) {
+  for (Subscription& sub : subscriptions_) {
+    if (sub.channel != channel) continue;
+    sub.max_queue_us = std::max<int64_t>(0, max_queue_us);
+    sub.late_kind = "late " + channel;
+    sub.late_reason = "waited over " + std::to_string(max_queue_us / 1000) +
+                      " ms in the receive queue: this process is not keeping up with " + channel;
+  }
+}
+
+bool Bus::ShedIfLate(size_t subscription, int64_t recv_utime, int64_t now_utime) {
+  const Subscription& sub = subscriptions_[subscription];
+  if (sub.max_queue_us <= 0 || now_utime - recv_utime <= sub.max_queue_us) return false;
+  stats_.CountIn();
+  stats_.Drop(sub.late_kind, sub.late_reason);
+  return true;
+}
+
 void Bus::PublishRaw(const std::string& channel, const void* data, int size, bool count) {
   TransportPublish(channel, data, size);
   if (count) stats_.CountOut();
@@ -107,6 +125,7 @@ LcmBus::LcmBus(const std::string& url, ServiceStats& stats) : Bus(stats), lcm_(u
 int64_t LcmBus::NowUtime() const { return WallClockUtime(); }
 
 void LcmBus::Trampoline::OnMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+  if (bus->ShedIfLate(subscription, rbuf->recv_utime, WallClockUtime())) return;
   bus->Dispatch(subscription, channel, rbuf->recv_utime, rbuf->data,
                 static_cast<int>(rbuf->data_size));
 }

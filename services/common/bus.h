@@ -81,6 +81,13 @@ class Bus {
   void SubscribeSigned(const std::string& channel, auth::Verifier* verifier, int64_t window_us,
                        bool allow_unsigned, Handler<Msg> handler);
 
+  // Live only: a message on a subscription whose pattern is exactly `channel` that waited
+  // longer than `max_queue_us` between its arrival (LCM's receive stamp) and its handler is
+  // dropped undecoded, counted as a drop of kind "late <channel>" (logged as drops are). For a
+  // consumer whose output is only worth anything fresh: when it cannot keep up, it sheds the
+  // backlog instead of working through seconds of old input. Replay never sheds.
+  void ShedLate(const std::string& channel, int64_t max_queue_us);
+
   // `count` false leaves msgs_out alone (the heartbeat does not count itself).
   void PublishRaw(const std::string& channel, const void* data, int size, bool count = true);
   template <class Msg>
@@ -118,7 +125,12 @@ class Bus {
     std::string channel;
     std::regex pattern;
     RawHandler handler;
+    int64_t max_queue_us = 0;  // ShedLate(); 0: never shed
+    std::string late_kind;     // built once: shedding must cost less than handling
+    std::string late_reason;
   };
+  // True (and the message counted as shed) when a live message waited too long (ShedLate).
+  bool ShedIfLate(size_t subscription, int64_t recv_utime, int64_t now_utime);
   std::vector<Subscription> subscriptions_;
   ServiceStats& stats_;
 

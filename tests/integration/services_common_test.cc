@@ -223,6 +223,39 @@ TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
   EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_ML: wrong fingerprint"), 1);
 }
 
+// A consumer that cannot keep up sheds what waited too long instead of serving it late. memq
+// stamps each message when it is published, so 200 published at once and handled at 2 ms each
+// have waited 2 ms more with every message handled.
+TEST(LcmBusTest, ShedLateDropsWhatWaitedTooLongAndServesTheRestFresh) {
+  ServiceStats stats(QuietLogger());
+  LcmBus bus("memq://", stats);
+  constexpr int kSent = 200;
+  constexpr int64_t kMaxQueueUs = 20'000;
+  std::vector<int64_t> waited_us;
+  int other = 0;
+  bus.Subscribe<ft_sample_t>("FT_HL", [&](const MessageInfo& info, const ft_sample_t&) {
+    waited_us.push_back(bus.NowUtime() - info.recv_utime);
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  });
+  bus.Subscribe<ft_sample_t>("FT_ML", [&](const MessageInfo&, const ft_sample_t&) { ++other; });
+  bus.ShedLate("FT_HL", kMaxQueueUs);
+  for (int i = 0; i < kSent; ++i) bus.Publish("FT_HL", Sample("HL", i, 1.0));
+  for (int i = 0; i < 50; ++i) bus.Publish("FT_ML", Sample("ML", i, 1.0));
+  while (bus.HandleOnce(0) > 0) {
+  }
+  const int handled = static_cast<int>(waited_us.size());
+  const int64_t shed = stats.kinds().count("late FT_HL") ? stats.kinds().at("late FT_HL") : 0;
+  // 20 ms of queue at >= 2 ms per message: at most 11 handled (fewer on a slow machine).
+  EXPECT_GE(handled, 1);
+  EXPECT_LE(handled, 11);
+  EXPECT_EQ(handled + shed, kSent);
+  EXPECT_EQ(stats.drops(), shed);
+  for (int64_t w : waited_us) EXPECT_LE(w, kMaxQueueUs);
+  // The other channel waited as long and was not shed: only the named subscription sheds.
+  EXPECT_EQ(other, 50);
+  EXPECT_EQ(stats.msgs_in(), kSent + 50);
+}
+
 // The standard library's texts for its own failures never reach a user; ftcal's texts do.
 // Each library exception is a real one, thrown by the call that throws it in a program.
 TEST(UserErrorsTest, LibraryTextsAreNamedAsWhatTheyAreAndFtcalTextsPassThrough) {
