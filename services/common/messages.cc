@@ -21,8 +21,6 @@ Mat3 RotationOf(const double q_wxyz[4]) {
   return QuaternionToRotation(Eigen::Vector4d(q_wxyz[0], q_wxyz[1], q_wxyz[2], q_wxyz[3]));
 }
 
-std::vector<std::string> LegNameList() { return {kLegNames.begin(), kLegNames.end()}; }
-
 }  // namespace
 
 // ---- FT_<LEG> ----
@@ -57,7 +55,7 @@ ServoInput FromLcm(const servo_state_t& msg) {
   ServoInput in;
   in.utime = msg.utime;
   std::array<bool, kNumLegs> seen{};
-  for (int i = 0; i < msg.num_servos; ++i) {
+  for (int i = 0; i < kNumLegs; ++i) {
     const auto k = LegIndex(msg.leg[i]);
     if (!k) {
       throw BadInput("unknown leg in servo state", "servo " + std::to_string(i) + " (id " +
@@ -82,15 +80,10 @@ ServoInput FromLcm(const servo_state_t& msg) {
 servo_state_t ToLcm(const ServoInput& in) {
   servo_state_t msg{};
   msg.utime = in.utime;
-  msg.num_servos = kNumLegs;
-  msg.leg = LegNameList();
-  msg.id.assign(kNumLegs, 0);
-  msg.angle_rad.assign(in.angle_rad.begin(), in.angle_rad.end());
-  msg.velocity_rad_s.assign(kNumLegs, 0.0);
-  msg.current_a.assign(kNumLegs, 0.0);
-  msg.hardware_error.assign(kNumLegs, 0);
-  msg.device_tick_ms.assign(kNumLegs, 0);
-  msg.flags.assign(kNumLegs, 0);
+  for (int k = 0; k < kNumLegs; ++k) {
+    msg.leg[k] = kLegNames[k];
+    msg.angle_rad[k] = in.angle_rad[k];
+  }
   return msg;
 }
 
@@ -138,10 +131,6 @@ mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_ma
 // ---- SYNC_SAMPLE ----
 
 AlignedSample FromLcm(const sync_sample_t& msg) {
-  if (msg.num_legs != kNumLegs) {
-    throw BadInput("SYNC_SAMPLE leg count",
-                   std::to_string(msg.num_legs) + " legs, expected " + std::to_string(kNumLegs));
-  }
   AlignedSample a;
   SyncSample& s = a.sample;
   s.utime = msg.utime;
@@ -163,14 +152,9 @@ AlignedSample FromLcm(const sync_sample_t& msg) {
 void ToLcm(const AlignedSample& a, sync_sample_t* out) {
   const SyncSample& s = a.sample;
   sync_sample_t& msg = *out;
-  if (msg.wrench.size() != kNumLegs || msg.num_legs != kNumLegs) {
-    msg.num_legs = kNumLegs;
-    msg.leg = LegNameList();
-    msg.wrench.assign(kNumLegs, std::vector<double>(6));
-    msg.angle_rad.assign(kNumLegs, 0.0);
-  }
   msg.utime = s.utime;
   for (int k = 0; k < kNumLegs; ++k) {
+    if (msg.leg[k] != kLegNames[k]) msg.leg[k] = kLegNames[k];  // once: the message is reused
     for (int i = 0; i < 6; ++i) msg.wrench[k][i] = s.wrench[k][i];
     msg.angle_rad[k] = s.angle_rad[k];
   }
@@ -189,10 +173,6 @@ sync_sample_t ToLcm(const AlignedSample& a) {
 // ---- STEADY_POSE ----
 
 SteadyPoseOut FromLcm(const steady_pose_t& msg, SteadyPoseHeader* header) {
-  if (msg.num_legs != kNumLegs) {
-    throw BadInput("STEADY_POSE leg count",
-                   std::to_string(msg.num_legs) + " legs, expected " + std::to_string(kNumLegs));
-  }
   SteadyPoseOut p;
   std::array<bool, kNumLegs> seen{};
   for (int i = 0; i < kNumLegs; ++i) {
@@ -221,11 +201,8 @@ steady_pose_t ToLcm(const SteadyPoseOut& p, const SteadyPoseHeader& header) {
   msg.start_utime = p.start_utime;
   msg.end_utime = p.end_utime;
   msg.num_samples = p.num_samples;
-  msg.num_legs = kNumLegs;
-  msg.leg = LegNameList();
-  msg.wrench.assign(kNumLegs, std::vector<double>(6));
-  msg.angle_rad.assign(kNumLegs, 0.0);
   for (int k = 0; k < kNumLegs; ++k) {
+    msg.leg[k] = kLegNames[k];
     for (int i = 0; i < 6; ++i) msg.wrench[k][i] = p.pose.wrench[k][i];
     msg.angle_rad[k] = p.pose.angle_rad[k];
   }

@@ -1,6 +1,7 @@
 #include "dynamixel_bridge/command_gate.h"
 
 #include <algorithm>
+#include <type_traits>
 #include <cmath>
 #include <set>
 #include <stdexcept>
@@ -58,7 +59,7 @@ void CommandGate::SetMode(Mode mode, const std::string& why) {
 }
 
 void CommandGate::OnState(const servo_state_t& state) {
-  for (int i = 0; i < state.num_servos; ++i) {
+  for (size_t i = 0; i < std::extent_v<decltype(state.id)>; ++i) {
     const auto it = by_id_.find(state.id[i]);
     if (it == by_id_.end() || (state.flags[i] & servo_state_t::FLAG_STALE) ||
         !std::isfinite(state.angle_rad[i])) {

@@ -3,6 +3,7 @@
 #include <poll.h>
 
 #include <algorithm>
+#include <type_traits>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -106,7 +107,13 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
     s.max_angle_rad = leg.servo().max_angle_rad();
     servos_.push_back(std::move(s));
   }
-  if (servos_.empty()) throw std::invalid_argument("config: no servos");
+  // SERVO_STATE carries exactly six servos (lcmtypes/servo_state_t.lcm: one per leg).
+  constexpr std::size_t kServos = std::extent_v<decltype(servo_state_t::id)>;
+  if (servos_.size() != kServos) {
+    throw std::invalid_argument("config: " + std::to_string(servos_.size()) +
+                                " legs with servos; SERVO_STATE carries exactly " +
+                                std::to_string(kServos));
+  }
 }
 
 std::vector<std::size_t> DynamixelBridge::ActiveSlots() const {
@@ -820,23 +827,22 @@ void DynamixelBridge::Cycle() {
 void DynamixelBridge::Publish(std::int64_t utime, const std::vector<bool>& fresh) {
   servo_state_t msg;
   msg.utime = utime;
-  msg.num_servos = static_cast<int32_t>(servos_.size());
   const double nan = std::numeric_limits<double>::quiet_NaN();
-  for (std::size_t i = 0; i < servos_.size(); ++i) {
+  for (std::size_t i = 0; i < servos_.size(); ++i) {  // six: checked at construction
     const ServoSlot& s = servos_[i];
-    msg.leg.push_back(s.leg);
-    msg.id.push_back(s.id);
-    msg.angle_rad.push_back(s.ever_read ? s.angle_rad : nan);
-    msg.velocity_rad_s.push_back(s.ever_read ? s.velocity_rad_s : nan);
-    msg.current_a.push_back(s.ever_read ? s.current_a : nan);
-    msg.hardware_error.push_back(s.hardware_error);
-    msg.device_tick_ms.push_back(s.tick_ms);
+    msg.leg[i] = s.leg;
+    msg.id[i] = s.id;
+    msg.angle_rad[i] = s.ever_read ? s.angle_rad : nan;
+    msg.velocity_rad_s[i] = s.ever_read ? s.velocity_rad_s : nan;
+    msg.current_a[i] = s.ever_read ? s.current_a : nan;
+    msg.hardware_error[i] = s.hardware_error;
+    msg.device_tick_ms[i] = s.tick_ms;
     int32_t flags = 0;
     if (!fresh[i]) flags |= servo_state_t::FLAG_STALE;
     if (s.lost) flags |= servo_state_t::FLAG_LOST;
     if (s.hardware_error != 0 || s.alert) flags |= servo_state_t::FLAG_HW_ERROR;
     if (s.torque_enable == 0) flags |= servo_state_t::FLAG_TORQUE_OFF;
-    msg.flags.push_back(flags);
+    msg.flags[i] = flags;
   }
   publish_(msg);
 }

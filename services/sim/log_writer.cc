@@ -85,17 +85,10 @@ SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_
   experiment_channel_ = ch.experiment();
 
   servo_ = servo_state_t{};
-  servo_.num_servos = kNumLegs;
   for (int k = 0; k < kNumLegs; ++k) {
-    servo_.leg.push_back(config.robot().leg(k).name());
-    servo_.id.push_back(static_cast<int32_t>(config.robot().leg(k).servo().id()));
+    servo_.leg[k] = config.robot().leg(k).name();
+    servo_.id[k] = static_cast<int32_t>(config.robot().leg(k).servo().id());
   }
-  servo_.angle_rad.assign(kNumLegs, 0.0);
-  servo_.velocity_rad_s.assign(kNumLegs, 0.0);
-  servo_.current_a.assign(kNumLegs, 0.0);
-  servo_.hardware_error.assign(kNumLegs, 0);
-  servo_.device_tick_ms.assign(kNumLegs, 0);
-  servo_.flags.assign(kNumLegs, 0);
 
   mocap_ = mocap_body_t{};
   mocap_.body = config.mocap().body_name();

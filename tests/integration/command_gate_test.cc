@@ -48,11 +48,9 @@ class CommandGateTest : public ::testing::Test {
   }
   void Measure() {
     servo_state_t s{};
-    s.num_servos = static_cast<int32_t>(ids_.size());
     for (size_t i = 0; i < ids_.size(); ++i) {
-      s.id.push_back(ids_[i]);
-      s.angle_rad.push_back(measured_[i]);
-      s.flags.push_back(0);
+      s.id[i] = ids_[i];
+      s.angle_rad[i] = measured_[i];
     }
     gate_.OnState(s);
   }

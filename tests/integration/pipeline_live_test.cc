@@ -250,9 +250,9 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   ASSERT_GE(ref_poses.size(), 30u);
   auto same_pose = [](const steady_pose_t& a, const steady_pose_t& b) {
     return a.session_id == b.session_id && a.start_utime == b.start_utime &&
-           a.end_utime == b.end_utime && a.num_samples == b.num_samples && a.wrench == b.wrench &&
-           a.angle_rad == b.angle_rad && a.markers_ok == b.markers_ok &&
-           std::equal(a.q_wc, a.q_wc + 4, b.q_wc);
+           a.end_utime == b.end_utime && a.num_samples == b.num_samples &&
+           Flat(a.wrench) == Flat(b.wrench) && Flat(a.angle_rad) == Flat(b.angle_rad) &&
+           a.markers_ok == b.markers_ok && std::equal(a.q_wc, a.q_wc + 4, b.q_wc);
   };
   size_t matched = 0;
   for (const auto& p : live_poses) {

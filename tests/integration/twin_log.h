@@ -26,6 +26,19 @@
 
 namespace ftcal::twin_log {
 
+// An LCM fixed-size array as a vector, to compare element by element: `a.wrench == b.wrench`
+// on the arrays themselves compares two pointers.
+template <class T, size_t N>
+std::vector<T> Flat(const T (&a)[N]) {
+  return std::vector<T>(a, a + N);
+}
+template <class T, size_t N, size_t M>
+std::vector<T> Flat(const T (&a)[N][M]) {
+  std::vector<T> out;
+  for (const auto& row : a) out.insert(out.end(), row, row + M);
+  return out;
+}
+
 constexpr int64_t kT0 = 1'700'000'000'000'000;  // us, the log's time origin
 
 inline int64_t Utime(double t_s) { return kT0 + std::llround(t_s * 1e6); }
@@ -118,16 +131,15 @@ inline void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vect
   }
   servo_state_t s{};
   s.utime = t;
-  s.num_servos = kNumLegs;
   for (int k = 0; k < kNumLegs; ++k) {
-    s.leg.push_back(std::string(kLegNames[k]));
-    s.id.push_back(static_cast<int32_t>(cfg.robot().leg(k).servo().id()));
-    s.angle_rad.push_back(f.angle_rad[k]);
-    s.velocity_rad_s.push_back(0.0);
-    s.current_a.push_back(0.0);
-    s.hardware_error.push_back(0);
-    s.device_tick_ms.push_back(std::llround(f.t_s * 1e3));
-    s.flags.push_back(0);
+    s.leg[k] = std::string(kLegNames[k]);
+    s.id[k] = static_cast<int32_t>(cfg.robot().leg(k).servo().id());
+    s.angle_rad[k] = f.angle_rad[k];
+    s.velocity_rad_s[k] = 0.0;
+    s.current_a[k] = 0.0;
+    s.hardware_error[k] = 0;
+    s.device_tick_ms[k] = std::llround(f.t_s * 1e3);
+    s.flags[k] = 0;
   }
   events->push_back(Encode(t, ch.servo_state(), s));
   mocap_body_t b{};

@@ -209,14 +209,25 @@ TEST(WireGuardTest, The153ByteMocapClaiming400MillionMarkersIsRefusedInBoundedTi
 }
 
 TEST(WireGuardTest, A20ByteMessageWithLengthMinusOneIsRefusedNotThrown) {
+  // The message was a SERVO_STATE whose num_servos said -1. servo_state_t now carries
+  // exactly six servos and no length: the same 20 bytes are six leg names short.
   servo_state_t state{};
   auto bytes = Encode(state);
-  bytes.resize(20);  // fingerprint, utime, num_servos
+  bytes.resize(20);  // fingerprint, utime, the first string's length
   PutBe32(bytes, 16, -1);
-  const auto refused = Guard<servo_state_t>(bytes);
+  auto refused = Guard<servo_state_t>(bytes);
+  ASSERT_TRUE(refused);
+  EXPECT_EQ(refused->kind, "array past the end");
+  EXPECT_NE(refused->detail.find("servo_state_t.leg"), std::string::npos) << refused->detail;
+  // A length of -1 where a type still has one: servo_command_t's num_servos (21 bytes).
+  servo_command_t cmd{};
+  bytes = Encode(cmd);
+  bytes.resize(21);  // fingerprint, utime, action, num_servos
+  PutBe32(bytes, 17, -1);
+  refused = Guard<servo_command_t>(bytes);
   ASSERT_TRUE(refused);
   EXPECT_EQ(refused->kind, "negative length");
-  EXPECT_NE(refused->detail.find("servo_state_t.leg"), std::string::npos) << refused->detail;
+  EXPECT_NE(refused->detail.find("servo_command_t.id"), std::string::npos) << refused->detail;
 }
 
 TEST(WireGuardTest, AStringOfLengthZeroIsRefusedNotThrown) {

@@ -507,16 +507,15 @@ class Robot {
       bus_.Deliver("MOCAP_BODY", m);
       servo_state_t s{};
       s.utime = bus_.NowUtime();
-      s.num_servos = kNumLegs;
       for (int k = 0; k < kNumLegs; ++k) {
-        s.leg.push_back(std::string(kLegNames[k]));
-        s.id.push_back(k + 1);
-        s.angle_rad.push_back(angle_[k]);
-        s.velocity_rad_s.push_back(0.0);
-        s.current_a.push_back(0.0);
-        s.hardware_error.push_back(0);
-        s.device_tick_ms.push_back(0);
-        s.flags.push_back(0);
+        s.leg[k] = std::string(kLegNames[k]);
+        s.id[k] = k + 1;
+        s.angle_rad[k] = angle_[k];
+        s.velocity_rad_s[k] = 0.0;
+        s.current_a[k] = 0.0;
+        s.hardware_error[k] = 0;
+        s.device_tick_ms[k] = 0;
+        s.flags[k] = 0;
       }
       gate_.OnState(s);
       bus_.Deliver("SERVO_STATE", s);
