@@ -158,7 +158,12 @@ void CommandGate::Hold(const std::string& why) {
 servo_command_t CommandGate::HoldMeasured() {
   servo_command_t cmd{};
   cmd.action = servo_command_t::MOVE;
-  cmd.torque_enable = true;
+  // A hold keeps the torque as the commander left it. Held with torque on, the legs stay where
+  // they are (torque off would drop a standing robot). But a commander that turned the torque
+  // off (the sequencer's SAFE_TORQUE_OFF, for an operator at the robot) and then went silent
+  // or disarmed must not have the bridge stiffen the legs again behind its back: that undid
+  // the safe action.
+  cmd.torque_enable = torque_enable_;
   for (Servo& s : servos_) {
     if (s.measured) s.goal_rad = s.target_rad = std::clamp(s.measured_rad, s.min_rad, s.max_rad);
     cmd.id.push_back(s.id);

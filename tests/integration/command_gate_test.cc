@@ -176,6 +176,36 @@ TEST_F(CommandGateTest, TheDeadManHoldsTheMeasuredPositionWhenTheCommanderFallsS
   EXPECT_EQ(gate_.mode(), Mode::kArmed);
 }
 
+// The sequencer's SAFE_TORQUE_OFF: a MOVE with the torque off, then silence or DISARM. The hold
+// that follows keeps the torque off; until now it wrote torque on at the measured position.
+TEST_F(CommandGateTest, AHoldAfterTheCommanderTurnedTheTorqueOffKeepsItOff) {
+  for (const bool disarm : {false, true}) {
+    double t = kStartS + 2;
+    ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
+    servo_command_t off = Cmd(servo_command_t::MOVE, 0.0);
+    off.torque_enable = false;
+    ASSERT_EQ(Send("op", off, t), "");
+    const auto written = gate_.Tick(t += 0.01, false);
+    ASSERT_TRUE(written);
+    EXPECT_FALSE(written->torque_enable);
+    if (disarm) ASSERT_EQ(Send("op", Cmd(servo_command_t::DISARM), t), "");
+    // Torque off is written every cycle while armed; the hold is what the tick that leaves
+    // the armed mode writes.
+    std::optional<servo_command_t> hold;
+    do {
+      hold = gate_.Tick(t += 0.01, false);
+      ASSERT_LT(t, kStartS + 3) << "no hold";
+    } while (gate_.mode() == Mode::kArmed);
+    ASSERT_TRUE(hold);
+    EXPECT_EQ(gate_.mode(), disarm ? Mode::kDisarmed : Mode::kHold);
+    EXPECT_FALSE(hold->torque_enable) << (disarm ? "DISARM" : "dead-man") << " turned torque on";
+    // A new ARM turns it on again: the commander's own, explicit step.
+    ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
+    const auto armed = gate_.Tick(t += 0.01, false);
+    if (armed) EXPECT_TRUE(armed->torque_enable);
+  }
+}
+
 TEST_F(CommandGateTest, ADegradedBridgeIsAFaultUntilItRecoversAndIsArmedAgain) {
   double t = kStartS + 2;
   ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
