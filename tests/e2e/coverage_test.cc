@@ -54,8 +54,8 @@ TEST(Coverage, TrueValuesWithinTwoReportedSigmas) {
     const StandingFit& fit = run.standing.fit;
     if (run.standing.selected_leg_aware_com != moving_com || fit.model != StandingModel::kFull) {
       ++wrong_com;
-      std::printf("coverage: seed %d (%s CoM): selected %s\n", o.seed,
-                  moving_com ? "moving" : "fixed",
+      std::printf("coverage: seed %llu (%s CoM): selected %s\n",
+                  static_cast<unsigned long long>(o.seed), moving_com ? "moving" : "fixed",
                   CandidateName(fit.model, run.standing.selected_leg_aware_com).c_str());
     }
     worst_floor_ratio = std::max(worst_floor_ratio, run.standing.residual_to_floor);

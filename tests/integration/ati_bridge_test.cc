@@ -570,7 +570,9 @@ TEST(AtiEmulatorInProcess, CountedStartBiasAndStopBehaveAsTheManualSays) {
   ASSERT_EQ(got.size(), 5u);
   for (std::size_t i = 0; i < got.size(); ++i) {
     EXPECT_EQ(got[i].rdt_sequence, i + 1);
-    if (i > 0) EXPECT_EQ(got[i].ft_sequence - got[i - 1].ft_sequence, 7u);
+    if (i > 0) {
+      EXPECT_EQ(got[i].ft_sequence - got[i - 1].ft_sequence, 7u);
+    }
     EXPECT_EQ(got[i].counts, FixedState(got[i].ft_sequence, base).counts);
   }
   EXPECT_FALSE(box.streaming());

@@ -133,7 +133,9 @@ TEST_F(CommandGateTest, GoalsAreClampedToTheMarginAndMoveAtMostTheVelocityLimit)
   constexpr double kDt = 0.01;
   for (int step = 1; step <= 100; ++step) {
     t += kDt;
-    if (step % 10 == 0) ASSERT_EQ(Send("op", Cmd(servo_command_t::HEARTBEAT), t), "");
+    if (step % 10 == 0) {
+      ASSERT_EQ(Send("op", Cmd(servo_command_t::HEARTBEAT), t), "");
+    }
     const auto cmd = gate_.Tick(t, false);
     if (!cmd) {
       for (size_t i = 0; i < ids_.size(); ++i) EXPECT_DOUBLE_EQ(last[i], 0.95);
@@ -188,7 +190,9 @@ TEST_F(CommandGateTest, AHoldAfterTheCommanderTurnedTheTorqueOffKeepsItOff) {
     const auto written = gate_.Tick(t += 0.01, false);
     ASSERT_TRUE(written);
     EXPECT_FALSE(written->torque_enable);
-    if (disarm) ASSERT_EQ(Send("op", Cmd(servo_command_t::DISARM), t), "");
+    if (disarm) {
+      ASSERT_EQ(Send("op", Cmd(servo_command_t::DISARM), t), "");
+    }
     // Torque off is written every cycle while armed; the hold is what the tick that leaves
     // the armed mode writes.
     std::optional<servo_command_t> hold;
@@ -202,7 +206,9 @@ TEST_F(CommandGateTest, AHoldAfterTheCommanderTurnedTheTorqueOffKeepsItOff) {
     // A new ARM turns it on again: the commander's own, explicit step.
     ASSERT_EQ(Send("op", Cmd(servo_command_t::ARM), t), "");
     const auto armed = gate_.Tick(t += 0.01, false);
-    if (armed) EXPECT_TRUE(armed->torque_enable);
+    if (armed) {
+      EXPECT_TRUE(armed->torque_enable);
+    }
   }
 }
 

@@ -430,7 +430,9 @@ TEST_F(DynamixelBridgePty, AMissingServoIsStaleAndTheOtherFiveAreExact) {
       EXPECT_NEAR(m.angle_rad[k], (it->second.position_exact_counts - 2048) * kOneCountRad,
                   0.5 * kOneCountRad + 1e-12);
       EXPECT_NEAR(m.velocity_rad_s[k], dxl::VelocityToRadPerS(it->second.velocity), 1e-12);
-      if (last_tick.count(m.id[k])) EXPECT_GT(m.device_tick_ms[k], last_tick[m.id[k]]);
+      if (last_tick.count(m.id[k])) {
+        EXPECT_GT(m.device_tick_ms[k], last_tick[m.id[k]]);
+      }
       last_tick[m.id[k]] = m.device_tick_ms[k];
       ++checked;
     }
@@ -855,7 +857,9 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
         ++stale;
         saw_stale_3 = saw_stale_3 || id == 3;
         // Stale: the last good values, never a new number.
-        if (last_angle.count(id)) EXPECT_EQ(m.angle_rad[k], last_angle[id]);
+        if (last_angle.count(id)) {
+          EXPECT_EQ(m.angle_rad[k], last_angle[id]);
+        }
         continue;
       }
       ++fresh;
@@ -864,7 +868,9 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
       EXPECT_NEAR(m.angle_rad[k], (it->second.position - 2048) * kOneCountRad, 1e-12);
       EXPECT_NEAR(m.angle_rad[k], (it->second.exact - 2048) * kOneCountRad,
                   0.5 * kOneCountRad + 1e-9);
-      if (last_tick.count(id)) EXPECT_GT(m.device_tick_ms[k], last_tick[id]);
+      if (last_tick.count(id)) {
+        EXPECT_GT(m.device_tick_ms[k], last_tick[id]);
+      }
       last_tick[id] = m.device_tick_ms[k];
       last_angle[id] = m.angle_rad[k];
       if (id == 5 && m.hardware_error[k] == 0x20) {
@@ -893,7 +899,9 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
   EXPECT_EQ(stale - Counter(final_status, "lost_cycles") - present_lost, present_sent - fresh);
   const auto& last = heard.back().msg;
   for (int k = 0; k < 6; ++k) {
-    if (last.id[k] == 5) EXPECT_TRUE(last.flags[k] & servo_state_t::FLAG_TORQUE_OFF);
+    if (last.id[k] == 5) {
+      EXPECT_TRUE(last.flags[k] & servo_state_t::FLAG_TORQUE_OFF);
+    }
   }
 
   // The bridge's own counts (final heartbeat) agree with the emulator's record.
@@ -928,7 +936,9 @@ TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePerc
     for (int k = 0; k < 6; ++k) {
       if (h.msg.id[k] != 4) continue;
       const bool lost = h.msg.flags[k] & servo_state_t::FLAG_LOST;
-      if (lost) EXPECT_TRUE(h.msg.flags[k] & servo_state_t::FLAG_STALE);
+      if (lost) {
+        EXPECT_TRUE(h.msg.flags[k] & servo_state_t::FLAG_STALE);
+      }
       if (lost && lost_at < 0) lost_at = h.t_s;
       if (!lost && !(h.msg.flags[k] & servo_state_t::FLAG_STALE) && lost_at >= 0 && found_at < 0) {
         found_at = h.t_s;

@@ -673,7 +673,9 @@ TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKi
     ASSERT_EQ(m.num_markers, static_cast<int>(t.markers_mm.size())) << where;
     for (int i = 0; i < m.num_markers; ++i) {
       ASSERT_EQ(bool(m.marker_tracked[i]), !std::isnan(t.markers_mm[i](0))) << where;
-      if (m.marker_tracked[i]) EXPECT_EQ(m.marker_m[i][0], t.markers_mm[i](0) / 1000.0) << where;
+      if (m.marker_tracked[i]) {
+        EXPECT_EQ(m.marker_m[i][0], t.markers_mm[i](0) / 1000.0) << where;
+      }
     }
     if (h.t_s > restarted_s && first2 < 0) {
       first2 = m.frame_number;

@@ -563,7 +563,9 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
         const double twin_angle = series.AngleAt(leg_of_id.at(id), row->t_s);
         EXPECT_LE(std::abs(m.angle_rad[k] - twin_angle), kOneCountRad) << "id " << id;
         worst_counts = std::max(worst_counts, std::abs(m.angle_rad[k] - twin_angle) / kOneCountRad);
-        if (last_tick.count(id)) EXPECT_GT(m.device_tick_ms[k], last_tick[id]);
+        if (last_tick.count(id)) {
+          EXPECT_GT(m.device_tick_ms[k], last_tick[id]);
+        }
         last_tick[id] = m.device_tick_ms[k];
       }
     }

@@ -318,7 +318,9 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
     // Before v2's event version 1; the corrupt message in between changed nothing.
     EXPECT_EQ(s.calibration_version, s.utime < fx->v2_utime ? 1 : 2);
     // All six legs of this frame: their sum is the robot's weight when the pose is steady.
-    if (f.steady) EXPECT_NEAR(s.total_w[2], weight, 1.0);
+    if (f.steady) {
+      EXPECT_NEAR(s.total_w[2], weight, 1.0);
+    }
     EXPECT_NEAR(s.residual_w[2], s.total_w[2] - weight, 1e-9);
   }
   const twin_log::SumCheck sc =

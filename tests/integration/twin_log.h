@@ -306,7 +306,7 @@ inline SumCheck CheckSums(const std::string& path, const std::string& leg_channe
       have[m.leg] = true;
       ++c.legs;
     } else if (e->channel == sum_channel) {
-      contact_wrench_sum_t s;
+      contact_wrench_sum_t s{};
       if (s.decode(e->data, 0, e->datalen) != e->datalen) {
         ADD_FAILURE() << "bad contact_wrench_sum_t in " << path;
         continue;

@@ -253,7 +253,9 @@ TEST(Aligner, SameInputOrderGivesIdenticalOutput) {
     ASSERT_EQ(x.attitude_ok, y.attitude_ok);
     ASSERT_EQ(x.markers_ok, y.markers_ok);
     for (int k = 0; k < kNumLegs; ++k) ASSERT_EQ(x.wrench[k], y.wrench[k]);
-    if (i > 0) ASSERT_GT(x.utime, first[i - 1].sample.utime);
+    if (i > 0) {
+      ASSERT_GT(x.utime, first[i - 1].sample.utime);
+    }
   }
 }
 

@@ -148,12 +148,14 @@ TEST(Corrector, FlagsStaleInputsAndMissingLegsAndAssumesLevelWithoutFreshMocap) 
   c.AddServo({1'100'000, Fill(0.3)});
   c.AddMocap({1'100'000, true, tilt, true});
   for (int k = 0; k < kNumLegs; ++k) out = c.AddFt({1'100'000 + k, k, w, 0}, false);
+  ASSERT_TRUE(out);
   EXPECT_EQ(out->flags, 0);
   EXPECT_LT((out->wrench_W[2] - GroundWrenchW(cal, 2, w, 0.3, tilt)).cwiseAbs().maxCoeff(), 1e-12);
 
   // 80 ms later, only leg 2 reports: the other legs, the servo state and the mocap are stale;
   // the attitude is taken level.
   out = c.AddFt({1'180'000, 2, w, 0}, false);
+  ASSERT_TRUE(out);
   EXPECT_EQ(out->flags, kFlagStaleFt | kFlagStaleServo | kFlagStaleMocap);
   EXPECT_NEAR(out->ft_age_s[0], 0.08, 1e-9);
   EXPECT_NEAR(out->servo_age_s, 0.08, 1e-9);
@@ -166,6 +168,7 @@ TEST(Corrector, FlagsStaleInputsAndMissingLegsAndAssumesLevelWithoutFreshMocap) 
   c.AddMocap({1'190'000, false, Mat3::Identity(), false});
   c.AddServo({1'190'000, Fill(0.3)});
   out = c.AddFt({1'190'000, 2, w, 0}, true);
+  ASSERT_TRUE(out);
   EXPECT_TRUE(out->flags & kFlagStaleMocap);
   EXPECT_FALSE(out->flags & kFlagStaleServo);
   EXPECT_TRUE(out->flags & kFlagSaturated);

@@ -147,7 +147,9 @@ void CheckStep1ParametersAgainstTheTruth() {
     std::printf("recovery: %s: force offset max error %.4f N (bound 0.02)\n", name, force);
     std::printf("recovery: %s: torque offset max error %.5f N*m (bound 0.001)\n", name, torque);
     std::printf("recovery: %s: leg CoM curve max error %.3f mm (bound 0.2)\n", name, com * 1e3);
-    if (exact) EXPECT_LT(weight, 0.015);
+    if (exact) {
+      EXPECT_LT(weight, 0.015);
+    }
     EXPECT_LT(force, 0.02) << name;
     EXPECT_LT(torque, 0.001) << name;
     EXPECT_LT(com, 0.2e-3) << name;

@@ -260,7 +260,9 @@ TEST_F(SimLogTest, ServoStateIsWhatTheBridgeReports) {
       ASSERT_LE(std::abs(WrapToPi(s.angle_rad[k] - frames[i].angle_rad[k])), half_count)
           << kLegNames[k] << " frame " << i;
       ASSERT_EQ(s.flags[k], 0);
-      if (i > 0) ASSERT_GE(s.device_tick_ms[k], log_->servo[i - 1].device_tick_ms[k]);
+      if (i > 0) {
+        ASSERT_GE(s.device_tick_ms[k], log_->servo[i - 1].device_tick_ms[k]);
+      }
     }
     latency_us.push_back(static_cast<double>(s.utime - Utime(frames[i].t_s)));
   }
@@ -358,7 +360,9 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
     EXPECT_GT(stop.utime, log_->mocap[phases[p].end - 1].utime);
     EXPECT_GT(stop.utime, log_->servo[phases[p].end - 1].utime);
     for (int k = 0; k < kNumLegs; ++k) EXPECT_GT(stop.utime, log_->ft[k][phases[p].end - 1].utime);
-    if (p + 1 < phases.size()) EXPECT_LT(stop.utime, log_->markers[2 * p + 2].utime);
+    if (p + 1 < phases.size()) {
+      EXPECT_LT(stop.utime, log_->markers[2 * p + 2].utime);
+    }
     // 100 Hz per leg inside the phase.
     const double span_s = (last.t_s - first.t_s);
     const double rate = static_cast<double>(phases[p].end - phases[p].first - 1) / span_s;

@@ -107,7 +107,9 @@ TEST(Standing, NoiseFreeJointSolveRecoversEveryModelExactly) {
     const Errors e = MaxErrors(fit, truth);
     EXPECT_LT(e.rot_deg * kDeg, 1e-9);
     EXPECT_LT(e.p_prime_m, 1e-9);
-    if (fit.has_p_C_B) EXPECT_LT((fit.p_C_B - truth.p_C_B).norm(), 1e-9);
+    if (fit.has_p_C_B) {
+      EXPECT_LT((fit.p_C_B - truth.p_C_B).norm(), 1e-9);
+    }
     EXPECT_EQ(fit.dof, StandingModelDof(model));
     EXPECT_TRUE(fit.converged);
     // The solver's residual (cost functor) and the sensing model's eq. 3 agree at the truth.
@@ -431,7 +433,9 @@ TEST(Standing, ConfiguredAlternatingSolverGivesTheSelectedModelsParameters) {
   calibration::Calibration proto;
   FillStandingProto(r, &proto);
   for (const auto& row : proto.model_selection()) {
-    if (row.selected()) EXPECT_DOUBLE_EQ(row.rss(), r.fit.rss);
+    if (row.selected()) {
+      EXPECT_DOUBLE_EQ(row.rss(), r.fit.rss);
+    }
   }
   EXPECT_EQ(proto.solver().solver(), "alternating");
   EXPECT_EQ(proto.solver().iterations(), static_cast<uint32_t>(r.fit.iterations));
