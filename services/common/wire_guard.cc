@@ -122,6 +122,11 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
     auto where = [&] {
       return std::string(schema.name) + "." + f.name + " at byte " + std::to_string(pos);
     };
+    auto over_bound = [&] {
+      return Refusal{"decoded size over bound", where() + ": would decode into " +
+                                                    std::to_string(decoded) + " bytes from " +
+                                                    std::to_string(total)};
+    };
     // Most members are single numbers: the general path below, with its 128-bit products,
     // was a tenth of a replay's time. Same checks, same refusals.
     if (f.ndims == 0 && f.type != Prim::kString) {
@@ -138,11 +143,7 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
       if (IsInteger(f.type)) values[static_cast<size_t>(i)] = ReadSigned(bytes + pos, elem);
       pos += elem;
       decoded += DecodedBytes(f.type);
-      if (decoded > decoded_bound) {
-        return Refusal{"decoded size over bound", where() + ": would decode into " +
-                                                      std::to_string(decoded) + " bytes from " +
-                                                      std::to_string(total)};
-      }
+      if (decoded > decoded_bound) return over_bound();
       continue;
     }
     // Elements, and the vector headers of the outer levels, multiplied out level by level;
@@ -222,11 +223,7 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
       }
       pos += n * elem;
     }
-    if (decoded > decoded_bound) {
-      return Refusal{"decoded size over bound", where() + ": would decode into " +
-                                                    std::to_string(decoded) + " bytes from " +
-                                                    std::to_string(total)};
-    }
+    if (decoded > decoded_bound) return over_bound();
   }
   if (pos != total) {
     return Refusal{"trailing bytes", std::to_string(total - pos) + " bytes after a " +
