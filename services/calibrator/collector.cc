@@ -75,7 +75,7 @@ void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, in
     throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
                    refused->detail);
   }
-  if (phase_ >= 0) CountRecord(k, msg.rdt_sequence);
+  if (phases_.open()) CountRecord(k, msg.rdt_sequence);
   aligner_.AddFt(inputs_.FromFt(k, msg));
 }
 
@@ -105,54 +105,54 @@ void CalibrationCollector::CountRecord(int k, int64_t sequence) {
 
 void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
   ++counters_.markers;
-  const bool same = phase_ == msg.phase && phase_session_ == msg.session_id;
-  if (msg.start) {
-    if (same) return;  // a repeated start marker (the sequencer repeats them)
-    if (phase_ >= 0) {
-      spdlog::warn("EXPERIMENT: {} started while {} had no stop marker; {} discarded",
-                   PhaseName(msg.phase), PhaseName(phase_), PhaseName(phase_));
-      EndPhase(false);
-    }
-    phase_ = msg.phase;
-    phase_session_ = msg.session_id;
-    current_gaps_ = PhaseGaps();
-    current_gaps_.phase = phase_;
-    current_gaps_.session = phase_session_;
-    last_sequence_.fill(0);
-    if (IsHangPhase(phase_)) {
-      current_hang_ = HangingRecording();
-      current_hang_.series = SeriesOfPhase(phase_);
-      current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
-    } else if (phase_ == experiment_marker_t::STANDING) {
-      current_poses_.clear();
-      segmenter_ =
-          std::make_unique<PoseSegmenter>(segmenter_options_, [this](const SteadyPoseOut& p) {
-            if (!p.markers_ok) return;
-            current_poses_.push_back(p.pose);
-            ++counters_.segmented_poses;
-          });
-    } else if (phase_ == experiment_marker_t::TARE) {
-      for (Vec6& w : tare_sum_) w.setZero();
-      tare_count_ = 0;
-    } else if (phase_ == experiment_marker_t::TRIPOD) {
-      current_unloaded_.clear();
-      segmenter_ = std::make_unique<PoseSegmenter>(
-          segmenter_options_, [this](const SteadyPoseOut& p) { OnTripodStance(p); });
-    }
-    spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase_), phase_session_);
-    return;
-  }
-  if (!same) {
+  const PhaseChange c = phases_.OnMarker(msg.phase, msg.start, msg.session_id);
+  if (c.stray_stop) {
     spdlog::warn("EXPERIMENT: stop marker of {} (session '{}') without its start; ignored",
                  PhaseName(msg.phase), msg.session_id);
     return;
   }
-  const bool standing = phase_ == experiment_marker_t::STANDING;
-  EndPhase(true);
-  if (standing && on_standing_stop_) on_standing_stop_();
+  if (c.closes) {
+    if (!c.completed) {
+      spdlog::warn("EXPERIMENT: {} started while {} had no stop marker; {} discarded",
+                   PhaseName(c.opened.code), PhaseName(c.closed.code), PhaseName(c.closed.code));
+    }
+    EndPhase(c.closed, c.completed);
+    if (c.completed && c.closed.code == experiment_marker_t::STANDING && on_standing_stop_) {
+      on_standing_stop_();
+    }
+  }
+  if (c.opens) StartPhase(c.opened, msg);
 }
 
-void CalibrationCollector::EndPhase(bool completed) {
+void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment_marker_t& msg) {
+  current_gaps_ = PhaseGaps();
+  current_gaps_.phase = phase.code;
+  current_gaps_.session = phase.session;
+  last_sequence_.fill(0);
+  if (IsHangPhase(phase.code)) {
+    current_hang_ = HangingRecording();
+    current_hang_.series = SeriesOfPhase(phase.code);
+    current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
+  } else if (phase.code == experiment_marker_t::STANDING) {
+    current_poses_.clear();
+    segmenter_ =
+        std::make_unique<PoseSegmenter>(segmenter_options_, [this](const SteadyPoseOut& p) {
+          if (!p.markers_ok) return;
+          current_poses_.push_back(p.pose);
+          ++counters_.segmented_poses;
+        });
+  } else if (phase.code == experiment_marker_t::TARE) {
+    for (Vec6& w : tare_sum_) w.setZero();
+    tare_count_ = 0;
+  } else if (phase.code == experiment_marker_t::TRIPOD) {
+    current_unloaded_.clear();
+    segmenter_ = std::make_unique<PoseSegmenter>(
+        segmenter_options_, [this](const SteadyPoseOut& p) { OnTripodStance(p); });
+  }
+  spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase.code), phase.session);
+}
+
+void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
   SegmenterCounters segmented;
   if (segmenter_) {
@@ -161,7 +161,7 @@ void CalibrationCollector::EndPhase(bool completed) {
     segmenter_.reset();
   }
   if (completed) phase_gaps_.push_back(current_gaps_);
-  if (IsHangPhase(phase_)) {
+  if (IsHangPhase(phase.code)) {
     if (completed) {
       const int s = static_cast<int>(current_hang_.series);
       if (hang_gaps_index_[s] >= 0) phase_gaps_[hang_gaps_index_[s]].superseded = true;
@@ -176,51 +176,50 @@ void CalibrationCollector::EndPhase(bool completed) {
       hang_[s] = std::move(current_hang_);
     }
     current_hang_ = HangingRecording();
-  } else if (phase_ == experiment_marker_t::STANDING) {
+  } else if (phase.code == experiment_marker_t::STANDING) {
     if (completed) {
-      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase_session_,
+      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
                    current_poses_.size());
       segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(), current_poses_.end());
-      standing_session_ = phase_session_;
+      standing_session_ = phase.session;
     }
     current_poses_.clear();
-  } else if (phase_ == experiment_marker_t::TARE) {
+  } else if (phase.code == experiment_marker_t::TARE) {
     if (completed && tare_count_ > 0) {
       std::array<Vec6, kNumLegs> mean;
       for (int k = 0; k < kNumLegs; ++k) mean[k] = tare_sum_[k] / static_cast<double>(tare_count_);
       tare_ = mean;
-      spdlog::info("TARE complete (session '{}'): naive tare from {} samples", phase_session_,
+      spdlog::info("TARE complete (session '{}'): naive tare from {} samples", phase.session,
                    tare_count_);
     }
-  } else if (phase_ == experiment_marker_t::TRIPOD) {
+  } else if (phase.code == experiment_marker_t::TRIPOD) {
     if (completed) {
       spdlog::info(
           "TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
           "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "
           "with no leg lifted",
-          phase_session_, current_unloaded_.size(), segmented.dropped_short,
+          phase.session, current_unloaded_.size(), segmented.dropped_short,
           segmenter_options_.min_steady_s, segmented.dropped_markers,
           counters_.tripod_stances_dropped);
       unloaded_.insert(unloaded_.end(), current_unloaded_.begin(), current_unloaded_.end());
     }
     current_unloaded_.clear();
-  } else if (phase_ == experiment_marker_t::WALKING) {
+  } else if (phase.code == experiment_marker_t::WALKING) {
     if (completed && walking_.empty() && !current_walk_.empty()) {
       spdlog::info("WALKING complete (session '{}'): {} aligned samples kept for the report",
-                   phase_session_, current_walk_.size());
+                   phase.session, current_walk_.size());
       walking_ = std::move(current_walk_);
     }
     current_walk_.clear();
   }
-  phase_ = -1;
-  phase_session_.clear();
 }
 
 void CalibrationCollector::Flush() {
-  if (phase_ >= 0) {
+  const PhaseChange c = phases_.End();
+  if (c.closes) {
     spdlog::warn("input ended inside {} (no stop marker): that phase is discarded",
-                 PhaseName(phase_));
-    EndPhase(false);
+                 PhaseName(c.closed.code));
+    EndPhase(c.closed, false);
   }
 }
 
@@ -238,7 +237,8 @@ void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
 void CalibrationCollector::OnAligned(const AlignedSample& a) {
   ++counters_.aligned_samples;
   const SyncSample& s = a.sample;
-  if (IsHangPhase(phase_)) {
+  const int phase = phases_.current().code;
+  if (IsHangPhase(phase)) {
     ++counters_.hanging_samples;
     const double t_s = 1e-6 * static_cast<double>(s.utime);
     for (int k = 0; k < kNumLegs; ++k) {
@@ -248,16 +248,16 @@ void CalibrationCollector::OnAligned(const AlignedSample& a) {
       leg.wrench.push_back(s.wrench[k]);
     }
     if (s.attitude_ok) current_hang_.attitude.push_back(s.R_WC);
-  } else if (phase_ == experiment_marker_t::STANDING && segmenter_) {
+  } else if (phase == experiment_marker_t::STANDING && segmenter_) {
     ++counters_.standing_samples;
     segmenter_->Add(s);
-  } else if (phase_ == experiment_marker_t::TRIPOD && segmenter_) {
+  } else if (phase == experiment_marker_t::TRIPOD && segmenter_) {
     ++counters_.tripod_samples;
     segmenter_->Add(s);
-  } else if (phase_ == experiment_marker_t::TARE) {
+  } else if (phase == experiment_marker_t::TARE) {
     for (int k = 0; k < kNumLegs; ++k) tare_sum_[k] += s.wrench[k];
     ++tare_count_;
-  } else if (phase_ == experiment_marker_t::WALKING) {
+  } else if (phase == experiment_marker_t::WALKING) {
     ++counters_.walking_samples;
     if (walking_.empty() && current_walk_.size() < kMaxWalkingSamples) current_walk_.push_back(s);
   }

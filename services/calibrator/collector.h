@@ -33,6 +33,7 @@
 #include "ftcal/calibrate.h"
 #include "ftcal/dataset.h"
 #include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/experiment_phase.h"
 #include "ftcal/offset_reestimation.h"
 #include "ftcal/segmenter.h"
 #include "ftcal/steady_pose_t.hpp"
@@ -132,7 +133,8 @@ class CalibrationCollector {
   void OnSteadyPose(const steady_pose_t& msg);
   void OnAligned(const AlignedSample& a);
   void OnTripodStance(const SteadyPoseOut& p);
-  void EndPhase(bool completed);
+  void StartPhase(const MarkedPhase& phase, const experiment_marker_t& msg);
+  void EndPhase(const MarkedPhase& phase, bool completed);
 
   const config::Config& config_;
   // EXPERIMENT is a signed channel (common/envelope.h).
@@ -142,9 +144,7 @@ class CalibrationCollector {
   Aligner aligner_;
   std::unique_ptr<PoseSegmenter> segmenter_;
 
-  // The phase in progress (experiment_marker_t phase code, -1 for none).
-  int phase_ = -1;
-  std::string phase_session_;
+  PhaseTracker phases_;  // the phase in progress
   HangingRecording current_hang_;
   std::vector<StandingPose> current_poses_;
   std::vector<SyncSample> current_walk_;

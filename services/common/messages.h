@@ -25,6 +25,7 @@
 #include "ftcal/corrector.h"
 #include "ftcal/dataset.h"
 #include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/experiment_phase.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/segmenter.h"
@@ -51,6 +52,15 @@ static_assert(experiment_marker_t::HANG_Z_POS - experiment_marker_t::HANG_X_POS 
 static_assert(experiment_marker_t::HANG_Z_NEG - experiment_marker_t::HANG_X_POS ==
               static_cast<int>(HangSeries::kZNeg));
 static_assert(kNumHangSeries == 4);
+static_assert(experiment_marker_t::IDLE == static_cast<int>(ExperimentPhase::kIdle));
+static_assert(experiment_marker_t::HANG_X_POS == static_cast<int>(ExperimentPhase::kHangXPos));
+static_assert(experiment_marker_t::HANG_X_NEG == static_cast<int>(ExperimentPhase::kHangXNeg));
+static_assert(experiment_marker_t::HANG_Z_POS == static_cast<int>(ExperimentPhase::kHangZPos));
+static_assert(experiment_marker_t::HANG_Z_NEG == static_cast<int>(ExperimentPhase::kHangZNeg));
+static_assert(experiment_marker_t::STANDING == static_cast<int>(ExperimentPhase::kStanding));
+static_assert(experiment_marker_t::WALKING == static_cast<int>(ExperimentPhase::kWalking));
+static_assert(experiment_marker_t::TRIPOD == static_cast<int>(ExperimentPhase::kTripod));
+static_assert(experiment_marker_t::TARE == static_cast<int>(ExperimentPhase::kTare));
 
 // ---- FT_<LEG>: ft_sample_t <-> FtInput ----
 // `leg` is the channel's leg; the message must name the same one (BadInput otherwise).

@@ -66,20 +66,19 @@ void PoseSegmenterStage::OnMocap(const MocapInput& in) {
 }
 
 void PoseSegmenterStage::OnExperiment(const experiment_marker_t& msg) {
-  const bool standing_start = msg.phase == experiment_marker_t::STANDING && msg.start;
-  if (standing_start && segmenter_ && msg.session_id == session_id_) return;  // repeated
-  if (segmenter_) {
+  const PhaseChange c = phases_.OnMarker(msg.phase, msg.start, msg.session_id);
+  if (c.closes && segmenter_) {
     segmenter_->Flush();  // the run in progress becomes a pose when long enough
-    const SegmenterCounters& c = segmenter_->counters();
-    segmenter_totals_.samples += c.samples;
-    segmenter_totals_.dropped_short += c.dropped_short;
-    segmenter_totals_.dropped_markers += c.dropped_markers;
-    segmenter_totals_.window_resets += c.window_resets;
+    const SegmenterCounters& n = segmenter_->counters();
+    segmenter_totals_.samples += n.samples;
+    segmenter_totals_.dropped_short += n.dropped_short;
+    segmenter_totals_.dropped_markers += n.dropped_markers;
+    segmenter_totals_.window_resets += n.window_resets;
     segmenter_.reset();
   }
-  if (standing_start) {
-    if (msg.session_id != session_id_) pose_index_ = 0;
-    session_id_ = msg.session_id;
+  if (c.opens && c.opened.code == experiment_marker_t::STANDING) {
+    if (c.opened.session != session_id_) pose_index_ = 0;
+    session_id_ = c.opened.session;
     segmenter_ = std::make_unique<PoseSegmenter>(segmenter_options_,
                                                  [this](const SteadyPoseOut& p) { OnPose(p); });
   }

@@ -4,10 +4,12 @@
 // go through the PoseSegmenter and every steady pose is published on STEADY_POSE with the
 // session id and a running pose index.
 //
-// A stop marker (or a start of another phase) closes the run in progress, which becomes a pose
-// when long enough. A repeated STANDING start of the session already running changes nothing,
-// so a sequencer that repeats its marker lets a restarted segmenter resume: a restart then
-// loses only the pose in progress (the derivative window refills in savgol_window samples).
+// The markers follow libcal's PhaseTracker rules (ftcal/experiment_phase.h), as the
+// calibrator's do. When STANDING closes (its stop marker, or a start of another phase) the run
+// in progress becomes a pose when long enough. A repeated STANDING start of the session already
+// running changes nothing, so a sequencer that repeats its marker lets a restarted segmenter
+// resume: a restart then loses only the pose in progress (the derivative window refills in
+// savgol_window samples).
 #pragma once
 
 #include <memory>
@@ -17,6 +19,7 @@
 #include "common/messages.h"
 #include "ftcal/aligner.h"
 #include "ftcal/experiment_marker_t.hpp"
+#include "ftcal/experiment_phase.h"
 #include "ftcal/segmenter.h"
 #include "ftcal/steady_pose_t.hpp"
 #include "ftcal/sync_sample_t.hpp"
@@ -50,6 +53,7 @@ class PoseSegmenterStage {
   DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;
   Aligner aligner_;
+  PhaseTracker phases_;
   std::unique_ptr<PoseSegmenter> segmenter_;  // while standing
   std::string session_id_;
   int32_t pose_index_ = 0;

@@ -37,6 +37,7 @@
 #include <vector>
 
 #include "ftcal/dataset.h"
+#include "ftcal/experiment_phase.h"
 #include "ftcal/geometry.h"
 #include "ftcal/legs.h"
 #include "ftcal/sensing_model.h"
@@ -44,20 +45,6 @@
 #include "proto/config.pb.h"
 
 namespace ftcal {
-
-// The EXPERIMENT phase codes (same values as ftcal::experiment_marker_t's constants; libcal-side
-// code never includes the generated LCM headers).
-enum class ExperimentPhase : int8_t {
-  kIdle = 0,
-  kHangXPos = 1,
-  kHangXNeg = 2,
-  kHangZPos = 3,
-  kHangZNeg = 4,
-  kStanding = 5,
-  kWalking = 6,
-  kTripod = 7,
-  kTare = 8,  // naive tare: upright, feet in the air, shaft angles 0
-};
 
 inline constexpr int kNumChassisMarkers = 12;
 
