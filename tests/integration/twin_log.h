@@ -306,13 +306,7 @@ inline SumCheck CheckSums(const std::string& path, const std::string& leg_channe
       have[m.leg] = true;
       ++c.legs;
     } else if (e->channel == sum_channel) {
-      // KNOWN PROBLEM, left as it was for now: GCC warns that `s` may be used uninitialised
-      // here, and with `s{}` the sum checks of BadLogsTest (corrupt payload, broken sync word)
-      // and PipelineLiveTest fail (worst inf, an age 0.01 s off), the logs with a lost event.
-      // As written they pass, so they may pass only through undefined behaviour: the model
-      // below and the corrector's sums may disagree around a lost leg-sample. Not yet
-      // understood; an issue of its own (see the stop-21 note).
-      contact_wrench_sum_t s;
+      contact_wrench_sum_t s{};
       if (s.decode(e->data, 0, e->datalen) != e->datalen) {
         ADD_FAILURE() << "bad contact_wrench_sum_t in " << path;
         continue;

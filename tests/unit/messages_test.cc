@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <cmath>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -269,6 +270,82 @@ TEST(Messages, ContactWrenchSumRoundTrip) {
   EXPECT_EQ(back.oldest_ft_age_s, s.oldest_ft_age_s);
   EXPECT_EQ(back.flags, s.flags);
   EXPECT_EQ(msg.getEncodedSize(), 8 + 117);
+}
+
+// LCM 1.3's coretypes move doubles and floats through int64_t* and int32_t*
+// (lcm_coretypes.h), which C++'s aliasing rule does not allow: with strict aliasing, GCC served
+// a value-initialised message's zeros instead of the doubles its inlined decode had just
+// written (CheckSums in tests/integration/twin_log.h read every total_w as 0), and may as well
+// encode a double before the store that set it. Every target that includes the generated types
+// builds with -fno-strict-aliasing (cmake/LcmTypes.cmake). This is the pattern that broke,
+// against bytes written here by hand: big-endian IEEE 754, LCM's wire format.
+void PutBigEndian(uint64_t bits, int bytes, std::vector<uint8_t>* out) {
+  for (int i = bytes - 1; i >= 0; --i) out->push_back(static_cast<uint8_t>(bits >> (8 * i)));
+}
+uint64_t BitsOf(double v) {
+  uint64_t b;
+  std::memcpy(&b, &v, 8);
+  return b;
+}
+uint32_t BitsOf(float v) {
+  uint32_t b;
+  std::memcpy(&b, &v, 4);
+  return b;
+}
+
+// Small on purpose: the inlined decode and the read of the value-initialised message in one
+// function is what let the compiler forward the zeros.
+contact_wrench_sum_t DecodedSum(const std::vector<uint8_t>& wire) {
+  contact_wrench_sum_t m{};
+  if (m.decode(wire.data(), 0, static_cast<int>(wire.size())) != static_cast<int>(wire.size())) {
+    m.utime = -1;
+  }
+  return m;
+}
+double DecodedTotal(const std::vector<uint8_t>& wire, int i) {
+  contact_wrench_sum_t m{};
+  if (m.decode(wire.data(), 0, static_cast<int>(wire.size())) != static_cast<int>(wire.size())) {
+    return -1.0;
+  }
+  return m.total_w[i];
+}
+
+TEST(LcmCoretypes, ValueInitialisedMessagesDecodeAndEncodeEveryDouble) {
+  const double total[6] = {1.5, -2.0, 0.25, 3.75, -0.5, 9.0};
+  const double residual[6] = {-1.5, 2.0, -80.0, 3.5, 0.125, -9.0};
+  std::vector<uint8_t> wire;
+  PutBigEndian(static_cast<uint64_t>(contact_wrench_sum_t::getHash()), 8, &wire);
+  PutBigEndian(1234567, 8, &wire);  // utime
+  for (double v : total) PutBigEndian(BitsOf(v), 8, &wire);
+  for (double v : residual) PutBigEndian(BitsOf(v), 8, &wire);
+  PutBigEndian(42, 8, &wire);  // calibration_version
+  PutBigEndian(BitsOf(0.75f), 4, &wire);
+  PutBigEndian(3, 1, &wire);  // flags
+
+  for (int i = 0; i < 6; ++i) EXPECT_EQ(DecodedTotal(wire, i), total[i]) << i;
+  const contact_wrench_sum_t in = DecodedSum(wire);
+  EXPECT_EQ(in.utime, 1234567);
+  for (int i = 0; i < 6; ++i) {
+    EXPECT_EQ(in.total_w[i], total[i]) << i;
+    EXPECT_EQ(in.residual_w[i], residual[i]) << i;
+  }
+  EXPECT_EQ(in.calibration_version, 42);
+  EXPECT_EQ(in.oldest_ft_age_s, 0.75f);
+  EXPECT_EQ(in.flags, 3);
+
+  contact_wrench_sum_t out{};
+  out.utime = 1234567;
+  for (int i = 0; i < 6; ++i) {
+    out.total_w[i] = total[i];
+    out.residual_w[i] = residual[i];
+  }
+  out.calibration_version = 42;
+  out.oldest_ft_age_s = 0.75f;
+  out.flags = 3;
+  std::vector<uint8_t> encoded(wire.size());
+  ASSERT_EQ(out.encode(encoded.data(), 0, static_cast<int>(encoded.size())),
+            static_cast<int>(wire.size()));
+  EXPECT_EQ(encoded, wire);
 }
 
 TEST(Messages, Phases) {
