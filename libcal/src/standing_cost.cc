@@ -319,10 +319,10 @@ ceres::CostFunction* MakeCost(int trans_size, bool cayley, const PoseTerms* term
 }
 
 Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingModel model,
-            bool cayley, bool rotations_free, bool translations_free, Params* params,
-            const StandingOptions& options, bool use_loss) {
+            const BuildOptions& build, Params* params, const StandingOptions& options) {
+  const bool cayley = build.cayley;
   Built b;
-  if (use_loss) b.loss = MakeLoss(options);
+  if (build.use_loss) b.loss = MakeLoss(options);
   ceres::Problem::Options po;
   po.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
   b.problem = std::make_unique<ceres::Problem>(po);
@@ -342,12 +342,12 @@ Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingMode
     }
   }
   if (!cayley) b.problem->SetManifold(b.rot, new SixQuaternions());
-  if (rotations_free && HasRotations(model)) {
+  if (build.rotations_free && HasRotations(model)) {
     b.free_blocks.push_back(b.rot);
   } else {
     b.problem->SetParameterBlockConstant(b.rot);
   }
-  if (translations_free) {
+  if (build.translations_free) {
     b.free_blocks.push_back(b.trans);
   } else {
     b.problem->SetParameterBlockConstant(b.trans);

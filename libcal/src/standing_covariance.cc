@@ -27,7 +27,7 @@ namespace standing_detail {
 void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFit* fit,
                    const StandingOptions& options) {
   Params params = ParamsFromFit(*fit);
-  Built b = Build(prep, ids, fit->model, false, true, true, &params, options, true);
+  Built b = Build(prep, ids, fit->model, BuildOptions(), &params, options);
   ceres::Problem::EvaluateOptions eo;
   eo.parameter_blocks = b.free_blocks;
   eo.apply_loss_function = true;

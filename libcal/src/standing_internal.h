@@ -86,6 +86,17 @@ StandingFit FitFromParams(StandingModel model, const Params& p, bool cayley);
 // Names of a model's parameters in tangent order (the Jacobian's columns).
 std::vector<std::string> ParameterNames(StandingModel model);
 
+// How one problem is parametrised and what it leaves free. The defaults are the joint solve's.
+struct BuildOptions {
+  // Rotations as Cayley vectors (the report's alternating scheme) instead of unit quaternions.
+  bool cayley = false;
+  // Free blocks are solved for; the others are held constant (the alternating scheme's halves).
+  bool rotations_free = true;
+  bool translations_free = true;
+  // The configured robust loss (StandingOptions.robust_loss) on the pose residuals.
+  bool use_loss = true;
+};
+
 // A Ceres problem over a subset of poses.
 struct Built {
   std::unique_ptr<ceres::LossFunction> loss;
@@ -98,8 +109,7 @@ struct Built {
 // The problem over the poses pose_ids, on the storage *params (standing_cost.cc). The hanging
 // gravity prior is added for quaternion rotations when prep.prior_scale > 0.
 Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingModel model,
-            bool cayley, bool rotations_free, bool translations_free, Params* params,
-            const StandingOptions& options, bool use_loss);
+            const BuildOptions& build, Params* params, const StandingOptions& options);
 
 // One pose's cost on its own, for a caller that evaluates it directly (the alternating scheme's
 // linear translation step). trans_size: 3 (shared p^C_B) or 18.

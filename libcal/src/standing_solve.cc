@@ -208,7 +208,7 @@ StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, Standi
     s.model = model;
     params = ParamsFromFit(s);
   }
-  Built b = Build(prep, ids, model, false, true, true, &params, options, true);
+  Built b = Build(prep, ids, model, BuildOptions(), &params, options);
   if (check_rank) CheckIdentifiable(b.problem.get(), b.free_blocks, model, ids.size());
   ceres::Solver::Summary summary;
   ceres::Solve(SolverOptions(options.max_iterations, function_tolerance), b.problem.get(),
@@ -244,7 +244,10 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
   const int n_trans = TransSize(model);
   Params params;  // Cayley q = 0 (R~ = I), translations 0
   if (check_rank) {
-    Built b = Build(prep, ids, model, true, true, true, &params, options, false);
+    BuildOptions rank_check;
+    rank_check.cayley = true;
+    rank_check.use_loss = false;
+    Built b = Build(prep, ids, model, rank_check, &params, options);
     CheckIdentifiable(b.problem.get(), b.free_blocks, model, ids.size());
   }
   // The residual is affine in the translations with the rotations fixed, so one Jacobian
@@ -272,6 +275,10 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
   rot_opts.parameter_tolerance = 1e-8;
   rot_opts.gradient_tolerance = 1e-10;
 
+  BuildOptions rotation_step;  // the translations held at the linear solve's values
+  rotation_step.cayley = true;
+  rotation_step.translations_free = false;
+
   int sweeps = 0;
   bool converged = false;
   double initial_cost = -1.0, last_cost = 0.0;
@@ -279,7 +286,7 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
     const Params before = params;
     solve_translations();
     if (HasRotations(model)) {
-      Built b = Build(prep, ids, model, true, true, false, &params, options, true);
+      Built b = Build(prep, ids, model, rotation_step, &params, options);
       ceres::Solver::Summary summary;
       ceres::Solve(rot_opts, b.problem.get(), &summary);
       if (initial_cost < 0) initial_cost = summary.initial_cost;
