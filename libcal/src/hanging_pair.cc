@@ -63,6 +63,9 @@ struct SPlusCost {
   Vec3 axis, b1, b2;
   bool exact = false;
 
+  // RotInverseApply at T = double, but not its arithmetic (a reciprocal instead of a division,
+  // AngleAxisRotatePoint instead of ExpSO3): the results differ in the last bit, so sharing one
+  // template would move m g, s- and the offsets, which RotInverseApply feeds (issue 15, item 5).
   template <typename T>
   void Corrected(const T* s, const Vec3& v, T* g) const {
     const T vv[3] = {T(v.x()), T(v.y()), T(v.z())};

@@ -123,6 +123,9 @@ namespace {
 
 // Cayley map in closed form, R = ((1 - q.q) I + 2 q q^T - 2 [q]) / (1 + q.q), equal to
 // (I - [q])(I + [q])^-1 (geometry.h) and differentiable by Jets without a matrix inverse.
+// CayleyToRotation (geometry.cc) is not this template at T = double: it inverts (I + [q]), and
+// the two differ in the last bit for most q (up to 6e-16 measured), so one version for both
+// would change either the alternating fit's R~ or the solver's derivatives (issue 15, item 5).
 template <typename T>
 Eigen::Matrix<T, 3, 3> CayleyRotation(const T* q) {
   const T n = q[0] * q[0] + q[1] * q[1] + q[2] * q[2];
