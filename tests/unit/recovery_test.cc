@@ -90,7 +90,7 @@ double Rms(const std::vector<Vec6>& residuals, const Vec6& k) {
 // default seed: probes with the twin's noise sources switched off one at a time traced it to the
 // motion capture attitude noise, which lands in the horizontal forces only. With one residual
 // variance pooled over the six components it was 2.2 reported sigma; the per-component sandwich
-// covariance (standing.cc, AddCovariance) reports it as 1.6 sigma. The hanging
+// covariance (standing_covariance.cc, AddCovariance) reports it as 1.6 sigma. The hanging
 // gravity prior (ftcal's method) sees that yaw directly and removes the problem; this check
 // shows, for the poses alone, every leg's tilt (x, y) and rotation relative to the common yaw
 // within 0.15 deg and the common yaw within 3 reported sigma.

@@ -90,8 +90,8 @@ struct StandingFit {
   std::array<Vec3, kNumLegs> p_tilde_prime;  // m; R~^T p^C_B in models 2 and 4
   bool has_p_C_B = false;                    // models 2 and 4
   Vec3 p_C_B = Vec3::Zero();                 // m
-  // 1-sigma from the sandwich covariance with per-component residual variances (standing.cc,
-  // AddCovariance); zero for what the model fixes.
+  // 1-sigma from the sandwich covariance with per-component residual variances
+  // (standing_covariance.cc, AddCovariance); zero for what the model fixes.
   // Rotations: sigma of the left rotation-vector perturbation R~ = Exp(dv) R~_hat, in degrees.
   bool has_covariance = false;
   std::array<Vec3, kNumLegs> sigma_rotation_deg;
