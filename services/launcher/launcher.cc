@@ -66,6 +66,24 @@ auto WhilePumping(GateWatcher& watcher, F work) -> decltype(work()) {
   return done.get();
 }
 
+// How every command reports a failure: one line on stderr and an exit code. Up and
+// export-systemd tell a launch section they refuse (LaunchError: kExitConfig) from a host or
+// file they cannot reach; the other commands answer kExitDeviceIo for both, as they always
+// have (a caller may tell the two apart, so folding must not change which one it gets).
+enum ErrorCodes { kLaunchErrorsAreConfig, kEveryErrorIsIo };
+template <class Body>
+int RunCommand(ErrorCodes codes, Body body) {
+  try {
+    return body();
+  } catch (const LaunchError& e) {
+    std::cerr << "ftcal-launch: " << e.what() << "\n";
+    return codes == kLaunchErrorsAreConfig ? kExitConfig : kExitDeviceIo;
+  } catch (const std::exception& e) {
+    std::cerr << "ftcal-launch: " << e.what() << "\n";
+    return kExitDeviceIo;
+  }
+}
+
 }  // namespace
 
 Launcher::Launcher(Options options) : o_(std::move(options)) {}
@@ -260,7 +278,7 @@ std::optional<int> Launcher::StartAndGate(const config::LaunchGroup& group,
 
 int Launcher::Up() {
   const auto t0 = Clock::now();
-  try {
+  return RunCommand(kLaunchErrorsAreConfig, [&]() -> int {
     const auto& group = FindGroup(config_.launch(), o_.group);
     const auto hosts = HostsOf(group);
     for (const auto& h : hosts) {
@@ -288,17 +306,11 @@ int Launcher::Up() {
     std::cout << "group " << group.name() << " up: " << group.process_size() << " processes on "
               << hosts.size() << " host(s) in " << Seconds(t0) << "\n";
     return kExitDone;
-  } catch (const LaunchError& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitConfig;
-  } catch (const std::exception& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitDeviceIo;
-  }
+  });
 }
 
 int Launcher::Down() {
-  try {
+  return RunCommand(kEveryErrorIsIo, [&]() -> int {
     const auto& group = FindGroup(config_.launch(), o_.group);
     auto order = StartOrder(group);
     for (const auto& h : HostsOf(group)) {
@@ -326,14 +338,11 @@ int Launcher::Down() {
       }
     }
     return kExitDone;
-  } catch (const std::exception& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitDeviceIo;
-  }
+  });
 }
 
 int Launcher::Restart() {
-  try {
+  return RunCommand(kEveryErrorIsIo, [&]() -> int {
     const config::LaunchGroup* found = nullptr;
     for (const auto& g : config_.launch().group()) {
       if (!o_.group.empty() && g.name() != o_.group) continue;
@@ -354,14 +363,11 @@ int Launcher::Restart() {
     if (auto rc = StartAndGate(*found, {&p}, /*restart=*/true)) return *rc;
     std::cout << "[" << Seconds(t0) << "] " << p.host() << "/" << p.name() << ": restarted\n";
     return kExitDone;
-  } catch (const std::exception& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitDeviceIo;
-  }
+  });
 }
 
 int Launcher::Status() {
-  try {
+  return RunCommand(kEveryErrorIsIo, [&]() -> int {
     if (o_.listen_s > 0) Watcher().Pump(o_.listen_s);
     std::printf("%-12s %-28s %-9s %-26s %-9s %s\n", "HOST", "PROCESS", "SUPERVISOR", "DETAIL",
                 "HEARTBEAT", "LAST ERROR");
@@ -395,14 +401,11 @@ int Launcher::Status() {
       }
     }
     return silent_or_down ? kExitRefused : kExitDone;
-  } catch (const std::exception& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitDeviceIo;
-  }
+  });
 }
 
 int Launcher::ExportSystemd() {
-  try {
+  return RunCommand(kLaunchErrorsAreConfig, [&]() -> int {
     const auto& group = FindGroup(config_.launch(), o_.group);
     const auto& host = FindHost(config_.launch(), o_.host);
     std::filesystem::create_directories(o_.out_dir);
@@ -428,13 +431,7 @@ int Launcher::ExportSystemd() {
       return kExitUsage;
     }
     return kExitDone;
-  } catch (const LaunchError& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitConfig;
-  } catch (const std::exception& e) {
-    std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return kExitDeviceIo;
-  }
+  });
 }
 
 }  // namespace ftcal::launch

@@ -1,6 +1,6 @@
 // ftcal-natnet-bridge: OptiTrack Motive (NatNet over UDP) -> MOCAP_BODY.
+#include "common/mocap_main.h"
 #include "common/service.h"
-#include "common/shutdown.h"
 #include "natnet_bridge.h"
 
 int main(int argc, char** argv) {
@@ -19,33 +19,7 @@ int main(int argc, char** argv) {
        /*replayable=*/false});
   if (auto rc = app.Init(argc, argv)) return *rc;
 
-  ftcal::Bus& bus = app.bus();
-  const auto& channels = app.config().channels();
-  int rc = 0;
-  try {
-    ftcal::NatNetBridge bridge(
-        ftcal::NatNetBridgeOptionsFromConfig(app.config().mocap()), app.stats(),
-        [&](const ftcal::mocap_body_t& msg) { bus.Publish(channels.mocap_body(), msg); },
-        [&] { return bus.NowUtime(); });
-    // The device socket paces this process, not LCM (it subscribes to nothing): ServiceApp's
-    // device loop, with the heartbeat and systemd's notify protocol.
-    app.RunDeviceLoop([&] { return bridge.health_reason(); },
-                      [&](int max_wait_ms) { bridge.Step(max_wait_ms); });
-  } catch (const ftcal::NatNetConfigError& e) {
-    app.stats().Error("configuration", e.what());
-    app.SetState(ftcal::service_status_t::FAILED);
-    rc = 2;
-  } catch (const std::exception& e) {
-    // Anything else ends the bridge: said in its log and in its last heartbeat.
-    app.stats().Error("run", ftcal::UserText(e, "reading the motion capture"));
-    app.SetState(ftcal::service_status_t::FAILED);
-    rc = ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
-  }
-  if (rc == 0) {
-    app.DeviceLoopStopped();
-  } else {
-    app.PublishHeartbeat();  // the last one, FAILED with the error
-  }
-  app.stats().LogSummary();
-  return rc;
+  // 2, not kExitConfig: the code its help promises and natnet_bridge_test checks.
+  return ftcal::RunMocapBridge<ftcal::NatNetBridge, ftcal::NatNetConfigError>(
+      app, ftcal::NatNetBridgeOptionsFromConfig, 2);
 }

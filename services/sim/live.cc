@@ -204,24 +204,6 @@ std::string NatNetTruthCsv(const std::vector<NatNetSentFrame>& frames) {
   return out.str();
 }
 
-std::vector<std::string> SplitFlag(const std::string& text, char sep) {
-  std::vector<std::string> out;
-  std::stringstream ss(text);
-  for (std::string item; std::getline(ss, item, sep);) out.push_back(item);
-  return out;
-}
-
-double ParseFlagNumber(const std::string& text, const std::string& flag) {
-  try {
-    std::size_t used = 0;
-    const double v = std::stod(text, &used);
-    if (used != text.size() || !std::isfinite(v)) throw std::invalid_argument(text);
-    return v;
-  } catch (const std::exception&) {
-    throw std::invalid_argument(flag + ": '" + text + "' is not a number");
-  }
-}
-
 // ---- LiveSim ----
 
 LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : options_(options) {

@@ -42,6 +42,7 @@
 #include "natnet_emulator.h"
 #include "proto/config.pb.h"
 #include "qtm_emulator.h"
+#include "sim/flags.h"
 #include "sim/twin.h"
 
 namespace ftcal::sim {
@@ -103,11 +104,6 @@ std::string QtmTruthCsv(const std::vector<std::string>& labels,
 // natnet.csv: per frame sent, the tick, frame number, Motive timestamp, mid-exposure host time,
 // faults, and the chassis pose in ftcal's frame G (rotation column-major).
 std::string NatNetTruthCsv(const std::vector<NatNetSentFrame>& frames);
-
-// "A:B:C" -> {"A", "B", "C"}; a number in a flag's text, or std::invalid_argument naming the
-// flag.
-std::vector<std::string> SplitFlag(const std::string& text, char sep);
-double ParseFlagNumber(const std::string& text, const std::string& flag);
 
 struct LiveOptions {
   std::string scenario = "walk";

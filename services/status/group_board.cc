@@ -4,15 +4,10 @@
 #include <cstdio>
 
 #include "common/heartbeat.h"
+#include "status/table_text.h"
 
 namespace ftcal {
 namespace {
-
-std::string Printable(const std::string& text) {
-  std::string out;
-  for (unsigned char c : text) out.push_back(c < 0x20 || c == 0x7f ? '?' : static_cast<char>(c));
-  return out;
-}
 
 std::string StatusNameOf(const config::LaunchProcess& p) {
   if (p.status_name() == "-") return "";
@@ -100,21 +95,7 @@ std::string GroupBoard::Render(int64_t now_utime) const {
                      r.pid > 0 ? std::to_string(r.pid) : "-", std::to_string(r.restarts),
                      r.heartbeat == "SILENT" ? "SILENT!" : r.heartbeat, rate, r.last_error});
   }
-  std::vector<size_t> width(cells[0].size(), 0);
-  for (const auto& line : cells) {
-    for (size_t c = 0; c < line.size(); ++c) width[c] = std::max(width[c], line[c].size());
-  }
-  std::string out;
-  for (const auto& line : cells) {
-    std::string text;
-    for (size_t c = 0; c < line.size(); ++c) {
-      text += line[c];
-      if (c + 1 < line.size()) text += std::string(width[c] - line[c].size() + 2, ' ');
-    }
-    while (!text.empty() && text.back() == ' ') text.pop_back();
-    out += text + "\n";
-  }
-  return out;
+  return AlignColumns(cells);
 }
 
 }  // namespace ftcal

@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "common/heartbeat.h"
+#include "status/table_text.h"
 
 namespace ftcal {
 namespace {
@@ -22,14 +23,6 @@ std::string FormatDuration(double s) {
   const auto total = static_cast<int64_t>(s);
   if (s < 3600) return std::to_string(total / 60) + "m" + Printf("%02.0fs", double(total % 60));
   return std::to_string(total / 3600) + "h" + Printf("%02.0fm", double(total % 3600 / 60));
-}
-
-// A heartbeat is untrusted input: keep its text from moving the cursor or breaking the table.
-std::string Printable(const std::string& text) {
-  std::string out;
-  out.reserve(text.size());
-  for (unsigned char c : text) out.push_back(c < 0x20 || c == 0x7f ? '?' : static_cast<char>(c));
-  return out;
 }
 
 std::string Counters(const service_status_t& status) {
@@ -79,20 +72,7 @@ std::string StatusBoard::Render(int64_t now_utime) const {
                      std::to_string(s.msgs_out), std::to_string(s.drops), std::to_string(s.errors),
                      FormatDuration(row.age_s), Counters(s), Printable(s.last_error)});
   }
-  std::vector<size_t> width(header.size(), 0);
-  for (const auto& line : cells) {
-    for (size_t c = 0; c < line.size(); ++c) width[c] = std::max(width[c], line[c].size());
-  }
-  std::string out;
-  for (const auto& line : cells) {
-    std::string text;
-    for (size_t c = 0; c < line.size(); ++c) {
-      text += line[c];
-      if (c + 1 < line.size()) text += std::string(width[c] - line[c].size() + 2, ' ');
-    }
-    while (!text.empty() && text.back() == ' ') text.pop_back();
-    out += text + "\n";
-  }
+  std::string out = AlignColumns(cells);
   if (latest_.empty()) out += "(no heartbeats yet)\n";
   return out;
 }

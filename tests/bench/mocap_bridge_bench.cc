@@ -20,6 +20,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "bridge_bench.h"
 #include "ftcal/geometry.h"
 #include "mocap_bridge.h"
 #include "qtm_emulator.h"
@@ -28,17 +29,9 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-double ThreadCpuS() {
-  rusage u{};
-  ::getrusage(RUSAGE_THREAD, &u);
-  return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
-         1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
-}
-
-int64_t NowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
-      .count();
-}
+using ftcal::bench::NowNs;
+using ftcal::bench::Pct;
+using ftcal::bench::ThreadCpuS;
 
 struct Result {
   double rate_hz;
@@ -109,15 +102,9 @@ Result RunAt(double rate_hz, double seconds, lcm::LCM& lcm) {
   r.decode_errors = stats.counters().at("decode_errors");
   r.bridge_cpu_pct = 100.0 * bridge_cpu_s / wall_s;
   r.emulator_cpu_pct = 100.0 * emulator_cpu_s / wall_s;
-  if (!latency_us.empty()) {
-    std::sort(latency_us.begin(), latency_us.end());
-    auto pct = [&](double q) {
-      return latency_us[std::min(latency_us.size() - 1, size_t(q * double(latency_us.size())))];
-    };
-    r.p50_us = pct(0.50);
-    r.p99_us = pct(0.99);
-    r.max_us = latency_us.back();
-  }
+  r.p50_us = Pct(latency_us, 0.50);
+  r.p99_us = Pct(latency_us, 0.99);
+  r.max_us = latency_us.empty() ? 0 : latency_us.back();
   return r;
 }
 
@@ -125,18 +112,13 @@ Result RunAt(double rate_hz, double seconds, lcm::LCM& lcm) {
 
 int main(int argc, char** argv) {
   const double seconds = argc > 1 ? std::atof(argv[1]) : 5.0;
-  const char* netns = std::getenv("FTCAL_NETNS");
-  if (netns == nullptr || std::string(netns) != "1") {
-    std::fprintf(stderr,
-                 "mocap_bridge_bench publishes UDP multicast: run it through "
-                 "scripts/netns-exec (ctest does)\n");
-    return 2;
-  }
-  lcm::LCM lcm("udpm://239.255.76.67:7667?ttl=0");
-  if (!lcm.good()) {
-    std::fprintf(stderr, "LCM did not open\n");
-    return 1;
-  }
+  int rc = 0;
+  const auto lcm_ptr = ftcal::bench::OpenBenchLcm(
+      "mocap_bridge_bench publishes UDP multicast: run it through "
+      "scripts/netns-exec (ctest does)\n",
+      &rc);
+  if (!lcm_ptr) return rc;
+  lcm::LCM& lcm = *lcm_ptr;
   std::printf(
       "mocap_bridge_bench: QTM emulator -> loopback TCP -> MocapBridge -> LCM, %.1f s per rate\n",
       seconds);

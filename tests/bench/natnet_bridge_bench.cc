@@ -23,6 +23,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "bridge_bench.h"
 #include "ftcal/geometry.h"
 #include "natnet_bridge.h"
 #include "natnet_emulator.h"
@@ -31,17 +32,9 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-double ThreadCpuS() {
-  rusage u{};
-  ::getrusage(RUSAGE_THREAD, &u);
-  return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
-         1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
-}
-
-int64_t NowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
-      .count();
-}
+using ftcal::bench::NowNs;
+using ftcal::bench::Pct;
+using ftcal::bench::ThreadCpuS;
 
 struct Result {
   double rate_hz = 0;
@@ -51,12 +44,6 @@ struct Result {
   double r50 = 0, r99 = 0, rmax = 0;  // receipt-to-publish, us
   double s50 = 0, s99 = 0;            // source-to-publish, us
 };
-
-double Pct(std::vector<double>& v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  return v[std::min(v.size() - 1, size_t(q * double(v.size())))];
-}
 
 Result RunAt(double rate_hz, bool multicast, double seconds, lcm::LCM& lcm) {
   const int64_t ticks = static_cast<int64_t>(rate_hz * seconds);
@@ -140,18 +127,13 @@ Result RunAt(double rate_hz, bool multicast, double seconds, lcm::LCM& lcm) {
 
 int main(int argc, char** argv) {
   const double seconds = argc > 1 ? std::atof(argv[1]) : 5.0;
-  const char* netns = std::getenv("FTCAL_NETNS");
-  if (netns == nullptr || std::string(netns) != "1") {
-    std::fprintf(stderr,
-                 "natnet_bridge_bench uses UDP multicast: run it through "
-                 "scripts/netns-exec (ctest does)\n");
-    return 2;
-  }
-  lcm::LCM lcm("udpm://239.255.76.67:7667?ttl=0");
-  if (!lcm.good()) {
-    std::fprintf(stderr, "LCM did not open\n");
-    return 1;
-  }
+  int rc = 0;
+  const auto lcm_ptr = ftcal::bench::OpenBenchLcm(
+      "natnet_bridge_bench uses UDP multicast: run it through "
+      "scripts/netns-exec (ctest does)\n",
+      &rc);
+  if (!lcm_ptr) return rc;
+  lcm::LCM& lcm = *lcm_ptr;
   std::printf(
       "natnet_bridge_bench: Motive emulator (NatNet 4.1) -> loopback UDP -> NatNetBridge "
       "-> LCM, %.1f s per case\n",

@@ -30,7 +30,9 @@
 
 #include "ati_bridge.h"
 #include "ati_emulator.h"
+#include "ati_truth.h"
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/config.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/service_status_t.hpp"
@@ -55,14 +57,7 @@ constexpr double kCountsPerUnit = 1e6;  // the emulator's default cfgcpf and cfg
 void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
 
 // One row of the emulator's truth CSV.
-struct TruthRow {
-  std::string leg;
-  int stream = 0;
-  double t_s = 0;
-  std::uint32_t rdt_sequence = 0, ft_sequence = 0, status = 0;
-  std::array<std::int32_t, 6> counts{};
-  std::string fault;
-};
+using TruthRow = testing::AtiTruthRow;
 
 std::vector<TruthRow> ReadTruth(const std::string& path) {
   std::ifstream in(path);
@@ -72,23 +67,12 @@ std::vector<TruthRow> ReadTruth(const std::string& path) {
   EXPECT_EQ(line.rfind("leg,stream,t_s,rdt_sequence,ft_sequence,status,fx_counts", 0), 0u) << line;
   std::vector<TruthRow> rows;
   while (std::getline(in, line)) {
-    std::stringstream ss(line);
-    std::vector<std::string> f;
-    for (std::string item; std::getline(ss, item, ',');) f.push_back(item);
-    if (f.size() != 13) {
+    const auto f = testing::SplitCsv(line);
+    if (f.size() != testing::kAtiTruthColumns) {
       ADD_FAILURE() << "bad truth line: " << line;
       continue;
     }
-    TruthRow r;
-    r.leg = f[0];
-    r.stream = std::stoi(f[1]);
-    r.t_s = std::stod(f[2]);
-    r.rdt_sequence = static_cast<std::uint32_t>(std::stoul(f[3]));
-    r.ft_sequence = static_cast<std::uint32_t>(std::stoul(f[4]));
-    r.status = static_cast<std::uint32_t>(std::stoul(f[5]));
-    for (int i = 0; i < 6; ++i) r.counts[i] = std::stoi(f[6 + i]);
-    r.fault = f[12];
-    rows.push_back(r);
+    rows.push_back(testing::ParseAtiTruthRow(f));
   }
   return rows;
 }
@@ -165,9 +149,7 @@ std::int64_t Counter(const service_status_t& s, const std::string& name) {
 class AtiBridgeTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    const char* netns = std::getenv("FTCAL_NETNS");
-    ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-        << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+    ASSERT_TRUE(testing::InNetns());
     dir_ = testing::MakeTempDir();
   }
   void TearDown() override {
@@ -292,36 +274,15 @@ TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePubl
   const auto by_leg = ByLeg(heard);
   for (const char* leg : {"HL", "ML", "FL", "HR", "MR", "FR"}) {
     SCOPED_TRACE(leg);
-    std::map<std::string, std::int64_t> faults;
-    std::set<int> streams;
-    std::uint32_t last_delivered = 0;
-    for (const TruthRow& r : truth) {
-      if (r.leg != leg) continue;
-      ++faults[r.fault];
-      streams.insert(r.stream);
-      if (r.fault == "none" || r.fault == "duplicate")
-        last_delivered = std::max(last_delivered, r.rdt_sequence);
-    }
-    // Records lost after the last one delivered cannot be told from the end of the data.
-    std::int64_t lost_at_end = 0;
-    for (const TruthRow& r : truth) {
-      if (r.leg == leg && r.rdt_sequence > last_delivered) ++lost_at_end;
-    }
-    ASSERT_EQ(streams.size(), 1u) << "the bridge restarted the stream: counts are not comparable";
+    testing::AtiLegTally tally = testing::TallyLeg(truth, leg);
+    auto& faults = tally.faults;
+    ASSERT_EQ(tally.streams.size(), 1u)
+        << "the bridge restarted the stream: counts are not comparable";
     ASSERT_GT(faults["none"], 1000);
-    // Each kind of fault happened (2% of ~1900 records) ...
-    for (const char* kind : {"drop", "duplicate", "reorder", "corrupt"})
-      EXPECT_GT(faults[kind], 5) << kind;
-    // ... and was counted as what it is.
+    // Each kind of fault happened (2% of ~1900 records) and was counted as what it is.
     const std::string p = std::string(leg) + ".";
-    EXPECT_EQ(Counter(last, p + "duplicates"), faults["duplicate"]);
-    EXPECT_EQ(Counter(last, p + "late"), faults["reorder"]);
-    EXPECT_EQ(Counter(last, p + "wrong_length"), faults["corrupt"]);
-    // A reordered record is first missed (lost), then arrives late and is dropped.
-    EXPECT_EQ(Counter(last, p + "lost"),
-              faults["drop"] + faults["corrupt"] + faults["reorder"] - lost_at_end);
-    EXPECT_EQ(Counter(last, p + "received"),
-              faults["none"] + 2 * faults["duplicate"] + faults["reorder"]);
+    testing::ExpectFaultsCounted(tally,
+                                 [&](const std::string& name) { return Counter(last, p + name); });
     EXPECT_EQ(Counter(last, p + "published"), faults["none"] + faults["duplicate"]);
     EXPECT_EQ(Counter(last, p + "restarts"), 1);
     EXPECT_EQ(Counter(last, p + "calibration_reads"), 1);

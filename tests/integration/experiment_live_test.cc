@@ -38,6 +38,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 #include "ftcal/geometry.h"
@@ -183,9 +184,7 @@ void ExpectAgrees(const calibration::Vec3Estimate& a, const calibration::Vec3Est
 }
 
 TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNatNetAlike) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   // Both at once: each is mostly waiting (5 s dwells, slow hanging turns), and the two
   // sessions are the same twin seed, so the swap is the only difference between them.

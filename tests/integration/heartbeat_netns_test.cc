@@ -13,6 +13,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/service_status_t.hpp"
 
@@ -54,9 +55,7 @@ int64_t CounterIn(const std::vector<std::string>& row, const std::string& name) 
 class HeartbeatNetnsTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    const char* netns = std::getenv("FTCAL_NETNS");
-    ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-        << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+    ASSERT_TRUE(testing::InNetns());
     dir_ = testing::MakeTempDir();
   }
   void TearDown() override {
@@ -172,22 +171,8 @@ TEST_F(HeartbeatNetnsTest, StatusMarksAKilledPublisherLost) {
   EXPECT_EQ(live_row[3], "RUNNING") << table;
 }
 
-struct Event {
-  std::string channel;
-  int64_t timestamp;
-  std::vector<uint8_t> data;
-};
-
-std::vector<Event> ReadLog(const std::string& path) {
-  std::vector<Event> events;
-  lcm::LogFile log(path, "r");
-  if (!log.good()) return events;
-  for (const lcm::LogEvent* e = log.readNextEvent(); e != nullptr; e = log.readNextEvent()) {
-    const auto* p = static_cast<const uint8_t*>(e->data);
-    events.push_back({e->channel, e->timestamp, std::vector<uint8_t>(p, p + e->datalen)});
-  }
-  return events;
-}
+using Event = testing::LoggedEvent;
+using testing::ReadLogEvents;
 
 ft_sample_t DecodeSample(const Event& e) {
   ft_sample_t s;
@@ -238,14 +223,14 @@ TEST_F(HeartbeatNetnsTest, AStageLiveAndOverItsRecordingPublishesTheSame) {
   ASSERT_TRUE(replay_rc.has_value());
   ASSERT_EQ(DescribeWaitStatus(*replay_rc), "exit 0") << ReadFile(Path("replay.err"));
 
-  const auto recorded = ReadLog(log_path);
+  const auto recorded = ReadLogEvents(log_path);
   std::vector<Event> inputs, live, replayed;
   for (const auto& e : recorded) {
     if (e.channel == "ECHO_IN" && e.data.size() > 5) inputs.push_back(e);
     if (e.channel == "ECHO_OUT") live.push_back(e);
   }
   service_status_t final_status{};
-  for (const auto& e : ReadLog(out_path)) {
+  for (const auto& e : ReadLogEvents(out_path)) {
     if (e.channel == "ECHO_OUT") replayed.push_back(e);
     if (e.channel == "FTCAL_STATUS") {
       ASSERT_EQ(final_status.decode(e.data.data(), 0, static_cast<int>(e.data.size())),

@@ -29,7 +29,9 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "bridge_run.h"
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/service_status_t.hpp"
@@ -80,12 +82,6 @@ MocapBridgeOptions BridgeOptions(uint16_t port) {
   return o;
 }
 
-std::shared_ptr<spdlog::logger> QuietLogger() {
-  static auto log = std::make_shared<spdlog::logger>(
-      "mocap_bridge_test", std::make_shared<spdlog::sinks::null_sink_mt>());
-  return log;
-}
-
 // One emulator run with a bridge attached.
 struct PairRun {
   std::vector<sim::QtmSentFrame> sent;
@@ -110,7 +106,7 @@ PairRun RunWithBridge(sim::QtmEmulatorOptions eo, int64_t ticks, MocapBridgeOpti
   const uint16_t port = emulator.port();
   std::thread server([&] { emulator.Run(ticks); });
 
-  run.stats = std::make_unique<ServiceStats>(QuietLogger());
+  run.stats = std::make_unique<ServiceStats>(testing::QuietLogger("mocap_bridge_test"));
   if (bo.address.empty()) bo = BridgeOptions(port);
   bo.port = port;
   MocapBridge bridge(
@@ -123,14 +119,7 @@ PairRun RunWithBridge(sim::QtmEmulatorOptions eo, int64_t ticks, MocapBridgeOpti
     server_done = true;
   });
   try {
-    while (!server_done) {
-      bridge.Step(5);
-      const std::string reason = bridge.health_reason();
-      if (run.health.empty() || run.health.back() != reason) run.health.push_back(reason);
-    }
-    // What is still in flight on loopback.
-    const auto drain = Clock::now();
-    while (SecondsSince(drain) < 0.2) bridge.Step(5);
+    testing::StepUntilServed(bridge, server_done, &run.health);
   } catch (...) {
     emulator.RequestStop();
     watcher.join();
@@ -598,9 +587,7 @@ int64_t StatusCounter(const service_status_t& s, const std::string& name) {
 }
 
 TEST(MocapBridgeProcessTest, BridgeOverLcmMatchesTheTwinsTruthAndResumesAfterAKill) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };
   const auto t0 = Clock::now();

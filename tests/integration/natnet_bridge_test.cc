@@ -21,6 +21,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "bridge_run.h"
 #include "child_process.h"
 #include "ftcal/geometry.h"
 #include "natnet_bridge.h"
@@ -29,12 +30,7 @@
 namespace ftcal {
 namespace {
 
-using Clock = std::chrono::steady_clock;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-
-double SecondsSince(Clock::time_point t) {
-  return std::chrono::duration<double>(Clock::now() - t).count();
-}
 
 int64_t WallUtime() {
   return std::chrono::duration_cast<std::chrono::microseconds>(
@@ -83,12 +79,6 @@ NatNetBridgeOptions BridgeOptions(bool multicast, std::optional<natnet::Version>
   return o;
 }
 
-std::shared_ptr<spdlog::logger> QuietLogger() {
-  static auto log = std::make_shared<spdlog::logger>(
-      "natnet_bridge_test", std::make_shared<spdlog::sinks::null_sink_mt>());
-  return log;
-}
-
 struct PairRun {
   std::vector<sim::NatNetSentFrame> sent;
   std::vector<mocap_body_t> published;
@@ -112,7 +102,7 @@ PairRun RunWithBridge(sim::NatNetEmulatorOptions eo, int64_t ticks, NatNetBridge
   emulator.SetObserver([&run](const sim::NatNetSentFrame& s) { run.sent.push_back(s); });
   bo.command_port = emulator.command_port();
   bo.data_port = emulator.data_port();
-  run.stats = std::make_unique<ServiceStats>(QuietLogger());
+  run.stats = std::make_unique<ServiceStats>(testing::QuietLogger("natnet_bridge_test"));
   NatNetBridge bridge(
       bo, *run.stats, [&run](const mocap_body_t& m) { run.published.push_back(m); }, WallUtime);
   std::atomic<bool> done{false};
@@ -121,13 +111,7 @@ PairRun RunWithBridge(sim::NatNetEmulatorOptions eo, int64_t ticks, NatNetBridge
     done = true;
   });
   try {
-    while (!done) {
-      bridge.Step(5);
-      const std::string reason = bridge.health_reason();
-      if (run.health.empty() || run.health.back() != reason) run.health.push_back(reason);
-    }
-    const auto drain = Clock::now();
-    while (SecondsSince(drain) < 0.2) bridge.Step(5);
+    testing::StepUntilServed(bridge, done, &run.health);
   } catch (...) {
     emulator.RequestStop();
     server.join();

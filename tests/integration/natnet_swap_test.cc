@@ -24,6 +24,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
@@ -34,6 +35,7 @@ namespace ftcal {
 namespace {
 
 using testing::Child;
+using testing::Terminate;
 using Clock = std::chrono::steady_clock;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0&recv_buf_size=8388608";
@@ -57,16 +59,6 @@ std::string ConfigText(const std::string& device, bool optitrack) {
                               "y: -0.02 z: -0.06 } rpy_deg { x: 0 y: 0 z: 30 } }\n");
   }
   return text;
-}
-
-void Terminate(Child& child, const std::string& what, const std::string& err_path) {
-  if (!child.running()) return;
-  child.Signal(SIGTERM);
-  const auto status = child.Wait(15);
-  ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
-  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
-      << testing::ReadFile(err_path);
 }
 
 struct Session {
@@ -198,9 +190,7 @@ double MaxAngleDiff(const steady_pose_t& a, const steady_pose_t& b) {
 }
 
 TEST(NatNetSwap, TheSegmenterKeepsTheSamePosesWhicheverMocapBridge) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const Session qtm = RunSession(false);
   ASSERT_FALSE(::testing::Test::HasFatalFailure());

@@ -35,6 +35,7 @@
 
 #include "calibrator/calibrator.h"
 #include "child_process.h"
+#include "test_helpers.h"
 #include "common/bus.h"
 #include "common/service_stats.h"
 #include "ftcal/calibration_io.h"
@@ -106,9 +107,7 @@ class PipelineLiveTest : public ::testing::Test {
   }
 
   void SetUp() override {
-    const char* netns = std::getenv("FTCAL_NETNS");
-    ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-        << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+    ASSERT_TRUE(testing::InNetns());
     ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
     ASSERT_STRNE(FTCAL_LCM_LOGPLAYER, "")
         << "lcm-logplayer (liblcm-bin) not found at configure time";

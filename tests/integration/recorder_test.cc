@@ -15,6 +15,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 
 namespace ftcal {
 namespace {
@@ -42,9 +43,7 @@ int Stop(Child& c) {
 }
 
 TEST(Recorder, ABurstIsRecordedWholeInOrderAndNothingIsOverwritten) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   const std::string out = dir + "/session.lcmlog";
   auto recorder = StartRecorder(dir, {out}, "first");

@@ -25,6 +25,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/config.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/signed_envelope_t.hpp"
@@ -38,6 +39,8 @@ namespace ftcal {
 namespace {
 
 using testing::Child;
+using testing::Decode;
+using testing::Terminate;
 using Clock = std::chrono::steady_clock;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
@@ -81,25 +84,8 @@ bool WaitFor(const std::function<bool()>& pred, double timeout_s) {
   return pred();
 }
 
-void Terminate(Child& child, const std::string& what, const std::string& err_path) {
-  if (!child.running()) return;
-  child.Signal(SIGTERM);
-  const auto status = child.Wait(15);
-  ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
-  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
-      << testing::ReadFile(err_path);
-}
-
-template <typename T>
-bool Decode(const lcm::LogEvent* e, T* m) {
-  return m->decode(e->data, 0, e->datalen) == e->datalen;
-}
-
 TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const std::string dir = testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };

@@ -21,6 +21,7 @@
 #include <spdlog/spdlog.h>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "common/atomic_log.h"
 #include "common/bus.h"
 #include "common/heartbeat.h"
@@ -482,22 +483,8 @@ class ReplayStageTest : public ::testing::Test {
   std::string dir_;
 };
 
-struct Event {
-  std::string channel;
-  int64_t timestamp;
-  std::vector<uint8_t> data;
-};
-
-std::vector<Event> ReadLog(const std::string& path) {
-  std::vector<Event> events;
-  lcm::LogFile log(path, "r");
-  if (!log.good()) return events;
-  for (const lcm::LogEvent* e = log.readNextEvent(); e != nullptr; e = log.readNextEvent()) {
-    const auto* p = static_cast<const uint8_t*>(e->data);
-    events.push_back({e->channel, e->timestamp, std::vector<uint8_t>(p, p + e->datalen)});
-  }
-  return events;
-}
+using Event = testing::LoggedEvent;
+using testing::ReadLogEvents;
 
 template <class Msg>
 Msg Decode(const Event& e) {
@@ -551,7 +538,7 @@ TEST_F(ReplayStageTest, OutputsCarryTheInputTimesAndBadEventsAreCounted) {
   // Hand-computed expectation: each valid sample echoed at its own time with the wrench
   // doubled; a tick at t0 + 1 s and t0 + 2 s (before the sample at that time) counting the
   // samples echoed so far; the final status at the last event's time.
-  const auto out = ReadLog(out_path);
+  const auto out = ReadLogEvents(out_path);
   ASSERT_EQ(out.size(), 11u + 2u + 1u);
   size_t i = 0;
   for (int k = 0; k <= 10; ++k) {
@@ -622,7 +609,7 @@ TEST_F(ReplayStageTest, ATruncatedLastEventIsCountedAndTheRestReplayed) {
   const auto rc = stage.Wait(30);
   ASSERT_TRUE(rc.has_value());
   ASSERT_EQ(DescribeWaitStatus(*rc), "exit 0") << ReadFile(Path("stage.err"));
-  const auto out = ReadLog(out_path);
+  const auto out = ReadLogEvents(out_path);
   ASSERT_EQ(out.size(), 2u);  // one echo, the final status
   EXPECT_EQ(out[0].channel, "ECHO_OUT");
   EXPECT_EQ(out[0].timestamp, 1'000'000);

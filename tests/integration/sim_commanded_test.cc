@@ -28,6 +28,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "signed_commander.h"
 #include "ftcal/config.h"
 #include "ftcal/ft_sample_t.hpp"
@@ -42,6 +43,8 @@ namespace ftcal {
 namespace {
 
 using testing::Child;
+using testing::Decode;
+using testing::Terminate;
 using Clock = std::chrono::steady_clock;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
@@ -72,16 +75,6 @@ std::string TestConfigText(const std::string& device) {
   return text;
 }
 
-void Terminate(Child& child, const std::string& what, const std::string& err_path) {
-  if (!child.running()) return;
-  child.Signal(SIGTERM);
-  const auto status = child.Wait(15);
-  ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
-  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
-      << testing::ReadFile(err_path);
-}
-
 // The recorded log, decoded; times are the logger's (s).
 struct Recorded {
   struct Ft {
@@ -102,28 +95,21 @@ struct Recorded {
   std::vector<Command> cmd;
   int undecodable = 0;
 };
-template <typename T>
-bool Decode(const lcm::LogEvent* e, T* m) {
-  return m->decode(e->data, 0, e->datalen) == e->datalen;
-}
 Recorded ReadLog(const std::string& path) {
   Recorded r;
-  lcm::LogFile log(path, "r");
-  EXPECT_TRUE(log.good()) << path;
-  if (!log.good()) return r;
-  while (const lcm::LogEvent* e = log.readNextEvent()) {
+  testing::ForEachLogEvent(path, [&r](const lcm::LogEvent* e) {
     const std::string& ch = e->channel;
     const double t = static_cast<double>(e->timestamp) * 1e-6;
     if (ch.rfind("FT_", 0) == 0) {
       ft_sample_t m;
       if (!Decode(e, &m)) {
         ++r.undecodable;
-        continue;
+        return;
       }
       const auto k = LegIndex(m.leg);
       if (!k) {
         ++r.undecodable;
-        continue;
+        return;
       }
       Vec6 w;
       for (int i = 0; i < 6; ++i) w[i] = m.wrench[i];
@@ -144,7 +130,7 @@ Recorded ReadLog(const std::string& path) {
         r.cmd.push_back({t, m});
       }
     }
-  }
+  });
   return r;
 }
 
@@ -155,9 +141,7 @@ struct ServoSample {
 };
 
 TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const auto test_started = Clock::now();
   const std::string dir = testing::MakeTempDir();

@@ -30,7 +30,9 @@
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
 
+#include "ati_truth.h"
 #include "child_process.h"
+#include "test_helpers.h"
 #include "ftcal/config.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/geometry.h"
@@ -44,6 +46,8 @@ namespace ftcal {
 namespace {
 
 using testing::Child;
+using testing::Decode;
+using testing::Terminate;
 using Clock = std::chrono::steady_clock;
 
 // A large receive buffer: the logger hears six transducers at 500 records/s each.
@@ -59,21 +63,9 @@ constexpr int kAtiRateHz = 500;
 
 void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
 
-std::vector<std::string> Cells(const std::string& line) {
-  std::vector<std::string> f;
-  std::stringstream ss(line);
-  for (std::string item; std::getline(ss, item, ',');) f.push_back(item);
-  return f;
-}
+using testing::SplitCsv;
 
-struct AtiRow {
-  std::string leg;
-  int stream = 0;
-  double t_s = 0;
-  std::uint32_t rdt_sequence = 0, ft_sequence = 0, status = 0;
-  std::array<std::int32_t, 6> counts{};
-  std::string fault;
-};
+using AtiRow = testing::AtiTruthRow;
 std::vector<AtiRow> ReadAtiTruth(const std::string& path) {
   std::ifstream in(path);
   EXPECT_TRUE(in.good()) << path;
@@ -81,18 +73,10 @@ std::vector<AtiRow> ReadAtiTruth(const std::string& path) {
   std::getline(in, line);
   std::vector<AtiRow> rows;
   while (std::getline(in, line)) {
-    const auto f = Cells(line);
-    if (f.size() != 13) throw std::runtime_error("bad ati truth line: " + line);
-    AtiRow r;
-    r.leg = f[0];
-    r.stream = std::stoi(f[1]);
-    r.t_s = std::stod(f[2]);
-    r.rdt_sequence = static_cast<std::uint32_t>(std::stoul(f[3]));
-    r.ft_sequence = static_cast<std::uint32_t>(std::stoul(f[4]));
-    r.status = static_cast<std::uint32_t>(std::stoul(f[5]));
-    for (int i = 0; i < 6; ++i) r.counts[i] = std::stoi(f[6 + i]);
-    r.fault = f[12];
-    rows.push_back(r);
+    const auto f = SplitCsv(line);
+    if (f.size() != testing::kAtiTruthColumns)
+      throw std::runtime_error("bad ati truth line: " + line);
+    rows.push_back(testing::ParseAtiTruthRow(f));
   }
   return rows;
 }
@@ -111,7 +95,7 @@ std::vector<DxlRow> ReadDxlTruth(const std::string& path) {
   std::getline(in, line);
   std::vector<DxlRow> rows;
   while (std::getline(in, line)) {
-    const auto f = Cells(line);
+    const auto f = SplitCsv(line);
     if (f.size() != 15) throw std::runtime_error("bad dynamixel truth line: " + line);
     rows.push_back({std::stod(f[0]), std::stoi(f[1]), std::stoi(f[3]), f[5], std::stoi(f[8]),
                     std::stoi(f[9]), std::stod(f[14])});
@@ -133,7 +117,7 @@ std::map<std::int64_t, QtmRow> ReadQtmTruth(const std::string& path) {
   std::getline(in, line);
   while (std::getline(in, line)) {
     // f32 values written with 9 significant digits give the float back when read as a float.
-    const auto f = Cells(line);
+    const auto f = SplitCsv(line);
     if (f.size() < 18) throw std::runtime_error("short qtm truth row: " + line);
     auto num = [&](int i) { return f[i] == "nan" ? NAN : static_cast<double>(std::stof(f[i])); };
     QtmRow r;
@@ -160,22 +144,15 @@ struct Recorded {
   std::vector<service_status_t> status;
   int wrong_channel = 0, undecodable = 0;
 };
-template <typename T>
-bool Decode(const lcm::LogEvent* e, T* m) {
-  return m->decode(e->data, 0, e->datalen) == e->datalen;
-}
 Recorded ReadLog(const std::string& path) {
   Recorded r;
-  lcm::LogFile log(path, "r");
-  EXPECT_TRUE(log.good()) << path;
-  if (!log.good()) return r;
-  while (const lcm::LogEvent* e = log.readNextEvent()) {
+  testing::ForEachLogEvent(path, [&r](const lcm::LogEvent* e) {
     const std::string& ch = e->channel;
     if (ch.rfind("FT_", 0) == 0) {
       ft_sample_t m;
       if (!Decode(e, &m)) {
         ++r.undecodable;
-        continue;
+        return;
       }
       if (ch != "FT_" + m.leg) ++r.wrong_channel;
       r.ft.push_back(m);
@@ -198,7 +175,7 @@ Recorded ReadLog(const std::string& path) {
       else
         r.status.push_back(m);
     }
-  }
+  });
   return r;
 }
 
@@ -247,20 +224,8 @@ void WaitUntilReady(Child& sim, const std::string& ready, const std::string& err
   }
 }
 
-void Terminate(Child& child, const std::string& what, const std::string& err_path) {
-  if (!child.running()) return;
-  child.Signal(SIGTERM);
-  const auto status = child.Wait(15);
-  ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
-  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-      << what << ": " << testing::DescribeWaitStatus(*status) << "\n"
-      << testing::ReadFile(err_path);
-}
-
 TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const std::string dir = testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };
@@ -380,31 +345,13 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
     for (const auto& name : kLegNames) {
       const std::string leg(name);
       SCOPED_TRACE(leg);
-      std::map<std::string, std::int64_t> faults;
-      std::set<int> streams;
-      std::uint32_t last_delivered = 0;
-      for (const AtiRow& r : truth) {
-        if (r.leg != leg) continue;
-        ++faults[r.fault];
-        streams.insert(r.stream);
-        if (r.fault == "none" || r.fault == "duplicate")
-          last_delivered = std::max(last_delivered, r.rdt_sequence);
-      }
-      std::int64_t lost_at_end = 0;  // cannot be told from the end of the data
-      for (const AtiRow& r : truth) {
-        if (r.leg == leg && r.rdt_sequence > last_delivered) ++lost_at_end;
-      }
-      ASSERT_EQ(streams.size(), 1u) << "the bridge restarted the stream: counts are not comparable";
-      for (const char* kind : {"drop", "duplicate", "reorder", "corrupt"})
-        EXPECT_GT(faults[kind], 5) << kind;
+      testing::AtiLegTally tally = testing::TallyLeg(truth, leg);
+      auto& faults = tally.faults;
+      ASSERT_EQ(tally.streams.size(), 1u)
+          << "the bridge restarted the stream: counts are not comparable";
       const std::string p = leg + ".";
-      EXPECT_EQ(Counter(last, p + "duplicates"), faults["duplicate"]);
-      EXPECT_EQ(Counter(last, p + "late"), faults["reorder"]);
-      EXPECT_EQ(Counter(last, p + "wrong_length"), faults["corrupt"]);
-      EXPECT_EQ(Counter(last, p + "lost"),
-                faults["drop"] + faults["corrupt"] + faults["reorder"] - lost_at_end);
-      EXPECT_EQ(Counter(last, p + "received"),
-                faults["none"] + 2 * faults["duplicate"] + faults["reorder"]);
+      testing::ExpectFaultsCounted(
+          tally, [&](const std::string& name) { return Counter(last, p + name); });
       const std::int64_t publishable = faults["none"] + faults["duplicate"];
       EXPECT_EQ(Counter(last, p + "published"), publishable);
       // The logger heard most of it; a sample it missed is LCM's loss over UDP on a loaded
@@ -713,9 +660,7 @@ class NotifySocket {
 // READY=1 once running against its device, feed the watchdog with every heartbeat, and say
 // STOPPING=1 on SIGTERM (systemd would otherwise time out the start, or kill a healthy bridge).
 TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };
   const std::string link = path("tty");

@@ -18,6 +18,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "test_helpers.h"
 #include "common/messages.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
@@ -461,9 +462,7 @@ TEST_F(StagesTest, CorrectorStartsWithACalibrationFile) {
 // Live: lcm-logplayer plays the log at 2x into this namespace while the segmenter runs on live
 // LCM and lcm-logger records; the recorded STEADY_POSEs equal the replayed ones.
 TEST_F(StagesTest, SegmenterLiveGivesTheSamePosesAsReplay) {
-  const char* netns = std::getenv("FTCAL_NETNS");
-  ASSERT_TRUE(netns != nullptr && std::string(netns) == "1")
-      << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+  ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   ASSERT_STRNE(FTCAL_LCM_LOGPLAYER, "") << "lcm-logplayer (liblcm-bin) not found at configure time";
   const std::string replayed = Replay(FTCAL_POSE_SEGMENTER, fx->log_path, "segmenter_for_live");

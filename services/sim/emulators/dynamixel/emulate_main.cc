@@ -25,6 +25,7 @@
 #include "dynamixel_emulator.h"
 #include "ftcal/config.h"
 #include "ftcal/legs.h"
+#include "sim/flags.h"
 #ifdef FTCAL_EMULATOR_HAVE_TWIN
 #include "sim/live.h"
 #include "sim/twin.h"
@@ -35,24 +36,8 @@ namespace {
 volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
-std::vector<std::string> Split(const std::string& s, char sep) {
-  std::vector<std::string> out;
-  std::stringstream ss(s);
-  std::string item;
-  while (std::getline(ss, item, sep)) out.push_back(item);
-  return out;
-}
-
-double ParseNumber(const std::string& text, const std::string& flag) {
-  try {
-    std::size_t used = 0;
-    const double v = std::stod(text, &used);
-    if (used != text.size() || !std::isfinite(v)) throw std::invalid_argument(text);
-    return v;
-  } catch (const std::exception&) {
-    throw std::invalid_argument(flag + ": '" + text + "' is not a number");
-  }
-}
+using ftcal::sim::ParseFlagNumber;
+using ftcal::sim::SplitFlag;
 
 struct Window {
   double start_s, end_s;
@@ -146,35 +131,38 @@ int main(int argc, char** argv) {
     options.initial_tick_ms = static_cast<std::uint16_t>(tick_start_ms);
     options.rates = rates;
     for (const auto& m : missing) {
-      const auto f = Split(m, ':');
+      const auto f = SplitFlag(m, ':');
       if (f.size() != 3) throw std::invalid_argument("--missing " + m + ": want ID:START:END");
       options.events.push_back({ftcal::sim::DxlFaultKind::kMissingServo,
-                                ParseNumber(f[1], "--missing"), ParseNumber(f[2], "--missing"),
-                                static_cast<std::uint8_t>(ParseNumber(f[0], "--missing")), 0});
+                                ParseFlagNumber(f[1], "--missing"),
+                                ParseFlagNumber(f[2], "--missing"),
+                                static_cast<std::uint8_t>(ParseFlagNumber(f[0], "--missing")), 0});
     }
     for (const auto& s : silent) {
-      const auto f = Split(s, ':');
+      const auto f = SplitFlag(s, ':');
       if (f.size() != 2) throw std::invalid_argument("--silent " + s + ": want START:END");
-      options.events.push_back({ftcal::sim::DxlFaultKind::kSilent, ParseNumber(f[0], "--silent"),
-                                ParseNumber(f[1], "--silent"), 0, 0});
+      options.events.push_back({ftcal::sim::DxlFaultKind::kSilent,
+                                ParseFlagNumber(f[0], "--silent"),
+                                ParseFlagNumber(f[1], "--silent"), 0, 0});
     }
     for (const auto& h : hw_errors) {
-      const auto f = Split(h, ':');
+      const auto f = SplitFlag(h, ':');
       if (f.size() != 2 && f.size() != 3) {
         throw std::invalid_argument("--hw-error " + h + ": want ID:T[:BITS]");
       }
-      const double bits = f.size() == 3 ? ParseNumber(f[2], "--hw-error") : 32;
+      const double bits = f.size() == 3 ? ParseFlagNumber(f[2], "--hw-error") : 32;
       if (bits < 1 || bits > 255) throw std::invalid_argument("--hw-error " + h + ": BITS 1-255");
       options.events.push_back({ftcal::sim::DxlFaultKind::kHardwareError,
-                                ParseNumber(f[1], "--hw-error"), 0,
-                                static_cast<std::uint8_t>(ParseNumber(f[0], "--hw-error")),
+                                ParseFlagNumber(f[1], "--hw-error"), 0,
+                                static_cast<std::uint8_t>(ParseFlagNumber(f[0], "--hw-error")),
                                 static_cast<std::uint8_t>(bits)});
     }
     std::vector<Window> down;
     for (const auto& d : disconnects) {
-      const auto f = Split(d, ':');
+      const auto f = SplitFlag(d, ':');
       if (f.size() != 2) throw std::invalid_argument("--disconnect " + d + ": want START:END");
-      down.push_back({ParseNumber(f[0], "--disconnect"), ParseNumber(f[1], "--disconnect")});
+      down.push_back(
+          {ParseFlagNumber(f[0], "--disconnect"), ParseFlagNumber(f[1], "--disconnect")});
     }
 
     ftcal::sim::DynamixelBusEmulator emulator(options);

@@ -1,0 +1,77 @@
+// Steps that many multi-process tests take the same way: checking they run inside their own
+// network namespace, stopping a child that must exit cleanly, and reading back an LCM log.
+// Header-only, as it needs gtest and LCM, which ftcal_child_process does not link.
+#pragma once
+
+#include <signal.h>
+#include <sys/wait.h>
+
+#include <cstdint>
+#include <cstdlib>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+
+#include "child_process.h"
+
+namespace ftcal::testing {
+
+// For ASSERT_TRUE: multicast outside a private namespace would reach (and be reached by) every
+// other test and host on the machine.
+inline ::testing::AssertionResult InNetns() {
+  const char* netns = std::getenv("FTCAL_NETNS");
+  if (netns != nullptr && std::string(netns) == "1") return ::testing::AssertionSuccess();
+  return ::testing::AssertionFailure()
+         << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
+}
+
+// A service that fails to stop on SIGTERM, or stops with an error, fails the test: a clean
+// shutdown is part of every service's contract.
+inline void Terminate(Child& child, const std::string& what, const std::string& err_path) {
+  if (!child.running()) return;
+  child.Signal(SIGTERM);
+  const auto status = child.Wait(15);
+  ASSERT_TRUE(status.has_value()) << what << " did not end on SIGTERM";
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+      << what << ": " << DescribeWaitStatus(*status) << "\n"
+      << ReadFile(err_path);
+}
+
+// True when the event is exactly one whole message of type T.
+template <typename T>
+bool Decode(const lcm::LogEvent* e, T* m) {
+  return m->decode(e->data, 0, e->datalen) == e->datalen;
+}
+
+// Calls `on_event` with each event of the log at `path`, in order; a log that does not open
+// fails the test (a run's recording must exist).
+template <class F>
+void ForEachLogEvent(const std::string& path, F on_event) {
+  lcm::LogFile log(path, "r");
+  EXPECT_TRUE(log.good()) << path;
+  if (!log.good()) return;
+  while (const lcm::LogEvent* e = log.readNextEvent()) on_event(e);
+}
+
+struct LoggedEvent {
+  std::string channel;
+  int64_t timestamp;
+  std::vector<uint8_t> data;
+};
+
+// Every event of a log, raw; none when the log cannot be opened (the caller's checks on what
+// it expected then fail).
+inline std::vector<LoggedEvent> ReadLogEvents(const std::string& path) {
+  std::vector<LoggedEvent> events;
+  lcm::LogFile log(path, "r");
+  if (!log.good()) return events;
+  for (const lcm::LogEvent* e = log.readNextEvent(); e != nullptr; e = log.readNextEvent()) {
+    const auto* p = static_cast<const uint8_t*>(e->data);
+    events.push_back({e->channel, e->timestamp, std::vector<uint8_t>(p, p + e->datalen)});
+  }
+  return events;
+}
+
+}  // namespace ftcal::testing
