@@ -14,11 +14,11 @@
 namespace ftcal {
 
 // `Bridge` is constructed from (options, stats, publish, now) and has Step(max_wait_ms) and
-// health_reason(); `ConfigError` is what it throws for a configuration it cannot serve, which
-// ends the process with `config_exit_code` (each bridge documents its own).
+// health_reason(); `ConfigError` is what it throws for a configuration it cannot serve (its own
+// checks of the mocap section, or a server that refuses the configured protocol), which ends the
+// process with kExitConfig, as docs/exit-codes.md has it for every bridge.
 template <class Bridge, class ConfigError, class Options>
-int RunMocapBridge(ServiceApp& app, Options (*options_from_config)(const config::Mocap&),
-                   int config_exit_code) {
+int RunMocapBridge(ServiceApp& app, Options (*options_from_config)(const config::Mocap&)) {
   Bus& bus = app.bus();
   const auto& channels = app.config().channels();
   int rc = 0;
@@ -34,7 +34,7 @@ int RunMocapBridge(ServiceApp& app, Options (*options_from_config)(const config:
   } catch (const ConfigError& e) {
     app.stats().Error("configuration", e.what());  // logs it, and the last heartbeat carries it
     app.SetState(service_status_t::FAILED);
-    rc = config_exit_code;
+    rc = kExitConfig;
   } catch (const std::exception& e) {
     // Anything else ends the bridge: said in its log and in its last heartbeat.
     app.stats().Error("run", UserText(e, "reading the motion capture"));

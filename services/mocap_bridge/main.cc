@@ -1,5 +1,4 @@
 // ftcal-mocap-bridge: Qualisys QTM (RT protocol, TCP) -> MOCAP_BODY.
-#include "common/exit_codes.h"
 #include "common/mocap_main.h"
 #include "common/service.h"
 #include "mocap_bridge.h"
@@ -13,11 +12,11 @@ int main(int argc, char** argv) {
        "mocap_body_t per frame on MOCAP_BODY: R^G_C and R^W_C (heading removed) as "
        "quaternions, the heading, position and markers in metres, untracked poses as NaN with "
        "tracked=false. Reconnects with back-off; DEGRADED while QTM is absent, silent or not "
-       "capturing. Exits 2 when QTM refuses the configured protocol version. Reads nothing "
-       "from LCM.",
+       "capturing. Exits 3 (config) when QTM refuses the configured protocol version. Reads "
+       "nothing from LCM.",
        /*replayable=*/false});
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   return ftcal::RunMocapBridge<ftcal::MocapBridge, ftcal::MocapConfigError>(
-      app, ftcal::MocapBridgeOptionsFromConfig, ftcal::kExitConfig);
+      app, ftcal::MocapBridgeOptionsFromConfig);
 }

@@ -14,12 +14,11 @@ int main(int argc, char** argv) {
        "heading, position and the body's markers in metres, untracked poses as NaN with "
        "tracked=false, utime the mid-exposure time on the host clock. Reconnects with "
        "back-off when Motive is gone; waits while Motive is up but not streaming; DEGRADED "
-       "meanwhile. Exits 2 when the config does not select OPTITRACK (mocap.system) or "
-       "Motive streams NatNet older than 3.0. Reads nothing from LCM.",
+       "meanwhile. Exits 3 (config) when the config does not select OPTITRACK "
+       "(mocap.system) or Motive streams NatNet older than 3.0. Reads nothing from LCM.",
        /*replayable=*/false});
   if (auto rc = app.Init(argc, argv)) return *rc;
 
-  // 2, not kExitConfig: the code its help promises and natnet_bridge_test checks.
   return ftcal::RunMocapBridge<ftcal::NatNetBridge, ftcal::NatNetConfigError>(
-      app, ftcal::NatNetBridgeOptionsFromConfig, 2);
+      app, ftcal::NatNetBridgeOptionsFromConfig);
 }
