@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -84,6 +85,7 @@ void Corrector::SetCalibration(const RobotCalibration& cal, int64_t version) {
   has_calibration_ = true;
   // Wrenches corrected with the previous calibration must not be summed with new ones.
   for (LegState& s : state_) s.seen = false;
+  for (ComMemo& m : com_memo_) m.valid = false;  // computed with the old CoM curve
   since_sum_ = 0;
   last_sum_utime_ = -1;
 }
@@ -95,16 +97,28 @@ bool Corrector::AddServo(const ServoInput& in) {
 
 bool Corrector::AddMocap(const MocapInput& in) { return AcceptMocap(in, &mocap_, &counters_); }
 
+const Vec3& Corrector::ComInC(int k, double angle_rad) {
+  ComMemo& m = com_memo_[k];
+  uint64_t bits;
+  std::memcpy(&bits, &angle_rad, sizeof bits);
+  if (!m.valid || m.angle_bits != bits) {
+    const LegConst& l = leg_[k];
+    m.r_C = l.R_C_ft * l.com.At(LegPhase(angle_rad)) + l.p_C_ft;
+    m.angle_bits = bits;
+    m.valid = true;
+  }
+  return m.r_C;
+}
+
 // Eq. 3 with the precomputed X_C_ft: f^C = R (f_m - f_o), tau^C = R (tau_m - tau_o) + p x f^C,
-// minus the leg's gravity wrench about the CoM, then both rotated by R_WC.
-Vec6 Corrector::CorrectLeg(int k, const Vec6& w_m, double angle_rad, const Mat3& R_WC) const {
+// minus the leg's gravity wrench about the CoM (at r_C), then both rotated by R_WC.
+Vec6 Corrector::CorrectLeg(int k, const Vec6& w_m, const Vec3& r_C, const Mat3& R_WC) const {
   const LegConst& l = leg_[k];
   const Vec6 d = w_m - l.offset;
   const Vec3 f_C = l.R_C_ft * d.head<3>();
   const Vec3 tau_C = l.R_C_ft * d.tail<3>() + l.p_C_ft.cross(f_C);
   // g^C = R_WC^T (0, 0, -1) per unit weight: minus W's z axis seen in C.
   const Vec3 mg_C = -l.weight_n * R_WC.row(2).transpose();
-  const Vec3 r_C = l.R_C_ft * l.com.At(LegPhase(angle_rad)) + l.p_C_ft;
   Vec6 w_W;
   w_W.head<3>() = R_WC * (f_C - mg_C);
   w_W.tail<3>() = R_WC * (tau_C - r_C.cross(mg_C));
@@ -168,8 +182,8 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
   st.seen = true;
   st.utime = t;
   st.flags = flags;
-  st.wrench_W =
-      std::isnan(angle) ? Vec6::Constant(kNaN) : CorrectLeg(in.leg, in.wrench, angle, R_WC);
+  st.wrench_W = std::isnan(angle) ? Vec6::Constant(kNaN)
+                                  : CorrectLeg(in.leg, in.wrench, ComInC(in.leg, angle), R_WC);
 
   out->utime = t;
   out->updated_leg = in.leg;

@@ -68,8 +68,8 @@ AtomicLogFile::AtomicLogFile(const std::string& path, const std::string& what)
                              "': " + std::strerror(errno));
   }
   ::fchmod(fd_, 0644);  // mkostemp makes it 0600; logs are for everyone to read
-  fill_.reserve(kBufferBytes + 4096);
-  pending_.reserve(kBufferBytes + 4096);
+  fill_.resize(kBufferBytes + 4096);
+  pending_.resize(kBufferBytes + 4096);
   try {
     writer_ = std::thread([this] { WriterLoop(); });
   } catch (...) {
@@ -104,7 +104,7 @@ void AtomicLogFile::WriterLoop() {
     lock.unlock();
     std::string error;
     const char* p = pending_.data();
-    size_t left = pending_.size();
+    size_t left = pending_bytes_;
     while (left > 0) {
       const ssize_t n = ::write(fd_, p, left);
       if (n < 0) {
@@ -118,7 +118,7 @@ void AtomicLogFile::WriterLoop() {
       p += n;
       left -= static_cast<size_t>(n);
     }
-    pending_.clear();
+    pending_bytes_ = 0;
     lock.lock();
     if (!error.empty() && error_.empty()) error_ = error;
     has_pending_ = false;
@@ -134,13 +134,15 @@ void AtomicLogFile::HandOff() {
   std::unique_lock<std::mutex> lock(mutex_);
   cv_.wait(lock, [this] { return !has_pending_; });
   if (!error_.empty()) ThrowWriteError(error_);
-  fill_.swap(pending_);  // pending_ was cleared by the writer: fill_ starts empty
+  fill_.swap(pending_);  // pending_ was emptied by the writer: fill_ starts empty
+  pending_bytes_ = fill_bytes_;
+  fill_bytes_ = 0;
   has_pending_ = true;
   cv_.notify_all();
 }
 
 void AtomicLogFile::Drain() {
-  if (!fill_.empty()) HandOff();
+  if (fill_bytes_ > 0) HandOff();
   std::unique_lock<std::mutex> lock(mutex_);
   cv_.wait(lock, [this] { return !has_pending_; });
   if (!error_.empty()) ThrowWriteError(error_);
@@ -157,8 +159,10 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
                                 " bytes or " + std::to_string(size) + " data bytes");
   }
   const size_t head_bytes = 28 + channel.size();
-  const size_t at = fill_.size();
-  fill_.resize(at + head_bytes + static_cast<size_t>(size));
+  const size_t at = fill_bytes_;
+  const size_t end = at + head_bytes + static_cast<size_t>(size);
+  if (fill_.size() < end) fill_.resize(end);  // an event larger than the slack
+  fill_bytes_ = end;
   char* head = fill_.data() + at;
   auto put = [head](int offset, uint64_t v, int bytes) {
     for (int i = 0; i < bytes; ++i) {
@@ -173,7 +177,7 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
   std::memcpy(head + 28, channel.data(), channel.size());
   if (size > 0) std::memcpy(head + head_bytes, data, static_cast<size_t>(size));
   ++event_number_;
-  if (fill_.size() >= kBufferBytes) HandOff();
+  if (fill_bytes_ >= kBufferBytes) HandOff();
 }
 
 void AtomicLogFile::Commit() {

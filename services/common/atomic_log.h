@@ -60,8 +60,12 @@ class AtomicLogFile {
   static constexpr size_t kBufferBytes = 1 << 20;
   static constexpr size_t kMaxChannelBytes = 255;  // LCM's own limit is 63
   int fd_ = -1;
-  std::vector<char> fill_;     // the caller encodes into this one
+  // Both buffers only grow (to a little over kBufferBytes) and hold `*_bytes_` valid bytes:
+  // resizing a vector per event zero-filled every byte before it was overwritten.
+  std::vector<char> fill_;  // the caller encodes into this one
+  size_t fill_bytes_ = 0;
   std::vector<char> pending_;  // the writer writes this one (guarded by mutex_ while handed off)
+  size_t pending_bytes_ = 0;
   std::mutex mutex_;
   std::condition_variable cv_;
   bool has_pending_ = false;

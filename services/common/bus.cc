@@ -239,6 +239,36 @@ int64_t LogReplayBus::FindSyncWord(int64_t from) {
   return -1;
 }
 
+LogReplayBus::KnownChannel* LogReplayBus::FindChannel(const char* channel, size_t size,
+                                                      size_t guess) {
+  auto is = [&](const KnownChannel& c) {
+    return c.name.size() == size && std::memcmp(c.name.data(), channel, size) == 0;
+  };
+  KnownChannel* found = nullptr;
+  if (guess < known_channels_.size() && is(known_channels_[guess])) {
+    found = &known_channels_[guess];
+  } else {
+    for (KnownChannel& c : known_channels_) {
+      if (is(c)) {
+        found = &c;
+        break;
+      }
+    }
+  }
+  if (found == nullptr) {
+    if (known_channels_.size() >= kMaxKnownChannels) return nullptr;
+    found = &known_channels_.emplace_back();
+    found->name.assign(channel, size);
+    found->handlers = &HandlersFor(found->name);
+    found->generation = subscription_generation();
+  }
+  if (found->generation != subscription_generation()) {  // a handler subscribed since
+    found->handlers = &HandlersFor(found->name);
+    found->generation = subscription_generation();
+  }
+  return found;
+}
+
 void LogReplayBus::TransportSubscribe(size_t /*subscription*/, const std::string& /*channel*/) {}
 
 void LogReplayBus::TransportPublish(const std::string& channel, const void* data, int size) {
@@ -272,6 +302,8 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
   };
   bool ticking = false;
   int64_t next_tick = 0;
+  size_t previous = kMaxKnownChannels;  // known_channels_ index of the last event's channel
+  size_t guess = 0;                     // and of the channel that followed it last time
   int64_t pos = 0;
   while (true) {
     if (ShutdownRequested()) {
@@ -303,8 +335,7 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
     pos = end;
     ++events_read_;
     const int64_t timestamp = static_cast<int64_t>(Be64(event + 12));
-    channel_.assign(reinterpret_cast<const char*>(event + kHeaderBytes),
-                    static_cast<size_t>(channel_bytes));
+    const char* channel_at = reinterpret_cast<const char*>(event + kHeaderBytes);
     const uint8_t* data = event + kHeaderBytes + channel_bytes;
 
     // Periodic work on the log's clock, as it would have run live between these events; the
@@ -328,13 +359,27 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
     now_utime_ = timestamp;
     // In subscription order, as a regex match per subscription would give; a handler that
     // subscribes (the cached list goes stale) sees its new subscription from this event on.
-    const std::vector<size_t>* handlers = &HandlersFor(channel_);
+    // (After the ticks: periodic work may subscribe.)
+    const auto size = static_cast<size_t>(channel_bytes);
+    const KnownChannel* known = FindChannel(channel_at, size, guess);
+    if (known != nullptr) {
+      const size_t index = static_cast<size_t>(known - known_channels_.data());
+      if (previous < known_channels_.size()) known_channels_[previous].next = index;
+      previous = index;
+      guess = known->next;
+    } else {
+      channel_.assign(channel_at, size);
+      previous = guess = kMaxKnownChannels;
+    }
+    const std::string& channel = known != nullptr ? known->name : channel_;
+    const std::vector<size_t>* handlers =
+        known != nullptr ? known->handlers : &HandlersFor(channel);
     for (size_t j = 0; j < handlers->size(); ++j) {
       const size_t i = (*handlers)[j];
       const uint64_t generation = subscription_generation();
-      Dispatch(i, channel_, timestamp, data, static_cast<int>(data_bytes));
+      Dispatch(i, channel, timestamp, data, static_cast<int>(data_bytes));
       if (subscription_generation() != generation) {
-        handlers = &HandlersFor(channel_);
+        handlers = &HandlersFor(channel);
         j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -
                                 handlers->begin()) -
             1;

@@ -212,7 +212,23 @@ class LogReplayBus : public Bus {
   std::vector<uint8_t> chunk_;
   int64_t chunk_at_ = 0;     // input offset of chunk_[0]
   int64_t chunk_bytes_ = 0;  // valid bytes in chunk_
-  std::string channel_;      // the current event's channel (reused: no allocation)
+  // The channels seen so far with their handlers, and for each the one that followed it last
+  // time: a log cycles through a few channels in a steady order (SERVO_STATE, MOCAP_BODY, the
+  // six FT_<LEG>), so the guess is nearly always right and an event's channel costs one
+  // compare instead of a copy into a string and a hash lookup. At most kMaxKnownChannels;
+  // channels beyond them take that slower path.
+  struct KnownChannel {
+    std::string name;
+    const std::vector<size_t>* handlers = nullptr;  // HandlersFor(name) at `generation`
+    uint64_t generation = 0;
+    size_t next = 0;  // index of the channel that followed it last
+  };
+  static constexpr size_t kMaxKnownChannels = 64;
+  // The entry of `channel` (its handlers current), or nullptr when it is not one and the
+  // table is full; `guess` is tried first.
+  KnownChannel* FindChannel(const char* channel, size_t size, size_t guess);
+  std::vector<KnownChannel> known_channels_;
+  std::string channel_;  // the current event's channel when not a known one (reused)
   std::unique_ptr<AtomicLogFile> out_;
   int64_t now_utime_ = 0;
   int64_t events_read_ = 0;

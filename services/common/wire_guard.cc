@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cstring>
 #include <string>
+#include <utility>
 
 namespace ftcal::wire {
 namespace {
@@ -71,6 +72,60 @@ int64_t ReadSigned(const uint8_t* p, int64_t n) {
   }
 }
 
+// A field the run below may take: a number or a one-dimensional array of a fixed length, not
+// a string (a length and a NUL to check) nor a boolean (each byte to check). For such a field
+// Check() only needs the bytes to be there, and its decoded size is its wire size.
+bool PlainFixed(const Field& f) {
+  if (f.type == Prim::kString || f.type == Prim::kBoolean) return false;
+  if (f.ndims == 0) return true;
+  return f.ndims == 1 && f.dims[0].member < 0 && f.dims[0].fixed >= 0 &&
+         f.dims[0].fixed <= kMaxLength;
+}
+
+// Per field i of a schema, the wire bytes of the run of PlainFixed fields starting at i and
+// the field after it (run_end[i] == i: not PlainFixed). Check() takes such a run with one
+// bounds check instead of one per field: most of a message's fields are fixed-size numbers.
+struct Runs {
+  std::vector<int64_t> bytes;
+  std::vector<int> end;
+};
+
+Runs RunsOf(const Schema& schema) {
+  const auto n = static_cast<size_t>(schema.num_fields);
+  Runs r{std::vector<int64_t>(n + 1, 0), std::vector<int>(n + 1, 0)};
+  r.end[n] = schema.num_fields;
+  for (int i = schema.num_fields - 1; i >= 0; --i) {
+    const Field& f = schema.fields[i];
+    if (!PlainFixed(f)) {
+      r.end[static_cast<size_t>(i)] = i;
+      continue;
+    }
+    const int64_t elems = f.ndims == 0 ? 1 : f.dims[0].fixed;
+    const auto next = static_cast<size_t>(i + 1);
+    const bool joins = r.end[next] > i + 1;  // the next field starts a run: extend it
+    r.end[static_cast<size_t>(i)] = joins ? r.end[next] : i + 1;
+    r.bytes[static_cast<size_t>(i)] = elems * WireBytes(f.type) + (joins ? r.bytes[next] : 0);
+  }
+  return r;
+}
+
+bool IsListed(const Schema* schema);
+
+// The runs of the schemas this thread checked, found by address: a process checks a handful
+// of types millions of times. (Thread-local: no lock on the path of every message.) Only the
+// generated and registered schemas are kept, which live as long as the process: another
+// schema could be a temporary whose address a different one takes later.
+const Runs& RunsFor(const Schema& schema) {
+  thread_local std::vector<std::pair<const Schema*, Runs>> known;
+  thread_local Runs once;
+  for (const auto& [s, runs] : known) {
+    if (s == &schema) return runs;
+  }
+  if (!IsListed(&schema)) return once = RunsOf(schema);
+  known.emplace_back(&schema, RunsOf(schema));
+  return known.back().second;
+}
+
 }  // namespace
 
 const Schema* FindSchema(uint64_t fingerprint) {
@@ -82,6 +137,15 @@ const Schema* FindSchema(uint64_t fingerprint) {
   }
   return nullptr;
 }
+
+namespace {
+bool IsListed(const Schema* schema) {
+  const auto& generated = FtcalSchemas();
+  const auto& registered = Registered();
+  return std::find(generated.begin(), generated.end(), schema) != generated.end() ||
+         std::find(registered.begin(), registered.end(), schema) != registered.end();
+}
+}  // namespace
 
 void Register(const std::vector<const Schema*>& schemas) {
   Registered().insert(Registered().end(), schemas.begin(), schemas.end());
@@ -117,7 +181,27 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
   } else {
     std::fill_n(values, schema.num_fields, int64_t{0});
   }
+  const Runs& runs = RunsFor(schema);
   for (int i = 0; i < schema.num_fields; ++i) {
+    // A run of fixed-size numbers that fits, within the decoded bound: every field in it
+    // would pass the checks below (which only grow pos and decoded), so it is taken whole,
+    // keeping the integers later lengths may refer to. One that does not fit goes field by
+    // field, for the refusal to name the field.
+    const auto at = static_cast<size_t>(i);
+    if (runs.end[at] > i && runs.bytes[at] <= total - pos &&
+        decoded + runs.bytes[at] <= decoded_bound) {
+      for (int j = i; j < runs.end[at]; ++j) {
+        const Field& g = schema.fields[j];
+        const int64_t elem = WireBytes(g.type);
+        if (g.ndims == 0 && IsInteger(g.type)) {
+          values[static_cast<size_t>(j)] = ReadSigned(bytes + pos, elem);
+        }
+        pos += g.ndims == 0 ? elem : g.dims[0].fixed * elem;
+      }
+      decoded += runs.bytes[at];
+      i = runs.end[at] - 1;
+      continue;
+    }
     const Field& f = schema.fields[i];
     auto where = [&] {
       return std::string(schema.name) + "." + f.name + " at byte " + std::to_string(pos);

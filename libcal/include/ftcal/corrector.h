@@ -129,7 +129,9 @@ class Corrector {
     double weight_n;
     LegComModel com;
   };
-  Vec6 CorrectLeg(int k, const Vec6& w_m, double angle_rad, const Mat3& R_WC) const;
+  // r_C, leg k's CoM in C at `angle_rad`; see com_memo_.
+  const Vec3& ComInC(int k, double angle_rad);
+  Vec6 CorrectLeg(int k, const Vec6& w_m, const Vec3& r_C, const Mat3& R_WC) const;
 
   CorrectorOptions options_;
   bool has_calibration_ = false;
@@ -145,6 +147,16 @@ class Corrector {
     Vec6 wrench_W = Vec6::Zero();
   };
   std::array<LegState, kNumLegs> state_;
+  // The last CoM computed per leg and the angle it was computed at (bit for bit). The CoM
+  // curve costs two sin() per sample, and a leg's angle repeats from sample to sample
+  // whenever it stands still (most of a calibration session) or the transducers run faster
+  // than the servos: the same expression of the same angle, so the same bits, computed once.
+  struct ComMemo {
+    bool valid = false;
+    uint64_t angle_bits = 0;
+    Vec3 r_C = Vec3::Zero();
+  };
+  std::array<ComMemo, kNumLegs> com_memo_;
   // Legs with a new sample since the last sum (bit k), and that sum's time (-1: none yet).
   unsigned since_sum_ = 0;
   int64_t last_sum_utime_ = -1;
