@@ -13,11 +13,13 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <mutex>
 #include <regex>
 #include <thread>
 
@@ -73,6 +75,40 @@ bool Contains(const std::string& err_path, const std::string& what) {
   return testing::ReadFile(err_path).find(what) != std::string::npos ||
          testing::ReadFile(out_path).find(what) != std::string::npos;
 }
+
+// The steady poses the segmenter publishes, heard on a thread of the test's own.
+class PoseEar {
+ public:
+  PoseEar() : lcm_(kUrl) {
+    EXPECT_TRUE(lcm_.good());
+    lcm_.subscribe("STEADY_POSE", &PoseEar::OnPose, this)->setQueueCapacity(1000);
+    thread_ = std::thread([this] {
+      while (!stop_) lcm_.handleTimeout(20);
+    });
+  }
+  ~PoseEar() {
+    stop_ = true;
+    thread_.join();
+  }
+  bool Heard(const std::function<bool(const steady_pose_t&)>& pred) const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const auto& p : poses_) {
+      if (pred(p)) return true;
+    }
+    return false;
+  }
+
+ private:
+  void OnPose(const lcm::ReceiveBuffer*, const std::string&, const steady_pose_t* p) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    poses_.push_back(*p);
+  }
+  lcm::LCM lcm_;
+  mutable std::mutex mutex_;
+  std::vector<steady_pose_t> poses_;
+  std::atomic<bool> stop_{false};
+  std::thread thread_;
+};
 
 // Waits until `pred` holds or `child` ends or the deadline passes.
 bool WaitFor(const std::function<bool()>& pred, double timeout_s) {
@@ -154,9 +190,19 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
             << kMaxInputAgeS << " s of silence)\n";
   EXPECT_LT(stop_s, kMaxInputAgeS + 1.5);
 
+  const auto grid = sequencer::GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
+  const double tol = 5 * 2 * M_PI / 4096;  // a few encoder counts
+  auto matches = [&](const steady_pose_t& p, const sequencer::Angles& a) {
+    for (int k = 0; k < kNumLegs; ++k) {
+      if (std::abs(p.angle_rad[k] - a[k]) > tol) return false;
+    }
+    return true;
+  };
+
   // ---- second run: resumes ----
   ati = start_ati("2");
   SleepS(2.0);
+  PoseEar ear;
   Child seq2(seq_argv, path("seq2.out"), path("seq2.err"));
   // The segmenter dies (kill -9) inside the phase and comes back: the repeated start marker
   // (once a second) tells the new one it is inside STANDING, so the later poses still come out.
@@ -164,6 +210,12 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
       [&] { return Contains(path("seq2.err"), "STANDING_GRID 6/8") || seq2.Wait(0).has_value(); },
       90))
       << testing::ReadFile(path("seq2.err"));
+  // A run ends, and its pose comes out, only once the segmenter sees the legs move on: the
+  // fifth pose is published a few tenths of a second after the sixth began (later on a loaded
+  // machine), so the kill waits for it. The sixth pose is then still being held.
+  EXPECT_TRUE(WaitFor(
+      [&] { return ear.Heard([&](const auto& p) { return matches(p, grid[4 * kStride]); }); }, 5.0))
+      << "the segmenter published no fifth pose within 5 s of the sixth starting";
   segmenter.Signal(SIGKILL);
   ASSERT_TRUE(segmenter.Wait(5).has_value());
   Child segmenter2({FTCAL_SEGMENTER, "--config", config_path, "--lcm-url", kUrl}, path("seg2.out"),
@@ -248,14 +300,6 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
 
   // Every grid pose was held and found steady by the segmenter; the first three only before
   // the abort (not repeated on resume); the fourth after the resume.
-  const auto grid = sequencer::GrayGrid({-36 * kDeg, 0.0, 36 * kDeg});
-  const double tol = 5 * 2 * M_PI / 4096;  // a few encoder counts
-  auto matches = [&](const steady_pose_t& p, const sequencer::Angles& a) {
-    for (int k = 0; k < kNumLegs; ++k) {
-      if (std::abs(p.angle_rad[k] - a[k]) > tol) return false;
-    }
-    return true;
-  };
   for (size_t j = 0; j * kStride < grid.size(); ++j) {
     int before = 0, after = 0;
     for (const auto& [t, p] : poses) {
