@@ -71,6 +71,7 @@ using hanging_detail::MatchLeg;
 using hanging_detail::PairData;
 using hanging_detail::PairEstimate;
 using hanging_detail::PairResult;
+using hanging_detail::PairSolve;
 using hanging_detail::ResolveLegCom;
 using hanging_detail::RotApply;
 using hanging_detail::Where;
@@ -433,9 +434,14 @@ struct LegPairs {
   const std::array<std::vector<Vec3>, 4>* com_raw = nullptr;  // fitted CoM at each raw sample
 };
 
-// One variant (with or without s) of a leg: both pairs, their inverse-variance combination, and
-// the residual over every raw sample of the four series (report Fig. 5).
-HangingVariant SolveVariant(const LegPairs& in, bool use_s, const HangingOptions& options) {
+// The report's two hanging variants: the mounting rotation s estimated, or taken as zero.
+enum class Variant { kWithS, kWithoutS };
+
+// One variant of a leg: both pairs, their inverse-variance combination, and the residual over
+// every raw sample of the four series (report Fig. 5).
+
+HangingVariant SolveVariant(const LegPairs& in, Variant variant, const HangingOptions& options) {
+  const bool use_s = variant == Variant::kWithS;
   const int leg = in.leg;
   const SeriesArray& by_series = *in.by_series;
   const std::array<int, 4>& series_of_slot = in.series_of_slot;
@@ -448,8 +454,11 @@ HangingVariant SolveVariant(const LegPairs& in, bool use_s, const HangingOptions
     const std::string where = leg_where + (p == 0 ? "x" : "z") + " pair (" +
                               HangSeriesName(static_cast<HangSeries>(down)) + ", " +
                               HangSeriesName(static_cast<HangSeries>(up)) + "): ";
-    v.pair[p] = PairResult(*in.pairs[p], *in.r_fit, *in.matched, use_s, options.exact_rotations,
-                           options.refine_s_plus, where, &est[p]);
+    PairSolve how;
+    how.use_s = use_s;
+    how.exact_rotations = options.exact_rotations;
+    how.refine_s_plus = options.refine_s_plus;
+    v.pair[p] = PairResult(*in.pairs[p], *in.r_fit, *in.matched, how, where, &est[p]);
     v.pair[p].down_series = static_cast<HangSeries>(down);
     v.pair[p].up_series = static_cast<HangSeries>(up);
   }
@@ -549,8 +558,8 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
         ComAtRawSamples(out.com.model, by_series, series_of_slot, leg);
 
     const LegPairs pairs{leg, &by_series, series_of_slot, &m, {&px, &pz}, &r_fit, &com_raw};
-    out.with_s = SolveVariant(pairs, true, options);
-    out.without_s = SolveVariant(pairs, false, options);
+    out.with_s = SolveVariant(pairs, Variant::kWithS, options);
+    out.without_s = SolveVariant(pairs, Variant::kWithoutS, options);
     NaiveTare(by_series, upright, leg, options, &out);
 
     if (has_attitude) {

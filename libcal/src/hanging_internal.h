@@ -74,11 +74,20 @@ struct PairEstimate {
   Vec3 force_offset = Vec3::Zero(), torque_offset = Vec3::Zero();
 };
 
+// How a pair is solved: with or without the mounting rotation s (the two variants model
+// selection compares), first-order or exact rotations, and whether s+ is refined by least
+// squares after its closed form.
+struct PairSolve {
+  bool use_s = true;
+  bool exact_rotations = true;
+  bool refine_s_plus = true;
+};
+
 // The pair on all matched samples (into *full) and, for the sigmas, on each full cycle alone.
 // r_fit: the fitted CoM curve at each matched sample's phase. where: the start of messages.
 HangingPairResult PairResult(const PairData& pair, const std::vector<Vec3>& r_fit,
-                             const LegMatched& m, bool use_s, bool exact, bool refine,
-                             const std::string& where, PairEstimate* full);
+                             const LegMatched& m, const PairSolve& how, const std::string& where,
+                             PairEstimate* full);
 
 // Inverse-variance weighting of the two pairs' estimates.
 ScalarSigma Combine(const ScalarSigma& a, const ScalarSigma& b);

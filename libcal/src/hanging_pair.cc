@@ -220,7 +220,8 @@ namespace {
 // One pair on the matched samples [lo, hi) (all of them, or one cycle). r_fit: the fitted CoM
 // curve at each sample's phase.
 PairEstimate SolvePair(const PairData& pair, const std::vector<Vec3>& r_fit, int lo, int hi,
-                       bool use_s, bool exact, bool refine, const std::string& where) {
+                       const PairSolve& how, const std::string& where) {
+  const bool exact = how.exact_rotations;
   const double n = hi - lo;
   Vec3 f_minus_mean = Vec3::Zero(), f_plus_mean = Vec3::Zero();
   Vec3 tau_plus_mean = Vec3::Zero(), r_mean = Vec3::Zero();
@@ -239,11 +240,11 @@ PairEstimate SolvePair(const PairData& pair, const std::vector<Vec3>& r_fit, int
     Fail(where + "the half-difference force is not along +" + (pair.axis_index == 0 ? "x" : "z") +
          ": the down and up series carry the leg's weight the wrong way round");
   }
-  if (!use_s) {
+  if (!how.use_s) {
     e.weight_n = pair.axis.dot(f_minus_mean);
   } else {
     e.s_plus = SPlusClosedForm(f_minus_mean, pair.axis, exact);
-    if (refine) e.s_plus = RefineSPlus(e.s_plus, pair.f_minus, lo, hi, pair, exact);
+    if (how.refine_s_plus) e.s_plus = RefineSPlus(e.s_plus, pair.f_minus, lo, hi, pair, exact);
     double m = 0.0;
     for (int i = lo; i < hi; ++i) {
       m += pair.axis.dot(RotInverseApply(e.s_plus, pair.f_minus[i], exact));
@@ -320,16 +321,18 @@ Vec3 StdError3(const std::vector<Vec3>& v) {
 }
 
 HangingPairResult PairResult(const PairData& pair, const std::vector<Vec3>& r_fit,
-                             const LegMatched& m, bool use_s, bool exact, bool refine,
-                             const std::string& where, PairEstimate* full) {
+                             const LegMatched& m, const PairSolve& how, const std::string& where,
+                             PairEstimate* full) {
   const int n = static_cast<int>(m.phase.size());
-  *full = SolvePair(pair, r_fit, 0, n, use_s, exact, refine, where);
+  *full = SolvePair(pair, r_fit, 0, n, how, where);
   // Per-cycle estimates use the closed-form s+ (the refinement changes s+ by far less than
   // its per-cycle spread) to keep the spread cheap.
   std::vector<double> weight;
   std::vector<Vec3> s_plus, s_minus, f_o, tau_o;
   for (const auto& [lo, hi] : m.cycles) {
-    const PairEstimate c = SolvePair(pair, r_fit, lo, hi, use_s, exact, false, where);
+    PairSolve closed_form = how;
+    closed_form.refine_s_plus = false;
+    const PairEstimate c = SolvePair(pair, r_fit, lo, hi, closed_form, where);
     weight.push_back(c.weight_n);
     s_plus.push_back(c.s_plus);
     s_minus.push_back(c.s_minus);
