@@ -41,6 +41,7 @@ using standing_detail::JointOnIds;
 using standing_detail::kCrossValidationTolerance;
 using standing_detail::Prepare;
 using standing_detail::Prepared;
+using standing_detail::RankCheck;
 using standing_detail::ResidualsOfPoses;
 using standing_detail::ValidatedAttitude;
 using standing_detail::ValidateOptions;
@@ -235,10 +236,11 @@ double CrossValidationMse(const RobotCalibration& step1, const std::vector<Stand
                                   " poses are too few for " + std::to_string(options.cv_folds) +
                                   "-fold cross-validation");
     }
-    const StandingFit fit = options.solver == StandingSolver::kAlternating
-                                ? AlternatingOnIds(prep, train, full_data_fit.model, options, false)
-                                : JointOnIds(prep, train, full_data_fit.model, options,
-                                             &full_data_fit, false, kCrossValidationTolerance);
+    const StandingFit fit =
+        options.solver == StandingSolver::kAlternating
+            ? AlternatingOnIds(prep, train, full_data_fit.model, options, RankCheck::kSkip)
+            : JointOnIds(prep, train, full_data_fit.model, options, &full_data_fit,
+                         RankCheck::kSkip, kCrossValidationTolerance);
     sum += WeightedRss(ResidualsOfPoses(prep, fit, test), k) / static_cast<double>(test.size());
   }
   return sum / options.cv_folds;

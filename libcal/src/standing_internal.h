@@ -134,13 +134,18 @@ void ValidateOptions(const StandingOptions& o);
 void CheckPoseCount(size_t n, StandingModel model, const StandingOptions& options);
 std::vector<int> AllIds(size_t n);
 
+// Whether a solve first checks that its poses determine the model's parameters (naming the
+// ones they do not). The fit on all poses does; the cross-validation folds and a second solve
+// on the same poses need not repeat it.
+enum class RankCheck { kCheck, kSkip };
+
 // The joint solve on the poses ids, from *start when given (standing_solve.cc).
 StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, StandingModel model,
-                       const StandingOptions& options, const StandingFit* start, bool check_rank,
+                       const StandingOptions& options, const StandingFit* start, RankCheck rank,
                        double function_tolerance);
 // The report's alternating scheme on the poses ids, from R~ = I and zero translations.
 StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, StandingModel model,
-                             const StandingOptions& options, bool check_rank);
+                             const StandingOptions& options, RankCheck rank);
 
 }  // namespace standing_detail
 }  // namespace ftcal

@@ -200,7 +200,7 @@ ceres::Solver::Options SolverOptions(int max_iterations, double function_toleran
 }  // namespace
 
 StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, StandingModel model,
-                       const StandingOptions& options, const StandingFit* start, bool check_rank,
+                       const StandingOptions& options, const StandingFit* start, RankCheck rank,
                        double function_tolerance) {
   Params params;
   if (start != nullptr) {
@@ -209,7 +209,8 @@ StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, Standi
     params = ParamsFromFit(s);
   }
   Built b = Build(prep, ids, model, BuildOptions(), &params, options);
-  if (check_rank) CheckIdentifiable(b.problem.get(), b.free_blocks, model, ids.size());
+  if (rank == RankCheck::kCheck)
+    CheckIdentifiable(b.problem.get(), b.free_blocks, model, ids.size());
   ceres::Solver::Summary summary;
   ceres::Solve(SolverOptions(options.max_iterations, function_tolerance), b.problem.get(),
                &summary);
@@ -240,10 +241,10 @@ void ValidateOptions(const StandingOptions& o) {
 
 // The report's alternating scheme on a subset of poses (FitStandingAlternating's description).
 StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, StandingModel model,
-                             const StandingOptions& options, bool check_rank) {
+                             const StandingOptions& options, RankCheck rank) {
   const int n_trans = TransSize(model);
   Params params;  // Cayley q = 0 (R~ = I), translations 0
-  if (check_rank) {
+  if (rank == RankCheck::kCheck) {
     BuildOptions rank_check;
     rank_check.cayley = true;
     rank_check.use_loss = false;
@@ -329,6 +330,7 @@ using standing_detail::JointOnIds;
 using standing_detail::kFullDataTolerance;
 using standing_detail::Prepare;
 using standing_detail::Prepared;
+using standing_detail::RankCheck;
 using standing_detail::ValidateOptions;
 
 StandingFit FitStandingJoint(const RobotCalibration& step1, const std::vector<StandingPose>& poses,
@@ -338,14 +340,16 @@ StandingFit FitStandingJoint(const RobotCalibration& step1, const std::vector<St
   CheckPoseCount(poses.size(), model, options);
   Prepared prep = Prepare(step1, poses, options);
   const std::vector<int> ids = AllIds(poses.size());
-  StandingFit fit = JointOnIds(prep, ids, model, options, start, true, kFullDataTolerance);
+  StandingFit fit =
+      JointOnIds(prep, ids, model, options, start, RankCheck::kCheck, kFullDataTolerance);
   if (HasRotations(model) && !prep.gravity_prior.empty()) {
     // The poses alone first, for the residual sigma that weights the hanging directions; then
     // both, from there. The pose-only rank check above stands: the prior only adds rank.
     prep.prior_scale = std::sqrt(fit.residual_variance);
     if (prep.prior_scale > 0.0) {
       const StandingFit poses_only = fit;
-      fit = JointOnIds(prep, ids, model, options, &poses_only, false, kFullDataTolerance);
+      fit =
+          JointOnIds(prep, ids, model, options, &poses_only, RankCheck::kSkip, kFullDataTolerance);
     }
   }
   if (compute_covariance) AddCovariance(prep, ids, &fit, options);
@@ -359,7 +363,7 @@ StandingFit FitStandingAlternating(const RobotCalibration& step1,
   CheckPoseCount(poses.size(), model, options);
   const Prepared prep = Prepare(step1, poses, options);
   const std::vector<int> ids = AllIds(poses.size());
-  StandingFit fit = AlternatingOnIds(prep, ids, model, options, true);
+  StandingFit fit = AlternatingOnIds(prep, ids, model, options, RankCheck::kCheck);
   if (compute_covariance) AddCovariance(prep, ids, &fit, options);
   return fit;
 }
