@@ -66,18 +66,16 @@ auto WhilePumping(GateWatcher& watcher, F work) -> decltype(work()) {
   return done.get();
 }
 
-// How every command reports a failure: one line on stderr and an exit code. Up and
-// export-systemd tell a launch section they refuse (LaunchError: kExitConfig) from a host or
-// file they cannot reach; the other commands answer kExitDeviceIo for both, as they always
-// have (a caller may tell the two apart, so folding must not change which one it gets).
-enum ErrorCodes { kLaunchErrorsAreConfig, kEveryErrorIsIo };
+// How every command reports a failure: one line on stderr and an exit code. A launch section
+// a command cannot use (LaunchError) is a config error whichever command met it; a host or
+// file it cannot reach is a device/I-O error.
 template <class Body>
-int RunCommand(ErrorCodes codes, Body body) {
+int RunCommand(Body body) {
   try {
     return body();
   } catch (const LaunchError& e) {
     std::cerr << "ftcal-launch: " << e.what() << "\n";
-    return codes == kLaunchErrorsAreConfig ? kExitConfig : kExitDeviceIo;
+    return kExitConfig;
   } catch (const std::exception& e) {
     std::cerr << "ftcal-launch: " << e.what() << "\n";
     return kExitDeviceIo;
@@ -278,7 +276,7 @@ std::optional<int> Launcher::StartAndGate(const config::LaunchGroup& group,
 
 int Launcher::Up() {
   const auto t0 = Clock::now();
-  return RunCommand(kLaunchErrorsAreConfig, [&]() -> int {
+  return RunCommand([&]() -> int {
     const auto& group = FindGroup(config_.launch(), o_.group);
     const auto hosts = HostsOf(group);
     for (const auto& h : hosts) {
@@ -310,7 +308,7 @@ int Launcher::Up() {
 }
 
 int Launcher::Down() {
-  return RunCommand(kEveryErrorIsIo, [&]() -> int {
+  return RunCommand([&]() -> int {
     const auto& group = FindGroup(config_.launch(), o_.group);
     auto order = StartOrder(group);
     for (const auto& h : HostsOf(group)) {
@@ -342,7 +340,7 @@ int Launcher::Down() {
 }
 
 int Launcher::Restart() {
-  return RunCommand(kEveryErrorIsIo, [&]() -> int {
+  return RunCommand([&]() -> int {
     const config::LaunchGroup* found = nullptr;
     for (const auto& g : config_.launch().group()) {
       if (!o_.group.empty() && g.name() != o_.group) continue;
@@ -367,7 +365,7 @@ int Launcher::Restart() {
 }
 
 int Launcher::Status() {
-  return RunCommand(kEveryErrorIsIo, [&]() -> int {
+  return RunCommand([&]() -> int {
     if (o_.listen_s > 0) Watcher().Pump(o_.listen_s);
     std::printf("%-12s %-28s %-9s %-26s %-9s %s\n", "HOST", "PROCESS", "SUPERVISOR", "DETAIL",
                 "HEARTBEAT", "LAST ERROR");
@@ -405,7 +403,7 @@ int Launcher::Status() {
 }
 
 int Launcher::ExportSystemd() {
-  return RunCommand(kLaunchErrorsAreConfig, [&]() -> int {
+  return RunCommand([&]() -> int {
     const auto& group = FindGroup(config_.launch(), o_.group);
     const auto& host = FindHost(config_.launch(), o_.host);
     std::filesystem::create_directories(o_.out_dir);
