@@ -36,21 +36,7 @@ int main(int argc, char** argv) {
                   "seconds without a record before the start command is sent again")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
-  ftcal::AtiSchedulingOptions scheduling;
-  app.cli().add_flag("--realtime", scheduling.realtime,
-                     "run SCHED_FIFO with memory locked (a robot computer; needs root or "
-                     "CAP_SYS_NICE/CAP_IPC_LOCK, else a warning and an ordinary process)");
-  app.cli()
-      .add_option("--realtime-priority", scheduling.realtime_priority,
-                  "SCHED_FIFO priority with --realtime")
-      ->capture_default_str()
-      ->check(CLI::Range(1, 99));
-  app.cli()
-      .add_option("--slice-us", scheduling.slice_us,
-                  "without SCHED_FIFO, the scheduler slice to ask for (Linux >= 6.12 lets a "
-                  "waking task with a shorter slice preempt); 0: the kernel's default")
-      ->capture_default_str()
-      ->check(CLI::Range(0.0, 100000.0));
+  app.OfferSchedulingFlags();
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   auto log = spdlog::get("ftcal-ati-bridge");
@@ -66,10 +52,7 @@ int main(int argc, char** argv) {
         log, options);
     failure = ftcal::kExitDeviceIo;  // the calibration pages, the sockets
     bridge->Start();
-    const ftcal::AtiSchedulingGranted granted = ftcal::ApplyScheduling(scheduling, *log);
-    app.stats().Counter("sched_fifo") = granted.fifo ? 1 : 0;
-    app.stats().Counter("memory_locked") = granted.locked ? 1 : 0;
-    app.stats().Counter("sched_slice") = granted.slice ? 1 : 0;
+    app.ApplySchedulingFlags();
   } catch (const std::exception& e) {
     const std::string text = ftcal::UserText(e, "starting the bridge");
     log->critical("{}", text);

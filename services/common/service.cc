@@ -296,4 +296,27 @@ int ServiceApp::Run() {
   return rc;
 }
 
+void ServiceApp::OfferSchedulingFlags() {
+  cli_.add_flag("--realtime", scheduling_.realtime,
+                "run SCHED_FIFO with memory locked (a robot computer; needs root or "
+                "CAP_SYS_NICE/CAP_IPC_LOCK, else a warning and an ordinary process)");
+  cli_.add_option("--realtime-priority", scheduling_.realtime_priority,
+                  "SCHED_FIFO priority with --realtime")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 99));
+  cli_.add_option("--slice-us", scheduling_.slice_us,
+                  "without SCHED_FIFO, the scheduler slice to ask for (Linux >= 6.12 lets a "
+                  "waking task with a shorter slice preempt); 0: the kernel's default")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 100000.0));
+}
+
+SchedulingGranted ServiceApp::ApplySchedulingFlags() {
+  const SchedulingGranted granted = ApplyScheduling(scheduling_, *log_);
+  stats_->Counter("sched_fifo") = granted.fifo ? 1 : 0;
+  stats_->Counter("memory_locked") = granted.locked ? 1 : 0;
+  stats_->Counter("sched_slice") = granted.slice ? 1 : 0;
+  return granted;
+}
+
 }  // namespace ftcal

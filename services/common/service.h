@@ -29,6 +29,7 @@
 #include "common/bus.h"
 #include "common/heartbeat.h"
 #include "common/exit_codes.h"
+#include "common/scheduling.h"
 #include "common/service_stats.h"
 #include "common/user_errors.h"
 #include "proto/config.pb.h"
@@ -106,6 +107,14 @@ class ServiceApp {
   void RunDeviceLoop(const std::function<std::string()>& health_reason,
                      const std::function<void(int max_wait_ms)>& step);
 
+  // A device-paced process's scheduling (common/scheduling.h), the same flags in every bridge:
+  // --realtime, --realtime-priority and --slice-us. Offer them before Init(); apply them on the
+  // thread that runs the device loop, once the device is open (the calibration pages and port
+  // probes run as an ordinary process). Applying sets the counters sched_fifo, memory_locked
+  // and sched_slice (1 when granted) and logs what was refused.
+  void OfferSchedulingFlags();
+  SchedulingGranted ApplySchedulingFlags();
+
  private:
   struct Periodic {
     int64_t period_us;
@@ -124,6 +133,7 @@ class ServiceApp {
   std::string log_level_;
   std::string replay_in_;
   std::string replay_out_;
+  SchedulingOptions scheduling_;
 
   ProcessIdentity identity_;
   std::chrono::steady_clock::time_point started_;

@@ -96,6 +96,7 @@ int main(int argc, char** argv) {
                   "seconds between PINGs of a lost servo")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  app.OfferSchedulingFlags();
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   const auto& config = app.config();
@@ -157,6 +158,9 @@ int main(int argc, char** argv) {
     };
 
     bridge.Connect();
+    // Off the bus for the servos' Bus Watchdog time (0.5 s by default) and they stop the legs:
+    // on a robot computer this loop runs --realtime.
+    app.ApplySchedulingFlags();
     // The bus cycle paces this loop, not LCM: ServiceApp's device-loop calls give it systemd's
     // notify protocol (READY=1 once connected, the watchdog with the heartbeat, STOPPING=1).
     app.DeviceLoopStarted();

@@ -15,6 +15,7 @@ int main(int argc, char** argv) {
        "capturing. Exits 3 (config) when QTM refuses the configured protocol version. Reads "
        "nothing from LCM.",
        /*replayable=*/false});
+  app.OfferSchedulingFlags();
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   return ftcal::RunMocapBridge<ftcal::MocapBridge, ftcal::MocapConfigError>(

@@ -17,6 +17,7 @@ int main(int argc, char** argv) {
        "meanwhile. Exits 3 (config) when the config does not select OPTITRACK "
        "(mocap.system) or Motive streams NatNet older than 3.0. Reads nothing from LCM.",
        /*replayable=*/false});
+  app.OfferSchedulingFlags();
   if (auto rc = app.Init(argc, argv)) return *rc;
 
   return ftcal::RunMocapBridge<ftcal::NatNetBridge, ftcal::NatNetConfigError>(

@@ -716,5 +716,73 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
   if (!HasFailure()) testing::RemoveTree(dir);
 }
 
+// /proc/PID/stat's scheduling fields for a process's main thread: {rt_priority, policy}
+// (fields 40 and 41; 1 is SCHED_FIFO). Empty when the process is gone.
+std::pair<std::string, std::string> SchedulingOf(pid_t pid) {
+  std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
+  std::string line;
+  if (!std::getline(stat, line)) return {};
+  std::istringstream rest(line.substr(line.rfind(')') + 2));
+  std::vector<std::string> fields;  // fields[0] is field 3
+  for (std::string f; rest >> f;) fields.push_back(f);
+  if (fields.size() <= 38) return {};
+  return {fields[37], fields[38]};
+}
+
+// Every bridge takes --realtime (ServiceApp's scheduling flags) and runs its device loop
+// SCHED_FIFO at the priority asked once its device is open, as the kernel itself reports;
+// without the privilege it says so and runs on as an ordinary process.
+TEST(SimLive, EveryBridgeRunsItsDeviceLoopRealtimeWhenAsked) {
+  ASSERT_TRUE(testing::InNetns());
+  const std::string dir = testing::MakeTempDir();
+  auto path = [&](const std::string& name) { return dir + "/" + name; };
+  const std::string link = path("tty");
+  const std::string config_path = path("config.pbtxt");
+  std::ofstream(config_path) << TestConfigText(link);
+  Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--ready",
+             path("ready"), "--scenario", "walk", "--seed", std::to_string(kSeed), "--ati-rate",
+             std::to_string(kAtiRateHz)},
+            path("sim.out"), path("sim.err"));
+  WaitUntilReady(sim, path("ready"), path("sim.err"));
+  if (HasFatalFailure()) return;
+  const std::vector<std::string> rt = {"--realtime", "--realtime-priority", "12"};
+  std::vector<std::pair<std::string, std::unique_ptr<Child>>> bridges;
+  for (const auto& [name, exe] :
+       std::vector<std::pair<std::string, std::string>>{{"ati", FTCAL_ATI_BRIDGE},
+                                                        {"dynamixel", FTCAL_DYNAMIXEL_BRIDGE},
+                                                        {"mocap", FTCAL_MOCAP_BRIDGE}}) {
+    std::vector<std::string> argv = {exe, "--config", config_path};
+    argv.insert(argv.end(), rt.begin(), rt.end());
+    bridges.emplace_back(name,
+                         std::make_unique<Child>(argv, path(name + ".out"), path(name + ".err")));
+  }
+  const bool privileged = ::geteuid() == 0;
+  for (auto& [name, child] : bridges) {
+    SCOPED_TRACE(name);
+    const std::string err = path(name + ".err");
+    // The flags are applied once the device is open: the log line says when.
+    const std::string said =
+        privileged ? "--realtime: SCHED_FIFO priority 12" : "SCHED_FIFO refused";
+    bool logged = false;
+    for (int i = 0; i < 100 && !logged; ++i) {
+      logged = testing::ReadFile(err).find(said) != std::string::npos ||
+               testing::ReadFile(path(name + ".out")).find(said) != std::string::npos;
+      if (!logged) SleepS(0.1);
+    }
+    EXPECT_TRUE(logged) << "no '" << said << "' in its log\n" << testing::ReadFile(err);
+    const auto [priority, policy] = SchedulingOf(child->pid());
+    if (privileged) {
+      EXPECT_EQ(policy, "1") << "SCHED_FIFO";
+      EXPECT_EQ(priority, "12");
+    } else {
+      EXPECT_EQ(policy, "0") << "SCHED_OTHER";
+    }
+  }
+  for (auto& [name, child] : bridges)
+    Terminate(*child, "ftcal-" + name + "-bridge", path(name + ".err"));
+  Terminate(sim, "ftcal-sim live", path("sim.err"));
+  if (!HasFailure()) testing::RemoveTree(dir);
+}
+
 }  // namespace
 }  // namespace ftcal

@@ -103,8 +103,9 @@ std::string ExperimentConfig(const std::string& public_key) {
   return text;
 }
 
-// The group: the robot records and runs the devices and bridges, the workstation the stages
-// and the sequencer (config/bigant.pbtxt's `lab`, with the twin as the robot's devices).
+// The group: the robot records and runs the devices and bridges (--realtime, as the lab's),
+// the workstation the stages and the sequencer (config/bigant.pbtxt's `lab`, with the twin as
+// the robot's devices).
 std::string ExperimentGroup(const std::string& key) {
   return R"(  group {
     name: "two"
@@ -123,14 +124,15 @@ std::string ExperimentGroup(const std::string& key) {
                      "--ati-rate", "200", "--servo-tau", "0.05", "--mocap", "qtm"]
               sd_notify: false status_name: "-" restart { startsecs_s: 2 } }
     process { name: "ati-bridge" host: "robot" command: "ftcal-ati-bridge"
-              args: ["--config", "${config}"] after: ["twin"]
+              args: ["--config", "${config}", "--realtime"] after: ["twin"]
               gate { kind: STATUS_RUNNING within_s: 5 }
               gate { kind: RATE channel: "FT_*" rate_hz: 200 min_channels: 6 window_s: 2 within_s: 10 } }
     process { name: "dynamixel-bridge" host: "robot" command: "ftcal-dynamixel-bridge"
-              args: ["--config", "${config}", "--device", "${run_dir}/dynamixel"] after: ["twin"]
+              args: ["--config", "${config}", "--device", "${run_dir}/dynamixel", "--realtime"]
+              after: ["twin"]
               gate { kind: FRESH channel: "SERVO_STATE" max_age_s: 0.5 within_s: 5 } }
     process { name: "mocap-bridge" host: "robot" command: "ftcal-mocap-bridge"
-              args: ["--config", "${config}"] after: ["twin"]
+              args: ["--config", "${config}", "--realtime"] after: ["twin"]
               gate { kind: FRESH channel: "MOCAP_BODY" max_age_s: 0.5 within_s: 5 } }
     process { name: "segmenter" host: "workstation" command: "ftcal-pose-segmenter"
               args: ["--config", "${config}"]

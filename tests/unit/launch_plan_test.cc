@@ -47,8 +47,10 @@ TEST(LaunchPlan, GroupConfHasEveryProgramOfTheHostWithItsPolicyAndNoHttpServer) 
   const auto& g = FindGroup(config.launch(), "lab");
   Placeholders v{"/r/config.pbtxt", "/r", config.lcm_url()};
   const std::string robot = GroupConf(config, g, "robot", v, {"ftcal-supervisor-events"});
-  EXPECT_NE(robot.find("[program:ati-bridge]\ncommand=ftcal-ati-bridge --config /r/config.pbtxt\n"),
-            std::string::npos)
+  EXPECT_NE(
+      robot.find(
+          "[program:ati-bridge]\ncommand=ftcal-ati-bridge --config /r/config.pbtxt --realtime\n"),
+      std::string::npos)
       << robot;
   EXPECT_NE(robot.find("autostart=false\nautorestart=true\nstartsecs=2\nstartretries=3\n"),
             std::string::npos)
@@ -85,9 +87,10 @@ TEST(LaunchPlan, SystemdUnitCarriesRestartWatchdogAndMemory) {
   const auto& g = FindGroup(config.launch(), "lab");
   Placeholders v{"/etc/ftcal/lab.pbtxt", "%t/ftcal", config.lcm_url()};
   const std::string unit = SystemdUnit(config, g, *FindProcess(g, "ati-bridge"), v);
-  for (const char* line : {"Type=notify\n", "Restart=always\n", "WatchdogSec=5\n",
-                           "MemoryMax=256M\n", "StartLimitBurst=4\n", "KillSignal=SIGTERM\n",
-                           "ExecStart=ftcal-ati-bridge --config /etc/ftcal/lab.pbtxt\n"}) {
+  for (const char* line :
+       {"Type=notify\n", "Restart=always\n", "WatchdogSec=5\n", "MemoryMax=256M\n",
+        "StartLimitBurst=4\n", "KillSignal=SIGTERM\n",
+        "ExecStart=ftcal-ati-bridge --config /etc/ftcal/lab.pbtxt --realtime\n"}) {
     EXPECT_NE(unit.find(line), std::string::npos) << line << " in\n" << unit;
   }
   // ftcal-record is a ServiceApp: READY=1 and the watchdog fed by its heartbeat (Type=notify),

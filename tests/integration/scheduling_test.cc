@@ -1,7 +1,8 @@
-// ftcal::ApplyScheduling (services/ati_bridge): what it reports granted is what the kernel has in
-// force for the calling thread, read back independently with sched_getscheduler/sched_getattr;
-// options out of range are refused by name. Each case runs in a thread of its own, since the
-// policy is per thread (mlockall, when granted, locks this small test process: harmless).
+// ftcal::ApplyScheduling (services/common, every bridge's --realtime and --slice-us): what it
+// reports granted is what the kernel has in force for the calling thread, read back independently
+// with sched_getscheduler/sched_getattr; options out of range are refused by name. Each case runs
+// in a thread of its own, since the policy is per thread (mlockall, when granted, locks this small
+// test process: harmless).
 #include <sched.h>
 #include <sys/syscall.h>
 #include <sys/utsname.h>
@@ -11,6 +12,7 @@
 #include <cstdio>
 #include <memory>
 #include <sstream>
+#include <stdexcept>
 #include <string>
 #include <thread>
 
@@ -18,7 +20,7 @@
 #include <spdlog/sinks/ostream_sink.h>
 #include <spdlog/spdlog.h>
 
-#include "ati_bridge.h"
+#include "common/scheduling.h"
 
 namespace ftcal {
 namespace {
@@ -48,7 +50,7 @@ bool KernelTakesSlices() {
 }
 
 struct Outcome {
-  AtiSchedulingGranted granted;
+  SchedulingGranted granted;
   int policy = -1;  // sched_getscheduler, SCHED_RESET_ON_FORK included
   sched_param param{};
   KernelSchedAttr attr{};
@@ -57,7 +59,7 @@ struct Outcome {
 };
 
 // Runs ApplyScheduling on a fresh thread and reads back what that thread got.
-Outcome RunOnThread(const AtiSchedulingOptions& options) {
+Outcome RunOnThread(const SchedulingOptions& options) {
   Outcome out;
   std::thread([&] {
     std::ostringstream text;
@@ -65,7 +67,7 @@ Outcome RunOnThread(const AtiSchedulingOptions& options) {
         "sched", std::make_shared<spdlog::sinks::ostream_sink_st>(text));
     try {
       out.granted = ApplyScheduling(options, *log);
-    } catch (const AtiBridgeError& e) {
+    } catch (const std::invalid_argument& e) {
       out.error = e.what();
     }
     out.policy = ::sched_getscheduler(0);
@@ -77,8 +79,8 @@ Outcome RunOnThread(const AtiSchedulingOptions& options) {
   return out;
 }
 
-TEST(AtiScheduling, SliceRequestIsWhatTheKernelReadsBack) {
-  AtiSchedulingOptions o;
+TEST(Scheduling, SliceRequestIsWhatTheKernelReadsBack) {
+  SchedulingOptions o;
   o.slice_us = 300;
   const Outcome out = RunOnThread(o);
   ASSERT_TRUE(out.error.empty()) << out.error;
@@ -92,8 +94,8 @@ TEST(AtiScheduling, SliceRequestIsWhatTheKernelReadsBack) {
   EXPECT_NE(ReadAttr().sched_runtime, 300'000u);
 }
 
-TEST(AtiScheduling, NoSliceLeavesTheKernelDefault) {
-  AtiSchedulingOptions o;
+TEST(Scheduling, NoSliceLeavesTheKernelDefault) {
+  SchedulingOptions o;
   o.slice_us = 0;
   const Outcome out = RunOnThread(o);
   ASSERT_TRUE(out.error.empty()) << out.error;
@@ -103,8 +105,8 @@ TEST(AtiScheduling, NoSliceLeavesTheKernelDefault) {
   EXPECT_EQ(out.attr.sched_runtime, ReadAttr().sched_runtime);
 }
 
-TEST(AtiScheduling, RealtimeIsFifoAtThePriorityWhenGrantedElseAWarningAndTheSlice) {
-  AtiSchedulingOptions o;
+TEST(Scheduling, RealtimeIsFifoAtThePriorityWhenGrantedElseAWarningAndTheSlice) {
+  SchedulingOptions o;
   o.realtime = true;
   o.realtime_priority = 7;
   o.slice_us = 250;
@@ -128,8 +130,8 @@ TEST(AtiScheduling, RealtimeIsFifoAtThePriorityWhenGrantedElseAWarningAndTheSlic
   }
 }
 
-TEST(AtiScheduling, OptionsOutOfRangeAreRefusedByName) {
-  AtiSchedulingOptions o;
+TEST(Scheduling, OptionsOutOfRangeAreRefusedByName) {
+  SchedulingOptions o;
   o.realtime = true;
   o.realtime_priority = 0;
   Outcome out = RunOnThread(o);
