@@ -123,8 +123,12 @@ std::string ExperimentGroup(const std::string& key) {
                      "--control", "${run_dir}/operator.fifo", "--truth-dir", "${run_dir}",
                      "--ati-rate", "200", "--servo-tau", "0.05", "--mocap", "qtm"]
               sd_notify: false status_name: "-" restart { startsecs_s: 2 } }
+    # A second of silence before the bridge restarts a stream (0.1 s by default): the twin
+    # descheduled for a tenth of a second on a loaded machine restarted every stream mid-plan
+    # (the sequence numbers going back), which a box on a robot does not do.
     process { name: "ati-bridge" host: "robot" command: "ftcal-ati-bridge"
-              args: ["--config", "${config}", "--realtime"] after: ["twin"]
+              args: ["--config", "${config}", "--realtime", "--silence-timeout", "1.0"]
+              after: ["twin"]
               gate { kind: STATUS_RUNNING within_s: 5 }
               gate { kind: RATE channel: "FT_*" rate_hz: 200 min_channels: 6 window_s: 2 within_s: 10 } }
     process { name: "dynamixel-bridge" host: "robot" command: "ftcal-dynamixel-bridge"
