@@ -61,16 +61,18 @@ std::vector<StatusBoard::Row> StatusBoard::Rows(int64_t now_utime) const {
 }
 
 std::string StatusBoard::Render(int64_t now_utime) const {
-  const std::vector<std::string> header = {"NAME",   "HOST", "PID",      "STATE",
-                                           "UPTIME", "IN",   "OUT",      "DROPS",
-                                           "ERRORS", "AGE",  "COUNTERS", "LAST ERROR"};
+  // COUNTERS last: a bridge's run to a few hundred characters, and a column that wide before
+  // another pads every row to it.
+  const std::vector<std::string> header = {"NAME",   "HOST", "PID",        "STATE",
+                                           "UPTIME", "IN",   "OUT",        "DROPS",
+                                           "ERRORS", "AGE",  "LAST ERROR", "COUNTERS"};
   std::vector<std::vector<std::string>> cells = {header};
   for (const Row& row : Rows(now_utime)) {
     const service_status_t& s = row.status;
     cells.push_back({Printable(s.name), Printable(s.host), std::to_string(s.pid), row.shown_state,
                      FormatDuration(s.uptime_s), std::to_string(s.msgs_in),
                      std::to_string(s.msgs_out), std::to_string(s.drops), std::to_string(s.errors),
-                     FormatDuration(row.age_s), Counters(s), Printable(s.last_error)});
+                     FormatDuration(row.age_s), Printable(s.last_error), Counters(s)});
   }
   std::string out = AlignColumns(cells);
   if (latest_.empty()) out += "(no heartbeats yet)\n";

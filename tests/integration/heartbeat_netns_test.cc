@@ -33,7 +33,7 @@ double SecondsSince(std::chrono::steady_clock::time_point t) {
 }
 
 // The row of ftcal-status's table for `pid`, split into the fixed columns NAME HOST PID STATE
-// UPTIME IN OUT DROPS ERRORS AGE, then the counters ("k=v" words).
+// UPTIME IN OUT DROPS ERRORS AGE, then the last error's words and the counters ("k=v" words).
 std::vector<std::string> RowForPid(const std::string& table, pid_t pid) {
   std::istringstream lines(table);
   for (std::string line; std::getline(lines, line);) {

@@ -455,10 +455,10 @@ TEST(StatusBoardTest, RenderShowsEveryColumnAndNeutralisesControlCharacters) {
   board.Update(s, 5'000'000);
   const std::string table = board.Render(5'500'000);
   EXPECT_EQ(table,
-            "NAME     HOST  PID  STATE    UPTIME  IN  OUT  DROPS  ERRORS  AGE   COUNTERS  "
-            "LAST ERROR\n"
-            "ftcal-x  h     77   RUNNING  1m15s   11  22   0      0       0.5s  frames=9  "
-            "bad?[2Jthing?next\n");
+            "NAME     HOST  PID  STATE    UPTIME  IN  OUT  DROPS  ERRORS  AGE   LAST ERROR         "
+            "COUNTERS\n"
+            "ftcal-x  h     77   RUNNING  1m15s   11  22   0      0       0.5s  bad?[2Jthing?next  "
+            "frames=9\n");
   EXPECT_EQ(StatusBoard().Render(0).find("(no heartbeats yet)") != std::string::npos, true);
 }
 
