@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <signal.h>
+#include <sys/prctl.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -31,8 +32,14 @@ Child::Child(const std::vector<std::string>& argv, const std::string& stdout_pat
     if (err >= 0) ::close(err);
     throw std::runtime_error("Child: cannot open output files in " + stdout_path);
   }
+  const pid_t parent = ::getpid();
   pid_ = ::fork();
   if (pid_ == 0) {
+    // Dies with the test: a test aborted by a sanitizer or a fatal signal runs no destructor,
+    // and its children would load the machine for the rest of the suite. (The signal follows
+    // the thread that forked: tests make their children on the test's own thread.)
+    ::prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (::getppid() != parent) ::_exit(127);  // the test ended before the line above
     ::dup2(out, STDOUT_FILENO);
     ::dup2(err, STDERR_FILENO);
     // gtest's own signal dispositions and mask must not leak into the child.
