@@ -224,6 +224,20 @@ void WaitUntilReady(Child& sim, const std::string& ready, const std::string& err
   }
 }
 
+// The twin walking (seed kSeed, transducers at kAtiRateHz) in `dir`, its config written to
+// `config_path` with the Dynamixel pty at dir/tty; returned once it is ready.
+std::unique_ptr<Child> StartWalkingTwin(const std::string& dir, const std::string& config_path) {
+  std::ofstream(config_path) << TestConfigText(dir + "/tty");
+  auto sim = std::make_unique<Child>(
+      std::vector<std::string>{FTCAL_SIM, "live", "--config", config_path, "--pty-link",
+                               dir + "/tty", "--ready", dir + "/ready", "--scenario", "walk",
+                               "--seed", std::to_string(kSeed), "--ati-rate",
+                               std::to_string(kAtiRateHz)},
+      dir + "/sim.out", dir + "/sim.err");
+  WaitUntilReady(*sim, dir + "/ready", dir + "/sim.err");
+  return sim;
+}
+
 TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
   ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
@@ -663,14 +677,8 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
   ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };
-  const std::string link = path("tty");
   const std::string config_path = path("config.pbtxt");
-  std::ofstream(config_path) << TestConfigText(link);
-  Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--ready",
-             path("ready"), "--scenario", "walk", "--seed", std::to_string(kSeed), "--ati-rate",
-             std::to_string(kAtiRateHz)},
-            path("sim.out"), path("sim.err"));
-  WaitUntilReady(sim, path("ready"), path("sim.err"));
+  std::unique_ptr<Child> sim = StartWalkingTwin(dir, config_path);
   if (HasFatalFailure()) return;
   struct Bridge {
     std::string name;
@@ -712,7 +720,7 @@ TEST(SimLive, EveryBridgeSpeaksSystemdsNotifyProtocol) {
     EXPECT_EQ(b.socket->Count("STOPPING=1"), 1);
     EXPECT_EQ(b.socket->Count("READY=1"), 1);
   }
-  Terminate(sim, "ftcal-sim live", path("sim.err"));
+  Terminate(*sim, "ftcal-sim live", path("sim.err"));
   if (!HasFailure()) testing::RemoveTree(dir);
 }
 
@@ -736,14 +744,8 @@ TEST(SimLive, EveryBridgeRunsItsDeviceLoopRealtimeWhenAsked) {
   ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };
-  const std::string link = path("tty");
   const std::string config_path = path("config.pbtxt");
-  std::ofstream(config_path) << TestConfigText(link);
-  Child sim({FTCAL_SIM, "live", "--config", config_path, "--pty-link", link, "--ready",
-             path("ready"), "--scenario", "walk", "--seed", std::to_string(kSeed), "--ati-rate",
-             std::to_string(kAtiRateHz)},
-            path("sim.out"), path("sim.err"));
-  WaitUntilReady(sim, path("ready"), path("sim.err"));
+  std::unique_ptr<Child> sim = StartWalkingTwin(dir, config_path);
   if (HasFatalFailure()) return;
   const std::vector<std::string> rt = {"--realtime", "--realtime-priority", "12"};
   std::vector<std::pair<std::string, std::unique_ptr<Child>>> bridges;
@@ -780,7 +782,7 @@ TEST(SimLive, EveryBridgeRunsItsDeviceLoopRealtimeWhenAsked) {
   }
   for (auto& [name, child] : bridges)
     Terminate(*child, "ftcal-" + name + "-bridge", path(name + ".err"));
-  Terminate(sim, "ftcal-sim live", path("sim.err"));
+  Terminate(*sim, "ftcal-sim live", path("sim.err"));
   if (!HasFailure()) testing::RemoveTree(dir);
 }
 
