@@ -52,7 +52,6 @@ int main(int argc, char** argv) {
         log, options);
     failure = ftcal::kExitDeviceIo;  // the calibration pages, the sockets
     bridge->Start();
-    app.ApplySchedulingFlags();
   } catch (const std::exception& e) {
     const std::string text = ftcal::UserText(e, "starting the bridge");
     log->critical("{}", text);

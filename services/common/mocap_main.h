@@ -27,7 +27,6 @@ int RunMocapBridge(ServiceApp& app, Options (*options_from_config)(const config:
         options_from_config(app.config().mocap()), app.stats(),
         [&](const mocap_body_t& msg) { bus.Publish(channels.mocap_body(), msg); },
         [&] { return bus.NowUtime(); });
-    app.ApplySchedulingFlags();
     // The device socket paces this process, not LCM (it subscribes to nothing): ServiceApp's
     // device loop, with the heartbeat and systemd's notify protocol.
     app.RunDeviceLoop([&] { return bridge.health_reason(); },

@@ -211,6 +211,7 @@ void ServiceApp::PublishHeartbeat() {
 }
 
 void ServiceApp::DeviceLoopStarted() {
+  if (scheduling_offered_) ApplySchedulingFlags();
   if (state_ == service_status_t::STARTING) state_ = service_status_t::RUNNING;
   PublishStatus();
   NotifyReady();
@@ -297,6 +298,7 @@ int ServiceApp::Run() {
 }
 
 void ServiceApp::OfferSchedulingFlags() {
+  scheduling_offered_ = true;
   cli_.add_flag("--realtime", scheduling_.realtime,
                 "run SCHED_FIFO with memory locked (a robot computer; needs root or "
                 "CAP_SYS_NICE/CAP_IPC_LOCK, else a warning and an ordinary process)");
@@ -311,12 +313,11 @@ void ServiceApp::OfferSchedulingFlags() {
       ->check(CLI::Range(0.0, 100000.0));
 }
 
-SchedulingGranted ServiceApp::ApplySchedulingFlags() {
+void ServiceApp::ApplySchedulingFlags() {
   const SchedulingGranted granted = ApplyScheduling(scheduling_, *log_);
   stats_->Counter("sched_fifo") = granted.fifo ? 1 : 0;
   stats_->Counter("memory_locked") = granted.locked ? 1 : 0;
   stats_->Counter("sched_slice") = granted.slice ? 1 : 0;
-  return granted;
 }
 
 }  // namespace ftcal

@@ -90,8 +90,9 @@ class ServiceApp {
 
   // For a process paced by its device instead of LCM (the bridges: a socket or a serial line
   // wakes them, and they run their own loop instead of Run()). What Run() does for the others:
-  //   DeviceLoopStarted()  RUNNING unless set otherwise, the first heartbeat, and systemd's
-  //                        READY=1 (a no-op when not under systemd);
+  //   DeviceLoopStarted()  the scheduling asked for (OfferSchedulingFlags), RUNNING unless set
+  //                        otherwise, the first heartbeat, and systemd's READY=1 (a no-op
+  //                        when not under systemd);
   //   PublishHeartbeat()   the heartbeat on the status channel, and systemd's watchdog fed
   //                        (the heartbeat stops when the loop hangs, and so does the feed);
   //   DeviceLoopStopped()  STOPPING, systemd told, the final heartbeat (a failure to send it
@@ -108,12 +109,11 @@ class ServiceApp {
                      const std::function<void(int max_wait_ms)>& step);
 
   // A device-paced process's scheduling (common/scheduling.h), the same flags in every bridge:
-  // --realtime, --realtime-priority and --slice-us. Offer them before Init(); apply them on the
-  // thread that runs the device loop, once the device is open (the calibration pages and port
-  // probes run as an ordinary process). Applying sets the counters sched_fifo, memory_locked
-  // and sched_slice (1 when granted) and logs what was refused.
+  // --realtime, --realtime-priority and --slice-us. Offer them before Init(); DeviceLoopStarted()
+  // applies them, on the thread that runs the device loop once the device is open (the
+  // calibration pages and port probes run as an ordinary process), and sets the counters
+  // sched_fifo, memory_locked and sched_slice (1 when granted); refusals are logged.
   void OfferSchedulingFlags();
-  SchedulingGranted ApplySchedulingFlags();
 
  private:
   struct Periodic {
@@ -124,6 +124,7 @@ class ServiceApp {
   void Tick();
   void PublishStatus();
   void NotifyReady();
+  void ApplySchedulingFlags();
   bool watchdog_ = false;  // systemd asked for WATCHDOG=1 (WatchdogSec=)
 
   ServiceSpec spec_;
@@ -134,6 +135,7 @@ class ServiceApp {
   std::string replay_in_;
   std::string replay_out_;
   SchedulingOptions scheduling_;
+  bool scheduling_offered_ = false;
 
   ProcessIdentity identity_;
   std::chrono::steady_clock::time_point started_;

@@ -158,9 +158,6 @@ int main(int argc, char** argv) {
     };
 
     bridge.Connect();
-    // Off the bus for the servos' Bus Watchdog time (0.5 s by default) and they stop the legs:
-    // on a robot computer this loop runs --realtime.
-    app.ApplySchedulingFlags();
     // The bus cycle paces this loop, not LCM: ServiceApp's device-loop calls give it systemd's
     // notify protocol (READY=1 once connected, the watchdog with the heartbeat, STOPPING=1).
     app.DeviceLoopStarted();
