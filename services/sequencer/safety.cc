@@ -22,9 +22,27 @@ std::string Num(double v, int precision = 4) {
   return s.str();
 }
 
-double AgeS(int64_t now_utime, int64_t utime) { return (now_utime - utime) * 1e-6; }
-
 }  // namespace
+
+int64_t OwnStalls::Awake(int64_t now_utime) {
+  int64_t stalled = 0;
+  if (last_utime_ > 0 && now_utime - last_utime_ > kStallUs) {
+    stalled = now_utime - last_utime_;
+    stalls_.push_back({last_utime_, now_utime});
+  }
+  last_utime_ = std::max(last_utime_, now_utime);
+  while (!stalls_.empty() && stalls_.front().to < now_utime - kMemoryUs) stalls_.pop_front();
+  return stalled;
+}
+
+int64_t OwnStalls::StalledUs(int64_t since_utime, int64_t now_utime) const {
+  int64_t sum = 0;
+  for (const Span& s : stalls_) {
+    const int64_t from = std::max(s.from, since_utime), to = std::min(s.to, now_utime);
+    if (to > from) sum += to - from;
+  }
+  return sum;
+}
 
 Safety::Safety(const config::Config& config) : config_(config), seq_(config.sequencer()) {
   const auto poses = NominalTransducerPoses(config.robot());
@@ -37,13 +55,17 @@ Safety::Safety(const config::Config& config) : config_(config), seq_(config.sequ
   weight_n_ = config.robot().total_mass_kg() * config.robot().g0_m_s2();
 }
 
-std::optional<std::string> Safety::Stale(const Inputs& in, int64_t now_utime,
-                                         bool need_mocap) const {
+std::optional<std::string> Safety::Stale(const Inputs& in, int64_t now_utime, bool need_mocap,
+                                         const OwnStalls& own) const {
   const double limit = seq_.max_input_age_s();
   auto old = [&](const std::string& what, int64_t utime) -> std::optional<std::string> {
-    const double age = AgeS(now_utime, utime);
+    const int64_t stalled = own.StalledUs(utime, now_utime);
+    const double age = (now_utime - utime - stalled) * 1e-6;
     if (age > limit) {
-      return what + " is " + Num(age, 3) + " s old, above sequencer.max_input_age_s " + Num(limit);
+      return what + " is " + Num(age, 3) + " s old, above sequencer.max_input_age_s " + Num(limit) +
+             (stalled > 0 ? " (not counting " + Num(stalled * 1e-6, 3) +
+                                " s in which the sequencer itself did not run)"
+                          : std::string());
     }
     return std::nullopt;
   };

@@ -17,6 +17,7 @@
 
 #include <array>
 #include <cstdint>
+#include <deque>
 #include <map>
 #include <optional>
 #include <string>
@@ -47,12 +48,40 @@ struct Inputs {
   std::map<std::string, StatusReading> status;
 };
 
+// The spans in which the sequencer itself did not run (a write blocked in fsync, the scheduler
+// gave its core away). An input's age counts only the time the sequencer was listening: after
+// its own stall it has not yet read what queued meanwhile, and a bridge must not be blamed for
+// that. Only the stalls are taken out, so a sequencer that stalls often still sees a dead
+// input once it has listened for max_input_age_s.
+class OwnStalls {
+ public:
+  // A gap between two readings of the clock longer than this is a stall (the loop runs every
+  // 20 ms; a busy machine delays it by tens of milliseconds).
+  static constexpr int64_t kStallUs = 100'000;
+  // Stalls older than this are forgotten (far beyond any sensible max_input_age_s).
+  static constexpr int64_t kMemoryUs = 60'000'000;
+
+  // The sequencer runs at `now_utime`; returns the stall it ended, in microseconds, or 0.
+  int64_t Awake(int64_t now_utime);
+  // How much of (since_utime, now_utime] the sequencer spent stalled.
+  int64_t StalledUs(int64_t since_utime, int64_t now_utime) const;
+
+ private:
+  struct Span {
+    int64_t from, to;
+  };
+  int64_t last_utime_ = 0;
+  std::deque<Span> stalls_;
+};
+
 class Safety {
  public:
   explicit Safety(const config::Config& config);
 
-  // Inputs missing or older than max_input_age_s at `now_utime`, or a bridge not RUNNING.
-  std::optional<std::string> Stale(const Inputs& in, int64_t now_utime, bool need_mocap) const;
+  // Inputs missing or older than max_input_age_s at `now_utime` (not counting the sequencer's
+  // own stalls), or a bridge not RUNNING.
+  std::optional<std::string> Stale(const Inputs& in, int64_t now_utime, bool need_mocap,
+                                   const OwnStalls& own = OwnStalls()) const;
   // A transducer beyond its rated range or flagged saturated.
   std::optional<std::string> OverRange(const Inputs& in) const;
   // The body tilted further than max_tilt_deg (needs a tracked motion-capture frame).

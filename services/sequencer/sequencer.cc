@@ -226,7 +226,8 @@ bool Sequencer::PhaseNeedsMocap(int phase) const {
 
 std::optional<std::string> Sequencer::SafetyViolation() const {
   const int phase = Current().phase;
-  if (auto e = safety_.Stale(inputs_, bus_.NowUtime(), PhaseNeedsMocap(phase))) return e;
+  if (auto e = safety_.Stale(inputs_, bus_.NowUtime(), PhaseNeedsMocap(phase), own_stalls_))
+    return e;
   if (auto e = safety_.OverRange(inputs_)) return e;
   if (PhaseNeedsMocap(phase)) {
     if (auto e = safety_.Tilted(inputs_)) return e;
@@ -396,7 +397,18 @@ void Sequencer::Advance() {
   }
 }
 
+void Sequencer::Awake(int64_t now) {
+  const int64_t stalled = own_stalls_.Awake(now);
+  if (stalled == 0) return;
+  ++bus_.stats().Counter("own_stalls");
+  bus_.stats().log().warn(
+      "the sequencer itself did not run for {:.3f} s (a blocked write, or no core for it); its "
+      "inputs' ages do not count that time",
+      stalled * 1e-6);
+}
+
 void Sequencer::Tick() {
+  Awake(bus_.NowUtime());
   TickSteps();
   KeepAlive(bus_.NowUtime());
 }
@@ -405,6 +417,7 @@ void Sequencer::TickSteps() {
   // Several steps can finish at the same instant (markers, checks): run them in one call.
   for (int guard = 0; guard < 64 && state_ != State::kDone && state_ != State::kStopped; ++guard) {
     const int64_t now = bus_.NowUtime();
+    Awake(now);  // a step before this one may have blocked (Save's fsync)
     Step& s = Current();
     if (!step_started_) {
       step_started_ = true;
@@ -442,7 +455,7 @@ void Sequencer::TickSteps() {
       case StepKind::kPrecheck: {
         state_ = State::kRunning;
         std::optional<std::string> why;
-        if (auto e = safety_.Stale(inputs_, now, PhaseNeedsMocap(s.phase))) {
+        if (auto e = safety_.Stale(inputs_, now, PhaseNeedsMocap(s.phase), own_stalls_)) {
           // The bridges may still be starting (or the operator plugging a cable): wait a while
           // for fresh inputs before calling it a failure.
           if (t < kInputWaitS) return;

@@ -91,6 +91,8 @@ class Sequencer {
   bool EnsureArmed(int64_t now);
   // While armed, a command at least every 1/command_rate_hz, whatever the step does.
   void KeepAlive(int64_t now);
+  // Notes the sequencer's own stalls (OwnStalls) and says when one happened.
+  void Awake(int64_t now);
   void TickSteps();
   const StatusReading* ServoBridgeStatus() const;
   void PublishMarker(int phase, bool start);
@@ -129,6 +131,7 @@ class Sequencer {
   int64_t last_marker_utime_ = 0;
   std::string session_id_;
   Inputs inputs_;
+  OwnStalls own_stalls_;
   State state_ = State::kRunning;
   std::string stop_reason_;
   std::string waiting_reason_;

@@ -376,6 +376,49 @@ TEST_F(SafetyTest, StaleOverRangeSaturatedAndFailedBridgeAreNamed) {
       << *failed;
 }
 
+TEST_F(SafetyTest, TheSequencersOwnStallDoesNotAgeItsInputsButAStallOnlyTakesOutItsSpan) {
+  BigAntTwin::Driven driven(twin_);
+  Inputs in = FromFrame(driven.Frame(0.0, Angles{}), 10'000'000);
+  const Safety safety(config_);  // sim.pbtxt: max_input_age_s 0.5
+  OwnStalls own;
+  // Ticking every 20 ms with ordinary jitter (up to 90 ms) is no stall.
+  int64_t t = 10'000'000;
+  for (int i = 0; i < 10; ++i) EXPECT_EQ(own.Awake(t += (i == 5 ? 90'000 : 20'000)), 0);
+  // Then the sequencer blocks 3 s, its inputs last seen as the stall began.
+  const int64_t stall_from = t;
+  for (auto& ft : in.ft) ft->utime = t;
+  in.servo->utime = t;
+  EXPECT_EQ(own.Awake(t + 3'000'000), 3'000'000);
+  t += 3'000'000;
+  EXPECT_EQ(own.StalledUs(t - 3'000'000, t), 3'000'000);
+  EXPECT_EQ(own.StalledUs(t - 1'000'000, t), 1'000'000);  // clipped to the asked span
+  EXPECT_EQ(safety.Stale(in, t, false, own), std::nullopt);
+  // Without the account the same inputs are 3 s old.
+  EXPECT_TRUE(safety.Stale(in, t, false).has_value());
+  // Having listened 0.49 s since (ticking every 10 ms), they still pass; at 0.6 s FT_HL is named,
+  // with the stall.
+  auto listen_until = [&](int64_t until) {
+    for (int64_t u = t + 10'000; u <= until; u += 10'000) EXPECT_EQ(own.Awake(u), 0);
+  };
+  listen_until(t + 490'000);
+  EXPECT_EQ(safety.Stale(in, t + 490'000, false, own), std::nullopt);
+  listen_until(t + 600'000);
+  auto stale = safety.Stale(in, t + 600'000, false, own);
+  ASSERT_TRUE(stale.has_value());
+  EXPECT_NE(stale->find("FT_HL is 0.6 s old, above sequencer.max_input_age_s 0.5 (not counting 3 "
+                        "s in which the sequencer itself did not run)"),
+            std::string::npos)
+      << *stale;
+  // An input that went quiet before the stall is charged for the time around it: last seen
+  // 0.4 s before the stall began, it is 0.4 + 0.6 = 1.0 s old.
+  for (auto& ft : in.ft) ft->utime = t + 600'000;
+  in.servo->utime = t + 600'000;
+  in.ft[3]->utime = stall_from - 400'000;
+  stale = safety.Stale(in, t + 600'000, false, own);
+  ASSERT_TRUE(stale.has_value());
+  EXPECT_NE(stale->find("FT_HR is 1 s old"), std::string::npos) << *stale;
+}
+
 TEST_F(SafetyTest, TiltBeyondTheLimitIsRefused) {
   BigAntTwin::Driven driven(twin_);
   Inputs in = FromFrame(driven.Frame(0.0, Angles{}), 1);
