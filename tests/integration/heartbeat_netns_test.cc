@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <map>
+#include <optional>
 #include <sstream>
 #include <thread>
 
@@ -45,6 +46,31 @@ std::vector<std::string> RowForPid(const std::string& table, pid_t pid) {
   return {};
 }
 
+// The first heartbeat of process `pid` heard on `lcm` within `timeout_s`. Tests wait for it
+// rather than for a fixed time: a process under a sanitizer takes seconds to start.
+std::optional<service_status_t> AwaitHeartbeat(lcm::LCM& lcm, pid_t pid, double timeout_s) {
+  std::optional<service_status_t> heard;
+  auto* sub = lcm.subscribeFunction(
+      "FTCAL_STATUS",
+      +[](const lcm::ReceiveBuffer* rbuf, const std::string&,
+          std::optional<service_status_t>* out) {
+        service_status_t s;
+        if (s.decode(rbuf->data, 0, rbuf->data_size) == static_cast<int>(rbuf->data_size)) {
+          if (!out->has_value() || s.pid == (*out)->pid) *out = s;
+        }
+      },
+      &heard);
+  const auto start = std::chrono::steady_clock::now();
+  std::optional<service_status_t> found;
+  while (!found && SecondsSince(start) < timeout_s) {
+    heard.reset();
+    lcm.handleTimeout(100);
+    if (heard && heard->pid == pid) found = heard;
+  }
+  lcm.unsubscribe(sub);
+  return found;
+}
+
 int64_t CounterIn(const std::vector<std::string>& row, const std::string& name) {
   for (size_t i = 10; i < row.size(); ++i) {
     if (row[i].rfind(name + "=", 0) == 0) return std::stoll(row[i].substr(name.size() + 1));
@@ -78,8 +104,15 @@ TEST_F(HeartbeatNetnsTest, StatusShowsPublisherSigtermEndsItAndTheLogHoldsItsHea
   auto logger = Start("logger", {FTCAL_LCM_LOGGER, "--lcm-url", kUrl, "-f", log_path});
   SleepS(0.3);  // the logger subscribes before anything is published
 
-  const auto demo_started = std::chrono::steady_clock::now();
+  lcm::LCM listener(kUrl);
+  ASSERT_TRUE(listener.good());
   auto demo = StartDemo("demo");
+  const auto first = AwaitHeartbeat(listener, demo->pid(), 30);
+  ASSERT_TRUE(first.has_value()) << "no heartbeat from the demo in 30 s";
+  // The demo's clock: it had been up first->uptime_s when its first heartbeat was heard.
+  const auto demo_started = std::chrono::steady_clock::now() -
+                            std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                std::chrono::duration<double>(first->uptime_s));
   auto status = Start("status", {FTCAL_STATUS_EXE, "--lcm-url", kUrl, "--once-after", "3"});
   const auto status_rc = status->Wait(15);
   ASSERT_TRUE(status_rc.has_value()) << "ftcal-status --once-after 3 did not exit";
@@ -150,11 +183,16 @@ TEST_F(HeartbeatNetnsTest, StatusShowsPublisherSigtermEndsItAndTheLogHoldsItsHea
 }
 
 TEST_F(HeartbeatNetnsTest, StatusMarksAKilledPublisherLost) {
-  auto status = Start("status", {FTCAL_STATUS_EXE, "--lcm-url", kUrl, "--once-after", "6.5"});
-  SleepS(0.5);  // ftcal-status is listening
+  lcm::LCM listener(kUrl);
+  ASSERT_TRUE(listener.good());
   auto alive = StartDemo("alive");
   auto doomed = StartDemo("doomed");
-  SleepS(2.2);  // heartbeats at start and about every second: two or three heard
+  ASSERT_TRUE(AwaitHeartbeat(listener, alive->pid(), 30).has_value());
+  ASSERT_TRUE(AwaitHeartbeat(listener, doomed->pid(), 30).has_value());
+  auto status = Start("status", {FTCAL_STATUS_EXE, "--lcm-url", kUrl, "--once-after", "6.5"});
+  // Its own first heartbeat: it is listening, and its 6.5 s count from about now.
+  ASSERT_TRUE(AwaitHeartbeat(listener, status->pid(), 30).has_value());
+  SleepS(2.2);  // heartbeats about every second: two or three of the doomed one heard
   doomed->Signal(SIGKILL);
   ASSERT_TRUE(doomed->Wait(2).has_value());
 
@@ -166,7 +204,7 @@ TEST_F(HeartbeatNetnsTest, StatusMarksAKilledPublisherLost) {
   const auto live_row = RowForPid(table, alive->pid());
   ASSERT_FALSE(dead_row.empty()) << table;
   ASSERT_FALSE(live_row.empty()) << table;
-  // Silent for >= ~4 s (killed at ~2.7 s, table at ~6.6 s) with no goodbye: LOST.
+  // Silent for >= ~4 s (killed at ~2.2 s, table at 6.5 s) with no goodbye: LOST.
   EXPECT_EQ(dead_row[3], "LOST") << table;
   EXPECT_EQ(live_row[3], "RUNNING") << table;
 }
