@@ -5,6 +5,7 @@
 #include <fstream>
 #include <sstream>
 #include <stdexcept>
+#include <utility>
 
 #include "ftcal/calibration_io.h"
 #include "ftcal/experiment_marker_t.hpp"
@@ -90,6 +91,58 @@ void SaveProgress(const std::string& path, const Progress& p) {
                             "\nsession " + p.session_id + "\n");
 }
 
+ProgressSaver::ProgressSaver(std::string path)
+    : path_(std::move(path)), thread_([this] { Run(); }) {}
+
+ProgressSaver::~ProgressSaver() {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    stop_ = true;
+  }
+  cv_.notify_all();
+  thread_.join();
+}
+
+void ProgressSaver::Save(const Progress& progress) {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    pending_ = progress;
+  }
+  cv_.notify_all();
+}
+
+std::string ProgressSaver::Flush() {
+  std::unique_lock<std::mutex> lock(mu_);
+  cv_.wait(lock, [this] { return !pending_ && !writing_; });
+  return std::exchange(error_, std::string());
+}
+
+std::string ProgressSaver::TakeError() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return std::exchange(error_, std::string());
+}
+
+void ProgressSaver::Run() {
+  std::unique_lock<std::mutex> lock(mu_);
+  for (;;) {
+    cv_.wait(lock, [this] { return stop_ || pending_.has_value(); });
+    if (!pending_) return;  // stopping with nothing left to write
+    const Progress p = *std::exchange(pending_, std::nullopt);
+    writing_ = true;
+    lock.unlock();
+    std::string error;
+    try {
+      SaveProgress(path_, p);
+    } catch (const std::exception& e) {
+      error = e.what();
+    }
+    lock.lock();
+    writing_ = false;
+    if (!error.empty()) error_ = error;
+    cv_.notify_all();
+  }
+}
+
 Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signer, Options options)
     : config_(config),
       bus_(bus),
@@ -99,6 +152,8 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
       safety_(config),
       schedule_(Expand(config, options_.plan_name)) {
   if (options_.progress_file.empty()) options_.progress_file = config.sequencer().progress_file();
+  if (!options_.progress_file.empty())
+    saver_ = std::make_unique<ProgressSaver>(options_.progress_file);
   for (int k = 0; k < kNumLegs; ++k) servo_ids_[k] = config.robot().leg(k).servo().id();
 
   int resume = 0;
@@ -336,8 +391,7 @@ void Sequencer::PublishMarker(int phase, bool start) {
     bus_.stats().log().info("{} {}", start ? "start" : "end", schedule_.phase_names[phase]);
 }
 
-void Sequencer::Save() {
-  if (options_.progress_file.empty()) return;
+Progress Sequencer::ResumePoint() const {
   // The resume point of the step under way (or the next one, when this one is finished).
   int next = static_cast<int>(schedule_.steps.size());
   for (size_t i = index_; i < steps_.size(); ++i) {
@@ -360,7 +414,18 @@ void Sequencer::Save() {
       }
     }
   }
-  SaveProgress(options_.progress_file, Progress{schedule_.plan_name, next, session_id_});
+  return Progress{schedule_.plan_name, next, session_id_};
+}
+
+void Sequencer::Save() {
+  if (saver_) saver_->Save(ResumePoint());
+}
+
+void Sequencer::SaveNow(const Progress& progress) {
+  if (!saver_) return;
+  saver_->Save(progress);
+  const std::string error = saver_->Flush();
+  if (!error.empty()) bus_.stats().Error("progress not saved", error);
 }
 
 void Sequencer::Begin(int index) {
@@ -382,11 +447,7 @@ void Sequencer::Advance() {
   Begin(index_ + 1);
   if (index_ >= static_cast<int>(steps_.size())) {
     state_ = State::kDone;
-    if (!options_.progress_file.empty()) {
-      SaveProgress(
-          options_.progress_file,
-          Progress{schedule_.plan_name, static_cast<int>(schedule_.steps.size()), session_id_});
-    }
+    SaveNow(Progress{schedule_.plan_name, static_cast<int>(schedule_.steps.size()), session_id_});
     bus_.stats().log().info("plan '{}' done", schedule_.plan_name);
     if (arm_utime_ > 0) SendAction(servo_command_t::DISARM);  // the bridge holds the last pose
     return;
@@ -409,6 +470,10 @@ void Sequencer::Awake(int64_t now) {
 
 void Sequencer::Tick() {
   Awake(bus_.NowUtime());
+  if (saver_) {
+    const std::string error = saver_->TakeError();
+    if (!error.empty()) bus_.stats().Error("progress not saved", error);
+  }
   TickSteps();
   KeepAlive(bus_.NowUtime());
 }
@@ -551,11 +616,7 @@ void Sequencer::Stop(const std::string& reason) {
     }
   }
   if (open_marker_phase_ >= 0) PublishMarker(open_marker_phase_, false);
-  try {
-    Save();
-  } catch (const std::exception& e) {
-    bus_.stats().Error("progress not saved", e.what());
-  }
+  SaveNow(ResumePoint());
 }
 
 std::string Sequencer::ProgressLine() const {

@@ -21,10 +21,14 @@
 // (hold, fault) stops the run; at the end, or stopping, it holds and sends DISARM.
 #pragma once
 
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
+#include <memory>
+#include <mutex>
 #include <optional>
 #include <string>
+#include <thread>
 
 #include "common/bus.h"
 #include "common/envelope.h"
@@ -47,6 +51,38 @@ struct Progress {
 // when it exists but cannot be read.
 std::optional<Progress> LoadProgress(const std::string& path);
 void SaveProgress(const std::string& path, const Progress& progress);
+
+// Writes a progress file on a thread of its own. The atomic write ends in fsync, and on a disk
+// busy with a recorder's log that can take seconds (ext4 commits the journal, and with it the
+// log's pending data), while the sequencer must keep commanding the legs: in CI a sequencer
+// blocked 3 s saving after a finished pose. Only the latest progress matters, so a Save
+// replaces one not yet written.
+class ProgressSaver {
+ public:
+  explicit ProgressSaver(std::string path);
+  ~ProgressSaver();  // writes what is pending first
+  ProgressSaver(const ProgressSaver&) = delete;
+  ProgressSaver& operator=(const ProgressSaver&) = delete;
+
+  void Save(const Progress& progress);
+  // Waits until every Save so far is written; returns the error of a write that failed since
+  // the last Flush or TakeError ("" when none).
+  std::string Flush();
+  // That error, without waiting.
+  std::string TakeError();
+
+ private:
+  void Run();
+
+  const std::string path_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::optional<Progress> pending_;
+  bool writing_ = false;
+  bool stop_ = false;
+  std::string error_;
+  std::thread thread_;
+};
 
 class Sequencer {
  public:
@@ -99,7 +135,12 @@ class Sequencer {
   bool Arrived(const Angles& goals) const;
   std::optional<std::string> SafetyViolation() const;
   bool PhaseNeedsMocap(int phase) const;
+  // Where a restart would resume, as the run stands now.
+  Progress ResumePoint() const;
+  // Saves it without waiting (ProgressSaver).
   void Save();
+  // Saves the end of the plan, or the stop's resume point, and waits until it is on disk.
+  void SaveNow(const Progress& progress);
   const Step& Current() const { return steps_[index_]; }
   Step& Current() { return steps_[index_]; }
 
@@ -132,6 +173,7 @@ class Sequencer {
   std::string session_id_;
   Inputs inputs_;
   OwnStalls own_stalls_;
+  std::unique_ptr<ProgressSaver> saver_;  // null without a progress file
   State state_ = State::kRunning;
   std::string stop_reason_;
   std::string waiting_reason_;

@@ -712,6 +712,30 @@ TEST(SequencerRun, StandingGridOnTheTwinVisitsEveryPoseInsideOneMarker) {
   EXPECT_GT(fastest, 0.1);
 }
 
+TEST(ProgressSaverTest, TheLatestSaveReachesTheFileAndAFailedWriteIsReportedOnce) {
+  const std::string path = TempPath("saver_progress");
+  std::filesystem::remove(path);
+  {
+    ProgressSaver saver(path);
+    for (int i = 0; i <= 200; ++i) saver.Save(Progress{"grid", i, "s9"});
+    EXPECT_EQ(saver.Flush(), "");
+    const auto saved = LoadProgress(path);
+    ASSERT_TRUE(saved.has_value());
+    EXPECT_EQ(saved->next_step, 200);
+    EXPECT_EQ(saved->session_id, "s9");
+    saver.Save(Progress{"grid", 201, "s9"});  // pending as the saver goes away
+  }
+  EXPECT_EQ(LoadProgress(path)->next_step, 201);
+  std::filesystem::remove(path);
+
+  const std::string nowhere = TempPath("no_such_dir") + "/progress";
+  ProgressSaver bad(nowhere);
+  bad.Save(Progress{"grid", 3, "s9"});
+  const std::string error = bad.Flush();
+  EXPECT_NE(error.find(nowhere), std::string::npos) << error;
+  EXPECT_EQ(bad.TakeError(), "");
+}
+
 TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThatPose) {
   const std::string progress = TempPath("sequencer_progress");
   std::filesystem::remove(progress);
