@@ -38,6 +38,9 @@ struct MessageInfo {
   const std::string& channel;
   // Live: this host's receive time; replay: the logged event's timestamp. us since the epoch.
   int64_t recv_utime;
+  // On a signed channel (Bus::SubscribeSigned), the name of the trusted key whose signature
+  // verified; null for an unsigned message (and on other channels).
+  const std::string* signer = nullptr;
 };
 
 // Thrown by a handler that refuses an input (a NaN, an unknown leg, a message from the
@@ -103,6 +106,12 @@ class Bus {
   // every `tick_us` of bus time (live: also when the bus is quiet).
   virtual void Run(const std::function<void()>& tick, int64_t tick_us) = 0;
   virtual bool IsReplay() const = 0;
+  // For a process that runs its own loop (a bridge paced by its device): the descriptor that
+  // is readable when a message waits (-1 on replay), and HandleOnce() to handle one.
+  virtual int Fileno() { return -1; }
+  // Handles at most one message, waiting up to `timeout_ms`; returns LCM's result (>0 handled,
+  // 0 timeout, <0 error, or -1 on replay).
+  virtual int HandleOnce(int /*timeout_ms*/) { return -1; }
 
   ServiceStats& stats() { return stats_; }
 
@@ -151,9 +160,8 @@ class LcmBus : public Bus {
   int64_t NowUtime() const override;
   void Run(const std::function<void()>& tick, int64_t tick_us) override;
   bool IsReplay() const override { return false; }
-  // Handles at most one message, waiting up to `timeout_ms`; returns LCM's result (>0 handled,
-  // 0 timeout, <0 error). For tests and custom loops.
-  int HandleOnce(int timeout_ms);
+  int Fileno() override { return lcm_.getFileno(); }
+  int HandleOnce(int timeout_ms) override;
 
  protected:
   void TransportSubscribe(size_t subscription, const std::string& channel) override;
@@ -281,7 +289,7 @@ void Bus::SubscribeSigned(const std::string& channel, auth::Verifier* verifier, 
                          " from " + *opened->signer + ": " + bad->kind,
                      bad->detail);
     }
-    handler(info, msg);
+    handler(MessageInfo{info.channel, info.recv_utime, opened->signer}, msg);
   });
 }
 

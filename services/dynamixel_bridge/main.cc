@@ -1,13 +1,13 @@
 // ftcal-dynamixel-bridge: the Dynamixel MX-106 bus (Protocol 2.0) to SERVO_STATE, SERVO_CMD to
-// the bus. A thin main around DynamixelBridge: one poll() over the serial port and the LCM
-// socket, a read-write cycle at dynamixel.rate_hz, the FTCAL_STATUS heartbeat.
+// the bus. A thin main around DynamixelBridge: one poll() over the serial port and the
+// process's one LCM socket (the ServiceApp's bus, whose SubscribeSigned verifies SERVO_CMD's
+// envelope and names its signer), a read-write cycle at dynamixel.rate_hz, the FTCAL_STATUS
+// heartbeat; the CommandGate decides whether to act on a command.
 #include <poll.h>
 
 #include <chrono>
 #include <cmath>
 #include <string>
-
-#include <lcm/lcm-cpp.hpp>
 
 #include "common/bus.h"
 #include "common/exit_codes.h"
@@ -20,39 +20,7 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-// LCM 1.3.1 subscribes member functions, not closures. The bridge needs the LCM socket's fd in
-// its own poll() (ServiceApp's bus does not expose it), so SERVO_CMD arrives on an lcm::LCM of
-// its own; the envelope is verified (common/envelope.h) and the inner command passes the wire
-// guard as on Bus::SubscribeSigned, then the CommandGate decides whether to act on it.
-struct CommandSink {
-  ftcal::CommandGate* gate;
-  ftcal::auth::Verifier* verifier;
-  ftcal::ServiceStats* stats;
-  int64_t window_us;
-  void OnMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
-    stats->CountIn();
-    try {
-      const int size = static_cast<int>(rbuf->data_size);
-      auto [opened, refused] = verifier->Open(
-          channel, rbuf->data, size, static_cast<uint64_t>(ftcal::servo_command_t::getHash()),
-          rbuf->recv_utime, window_us);
-      if (refused) throw ftcal::BadInput(refused->kind + " on " + channel, refused->detail);
-      ftcal::servo_command_t cmd;
-      if (auto bad = ftcal::wire::Decode(opened->payload, opened->size, &cmd)) {
-        throw ftcal::BadInput("undecodable servo_command_t on " + channel + ": " + bad->kind,
-                              bad->detail);
-      }
-      gate->OnCommand(*opened->signer, cmd, SteadyS());
-    } catch (const ftcal::BadInput& e) {
-      stats->Drop(e.kind(), e.what());
-    } catch (const std::exception& e) {
-      stats->Error("handler for " + channel, e.what());
-    }
-  }
-  static double SteadyS() {
-    return std::chrono::duration<double>(Clock::now().time_since_epoch()).count();
-  }
-};
+double SteadyS() { return std::chrono::duration<double>(Clock::now().time_since_epoch()).count(); }
 
 }  // namespace
 
@@ -105,11 +73,8 @@ int main(int argc, char** argv) {
     app.log().critical("config: dynamixel.rate_hz {} outside (0, 1000]", rate_hz);
     return ftcal::kExitConfig;
   }
-  std::string url = config.lcm_url();
-  if (auto* opt = app.cli().get_option("--lcm-url"); opt->count() > 0) url = opt->as<std::string>();
-
   try {
-    ftcal::CommandGate gate(config, app.stats(), CommandSink::SteadyS());
+    ftcal::CommandGate gate(config, app.stats(), SteadyS());
     ftcal::auth::Verifier verifier = ftcal::auth::Verifier::FromConfig(config);
     if (!verifier.Trusts(config.channels().servo_cmd())) {
       app.log().warn("no key in the config's auth is trusted on {}: every command is refused",
@@ -123,14 +88,13 @@ int main(int argc, char** argv) {
         },
         [&] { return app.bus().NowUtime(); });
 
-    lcm::LCM cmd_lcm(url);
-    if (!cmd_lcm.good()) {
-      app.log().critical("cannot open LCM at {}", url);
-      return ftcal::kExitDeviceIo;
-    }
-    CommandSink sink{&gate, &verifier, &app.stats(),
-                     static_cast<int64_t>(config.auth().servo_cmd_window_s() * 1e6)};
-    cmd_lcm.subscribe(config.channels().servo_cmd(), &CommandSink::OnMessage, &sink);
+    app.bus().SubscribeSigned<ftcal::servo_command_t>(
+        config.channels().servo_cmd(), &verifier,
+        static_cast<int64_t>(config.auth().servo_cmd_window_s() * 1e6),
+        /*allow_unsigned=*/false,
+        [&gate](const ftcal::MessageInfo& info, const ftcal::servo_command_t& cmd) {
+          gate.OnCommand(*info.signer, cmd, SteadyS());
+        });
 
     // The heartbeat says DEGRADED once the bus has been degraded for longer than
     // dynamixel.deadman_s, the rule the gate's FAULT follows: one stale cycle on a loaded bus
@@ -141,7 +105,7 @@ int main(int argc, char** argv) {
     auto publish_status = [&] {
       std::string why;
       const bool degraded = bridge.Degraded(&why) && degraded_since_s >= 0.0 &&
-                            CommandSink::SteadyS() - degraded_since_s >= degraded_after_s;
+                            SteadyS() - degraded_since_s >= degraded_after_s;
       const int8_t state =
           degraded ? ftcal::service_status_t::DEGRADED : ftcal::service_status_t::RUNNING;
       if (state != app.state()) {
@@ -174,7 +138,7 @@ int main(int argc, char** argv) {
         if (next_status <= now) next_status = now + std::chrono::seconds(1);
       }
       if (now >= next_cycle) {
-        if (auto cmd = gate.Tick(CommandSink::SteadyS(), bridge.Degraded())) {
+        if (auto cmd = gate.Tick(SteadyS(), bridge.Degraded())) {
           try {
             bridge.OnCommand(*cmd);
           } catch (const ftcal::BadInput& e) {
@@ -189,7 +153,7 @@ int main(int argc, char** argv) {
         if (!bridge.Degraded()) {
           degraded_since_s = -1.0;
         } else if (degraded_since_s < 0.0) {
-          degraded_since_s = CommandSink::SteadyS();
+          degraded_since_s = SteadyS();
         }
         next_cycle += period;
         now = Clock::now();
@@ -204,10 +168,10 @@ int main(int argc, char** argv) {
           std::min({next_cycle, next_status, now + std::chrono::milliseconds(100)}) - now;
       const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(wait).count();
       timespec ts{static_cast<time_t>(ns / 1'000'000'000), static_cast<long>(ns % 1'000'000'000)};
-      pollfd fds[2] = {{cmd_lcm.getFileno(), POLLIN, 0}, {bridge.fd(), POLLIN, 0}};
+      pollfd fds[2] = {{app.bus().Fileno(), POLLIN, 0}, {bridge.fd(), POLLIN, 0}};
       const nfds_t nfds = bridge.fd() >= 0 ? 2 : 1;
       if (::ppoll(fds, nfds, &ts, nullptr) <= 0) continue;
-      if (fds[0].revents & POLLIN) cmd_lcm.handleTimeout(0);
+      if (fds[0].revents & POLLIN) app.bus().HandleOnce(0);
       if (nfds == 2 && fds[1].revents != 0) bridge.OnDeviceReadable();
     }
   } catch (const std::invalid_argument& e) {  // the bridge's config checks
