@@ -46,29 +46,10 @@ std::vector<std::string> RowForPid(const std::string& table, pid_t pid) {
   return {};
 }
 
-// The first heartbeat of process `pid` heard on `lcm` within `timeout_s`. Tests wait for it
-// rather than for a fixed time: a process under a sanitizer takes seconds to start.
 std::optional<service_status_t> AwaitHeartbeat(lcm::LCM& lcm, pid_t pid, double timeout_s) {
-  std::optional<service_status_t> heard;
-  auto* sub = lcm.subscribeFunction(
-      "FTCAL_STATUS",
-      +[](const lcm::ReceiveBuffer* rbuf, const std::string&,
-          std::optional<service_status_t>* out) {
-        service_status_t s;
-        if (s.decode(rbuf->data, 0, rbuf->data_size) == static_cast<int>(rbuf->data_size)) {
-          if (!out->has_value() || s.pid == (*out)->pid) *out = s;
-        }
-      },
-      &heard);
-  const auto start = std::chrono::steady_clock::now();
-  std::optional<service_status_t> found;
-  while (!found && SecondsSince(start) < timeout_s) {
-    heard.reset();
-    lcm.handleTimeout(100);
-    if (heard && heard->pid == pid) found = heard;
-  }
-  lcm.unsubscribe(sub);
-  return found;
+  const auto heard = testing::AwaitHeartbeats(lcm, {pid}, timeout_s);
+  if (heard.empty()) return std::nullopt;
+  return heard.begin()->second;
 }
 
 int64_t CounterIn(const std::vector<std::string>& row, const std::string& name) {

@@ -201,7 +201,13 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
             Path("cal.out"), Path("cal.err"));
   Child cor({FTCAL_CORRECTOR, "--config", kConfig, "--lcm-url", kUrl}, Path("cor.out"),
             Path("cor.err"));
-  std::this_thread::sleep_for(std::chrono::milliseconds(1000));  // all subscribed
+  {
+    // Every stage subscribed (its first heartbeat), and the logger (which sends none) too.
+    lcm::LCM ear(kUrl);
+    const auto heard = testing::AwaitHeartbeats(ear, {seg.pid(), cal.pid(), cor.pid()}, 30);
+    ASSERT_EQ(heard.size(), 3u) << "a stage sent no heartbeat in 30 s";
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  }
   const auto started = std::chrono::steady_clock::now();
   Child player({FTCAL_LCM_LOGPLAYER, "-s", kSpeed, "-l", kUrl, fx->log}, Path("player.out"),
                Path("player.err"));

@@ -6,8 +6,10 @@
 #include <signal.h>
 #include <sys/wait.h>
 
+#include <chrono>
 #include <cstdint>
 #include <cstdlib>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -15,6 +17,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "ftcal/service_status_t.hpp"
 
 namespace ftcal::testing {
 
@@ -72,6 +75,34 @@ inline std::vector<LoggedEvent> ReadLogEvents(const std::string& path) {
     events.push_back({e->channel, e->timestamp, std::vector<uint8_t>(p, p + e->datalen)});
   }
   return events;
+}
+
+// The first heartbeat (FTCAL_STATUS) heard from each of `pids` on `lcm` within `timeout_s`; a
+// pid missing from the result was not heard. A process heard is past its subscriptions and in
+// its loop: tests wait for this rather than a fixed time, since a process under a sanitizer
+// or on a loaded machine takes seconds to start.
+inline std::map<pid_t, service_status_t> AwaitHeartbeats(
+    lcm::LCM& lcm, const std::vector<pid_t>& pids, double timeout_s,
+    const std::string& channel = "FTCAL_STATUS") {
+  struct Ear {
+    const std::vector<pid_t>* pids;
+    std::map<pid_t, service_status_t> heard;
+    void On(const lcm::ReceiveBuffer* rbuf, const std::string&) {
+      service_status_t s;
+      if (s.decode(rbuf->data, 0, rbuf->data_size) != static_cast<int>(rbuf->data_size)) return;
+      for (pid_t p : *pids) {
+        if (s.pid == p && !heard.count(p)) heard.emplace(p, s);
+      }
+    }
+  } ear{&pids, {}};
+  auto* sub = lcm.subscribe(channel, &Ear::On, &ear);
+  const auto start = std::chrono::steady_clock::now();
+  while (ear.heard.size() < pids.size() &&
+         std::chrono::steady_clock::now() - start < std::chrono::duration<double>(timeout_s)) {
+    lcm.handleTimeout(100);
+  }
+  lcm.unsubscribe(sub);
+  return ear.heard;
 }
 
 }  // namespace ftcal::testing
