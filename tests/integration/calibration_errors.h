@@ -68,10 +68,11 @@ inline void ExpectWithinBounds(const Errors& e, double factor, const std::string
 // on the horizontal error (it was 1.5 mm, and a run missed it by 0.07 mm): the short plan
 // states horizontal sigmas of 0.39-0.61 mm, so 1.5 mm is under 3 of them and six legs in two
 // runs cross it by chance. What keeps the sigma check from passing anything is the precision
-// itself: horizontal sigmas under 1 mm. Returns the worst component in sigmas.
+// itself: horizontal sigmas under `max_horizontal_sigma_m` (1 mm for the short plan's ~33
+// poses). Returns the worst component in sigmas.
 inline double ExpectPTildeWithinSigmas(const calibration::Calibration& proto,
                                        const RobotCalibration& cal, const RobotCalibration& truth,
-                                       double sigmas) {
+                                       double sigmas, double max_horizontal_sigma_m = 1e-3) {
   double worst = 0;
   for (int k = 0; k < kNumLegs; ++k) {
     const auto& e = proto.leg(k).mounting().p_tilde_prime_m();
@@ -85,8 +86,10 @@ inline double ExpectPTildeWithinSigmas(const calibration::Calibration& proto,
           << "leg " << proto.leg(k).name() << " p~' component " << i << ": " << err[i] * 1e3
           << " mm off, sigma " << sigma[i] * 1e3 << " mm";
     }
-    EXPECT_LE(sigma[0], 1e-3) << "leg " << proto.leg(k).name() << ": p~' x known to no better";
-    EXPECT_LE(sigma[1], 1e-3) << "leg " << proto.leg(k).name() << ": p~' y known to no better";
+    EXPECT_LE(sigma[0], max_horizontal_sigma_m)
+        << "leg " << proto.leg(k).name() << ": p~' x known to no better";
+    EXPECT_LE(sigma[1], max_horizontal_sigma_m)
+        << "leg " << proto.leg(k).name() << ": p~' y known to no better";
   }
   return worst;
 }
