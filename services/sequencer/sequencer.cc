@@ -482,7 +482,7 @@ void Sequencer::TickSteps() {
   // Several steps can finish at the same instant (markers, checks): run them in one call.
   for (int guard = 0; guard < 64 && state_ != State::kDone && state_ != State::kStopped; ++guard) {
     const int64_t now = bus_.NowUtime();
-    Awake(now);  // a step before this one may have blocked (Save's fsync)
+    Awake(now);  // a step before this one may have been descheduled or blocked
     Step& s = Current();
     if (!step_started_) {
       step_started_ = true;
