@@ -111,13 +111,16 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
   const pid_t victim = static_cast<pid_t>(before["sim:ati-bridge"].pid);
   ASSERT_GT(victim, 0);
   const std::size_t beats_before = ear.beats().size();
+  Respawn respawn{SupervisordPid(run), "ftcal-ati-bridge", victim};
   const auto t_kill = Clock::now();
+  const double kill_boot_s = BootS();
   ASSERT_EQ(::kill(victim, SIGKILL), 0);
   // The restart as the kernel sees it: supervisord's new child.
-  const double spawn_s = SpawnedWithin(SupervisordPid(run), "ftcal-ati-bridge", victim, t_kill, 5);
-  std::cout << "FIGURE kill -9 ati-bridge -> supervisord's new child: " << spawn_s << " s\n";
-  EXPECT_GE(spawn_s, 0) << "not restarted within 5 s";
-  EXPECT_LT(spawn_s, kRestartBoundS);
+  WatchRespawns(kill_boot_s, {&respawn}, 5);
+  std::cout << "FIGURE kill -9 ati-bridge -> supervisord's new child: " << respawn.Describe()
+            << "\n";
+  ASSERT_GT(respawn.pid, 0) << "not restarted within 5 s";
+  EXPECT_LT(respawn.net_s(), kRestartBoundS) << respawn.Describe();
   // The restart as the bus sees it: the first heartbeat of a new ftcal-ati-bridge pid.
   Clock::time_point t_back{};
   int64_t new_pid = 0;
@@ -401,19 +404,20 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
                              dir_ + "/status.out", dir_ + "/status.err");
   ear.Pump(0.5);
   const std::size_t from = ear.beats().size();
+  Respawn ati_respawn{SupervisordPid(robot_run), "ftcal-ati-bridge", ati},
+      corrector_respawn{SupervisordPid(ws_run), "ftcal-corrector", corrector};
   const auto t_kill = Clock::now();
+  const double kill_boot_s = BootS();
   ASSERT_EQ(::kill(ati, SIGKILL), 0);
   ASSERT_EQ(::kill(corrector, SIGKILL), 0);
-  const double ati_spawn_s =
-      SpawnedWithin(SupervisordPid(robot_run), "ftcal-ati-bridge", ati, t_kill, 5);
-  const double corrector_spawn_s =
-      SpawnedWithin(SupervisordPid(ws_run), "ftcal-corrector", corrector, t_kill, 5);
-  std::cout << "FIGURE kill -9, supervisord's new child: robot/ati-bridge " << ati_spawn_s
-            << " s, workstation/corrector " << corrector_spawn_s << " s\n";
-  EXPECT_GE(ati_spawn_s, 0);
-  EXPECT_LT(ati_spawn_s, kRestartBoundS);
-  EXPECT_GE(corrector_spawn_s, 0);
-  EXPECT_LT(corrector_spawn_s, kRestartBoundS);
+  WatchRespawns(kill_boot_s, {&ati_respawn, &corrector_respawn}, 5);
+  std::cout << "FIGURE kill -9, supervisord's new child: robot/ati-bridge "
+            << ati_respawn.Describe() << ", workstation/corrector " << corrector_respawn.Describe()
+            << "\n";
+  EXPECT_GT(ati_respawn.pid, 0) << "not restarted within 5 s";
+  EXPECT_LT(ati_respawn.net_s(), kRestartBoundS) << ati_respawn.Describe();
+  EXPECT_GT(corrector_respawn.pid, 0) << "not restarted within 5 s";
+  EXPECT_LT(corrector_respawn.net_s(), kRestartBoundS) << corrector_respawn.Describe();
   std::optional<std::pair<int64_t, double>> ati_back, corrector_back;
   ear.PumpUntil(
       [&] {

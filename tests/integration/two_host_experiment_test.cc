@@ -397,32 +397,23 @@ TEST_F(TwoHostExperiment, ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMi
       ear.Pump(0.5);
       const std::size_t from = ear.beat_count();
       poses_at_kill = ear.count("STEADY_POSE");
+      Respawn logger{SupervisordPid(robot_run), "ftcal-record", old_logger},
+          segmenter{SupervisordPid(ws_run), "ftcal-pose-segmenter", old_segmenter};
       t_kill = Clock::now();
       t_kill_us = WallUtime();
+      const double kill_boot_s = BootS();
       ASSERT_EQ(::kill(old_logger, SIGKILL), 0);
       ASSERT_EQ(::kill(old_segmenter, SIGKILL), 0);
       // The restarts as the kernel sees them: each supervisord's new child, both watched at once.
-      const pid_t robot_supervisord = SupervisordPid(robot_run),
-                  ws_supervisord = SupervisordPid(ws_run);
-      double logger_spawn_s = -1, segmenter_spawn_s = -1;
-      while (Since(t_kill) < 5 && (logger_spawn_s < 0 || segmenter_spawn_s < 0)) {
-        if (logger_spawn_s < 0 &&
-            (new_logger = ChildRunning(robot_supervisord, "ftcal-record", old_logger)) > 0) {
-          logger_spawn_s = Since(t_kill);
-        }
-        if (segmenter_spawn_s < 0 &&
-            ChildRunning(ws_supervisord, "ftcal-pose-segmenter", old_segmenter) > 0) {
-          segmenter_spawn_s = Since(t_kill);
-        }
-        std::this_thread::sleep_for(std::chrono::milliseconds(5));
-      }
-      std::cout << "FIGURE kill -9 -> supervisord's new child: robot/recorder " << logger_spawn_s
-                << " s, workstation/segmenter " << segmenter_spawn_s << " s (after "
-                << poses_at_kill << " steady poses, " << Since(t_plan) << " s into the plan)\n";
-      EXPECT_GE(logger_spawn_s, 0) << "the logger was not restarted within 5 s";
-      EXPECT_LT(logger_spawn_s, kRestartBoundS);
-      EXPECT_GE(segmenter_spawn_s, 0) << "the segmenter was not restarted within 5 s";
-      EXPECT_LT(segmenter_spawn_s, kRestartBoundS);
+      WatchRespawns(kill_boot_s, {&logger, &segmenter}, 5);
+      new_logger = logger.pid;
+      std::cout << "FIGURE kill -9 -> supervisord's new child: robot/recorder " << logger.Describe()
+                << ", workstation/segmenter " << segmenter.Describe() << " (after " << poses_at_kill
+                << " steady poses, " << Since(t_plan) << " s into the plan)\n";
+      EXPECT_GT(logger.pid, 0) << "the logger was not restarted within 5 s";
+      EXPECT_LT(logger.net_s(), kRestartBoundS) << logger.Describe();
+      EXPECT_GT(segmenter.pid, 0) << "the segmenter was not restarted within 5 s";
+      EXPECT_LT(segmenter.net_s(), kRestartBoundS) << segmenter.Describe();
       ASSERT_GT(new_logger, 0);
       // The restarted logger runs as the first did: SCHED_FIFO (policy 1, /proc/PID/stat field 41).
       {
