@@ -434,37 +434,56 @@ void AtiBridge::Stop() {
 
 int AtiBridge::Poll(int timeout_ms) {
   if (!started_) throw AtiBridgeError("Poll() before Start()");
-  // Wake for the earliest re-send deadline at the latest.
-  auto now = Clock::now();
-  auto wake = now + std::chrono::milliseconds(std::max(0, timeout_ms));
+  std::uint64_t before = 0, after = 0;
+  for (const auto& t : transducers_) before += t->c.published;
+  Step(timeout_ms);
+  for (const auto& t : transducers_) after += t->c.published;
+  return static_cast<int>(after - before);
+}
+
+void AtiBridge::AddPollFds(std::vector<pollfd>* fds) {
+  poll_ns_ = RealtimeNs();
+  for (const auto& t : transducers_) fds->push_back({t->fd, POLLIN, 0});
+}
+
+void AtiBridge::OnPolled(const pollfd* fds, std::size_t n) {
+  if (n != transducers_.size()) throw AtiBridgeError("OnPolled() without AddPollFds()");
+  for (std::size_t i = 0; i < n; ++i) {
+    // Not readable when poll() last looked, which was after poll_ns_: empty then.
+    Transducer& t = *transducers_[i];
+    if ((fds[i].revents & POLLIN) == 0) t.drained_at_ns = std::max(t.drained_at_ns, poll_ns_);
+  }
+  for (std::size_t i = 0; i < n; ++i) {
+    if (fds[i].revents & (POLLIN | POLLERR)) HandleSocket(*transducers_[i]);
+  }
+}
+
+Clock::time_point AtiBridge::NextDeadline() const {
+  auto wake = Clock::time_point::max();
   for (const auto& t : transducers_) {
     wake = std::min(
         wake, std::max(t->last_record + Seconds(options_.silence_timeout_s), t->next_request));
+    if (!t->calibrated) wake = std::min(wake, t->next_calibration_try);
   }
-  const auto wait_ms = std::chrono::ceil<std::chrono::milliseconds>(wake - now).count();
-  std::array<pollfd, kNumLegs> fds{};
-  for (std::size_t i = 0; i < transducers_.size(); ++i) fds[i] = {transducers_[i]->fd, POLLIN, 0};
-  const std::int64_t poll_ns = RealtimeNs();
-  const int ready = ::poll(fds.data(), transducers_.size(),
-                           static_cast<int>(std::clamp<std::int64_t>(wait_ms, 0, timeout_ms)));
-  std::uint64_t before = 0, after = 0;
-  for (const auto& t : transducers_) before += t->c.published;
-  for (std::size_t i = 0; i < transducers_.size(); ++i) {
-    // Not readable when poll() last looked, which was after poll_ns: empty then.
-    Transducer& t = *transducers_[i];
-    if (ready >= 0 && (fds[i].revents & POLLIN) == 0) {
-      t.drained_at_ns = std::max(t.drained_at_ns, poll_ns);
-    }
-  }
-  if (ready > 0) {
-    for (std::size_t i = 0; i < transducers_.size(); ++i) {
-      if (fds[i].revents & (POLLIN | POLLERR)) HandleSocket(*transducers_[i]);
-    }
-  }
-  now = Clock::now();
+  return wake;
+}
+
+void AtiBridge::OnDeadline(Clock::time_point now) {
   for (auto& t : transducers_) Service(*t, now);
-  for (const auto& t : transducers_) after += t->c.published;
-  return static_cast<int>(after - before);
+}
+
+bool AtiBridge::Degraded(std::string* why) {
+  if (AllUp()) return false;
+  if (why) *why = Problems();
+  return true;
+}
+
+void AtiBridge::ReportCounters(ServiceStats& stats) {
+  std::uint64_t received = 0;
+  for (const auto& t : transducers_) received += t->c.received;
+  // msgs_in counts device records: catch the stats up (CountIn has no bulk form).
+  for (; reported_in_ < received; ++reported_in_) stats.CountIn();
+  for (const auto& [name, value] : CounterTable()) stats.Counter(name) = value;
 }
 
 void AtiBridge::HandleSocket(Transducer& t) {

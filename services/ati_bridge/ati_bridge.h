@@ -28,6 +28,8 @@
 
 #include <spdlog/logger.h>
 
+#include "common/device.h"
+#include "common/service_stats.h"
 #include "ftcal/ft_sample_t.hpp"
 #include "proto/config.pb.h"
 #include "rdt_codec.h"
@@ -96,7 +98,7 @@ class LatencyHistogram {
   std::uint64_t count_ = 0;
 };
 
-class AtiBridge {
+class AtiBridge : public Device {
  public:
   // Called for every sample: channel, LCM-encoded ft_sample_t bytes. Must not keep the pointer.
   using Publisher = std::function<void(const std::string& channel, const void* data, int size)>;
@@ -114,10 +116,21 @@ class AtiBridge {
   // read or parsed: the bridge refuses to stream with guessed counts per unit.
   void Start();
   // Waits up to `timeout_ms` for datagrams, handles all that are there, and re-sends starts
-  // that are due. Returns the number of samples published.
+  // that are due (one Device::Step). Returns the number of samples published.
   int Poll(int timeout_ms);
   // Sends stop to every transducer (idempotent).
   void Stop();
+
+  // The Device a ServiceApp's loop waits on: one socket per transducer; the deadline is the
+  // earliest re-send of a start (or retry of a calibration page); degraded while any
+  // transducer is silent; the counters are CounterTable()'s, and msgs_in counts records.
+  void AddPollFds(std::vector<pollfd>* fds) override;
+  void OnPolled(const pollfd* fds, std::size_t n) override;
+  Clock::time_point NextDeadline() const override;
+  void OnDeadline(Clock::time_point now) override;
+  bool Degraded(std::string* why) override;
+  void ReportCounters(ServiceStats& stats) override;
+  void Close() override { Stop(); }
 
   // True when every transducer is streaming (none silent past the timeout).
   bool AllUp() const;
@@ -157,6 +170,8 @@ class AtiBridge {
   LatencyHistogram user_latency_;
   LatencyHistogram held_latency_;
   bool started_ = false;
+  std::int64_t poll_ns_ = 0;       // CLOCK_REALTIME just before the last wait
+  std::uint64_t reported_in_ = 0;  // records counted in the stats' msgs_in
 };
 
 }  // namespace ftcal

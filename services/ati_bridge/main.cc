@@ -1,20 +1,16 @@
 // ftcal-ati-bridge: ATI Net F/T transducers (RDT over UDP) -> ft_sample_t on FT_<LEG>.
 //
-// The loop is the bridge's own poll() over its device sockets rather than the bus's: the
-// bridge subscribes to nothing, and LCM's udpm provider opens no receive socket until something
-// subscribes, so there is no LCM fd to wait on. It wakes at least every 100 ms for the shutdown
-// flag, the re-send deadlines and the 1 Hz heartbeat, which is also sent at once when the
-// state changes (RUNNING <-> DEGRADED).
+// The bridge is a Device (common/device.h): ServiceApp's loop waits on its sockets, runs its
+// re-send deadlines, and sends the 1 Hz heartbeat, at once when the state changes (RUNNING <->
+// DEGRADED). It subscribes to nothing, so the loop does not wait on LCM.
 #include <spdlog/spdlog.h>
 
-#include <chrono>
 #include <string>
 #include <vector>
 
 #include "ati_bridge.h"
 #include "common/exit_codes.h"
 #include "common/service.h"
-#include "common/shutdown.h"
 
 int main(int argc, char** argv) {
   ftcal::ServiceApp app(
@@ -65,57 +61,23 @@ int main(int argc, char** argv) {
     return failure;
   }
 
-  std::int64_t reported_in = 0;
-  auto sync_stats = [&] {
-    std::int64_t received = 0;
-    for (std::size_t i = 0; i < bridge->size(); ++i) {
-      received += static_cast<std::int64_t>(bridge->counters(i).received);
-    }
-    // msgs_in counts device records: catch the stats up (CountIn has no bulk form).
-    for (; reported_in < received; ++reported_in) app.stats().CountIn();
-    for (const auto& [name, value] : bridge->CounterTable()) app.stats().Counter(name) = value;
-  };
-  auto publish_status = [&] {
-    sync_stats();
-    app.PublishHeartbeat();
-  };
-
-  // The boxes' sockets pace this loop, not LCM: ServiceApp's device-loop calls give it the
-  // heartbeat and systemd's notify protocol (READY=1, the watchdog, STOPPING=1).
-  using Clock = std::chrono::steady_clock;
-  app.SetState(ftcal::service_status_t::RUNNING);
-  sync_stats();
-  app.DeviceLoopStarted();
-  auto next_heartbeat = Clock::now() + std::chrono::seconds(1);
-  while (!ftcal::ShutdownRequested()) {
+  // The boxes' sockets pace this process, not LCM: ServiceApp's device loop, with the heartbeat
+  // (sent at once when a transducer goes silent or comes back) and systemd's notify protocol.
+  try {
+    app.RunDevice(*bridge);
+  } catch (const std::exception& e) {
+    // Nothing the bridge does is expected to throw here (a bad datagram is counted, a page that
+    // cannot be read is retried): if something does, the process says so and ends.
+    const std::string text = ftcal::UserText(e, "reading the transducers");
+    log->critical("{}", text);
+    app.SetState(ftcal::service_status_t::FAILED);
+    app.stats().Error("run", text);
     try {
-      bridge->Poll(100);
-    } catch (const std::exception& e) {
-      app.stats().Error("poll", ftcal::UserText(e, "reading the transducers"));
+      app.PublishHeartbeat();
+    } catch (const std::exception&) {
     }
-    const int8_t state =
-        bridge->AllUp() ? ftcal::service_status_t::RUNNING : ftcal::service_status_t::DEGRADED;
-    const bool changed = state != app.state();
-    app.SetState(state);
-    // The status carries what is wrong now, and nothing once it is healthy again.
-    if (state == ftcal::service_status_t::DEGRADED) {
-      app.stats().SetLastError(bridge->Problems());
-    } else if (changed) {
-      app.stats().ClearLastError();
-    }
-    const auto now = Clock::now();
-    if (changed || now >= next_heartbeat) {
-      try {
-        publish_status();
-      } catch (const std::exception& e) {
-        app.stats().Error("heartbeat", e.what());
-      }
-      if (now >= next_heartbeat) next_heartbeat = now + std::chrono::seconds(1);
-    }
+    return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
-  bridge->Stop();
-  sync_stats();
-  app.DeviceLoopStopped();
   for (std::size_t i = 0; i < bridge->size(); ++i) {
     const auto& c = bridge->counters(i);
     // received = published + duplicates + late + stale + uncalibrated + publish_errors.

@@ -109,6 +109,7 @@ class Bus {
   // For a process that runs its own loop (a bridge paced by its device): the descriptor that
   // is readable when a message waits (-1 on replay), and HandleOnce() to handle one.
   virtual int Fileno() { return -1; }
+  bool HasSubscriptions() const { return !subscriptions_.empty(); }
   // Handles at most one message, waiting up to `timeout_ms`; returns LCM's result (>0 handled,
   // 0 timeout, <0 error, or -1 on replay).
   virtual int HandleOnce(int /*timeout_ms*/) { return -1; }

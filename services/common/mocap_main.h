@@ -13,8 +13,8 @@
 
 namespace ftcal {
 
-// `Bridge` is constructed from (options, stats, publish, now) and has Step(max_wait_ms) and
-// health_reason(); `ConfigError` is what it throws for a configuration it cannot serve (its own
+// `Bridge` is a Device (common/device.h) constructed from (options, stats, publish, now);
+// `ConfigError` is what it throws for a configuration it cannot serve (its own
 // checks of the mocap section, or a server that refuses the configured protocol), which ends the
 // process with kExitConfig, as docs/exit-codes.md has it for every bridge.
 template <class Bridge, class ConfigError, class Options>
@@ -29,8 +29,7 @@ int RunMocapBridge(ServiceApp& app, Options (*options_from_config)(const config:
         [&] { return bus.NowUtime(); });
     // The device socket paces this process, not LCM (it subscribes to nothing): ServiceApp's
     // device loop, with the heartbeat and systemd's notify protocol.
-    app.RunDeviceLoop([&] { return bridge.health_reason(); },
-                      [&](int max_wait_ms) { bridge.Step(max_wait_ms); });
+    app.RunDevice(bridge);
   } catch (const ConfigError& e) {
     app.stats().Error("configuration", e.what());  // logs it, and the last heartbeat carries it
     app.SetState(service_status_t::FAILED);
@@ -41,11 +40,7 @@ int RunMocapBridge(ServiceApp& app, Options (*options_from_config)(const config:
     app.SetState(service_status_t::FAILED);
     rc = ExitCodeFor(e, kExitDeviceIo);
   }
-  if (rc == 0) {
-    app.DeviceLoopStopped();
-  } else {
-    app.PublishHeartbeat();  // the last one, FAILED with the error
-  }
+  if (rc != 0) app.PublishHeartbeat();  // the last one, FAILED with the error
   app.stats().LogSummary();
   return rc;
 }

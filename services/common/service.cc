@@ -227,37 +227,61 @@ void ServiceApp::DeviceLoopStopped() {
   }
 }
 
-void ServiceApp::RunDeviceLoop(const std::function<std::string()>& health_reason,
-                               const std::function<void(int max_wait_ms)>& step) {
-  using Clock = std::chrono::steady_clock;
+void ServiceApp::RunDevice(Device& device) {
+  using Clock = Device::Clock;
   const auto period =
       std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(kHeartbeatPeriodS));
-  auto next_heartbeat = Clock::now();
-  std::string last_reason;
+  const auto max_wait = std::chrono::milliseconds(100);  // the shutdown flag's latency
   DeviceLoopStarted();
+  auto next_heartbeat = Clock::now() + period;
+  std::vector<pollfd> fds;
   while (!ShutdownRequested()) {
-    const auto now = Clock::now();
-    if (now >= next_heartbeat) {
-      const std::string reason = health_reason();
-      state_ = reason.empty() ? service_status_t::RUNNING : service_status_t::DEGRADED;
-      if (reason != last_reason) {
-        if (reason.empty()) {
-          log_->info("healthy again");
-          stats_->ClearLastError();  // the status says what is wrong now, not once
-        } else {
-          log_->warn("degraded: {}", reason);
-        }
-        last_reason = reason;
+    auto now = Clock::now();
+    const int8_t state =
+        device.Degraded(nullptr) ? service_status_t::DEGRADED : service_status_t::RUNNING;
+    const bool changed = state != state_;
+    if (changed || now >= next_heartbeat) {
+      if (state == service_status_t::DEGRADED) {
+        std::string why;
+        device.Degraded(&why);
+        if (changed) log_->warn("degraded: {}", why);
+        stats_->SetLastError(why);  // the status carries what is wrong now
+      } else if (changed) {
+        log_->info("healthy again");
+        stats_->ClearLastError();  // and nothing once it is healthy again
       }
-      if (!reason.empty()) stats_->SetLastError(reason);
-      PublishHeartbeat();
-      next_heartbeat += period;
-      if (next_heartbeat <= now) next_heartbeat = now + period;
+      state_ = state;
+      device.ReportCounters(*stats_);
+      try {
+        PublishHeartbeat();
+      } catch (const std::exception& e) {
+        stats_->Error("heartbeat", UserText(e, "sending the heartbeat"));
+      }
+      if (now >= next_heartbeat) {
+        next_heartbeat += period;
+        if (next_heartbeat <= now) next_heartbeat = now + period;
+      }
     }
-    const auto wait =
-        std::chrono::duration_cast<std::chrono::milliseconds>(next_heartbeat - Clock::now());
-    step(static_cast<int>(std::clamp<int64_t>(wait.count() + 1, 0, 100)));
+    // The bus's socket only when something is subscribed: LCM's udpm provider opens no receive
+    // socket until then, and asking for its descriptor would join the group and take in every
+    // message on it.
+    fds.clear();
+    const bool with_bus = bus_->HasSubscriptions() && bus_->Fileno() >= 0;
+    if (with_bus) fds.push_back({bus_->Fileno(), POLLIN, 0});
+    const std::size_t first = fds.size();
+    device.AddPollFds(&fds);
+    const auto wake = std::min({device.NextDeadline(), next_heartbeat, now + max_wait});
+    if (WaitFds(fds, wake) < 0) {
+      for (auto& p : fds) p.revents = 0;
+    }
+    if (with_bus && (fds[0].revents & POLLIN)) bus_->HandleOnce(0);
+    device.OnPolled(fds.data() + first, fds.size() - first);
+    now = Clock::now();
+    if (now >= device.NextDeadline()) device.OnDeadline(now);
   }
+  device.Close();
+  device.ReportCounters(*stats_);
+  DeviceLoopStopped();
 }
 
 int ServiceApp::Run() {

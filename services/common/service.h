@@ -27,6 +27,7 @@
 #include <spdlog/logger.h>
 
 #include "common/bus.h"
+#include "common/device.h"
 #include "common/heartbeat.h"
 #include "common/exit_codes.h"
 #include "common/scheduling.h"
@@ -88,28 +89,22 @@ class ServiceApp {
   // The heartbeat as it would be published now.
   service_status_t Status() const;
 
-  // For a process paced by its device instead of LCM (the bridges: a socket or a serial line
-  // wakes them, and they run their own loop instead of Run()). What Run() does for the others:
-  //   DeviceLoopStarted()  the scheduling asked for (OfferSchedulingFlags), RUNNING unless set
-  //                        otherwise, the first heartbeat, and systemd's READY=1 (a no-op
-  //                        when not under systemd);
-  //   PublishHeartbeat()   the heartbeat on the status channel, and systemd's watchdog fed
-  //                        (the heartbeat stops when the loop hangs, and so does the feed);
-  //   DeviceLoopStopped()  STOPPING, systemd told, the final heartbeat (a failure to send it
-  //                        is logged, not thrown: the process is ending anyway).
-  void DeviceLoopStarted();
+  // The loop of a process paced by its device instead of LCM (the bridges: sockets or a serial
+  // line wake them; common/device.h): one wait over the device's descriptors and, when anything
+  // is subscribed, the bus's, until SIGINT/SIGTERM. It applies the scheduling asked for
+  // (OfferSchedulingFlags) once the device is open, sends systemd's READY=1 and STOPPING=1 (no-ops
+  // when not under systemd), and publishes the heartbeat a second, and at once when the device
+  // turns degraded or healthy: DEGRADED with Degraded()'s reason as the last error (one log line
+  // per change), the device's counters, systemd's watchdog fed (the heartbeat stops when the loop
+  // hangs, and so does the feed). On the way out: Close(), the counters, a STOPPING heartbeat.
+  // Exceptions from the device pass to the caller, with the state left as it was.
+  void RunDevice(Device& device);
+  // The heartbeat on the status channel, and systemd's watchdog fed. A process whose device
+  // failed before its loop sends its last (FAILED) heartbeat with this.
   void PublishHeartbeat();
-  void DeviceLoopStopped();
-
-  // The whole loop of a device-paced process whose device object has a health_reason() (empty
-  // when healthy) and a Step(max_wait_ms) that waits for and handles its device: until
-  // SIGINT/SIGTERM, a heartbeat a second, RUNNING or DEGRADED with the reason as the last
-  // error (one log line per change). Exceptions from `step` pass to the caller.
-  void RunDeviceLoop(const std::function<std::string()>& health_reason,
-                     const std::function<void(int max_wait_ms)>& step);
 
   // A device-paced process's scheduling (common/scheduling.h), the same flags in every bridge:
-  // --realtime, --realtime-priority and --slice-us. Offer them before Init(); DeviceLoopStarted()
+  // --realtime, --realtime-priority and --slice-us. Offer them before Init(); RunDevice()
   // applies them, on the thread that runs the device loop once the device is open (the
   // calibration pages and port probes run as an ordinary process), and sets the counters
   // sched_fifo, memory_locked and sched_slice (1 when granted); refusals are logged.
@@ -123,6 +118,8 @@ class ServiceApp {
   };
   void Tick();
   void PublishStatus();
+  void DeviceLoopStarted();
+  void DeviceLoopStopped();
   void NotifyReady();
   void ApplySchedulingFlags();
   bool watchdog_ = false;  // systemd asked for WATCHDOG=1 (WatchdogSec=)

@@ -1,10 +1,8 @@
 // ftcal-dynamixel-bridge: the Dynamixel MX-106 bus (Protocol 2.0) to SERVO_STATE, SERVO_CMD to
-// the bus. A thin main around DynamixelBridge: one poll() over the serial port and the
-// process's one LCM socket (the ServiceApp's bus, whose SubscribeSigned verifies SERVO_CMD's
-// envelope and names its signer), a read-write cycle at dynamixel.rate_hz, the FTCAL_STATUS
-// heartbeat; the CommandGate decides whether to act on a command.
-#include <poll.h>
-
+// the bus. A thin main around DynamixelBridge: ServiceApp's device loop waits on the serial port
+// (DynamixelDevice: a read-write cycle at dynamixel.rate_hz) and the process's one LCM socket
+// (the ServiceApp's bus, whose SubscribeSigned verifies SERVO_CMD's envelope and names its
+// signer); the CommandGate decides whether to act on a command.
 #include <chrono>
 #include <cmath>
 #include <string>
@@ -12,9 +10,9 @@
 #include "common/bus.h"
 #include "common/exit_codes.h"
 #include "common/service.h"
-#include "common/shutdown.h"
 #include "dynamixel_bridge/command_gate.h"
 #include "dynamixel_bridge/dynamixel_bridge.h"
+#include "dynamixel_bridge/dynamixel_device.h"
 
 namespace {
 
@@ -96,84 +94,13 @@ int main(int argc, char** argv) {
           gate.OnCommand(*info.signer, cmd, SteadyS());
         });
 
-    // The heartbeat says DEGRADED once the bus has been degraded for longer than
-    // dynamixel.deadman_s, the rule the gate's FAULT follows: one stale cycle on a loaded bus
-    // is not a degraded bridge, and a commander that stops on DEGRADED (the sequencer) must not
-    // stop on it. A lost servo or a port down stays degraded, so it is reported within that.
-    const double degraded_after_s = config.dynamixel().deadman_s();
-    double degraded_since_s = -1.0;
-    auto publish_status = [&] {
-      std::string why;
-      const bool degraded = bridge.Degraded(&why) && degraded_since_s >= 0.0 &&
-                            SteadyS() - degraded_since_s >= degraded_after_s;
-      const int8_t state =
-          degraded ? ftcal::service_status_t::DEGRADED : ftcal::service_status_t::RUNNING;
-      if (state != app.state()) {
-        if (degraded) {
-          app.log().warn("DEGRADED: {}", why);
-        } else {
-          app.log().info("RUNNING: all servos answer");
-          app.stats().ClearLastError();  // the status says what is wrong now, not once
-        }
-      }
-      if (degraded) app.stats().SetLastError(why);
-      app.SetState(state);
-      app.PublishHeartbeat();
-    };
-
     bridge.Connect();
-    // The bus cycle paces this loop, not LCM: ServiceApp's device-loop calls give it systemd's
-    // notify protocol (READY=1 once connected, the watchdog with the heartbeat, STOPPING=1).
-    app.DeviceLoopStarted();
-    gate.SetArmBlock(bridge.ArmBlocker());
-    const auto period =
-        std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / rate_hz));
-    auto next_cycle = Clock::now();
-    auto next_status = Clock::now();
-    while (!ftcal::ShutdownRequested()) {
-      auto now = Clock::now();
-      if (now >= next_status) {
-        publish_status();
-        next_status += std::chrono::seconds(1);
-        if (next_status <= now) next_status = now + std::chrono::seconds(1);
-      }
-      if (now >= next_cycle) {
-        if (auto cmd = gate.Tick(SteadyS(), bridge.Degraded())) {
-          try {
-            bridge.OnCommand(*cmd);
-          } catch (const ftcal::BadInput& e) {
-            app.stats().Drop(e.kind(), e.what());
-          }
-        }
-        bridge.Cycle();
-        // Before the next command is taken: a servo stopped by its watchdog holds until a new
-        // ARM, and no ARM while the servos' own limits are not the config's.
-        gate.SetArmBlock(bridge.ArmBlocker());
-        if (auto why = bridge.TakeWatchdogExpiry()) gate.Hold(*why);
-        if (!bridge.Degraded()) {
-          degraded_since_s = -1.0;
-        } else if (degraded_since_s < 0.0) {
-          degraded_since_s = SteadyS();
-        }
-        next_cycle += period;
-        now = Clock::now();
-        if (next_cycle <= now) {  // the cycle overran its slot: skip ahead, do not burst
-          ++app.stats().Counter("late_cycles");
-          next_cycle = now + period;
-        }
-        continue;
-      }
-      // Wait for the next cycle, a command, or bytes nobody asked for (and hang-ups).
-      const auto wait =
-          std::min({next_cycle, next_status, now + std::chrono::milliseconds(100)}) - now;
-      const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(wait).count();
-      timespec ts{static_cast<time_t>(ns / 1'000'000'000), static_cast<long>(ns % 1'000'000'000)};
-      pollfd fds[2] = {{app.bus().Fileno(), POLLIN, 0}, {bridge.fd(), POLLIN, 0}};
-      const nfds_t nfds = bridge.fd() >= 0 ? 2 : 1;
-      if (::ppoll(fds, nfds, &ts, nullptr) <= 0) continue;
-      if (fds[0].revents & POLLIN) app.bus().HandleOnce(0);
-      if (nfds == 2 && fds[1].revents != 0) bridge.OnDeviceReadable();
-    }
+    // The bus cycle paces this process, not LCM: ServiceApp's device loop waits on the port and
+    // the bus's socket (SERVO_CMD) at once, with the heartbeat and systemd's notify protocol
+    // (READY=1 once connected, the watchdog with the heartbeat, STOPPING=1).
+    ftcal::DynamixelDevice device(bridge, gate, app.stats(), rate_hz,
+                                  config.dynamixel().deadman_s(), SteadyS);
+    app.RunDevice(device);
   } catch (const std::invalid_argument& e) {  // the bridge's config checks
     app.log().critical("{}", e.what());
     return ftcal::kExitConfig;
@@ -181,7 +108,6 @@ int main(int argc, char** argv) {
     app.log().critical("{}", e.what());
     return ftcal::kExitDeviceIo;
   }
-  app.DeviceLoopStopped();
   app.stats().LogSummary();
   return 0;
 }

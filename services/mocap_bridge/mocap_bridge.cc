@@ -133,16 +133,30 @@ std::string MocapBridge::health_reason() const {
   return "";
 }
 
-void MocapBridge::Step(int max_wait_ms) {
+void MocapBridge::AddPollFds(std::vector<pollfd>* fds) {
+  polled_fd_ = fd_ >= 0;
+  if (polled_fd_) fds->push_back({fd_, poll_events(), 0});
+}
+
+void MocapBridge::OnPolled(const pollfd* fds, std::size_t n) {
+  if (polled_fd_ && n == 1 && fds[0].revents != 0) OnReady(fds[0].revents);
+}
+
+// Early rather than late: TimerDueMs() counts from now while disconnected.
+Device::Clock::time_point MocapBridge::NextDeadline() const {
+  return last_timer_ + std::chrono::milliseconds(TimerDueMs());
+}
+
+void MocapBridge::OnDeadline(Clock::time_point now) {
   OnTimer();
-  const int wait = std::max(0, std::min(max_wait_ms, TimerDueMs()));
-  if (fd_ < 0) {
-    ::poll(nullptr, 0, wait);
-  } else {
-    pollfd p{fd_, poll_events(), 0};
-    if (::poll(&p, 1, wait) > 0) OnReady(p.revents);
-  }
-  OnTimer();
+  last_timer_ = now;
+}
+
+bool MocapBridge::Degraded(std::string* why) {
+  std::string reason = health_reason();
+  if (reason.empty()) return false;
+  if (why) *why = std::move(reason);
+  return true;
 }
 
 void MocapBridge::StartConnect() {

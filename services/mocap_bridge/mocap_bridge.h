@@ -18,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "common/device.h"
 #include "common/service_stats.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "proto/config.pb.h"
@@ -48,7 +49,7 @@ struct MocapBridgeOptions {
 // address, a port of 0 or a protocol version that is not 1.N with N >= 21.
 MocapBridgeOptions MocapBridgeOptionsFromConfig(const config::Mocap& mocap);
 
-class MocapBridge {
+class MocapBridge : public Device {
  public:
   using PublishFn = std::function<void(const mocap_body_t&)>;
   using ClockFn = std::function<int64_t()>;  // host time, us since the epoch
@@ -61,13 +62,18 @@ class MocapBridge {
   MocapBridge(const MocapBridge&) = delete;
   MocapBridge& operator=(const MocapBridge&) = delete;
 
-  // One turn of the loop: connects when due, waits up to `max_wait_ms` in poll() on the
-  // server's socket, handles what arrived and the timers. Throws MocapConfigError when the
-  // server refuses the configured protocol version.
-  void Step(int max_wait_ms);
+  // The Device a ServiceApp's loop waits on (Device::Step is one turn by hand): the server's
+  // socket (none while disconnected); the deadline is the timers' (connect when due, timeouts
+  // and silence judged on a 20 ms grain); degraded while not healthy(). Throws
+  // MocapConfigError when the server refuses the configured protocol version.
+  void AddPollFds(std::vector<pollfd>* fds) override;
+  void OnPolled(const pollfd* fds, std::size_t n) override;
+  Clock::time_point NextDeadline() const override;
+  void OnDeadline(Clock::time_point now) override;
+  bool Degraded(std::string* why) override;
 
-  // For a caller's own poll(): the socket (-1 when there is none) and the events to wait for;
-  // then OnReady(revents) and OnTimer(). Step() does exactly this.
+  // The parts of a turn: the socket (-1 when there is none) and the events to wait for; then
+  // OnReady(revents) and OnTimer().
   int fd() const { return fd_; }
   short poll_events() const;
   void OnReady(short revents);
@@ -84,8 +90,6 @@ class MocapBridge {
   static std::string LinkName(Link link);
 
  private:
-  using Clock = std::chrono::steady_clock;
-
   void StartConnect();
   void FinishConnect();
   void Disconnect(const std::string& why, bool count_as_failure);
@@ -105,6 +109,8 @@ class MocapBridge {
   ClockFn now_utime_;
 
   int fd_ = -1;
+  bool polled_fd_ = false;        // AddPollFds appended fd_
+  Clock::time_point last_timer_;  // OnTimer's last run
   Link link_ = Link::kDisconnected;
   qtm::Deframer deframer_;
   Clock::time_point link_since_;   // when the current link state began

@@ -276,17 +276,31 @@ int NatNetBridge::TimerDueMs() const {
   return 20;
 }
 
-void NatNetBridge::Step(int max_wait_ms) {
-  OnTimer();
-  const int wait = std::max(0, std::min(max_wait_ms, TimerDueMs()));
-  std::vector<pollfd> p;
-  for (int fd : fds()) p.push_back({fd, POLLIN, 0});
-  if (::poll(p.data(), p.size(), wait) > 0) {
-    for (const pollfd& x : p) {
-      if (x.revents & (POLLIN | POLLERR)) OnReadable(x.fd);
-    }
+void NatNetBridge::AddPollFds(std::vector<pollfd>* fds) {
+  for (int fd : this->fds()) fds->push_back({fd, POLLIN, 0});
+}
+
+void NatNetBridge::OnPolled(const pollfd* fds, std::size_t n) {
+  for (std::size_t i = 0; i < n; ++i) {
+    if (fds[i].revents & (POLLIN | POLLERR)) OnReadable(fds[i].fd);
   }
+}
+
+// Early rather than late: TimerDueMs() counts from now while disconnected.
+Device::Clock::time_point NatNetBridge::NextDeadline() const {
+  return last_timer_ + std::chrono::milliseconds(TimerDueMs());
+}
+
+void NatNetBridge::OnDeadline(Clock::time_point now) {
   OnTimer();
+  last_timer_ = now;
+}
+
+bool NatNetBridge::Degraded(std::string* why) {
+  std::string reason = health_reason();
+  if (reason.empty()) return false;
+  if (why) *why = std::move(reason);
+  return true;
 }
 
 void NatNetBridge::OnReadable(int fd) { Drain(fd); }

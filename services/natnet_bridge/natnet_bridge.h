@@ -23,6 +23,7 @@
 #include <string>
 #include <vector>
 
+#include "common/device.h"
 #include "common/service_stats.h"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
@@ -85,7 +86,7 @@ struct NatNetBridgeOptions {
 // From the config's mocap section (body_name, natnet). Throws NatNetConfigError naming the field.
 NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap);
 
-class NatNetBridge {
+class NatNetBridge : public Device {
  public:
   using PublishFn = std::function<void(const mocap_body_t&)>;
   using ClockFn = std::function<int64_t()>;  // host time, us since the epoch
@@ -98,12 +99,17 @@ class NatNetBridge {
   NatNetBridge(const NatNetBridge&) = delete;
   NatNetBridge& operator=(const NatNetBridge&) = delete;
 
-  // One turn of the loop: waits up to `max_wait_ms` in poll() on the sockets, handles what
-  // arrived and the timers. Throws NatNetConfigError for a server older than NatNet 3.0 or a
-  // socket that cannot be set up as configured.
-  void Step(int max_wait_ms);
-  // For a caller's own poll(): the sockets (the data socket only in multicast), then
-  // OnReadable(fd) for each readable one and OnTimer().
+  // The Device a ServiceApp's loop waits on (Device::Step is one turn by hand): the command
+  // socket and, in multicast, the data socket; the deadline is the timers'; degraded while not
+  // healthy(). Throws NatNetConfigError for a server older than NatNet 3.0 or a socket that
+  // cannot be set up as configured.
+  void AddPollFds(std::vector<pollfd>* fds) override;
+  void OnPolled(const pollfd* fds, std::size_t n) override;
+  Clock::time_point NextDeadline() const override;
+  void OnDeadline(Clock::time_point now) override;
+  bool Degraded(std::string* why) override;
+
+  // The parts of a turn: the sockets, then OnReadable(fd) for each readable one and OnTimer().
   std::vector<int> fds() const;
   void OnReadable(int fd);
   void OnTimer();
@@ -122,8 +128,6 @@ class NatNetBridge {
   void HandleDatagram(const uint8_t* data, size_t size, bool from_server);
 
  private:
-  using Clock = std::chrono::steady_clock;
-
   void OpenSockets();
   void CloseSockets();
   void SendToServer(uint16_t id, const std::vector<uint8_t>& payload);
@@ -147,6 +151,7 @@ class NatNetBridge {
   ClockFn now_utime_;
 
   int command_fd_ = -1;
+  Clock::time_point last_timer_;  // OnTimer's last run
   int data_fd_ = -1;
   uint32_t server_ip_ = 0;  // network order
   Link link_ = Link::kDisconnected;
