@@ -179,11 +179,16 @@ void LegContribution(const LegTerms& l, const T* rot, const T* t, bool shared, b
 // whole pose would cost about six times as much for the same numbers.
 class PoseCost final : public ceres::CostFunction {
  public:
-  PoseCost(const PoseTerms* terms, const Prepared& prep, bool shared, bool cayley)
-      : terms_(terms), shared_(shared), cayley_(cayley), leg_aware_(prep.leg_aware), G_(prep.G) {
+  PoseCost(const PoseTerms* terms, const Prepared& prep, StandingModel model,
+           RotationParams rotations)
+      : terms_(terms),
+        shared_(SharedTranslation(model)),
+        cayley_(rotations == RotationParams::kCayley),
+        leg_aware_(prep.leg_aware),
+        G_(prep.G) {
     set_num_residuals(6);
-    mutable_parameter_block_sizes()->push_back(cayley ? 18 : 24);
-    mutable_parameter_block_sizes()->push_back(shared ? 3 : 18);
+    mutable_parameter_block_sizes()->push_back(cayley_ ? 18 : 24);
+    mutable_parameter_block_sizes()->push_back(shared_ ? 3 : 18);
     M_.setZero();
     M_.topLeftCorner<3, 3>() = terms->R_WC;
     M_.bottomRightCorner<3, 3>() = terms->R_WC;
@@ -299,8 +304,8 @@ std::unique_ptr<ceres::LossFunction> MakeLoss(const StandingOptions& o) {
 // PoseCost with its own copy of the precomputed pose terms.
 class OwningPoseCost final : public ceres::CostFunction {
  public:
-  OwningPoseCost(Prepared prep, bool shared, bool cayley)
-      : prep_(std::move(prep)), cost_(&prep_.poses[0], prep_, shared, cayley) {
+  OwningPoseCost(Prepared prep, StandingModel model, RotationParams rotations)
+      : prep_(std::move(prep)), cost_(&prep_.poses[0], prep_, model, rotations) {
     set_num_residuals(cost_.num_residuals());
     *mutable_parameter_block_sizes() = cost_.parameter_block_sizes();
   }
@@ -316,14 +321,14 @@ class OwningPoseCost final : public ceres::CostFunction {
 
 }  // namespace
 
-ceres::CostFunction* MakeCost(int trans_size, bool cayley, const PoseTerms* terms,
+ceres::CostFunction* MakeCost(StandingModel model, RotationParams rotations, const PoseTerms* terms,
                               const Prepared& prep) {
-  return new PoseCost(terms, prep, trans_size == 3, cayley);
+  return new PoseCost(terms, prep, model, rotations);
 }
 
 Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingModel model,
             const BuildOptions& build, Params* params, const StandingOptions& options) {
-  const bool cayley = build.cayley;
+  const bool cayley = build.rotations == RotationParams::kCayley;
   Built b;
   if (build.use_loss) b.loss = MakeLoss(options);
   ceres::Problem::Options po;
@@ -331,10 +336,9 @@ Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingMode
   b.problem = std::make_unique<ceres::Problem>(po);
   b.rot = cayley ? params->cayley.data() : params->quat.data();
   b.trans = params->trans.data();
-  const int n_trans = TransSize(model);
   for (int id : pose_ids) {
-    b.problem->AddResidualBlock(MakeCost(n_trans, cayley, &prep.poses[id], prep), b.loss.get(),
-                                b.rot, b.trans);
+    b.problem->AddResidualBlock(MakeCost(model, build.rotations, &prep.poses[id], prep),
+                                b.loss.get(), b.rot, b.trans);
   }
   if (!cayley && HasRotations(model) && prep.prior_scale > 0.0) {
     for (const HangingGravityObservation& o : prep.gravity_prior) {
@@ -364,10 +368,9 @@ std::vector<Vec6> ResidualsOfPoses(const Prepared& prep, const StandingFit& fit,
   Params p = ParamsFromFit(fit);
   std::vector<Vec6> out;
   out.reserve(ids.size());
-  const bool shared = SharedTranslation(fit.model);
   for (int id : ids) {
     double r[6];
-    const PoseCost cost(&prep.poses[id], prep, shared, false);
+    const PoseCost cost(&prep.poses[id], prep, fit.model, RotationParams::kQuaternion);
     const double* blocks[2] = {p.quat.data(), p.trans.data()};
     cost.Evaluate(blocks, r, nullptr);
     Vec6 v;
@@ -385,10 +388,10 @@ using standing_detail::SharedTranslation;
 
 std::unique_ptr<ceres::CostFunction> StandingPoseCostForCheck(const RobotCalibration& step1,
                                                               const StandingPose& pose,
-                                                              StandingModel model, bool cayley,
+                                                              StandingModel model,
+                                                              RotationParams rotations,
                                                               const StandingOptions& options) {
-  return std::make_unique<OwningPoseCost>(Prepare(step1, {pose}, options), SharedTranslation(model),
-                                          cayley);
+  return std::make_unique<OwningPoseCost>(Prepare(step1, {pose}, options), model, rotations);
 }
 
 }  // namespace ftcal

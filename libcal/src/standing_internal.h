@@ -82,14 +82,13 @@ struct Params {
 
 // A fit's parameters into problem storage (quaternions and Cayley vectors both filled), and back.
 Params ParamsFromFit(const StandingFit& fit);
-StandingFit FitFromParams(StandingModel model, const Params& p, bool cayley);
+StandingFit FitFromParams(StandingModel model, const Params& p, RotationParams rotations);
 // Names of a model's parameters in tangent order (the Jacobian's columns).
 std::vector<std::string> ParameterNames(StandingModel model);
 
 // How one problem is parametrised and what it leaves free. The defaults are the joint solve's.
 struct BuildOptions {
-  // Rotations as Cayley vectors (the report's alternating scheme) instead of unit quaternions.
-  bool cayley = false;
+  RotationParams rotations = RotationParams::kQuaternion;
   // Free blocks are solved for; the others are held constant (the alternating scheme's halves).
   bool rotations_free = true;
   bool translations_free = true;
@@ -112,8 +111,8 @@ Built Build(const Prepared& prep, const std::vector<int>& pose_ids, StandingMode
             const BuildOptions& build, Params* params, const StandingOptions& options);
 
 // One pose's cost on its own, for a caller that evaluates it directly (the alternating scheme's
-// linear translation step). trans_size: 3 (shared p^C_B) or 18.
-ceres::CostFunction* MakeCost(int trans_size, bool cayley, const PoseTerms* terms,
+// linear translation step); its translation block is the model's (3 for a shared p^C_B, or 18).
+ceres::CostFunction* MakeCost(StandingModel model, RotationParams rotations, const PoseTerms* terms,
                               const Prepared& prep);
 
 // The residual the solver minimises at fit, per pose of ids, without the sqrt(K) weighting.

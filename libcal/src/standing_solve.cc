@@ -121,14 +121,14 @@ void CheckIdentifiable(ceres::Problem* problem, const std::vector<double*>& bloc
 
 }  // namespace
 
-StandingFit FitFromParams(StandingModel model, const Params& p, bool cayley) {
+StandingFit FitFromParams(StandingModel model, const Params& p, RotationParams rotations) {
   StandingFit fit;
   fit.model = model;
   fit.dof = StandingModelDof(model);
   for (int k = 0; k < kNumLegs; ++k) {
     if (!HasRotations(model)) {
       fit.R_tilde[k] = Mat3::Identity();
-    } else if (cayley) {
+    } else if (rotations == RotationParams::kCayley) {
       fit.R_tilde[k] =
           CayleyToRotation(Vec3(p.cayley[3 * k], p.cayley[3 * k + 1], p.cayley[3 * k + 2]));
     } else {
@@ -218,7 +218,7 @@ StandingFit JointOnIds(const Prepared& prep, const std::vector<int>& ids, Standi
     throw std::runtime_error("standing step: Ceres failed for model " +
                              std::string(StandingModelName(model)) + ": " + summary.message);
   }
-  StandingFit fit = FitFromParams(model, params, false);
+  StandingFit fit = FitFromParams(model, params, RotationParams::kQuaternion);
   fit.leg_aware_com = prep.leg_aware;
   fit.solver = "joint";
   fit.iterations = static_cast<int>(summary.iterations.size()) - 1;
@@ -246,7 +246,7 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
   Params params;  // Cayley q = 0 (R~ = I), translations 0
   if (rank == RankCheck::kCheck) {
     BuildOptions rank_check;
-    rank_check.cayley = true;
+    rank_check.rotations = RotationParams::kCayley;
     rank_check.use_loss = false;
     Built b = Build(prep, ids, model, rank_check, &params, options);
     CheckIdentifiable(b.problem.get(), b.free_blocks, model, ids.size());
@@ -260,7 +260,8 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
     std::array<double, 18> zero{};
     Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor> Jt(6, n_trans);
     for (int id : ids) {
-      std::unique_ptr<ceres::CostFunction> cost(MakeCost(n_trans, true, &prep.poses[id], prep));
+      std::unique_ptr<ceres::CostFunction> cost(
+          MakeCost(model, RotationParams::kCayley, &prep.poses[id], prep));
       const double* blocks[2] = {params.cayley.data(), zero.data()};
       double r[6];
       double* jac[2] = {nullptr, Jt.data()};
@@ -277,7 +278,7 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
   rot_opts.gradient_tolerance = 1e-10;
 
   BuildOptions rotation_step;  // the translations held at the linear solve's values
-  rotation_step.cayley = true;
+  rotation_step.rotations = RotationParams::kCayley;
   rotation_step.translations_free = false;
 
   int sweeps = 0;
@@ -308,7 +309,7 @@ StandingFit AlternatingOnIds(const Prepared& prep, const std::vector<int>& ids, 
       break;
     }
   }
-  StandingFit fit = FitFromParams(model, params, true);
+  StandingFit fit = FitFromParams(model, params, RotationParams::kCayley);
   fit.leg_aware_com = prep.leg_aware;
   fit.solver = "alternating";
   fit.iterations = sweeps;

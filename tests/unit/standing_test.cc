@@ -72,11 +72,13 @@ TEST(Standing, PoseCostJacobianPassesGradientChecker) {
   std::mt19937_64 rng(7);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   for (StandingModel model : {StandingModel::kFull, StandingModel::kRotationsOneTranslation}) {
-    for (bool cayley : {false, true}) {
+    for (RotationParams rotations : {RotationParams::kQuaternion, RotationParams::kCayley}) {
+      const bool cayley = rotations == RotationParams::kCayley;
       SCOPED_TRACE(std::string(StandingModelName(model)) + (cayley ? " cayley" : " quaternion"));
       StandingOptions options;
       options.leg_aware_com = true;
-      const auto cost = StandingPoseCostForCheck(Step1Of(truth), poses[1], model, cayley, options);
+      const auto cost =
+          StandingPoseCostForCheck(Step1Of(truth), poses[1], model, rotations, options);
       std::vector<double> rot(cayley ? 18 : 24), trans(model == StandingModel::kFull ? 18 : 3);
       for (int k = 0; k < kNumLegs; ++k) {
         if (cayley) {

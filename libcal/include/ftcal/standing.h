@@ -50,6 +50,9 @@ inline constexpr std::array<StandingModel, 4> kStandingModels = {
     StandingModel::kFull, StandingModel::kRotationsOneTranslation, StandingModel::kTranslationsOnly,
     StandingModel::kOneTranslation};
 int StandingModelDof(StandingModel model);
+// How a solve holds the six mounting rotations: unit quaternions on their manifold (the joint
+// solve), or Cayley vectors (the report's alternating scheme, unconstrained).
+enum class RotationParams { kQuaternion, kCayley };
 const char* StandingModelName(StandingModel model);
 // "FULL, fixed CoM", "ONE_TRANSLATION, leg-aware CoM", ...
 std::string CandidateName(StandingModel model, bool leg_aware_com);
@@ -220,7 +223,8 @@ void FillStandingProto(const StandingResult& result, calibration::Calibration* o
 // entries). For gradient checks; owns a copy of what it needs.
 std::unique_ptr<ceres::CostFunction> StandingPoseCostForCheck(const RobotCalibration& step1,
                                                               const StandingPose& pose,
-                                                              StandingModel model, bool cayley,
+                                                              StandingModel model,
+                                                              RotationParams rotations,
                                                               const StandingOptions& options);
 
 }  // namespace ftcal
