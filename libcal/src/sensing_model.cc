@@ -1,5 +1,6 @@
 #include "ftcal/sensing_model.h"
 
+#include <algorithm>
 #include <cmath>
 
 namespace ftcal {
@@ -16,6 +17,15 @@ double SinusoidFit::operator()(double phase) const {
 }
 
 Vec3 LegComModel::At(double phase) const { return Vec3(x(phase), y, z(phase)); }
+
+double MaxCurveDistance(const LegComModel& a, const LegComModel& b, int points) {
+  double worst = 0.0;
+  for (int i = 0; i < points; ++i) {
+    const double phase = static_cast<double>(i) / points;
+    worst = std::max(worst, (a.At(phase) - b.At(phase)).norm());
+  }
+  return worst;
+}
 
 Pose3 RobotCalibration::X_C_ft(int k) const {
   const LegCalibration& l = leg[k];

@@ -437,11 +437,11 @@ TEST_F(PipelineE2e, CalibrationFromTheLogMeetsTheRecoveryBounds) {
         std::string(kLegNames[k]).c_str(), e.weight_n - t.weight_n,
         (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff(),
         (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff(),
-        MaxComCurveError(e.com, t.com) * 1e3, leg_rot, leg_pp * 1e3);
+        MaxCurveDistance(e.com, t.com) * 1e3, leg_rot, leg_pp * 1e3);
     weight = std::max(weight, std::abs(e.weight_n - t.weight_n));
     force = std::max(force, (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff());
     torque = std::max(torque, (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff());
-    com = std::max(com, MaxComCurveError(e.com, t.com));
+    com = std::max(com, MaxCurveDistance(e.com, t.com));
     rot = std::max(rot, leg_rot);
     pp = std::max(pp, leg_pp);
   }

@@ -32,15 +32,5 @@ inline Vec3 RotationErrorDeg(const Mat3& R_est, const Mat3& R_true) {
   return LogSO3(R_true * R_est.transpose()) / kDegree;
 }
 
-// Largest |r_est(phi) - r_true(phi)| over a fine phase grid, m.
-inline double MaxComCurveError(const LegComModel& est, const LegComModel& truth) {
-  double worst = 0.0;
-  for (int i = 0; i < 1000; ++i) {
-    const double phi = i / 1000.0;
-    worst = std::max(worst, (est.At(phi) - truth.At(phi)).norm());
-  }
-  return worst;
-}
-
 }  // namespace testing_twin
 }  // namespace ftcal

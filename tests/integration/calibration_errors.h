@@ -17,16 +17,6 @@
 
 namespace ftcal::calibration_errors {
 
-// The leg CoM curve's largest distance between two calibrations over a cycle, m.
-inline double ComCurveDistance(const LegComModel& a, const LegComModel& b) {
-  double worst = 0.0;
-  for (int i = 0; i < 400; ++i) {
-    const double phase = i / 400.0;
-    worst = std::max(worst, (a.At(phase) - b.At(phase)).norm());
-  }
-  return worst;
-}
-
 inline double RotationDeg(const Mat3& a, const Mat3& b) {
   const double c = std::clamp(((a.transpose() * b).trace() - 1.0) / 2.0, -1.0, 1.0);
   return std::acos(c) * 180.0 / M_PI;
@@ -46,7 +36,7 @@ inline Errors Compare(const RobotCalibration& a, const RobotCalibration& b) {
         std::max(e.force_n, (x.offset.head<3>() - y.offset.head<3>()).cwiseAbs().maxCoeff());
     e.torque_nm =
         std::max(e.torque_nm, (x.offset.tail<3>() - y.offset.tail<3>()).cwiseAbs().maxCoeff());
-    e.com_m = std::max(e.com_m, ComCurveDistance(x.com, y.com));
+    e.com_m = std::max(e.com_m, MaxCurveDistance(x.com, y.com));
     e.rotation_deg = std::max(e.rotation_deg, RotationDeg(x.R_tilde, y.R_tilde));
     e.p_tilde_m = std::max(e.p_tilde_m, (x.p_tilde_prime - y.p_tilde_prime).norm());
   }

@@ -135,7 +135,7 @@ void CheckStep1ParametersAgainstTheTruth() {
       weight = std::max(weight, std::abs(e.weight_n - t.weight_n));
       force = std::max(force, (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff());
       torque = std::max(torque, (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff());
-      com = std::max(com, MaxComCurveError(e.com, t.com));
+      com = std::max(com, MaxCurveDistance(e.com, t.com));
       if (!exact) {
         const double relative = (e.weight_n - t.weight_n) / t.weight_n;
         EXPECT_LT(relative, -0.0002) << "leg " << k;
@@ -458,7 +458,7 @@ void ExpectRecovered(const CalibrationRun& run, const RobotCalibration& truth,
     weight = std::max(weight, std::abs(e.weight_n - t.weight_n));
     force = std::max(force, (e.offset.head<3>() - t.offset.head<3>()).cwiseAbs().maxCoeff());
     torque = std::max(torque, (e.offset.tail<3>() - t.offset.tail<3>()).cwiseAbs().maxCoeff());
-    com = std::max(com, MaxComCurveError(e.com, t.com));
+    com = std::max(com, MaxCurveDistance(e.com, t.com));
     rot = std::max(rot, RotationErrorDeg(e.R_tilde, t.R_tilde).norm());
     pp = std::max(pp, (e.p_tilde_prime - t.p_tilde_prime).norm());
   }
@@ -616,7 +616,7 @@ void CheckSaturatedSamplesAreExcluded() {
   const size_t start = samples.wrench.size() / 3;
   for (size_t i = start; i < start + 100; ++i) samples.wrench[i][0] = 300.0;
   const CalibrationRun run = Calibrate(hanging, s.poses, FtcalConfig());
-  const double com = MaxComCurveError(run.calibration.leg[kLeg].com, truth.leg[kLeg].com);
+  const double com = MaxCurveDistance(run.calibration.leg[kLeg].com, truth.leg[kLeg].com);
   const double weight = std::abs(run.calibration.leg[kLeg].weight_n - truth.leg[kLeg].weight_n);
   std::printf(
       "recovery: 1 s of 300 N in HANG_X_POS leg FL: %u samples left out; CoM curve max "
@@ -633,7 +633,7 @@ void CheckSaturatedSamplesAreExcluded() {
   config::Config unguarded = FtcalConfig();
   unguarded.mutable_robot()->mutable_leg(kLeg)->mutable_ati()->clear_rated_range();
   const CalibrationRun bad = Calibrate(hanging, s.poses, unguarded);
-  const double com_bad = MaxComCurveError(bad.calibration.leg[kLeg].com, truth.leg[kLeg].com);
+  const double com_bad = MaxCurveDistance(bad.calibration.leg[kLeg].com, truth.leg[kLeg].com);
   std::printf("recovery: the same without a rated range: CoM curve max error %.3f mm\n",
               com_bad * 1e3);
   EXPECT_EQ(bad.proto.leg(kLeg).saturated_samples(), 0u);

@@ -35,6 +35,10 @@ struct LegComModel {
   Vec3 At(double phase) const;
 };
 
+// The largest distance between two leg CoM curves over a cycle, on a grid of `points` phases
+// (m): how far one calibration's r_k(phi) is from another's, or from the truth.
+double MaxCurveDistance(const LegComModel& a, const LegComModel& b, int points = 1000);
+
 struct LegCalibration {
   Vec6 offset = Vec6::Zero();         // w_o,k = [f_o; tau_o] in ft_k (N, N*m)
   double weight_n = 0.0;              // m_k g
