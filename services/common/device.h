@@ -13,6 +13,7 @@
 #include <chrono>
 #include <cstddef>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace ftcal {
@@ -46,6 +47,13 @@ class Device {
   // device by hand. Returns the number of the device's descriptors that were ready.
   int Step(int max_wait_ms);
 };
+
+// Degraded() for a device that states its health as a reason ("" when healthy).
+inline bool DegradedBecause(std::string reason, std::string* why) {
+  if (reason.empty()) return false;
+  if (why) *why = std::move(reason);
+  return true;
+}
 
 // The wait of one turn: until `wake` (clamped to now) or a descriptor in `fds` is ready.
 // Returns ppoll's result with EINTR as 0.

@@ -152,12 +152,7 @@ void MocapBridge::OnDeadline(Clock::time_point now) {
   last_timer_ = now;
 }
 
-bool MocapBridge::Degraded(std::string* why) {
-  std::string reason = health_reason();
-  if (reason.empty()) return false;
-  if (why) *why = std::move(reason);
-  return true;
-}
+bool MocapBridge::Degraded(std::string* why) { return DegradedBecause(health_reason(), why); }
 
 void MocapBridge::StartConnect() {
   const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);

@@ -296,12 +296,7 @@ void NatNetBridge::OnDeadline(Clock::time_point now) {
   last_timer_ = now;
 }
 
-bool NatNetBridge::Degraded(std::string* why) {
-  std::string reason = health_reason();
-  if (reason.empty()) return false;
-  if (why) *why = std::move(reason);
-  return true;
-}
+bool NatNetBridge::Degraded(std::string* why) { return DegradedBecause(health_reason(), why); }
 
 void NatNetBridge::OnReadable(int fd) { Drain(fd); }
 
