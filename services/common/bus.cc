@@ -7,7 +7,9 @@
 #include <algorithm>
 #include <cerrno>
 #include <chrono>
+#include <condition_variable>
 #include <cstring>
+#include <mutex>
 #include <thread>
 
 #include "common/shutdown.h"
@@ -25,6 +27,21 @@ int64_t WallClockUtime() {
 constexpr uint32_t kSyncWord = 0xEDA1DA01;  // LCM log format, big-endian on disk
 constexpr int64_t kHeaderBytes = 28;        // sync, event number, timestamp, two lengths
 constexpr int64_t kChunkBytes = 1 << 20;
+// Room before a read-ahead chunk for the tail of the event that straddles the chunks, so that
+// it is copied there instead of read again. An event longer than this is read again whole.
+constexpr int64_t kHeadroomBytes = 64 << 10;
+
+// pread until `len` bytes or the end of the file (or an error); the bytes read.
+int64_t PreadFully(int fd, uint8_t* into, int64_t len, int64_t offset) {
+  int64_t got = 0;
+  while (got < len) {
+    const ssize_t r = ::pread(fd, into + got, static_cast<size_t>(len - got), offset + got);
+    if (r < 0 && errno == EINTR) continue;
+    if (r <= 0) break;  // an error, or the file shrank since it was opened
+    got += r;
+  }
+  return got;
+}
 
 uint32_t Be32(const uint8_t* p) {
   return uint32_t{p[0]} << 24 | uint32_t{p[1]} << 16 | uint32_t{p[2]} << 8 | uint32_t{p[3]};
@@ -180,6 +197,79 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
 
 // ---- LogReplayBus ----
 
+// One read at a time on a thread of its own, into a buffer the caller takes when it needs it.
+// (No library in Debian does this for a plain file; io_uring would, at the cost of a
+// dependency for one pread.)
+class LogReplayBus::ReadAhead {
+ public:
+  explicit ReadAhead(int fd) : fd_(fd), thread_([this] { Loop(); }) {}
+  ~ReadAhead() {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      quit_ = true;
+    }
+    cv_.notify_all();
+    thread_.join();
+  }
+
+  // Starts reading [offset, offset + len) into the spare buffer, after kHeadroomBytes.
+  void Request(int64_t offset, int64_t len) {
+    std::lock_guard<std::mutex> lock(mu_);
+    offset_ = offset;
+    len_ = len;
+    state_ = State::kRequested;
+    cv_.notify_all();
+  }
+  // The request's offset, or -1 when there is none.
+  int64_t pending_offset() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return state_ == State::kIdle ? -1 : offset_;
+  }
+  // Waits for the request and swaps its buffer into *buf (the data start at kHeadroomBytes);
+  // the bytes read. The old *buf becomes the next spare.
+  int64_t Take(std::vector<uint8_t>* buf) {
+    std::unique_lock<std::mutex> lock(mu_);
+    cv_.wait(lock, [this] { return state_ == State::kDone; });
+    buf->swap(spare_);
+    state_ = State::kIdle;
+    return got_;
+  }
+  // Lets a request finish and forgets it.
+  void Drop() {
+    std::unique_lock<std::mutex> lock(mu_);
+    cv_.wait(lock, [this] { return state_ != State::kRequested; });
+    state_ = State::kIdle;
+  }
+
+ private:
+  enum class State { kIdle, kRequested, kDone };
+  void Loop() {
+    std::unique_lock<std::mutex> lock(mu_);
+    while (true) {
+      cv_.wait(lock, [this] { return quit_ || state_ == State::kRequested; });
+      if (quit_) return;
+      const int64_t offset = offset_, len = len_;
+      const auto need = static_cast<size_t>(kHeadroomBytes + len);
+      lock.unlock();  // the buffer is this thread's while kRequested
+      if (spare_.size() < need) spare_.resize(need);
+      const int64_t got = PreadFully(fd_, spare_.data() + kHeadroomBytes, len, offset);
+      lock.lock();
+      got_ = got;
+      state_ = State::kDone;
+      cv_.notify_all();
+    }
+  }
+
+  int fd_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::vector<uint8_t> spare_;
+  int64_t offset_ = 0, len_ = 0, got_ = 0;
+  State state_ = State::kIdle;
+  bool quit_ = false;
+  std::thread thread_;  // last: starts once the members it uses are built
+};
+
 LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_path,
                            ServiceStats& stats)
     : Bus(stats), in_path_(in_path) {
@@ -204,26 +294,43 @@ LogReplayBus::LogReplayBus(const std::string& in_path, const std::string& out_pa
 }
 
 // The output's temporary file goes with out_ unless Commit() ran.
-LogReplayBus::~LogReplayBus() { ::close(in_fd_); }
+LogReplayBus::~LogReplayBus() {
+  read_ahead_.reset();  // before the descriptor it reads
+  ::close(in_fd_);
+}
 
 const uint8_t* LogReplayBus::InputBytes(int64_t at, int64_t n) {
   if (at < 0 || n < 0 || at + n > in_bytes_) return nullptr;
-  if (at >= chunk_at_ && at + n <= chunk_at_ + chunk_bytes_)
-    return chunk_.data() + (at - chunk_at_);
-  // Refill from `at`: reading is sequential, so only the tail of one event is read twice.
-  const int64_t want = std::min(std::max(n, kChunkBytes), in_bytes_ - at);
-  if (static_cast<int64_t>(chunk_.size()) < want) chunk_.resize(static_cast<size_t>(want));
-  int64_t got = 0;
-  while (got < want) {
-    const ssize_t r =
-        ::pread(in_fd_, chunk_.data() + got, static_cast<size_t>(want - got), at + got);
-    if (r < 0 && errno == EINTR) continue;
-    if (r <= 0) break;  // an error, or the file shrank since it was opened
-    got += r;
+  const int64_t chunk_end = chunk_at_ + chunk_bytes_;
+  if (at >= chunk_at_ && at + n <= chunk_end) return chunk_.data() + chunk_base_ + (at - chunk_at_);
+  if (!read_ahead_) read_ahead_ = std::make_unique<ReadAhead>(in_fd_);
+  // Reading is sequential: the next chunk was asked for at this one's end. The last bytes of
+  // this one go in front of it, where the event that straddles the two begins.
+  const int64_t keep = std::min(kHeadroomBytes, chunk_bytes_);
+  const int64_t ahead = std::min(kChunkBytes, in_bytes_ - chunk_end);  // what was asked for
+  if (chunk_bytes_ > 0 && read_ahead_->pending_offset() == chunk_end && at >= chunk_end - keep &&
+      at + n <= chunk_end + ahead) {
+    const uint8_t* from = chunk_.data() + chunk_base_ + (chunk_bytes_ - keep);
+    tail_.assign(from, from + keep);
+    const int64_t got = read_ahead_->Take(&chunk_);  // the old chunk is the reader's spare now
+    const size_t base = static_cast<size_t>(kHeadroomBytes - keep);
+    if (keep > 0) std::memcpy(chunk_.data() + base, tail_.data(), static_cast<size_t>(keep));
+    chunk_base_ = base;
+    chunk_at_ = chunk_end - keep;
+    chunk_bytes_ = keep + got;
+  } else {
+    read_ahead_->Drop();
+    // Refill from `at` (a jump, or an event longer than what is read ahead).
+    const int64_t want = std::min(std::max(n, kChunkBytes), in_bytes_ - at);
+    if (static_cast<int64_t>(chunk_.size()) < want) chunk_.resize(static_cast<size_t>(want));
+    chunk_base_ = 0;
+    chunk_at_ = at;
+    chunk_bytes_ = PreadFully(in_fd_, chunk_.data(), want, at);
   }
-  chunk_at_ = at;
-  chunk_bytes_ = got;
-  return got >= n ? chunk_.data() : nullptr;
+  const int64_t next = chunk_at_ + chunk_bytes_;
+  if (next < in_bytes_) read_ahead_->Request(next, std::min(kChunkBytes, in_bytes_ - next));
+  if (at < chunk_at_ || at + n > chunk_at_ + chunk_bytes_) return nullptr;  // short: see above
+  return chunk_.data() + chunk_base_ + (at - chunk_at_);
 }
 
 int64_t LogReplayBus::FindSyncWord(int64_t from) {

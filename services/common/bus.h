@@ -219,8 +219,14 @@ class LogReplayBus : public Bus {
   int in_fd_ = -1;
   int64_t in_bytes_ = 0;  // the input's size when opened
   std::vector<uint8_t> chunk_;
-  int64_t chunk_at_ = 0;     // input offset of chunk_[0]
-  int64_t chunk_bytes_ = 0;  // valid bytes in chunk_
+  size_t chunk_base_ = 0;    // index in chunk_ of the byte at chunk_at_
+  int64_t chunk_at_ = 0;     // input offset of chunk_[chunk_base_]
+  int64_t chunk_bytes_ = 0;  // valid bytes from there
+  // The next chunk, read on a thread of its own while this one is handled (ReadAhead in
+  // bus.cc): the copy out of the page cache was a seventh of a replay's main thread.
+  class ReadAhead;
+  std::unique_ptr<ReadAhead> read_ahead_;
+  std::vector<uint8_t> tail_;  // the straddling event's bytes on their way to the next chunk
   // The channels seen so far with their handlers, and for each the one that followed it last
   // time: a log cycles through a few channels in a steady order (SERVO_STATE, MOCAP_BODY, the
   // six FT_<LEG>), so the guess is nearly always right and an event's channel costs one

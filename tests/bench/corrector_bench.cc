@@ -10,8 +10,10 @@
 // --replay IN --out OUT` does, log in -> log out, in this process (LogReplayBus +
 // CorrectorStage as main.cc builds them; process start-up and config parsing left out): read
 // and decode every event, correct, encode, write, fsync and rename the output. The plain run
-// divides by CPU time, the /real_time run by wall time (which includes waiting for the disk
-// at fsync and, on a shared machine, for a core).
+// divides by the main thread's CPU time (the input's read-ahead and the output's writer run on
+// threads of their own and are not in it); the /real_time run divides by wall time, which
+// includes waiting for the disk at fsync and, on a shared machine, for a core: the figure a
+// user sees.
 // BM_CorrectorEngine is libcal's Corrector alone over the same frames held in memory.
 //
 //   <build>/tests/bench/corrector_bench

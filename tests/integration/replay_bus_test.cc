@@ -1,4 +1,5 @@
-// LogReplayBus reads LCM logs itself (in 1 MiB chunks) and AtomicLogFile writes them itself;
+// LogReplayBus reads LCM logs itself (in 1 MiB chunks, the next read ahead on a thread of its
+// own) and AtomicLogFile writes them itself;
 // both are checked here against LCM's own writer and reader, on logs whose events straddle
 // chunk boundaries, with one event larger than a chunk and damaged bytes between events.
 #include <unistd.h>
@@ -37,12 +38,15 @@ std::vector<uint8_t> Bytes(size_t n, uint32_t seed) {
 }
 
 // Events of sizes that put chunk boundaries (every 1 MiB) inside headers, channels and data,
-// one of 3 MiB, and payloads full of the sync word's bytes.
+// one of 3 MiB (longer than a chunk), ten of 600 kB (most of them begin further before a chunk's
+// end than the bytes the read-ahead carries over), and payloads full of the sync word's bytes.
 std::vector<Event> MakeEvents() {
   std::vector<Event> events;
   int64_t t = 1'700'000'000'000'000;
   for (int i = 0; i < 9000; ++i) {
-    const size_t size = i == 4000 ? (3u << 20) : static_cast<size_t>(37 + (i * 7919) % 900);
+    const size_t size = i == 4000        ? (3u << 20)
+                        : i % 900 == 450 ? (600u << 10)
+                                         : static_cast<size_t>(37 + (i * 7919) % 900);
     Event e{t += 1000, "CH_" + std::to_string(i % 5), Bytes(size, static_cast<uint32_t>(i))};
     if (i % 97 == 0 && e.data.size() >= 8) {
       const uint8_t sync[4] = {0xED, 0xA1, 0xDA, 0x01};
