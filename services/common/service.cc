@@ -232,6 +232,7 @@ void ServiceApp::RunDevice(Device& device) {
   const auto period =
       std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(kHeartbeatPeriodS));
   const auto max_wait = std::chrono::milliseconds(100);  // the shutdown flag's latency
+  device.ReportCounters(*stats_);  // every counter is in the first heartbeat, at zero
   DeviceLoopStarted();
   auto next_heartbeat = Clock::now() + period;
   std::vector<pollfd> fds;

@@ -267,6 +267,17 @@ TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePubl
   EXPECT_EQ(int{last.state}, int{service_status_t::STOPPING});
   EXPECT_EQ(collector.undecodable(), 0);
   EXPECT_EQ(collector.wrong_channel(), 0);
+  // Every counter is in the first heartbeat already (docs/writing-a-bridge.md).
+  for (const auto& [first, when] : collector.Statuses()) {
+    if (first.pid != bridge->pid()) continue;
+    const std::set<std::string> names(first.counter_name.begin(),
+                                      first.counter_name.begin() + first.num_counters);
+    for (int i = 0; i < last.num_counters; ++i) {
+      EXPECT_EQ(names.count(last.counter_name[i]), 1u)
+          << last.counter_name[i] << " is not in the first heartbeat";
+    }
+    break;
+  }
 
   const int matched = ExpectSamplesMatchTruth(heard, truth);
   EXPECT_EQ(matched, static_cast<int>(heard.size()));
