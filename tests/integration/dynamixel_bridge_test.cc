@@ -821,7 +821,11 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
                             "--corrupt", "0.02", "--noise", "0.05", "--missing", "3:1.0:1.6",
                             "--hw-error", "5:2.0", "--tick-start", "31500", "--duration", "10"});
   auto bridge = StartBridge("");
-  SleepS(3.5);
+  // Three seconds from its first state, not from the exec: under a sanitizer on a busy machine
+  // the process took two seconds to get there.
+  for (int i = 0; i < 2000 && listener.States().empty(); ++i) SleepS(0.01);
+  ASSERT_FALSE(listener.States().empty()) << testing::ReadFile(dir_ + "/bridge.err");
+  SleepS(3.0);
   Stop(*bridge, "bridge");
   SleepS(0.3);  // the final heartbeat
   Stop(*emu, "emulator");
