@@ -277,10 +277,11 @@ TEST_F(LaunchTest, FailingGateStopsTheStartAndNamesProcessGateAndFigure) {
                  "failed: FT_[A-Z]+ at ([0-9.]+) Hz")))
       << up.out;
   // The figure is what the twin serves (500 per box), not a number the gate made up: at most
-  // that, and less only as far as a loaded machine (or a sanitizer's build) slows the twin.
+  // that, and less only as far as a loaded machine (or a sanitizer's build) slows the twin
+  // (207 Hz seen under ASan beside another test).
   const double figure_hz = std::stod(m[1]);
   EXPECT_LE(figure_hz, 1.1 * kAtiRateHz) << up.out;
-  EXPECT_GE(figure_hz, 0.5 * kAtiRateHz) << up.out;
+  EXPECT_GE(figure_hz, 0.2 * kAtiRateHz) << up.out;
   // Its dependents were not started.
   auto status = SupervisorStatus(run);
   EXPECT_EQ(status["sim:segmenter"].state, "STOPPED");
