@@ -13,7 +13,10 @@ int WaitFds(std::vector<pollfd>& fds, Device::Clock::time_point wake) {
   const timespec ts{static_cast<time_t>(wait.count() / 1'000'000'000),
                     static_cast<long>(wait.count() % 1'000'000'000)};
   const int ready = ::ppoll(fds.empty() ? nullptr : fds.data(), fds.size(), &ts, nullptr);
-  if (ready < 0 && errno == EINTR) return 0;
+  if (ready < 0) {
+    for (auto& p : fds) p.revents = 0;  // nothing the caller may read as ready
+    return errno == EINTR ? 0 : ready;
+  }
   return ready;
 }
 
@@ -23,9 +26,6 @@ int Device::Step(int max_wait_ms) {
   const auto wake =
       std::min(NextDeadline(), Clock::now() + std::chrono::milliseconds(std::max(0, max_wait_ms)));
   const int ready = WaitFds(fds, wake);
-  if (ready < 0) {
-    for (auto& p : fds) p.revents = 0;
-  }
   OnPolled(fds.data(), fds.size());
   const auto now = Clock::now();
   if (now >= NextDeadline()) OnDeadline(now);

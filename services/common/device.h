@@ -56,7 +56,7 @@ inline bool DegradedBecause(std::string reason, std::string* why) {
 }
 
 // The wait of one turn: until `wake` (clamped to now) or a descriptor in `fds` is ready.
-// Returns ppoll's result with EINTR as 0.
+// Returns ppoll's result with EINTR as 0; after an error every revents is 0.
 int WaitFds(std::vector<pollfd>& fds, Device::Clock::time_point wake);
 
 }  // namespace ftcal

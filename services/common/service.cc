@@ -272,9 +272,7 @@ void ServiceApp::RunDevice(Device& device) {
     const std::size_t first = fds.size();
     device.AddPollFds(&fds);
     const auto wake = std::min({device.NextDeadline(), next_heartbeat, now + max_wait});
-    if (WaitFds(fds, wake) < 0) {
-      for (auto& p : fds) p.revents = 0;
-    }
+    WaitFds(fds, wake);
     if (with_bus && (fds[0].revents & POLLIN)) bus_->HandleOnce(0);
     device.OnPolled(fds.data() + first, fds.size() - first);
     now = Clock::now();
