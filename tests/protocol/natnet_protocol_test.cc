@@ -209,8 +209,8 @@ TEST(NatNetFrame, OldVersionsRefused) {
 }
 
 // NAT_MODELDEF: a marker set, a rigid body with two markers, and (4.1) an asset description
-// the decoder must skip by its byte count (§3).
-Bytes HandBuiltDescriptions(Version v, bool with_asset) {
+// the decoder must skip by its byte count (§3); with `rigid_body_first` the rigid body leads.
+Bytes HandBuiltDescriptions(Version v, bool with_asset, bool rigid_body_first = false) {
   Fields f;
   f.I32(with_asset ? 3 : 2);
   auto description = [&](int32_t type, const std::function<void()>& body) {
@@ -225,48 +225,58 @@ Bytes HandBuiltDescriptions(Version v, bool with_asset) {
     body();
     if (counted) f.PatchI32(at, static_cast<int32_t>(f.size() - start));
   };
-  description(0, [&] {
-    f.Str("chassis");
-    f.I32(2);
-    f.Str("Marker1");
-    f.Str("Marker2");
-  });
-  if (with_asset) {
-    description(6, [&] {
-      f.Str("trained");
-      f.I32(1);
-      f.I32(99);
-      f.I32(0);
-      f.I32(0);
+  const auto marker_set = [&] {
+    description(0, [&] {
+      f.Str("chassis");
+      f.I32(2);
+      f.Str("Marker1");
+      f.Str("Marker2");
     });
-  }
-  description(1, [&] {
-    f.Str("chassis");
-    f.I32(3);   // streaming id
-    f.I32(-1);  // parent
-    f.F32(0);
-    f.F32(0);
-    f.F32(0);  // offset
-    if (v.AtLeast(4, 2)) {
-      f.F32(0);
-      f.F32(0);
-      f.F32(0);
-      f.F32(1);
+  };
+  const auto asset = [&] {
+    if (with_asset) {
+      description(6, [&] {
+        f.Str("trained");
+        f.I32(1);
+        f.I32(99);
+        f.I32(0);
+        f.I32(0);
+      });
     }
-    f.I32(2);  // markers
-    f.F32(0.1f);
-    f.F32(0.0f);
-    f.F32(0.0f);
-    f.F32(0.0f);
-    f.F32(0.2f);
-    f.F32(0.0f);
-    f.I32(0);
-    f.I32(0);  // required active labels
-    if (v.AtLeast(4, 0)) {
-      f.Str("chassis_m01");
-      f.Str("chassis_m02");
-    }
-  });
+  };
+  const auto rigid_body = [&] {
+    description(1, [&] {
+      f.Str("chassis");
+      f.I32(3);   // streaming id
+      f.I32(-1);  // parent
+      f.F32(0);
+      f.F32(0);
+      f.F32(0);  // offset
+      if (v.AtLeast(4, 2)) {
+        f.F32(0);
+        f.F32(0);
+        f.F32(0);
+        f.F32(1);
+      }
+      f.I32(2);  // markers
+      f.F32(0.1f);
+      f.F32(0.0f);
+      f.F32(0.0f);
+      f.F32(0.0f);
+      f.F32(0.2f);
+      f.F32(0.0f);
+      f.I32(0);
+      f.I32(0);  // required active labels
+      if (v.AtLeast(4, 0)) {
+        f.Str("chassis_m01");
+        f.Str("chassis_m02");
+      }
+    });
+  };
+  if (rigid_body_first) rigid_body();
+  marker_set();
+  asset();
+  if (!rigid_body_first) rigid_body();
   return f.b;
 }
 
@@ -292,6 +302,20 @@ TEST(NatNetDescriptions, HandBuiltOtherVersionsRoundTrip) {
     ASSERT_EQ(d.rigid_bodies.size(), 1u) << v.ToString();
     EXPECT_EQ(d.rigid_bodies[0].marker_names.size(), v.AtLeast(4, 0) ? 2u : 0u);
     EXPECT_EQ(EncodeDescriptions(d, v), p) << v.ToString();
+  }
+}
+
+// Motive need not send the kinds in the order the encoder groups them (a rigid body before the
+// marker sets, as one fuzz input had it): both are kept, and the encoding groups them.
+TEST(NatNetDescriptions, RigidBodyBeforeMarkerSetDecodes) {
+  for (Version v : {Version{3, 0}, Version{3, 1}, Version{4, 0}, Version{4, 1}, Version{4, 2}}) {
+    const Descriptions d = DecodeDescriptions(HandBuiltDescriptions(v, false, true), v);
+    ASSERT_EQ(d.rigid_bodies.size(), 1u) << v.ToString();
+    EXPECT_EQ(d.rigid_bodies[0].name, "chassis") << v.ToString();
+    EXPECT_EQ(d.rigid_bodies[0].id, 3) << v.ToString();
+    ASSERT_EQ(d.marker_sets.size(), 1u) << v.ToString();
+    EXPECT_EQ(d.marker_sets[0].marker_names.size(), 2u) << v.ToString();
+    EXPECT_EQ(EncodeDescriptions(d, v), HandBuiltDescriptions(v, false)) << v.ToString();
   }
 }
 
