@@ -15,6 +15,7 @@
 #include <iostream>
 #include <memory>
 #include <sstream>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -75,6 +76,7 @@ int main(int argc, char** argv) {
       "ftcal-emulate-dynamixel");
   std::string link, config_path, truth_path, scenario = "dynamics";
   double duration_s = 0, time_constant_s = 0.05;
+  std::string clock_from = "start";
   int tick_start_ms = 0;
   ftcal::sim::DxlFaultRates rates;
   std::vector<std::string> missing, silent, hw_errors, disconnects;
@@ -111,6 +113,13 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber);
   cli.add_option("--tick-start", tick_start_ms, "Realtime Tick at start, ms (to test its wrap)")
       ->check(CLI::Range(0, 32767));
+  cli.add_option("--clock", clock_from,
+                 "where time 0 of every timed option (--duration, --missing, --silent, "
+                 "--hw-error, --disconnect, the scenario, the Realtime Tick) is: the emulator's "
+                 "start, or the first bytes a master sends on the bus (a fault then meets the "
+                 "bridge however long it took to start)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"start", "first-request"}));
   cli.footer(ftcal::ExitCodeTable());
   if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
@@ -214,10 +223,18 @@ int main(int argc, char** argv) {
                 options.ids.size(), bus.slave_path().c_str(), link.c_str(), scenario.c_str());
     std::fflush(stdout);
 
-    const auto t0 = std::chrono::steady_clock::now();
+    // With --clock first-request, time stands at 0 until the first bytes arrive (ServeOnce
+    // reads the clock only then).
+    using SteadyClock = std::chrono::steady_clock;
+    std::optional<SteadyClock::time_point> t0;
+    if (clock_from == "start") t0 = SteadyClock::now();
+    const auto clock_s = [&t0] {
+      const auto now = SteadyClock::now();
+      if (!t0) t0 = now;
+      return std::chrono::duration<double>(now - *t0).count();
+    };
     while (!g_stop) {
-      const double now_s =
-          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      const double now_s = t0 ? clock_s() : 0.0;
       if (duration_s > 0 && now_s >= duration_s) break;
       bool in_down = false;
       for (const auto& w : down) in_down = in_down || (now_s >= w.start_s && now_s < w.end_s);
@@ -232,9 +249,7 @@ int main(int argc, char** argv) {
         std::fflush(stdout);
       }
       if (bus.is_open()) {
-        bus.ServeOnce(2, [&t0] {
-          return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        });
+        bus.ServeOnce(2, clock_s);
       } else {
         ::usleep(2000);
       }
