@@ -18,10 +18,13 @@
 //     dropout at a steady window's edge falls in one run and not the other: scheduling);
 //   - the two calibrations agree, parameter by parameter, within the accuracy each run is held
 //     to against the truth, and p~' within four combined sigmas.
+// And a run whose ATI bridge is killed as the plan starts ends at once, naming it.
+#include <dirent.h>
 #include <signal.h>
 #include <sys/wait.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <iostream>
@@ -32,6 +35,7 @@
 #include <set>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -181,6 +185,87 @@ void ExpectAgrees(const calibration::Vec3Estimate& a, const calibration::Vec3Est
   ExpectAgrees(a.x(), a.sigma_x(), b.x(), b.sigma_x(), k, what + ".x");
   ExpectAgrees(a.y(), a.sigma_y(), b.y(), b.sigma_y(), k, what + ".y");
   ExpectAgrees(a.z(), a.sigma_z(), b.z(), b.sigma_z(), k, what + ".z");
+}
+
+// The processes running with `arg` among their arguments (a run's config path picks out its
+// group): /proc's command lines, NUL-separated.
+std::vector<pid_t> ProcessesWithArg(const std::string& arg) {
+  std::vector<pid_t> found;
+  DIR* proc = ::opendir("/proc");
+  if (proc == nullptr) return found;
+  while (const dirent* e = ::readdir(proc)) {
+    const pid_t pid = static_cast<pid_t>(std::atoi(e->d_name));
+    if (pid <= 0) continue;
+    const std::string cmdline = testing::ReadFile("/proc/" + std::string(e->d_name) + "/cmdline");
+    std::istringstream in(cmdline);
+    for (std::string a; std::getline(in, a, '\0');) {
+      if (a == arg) {
+        found.push_back(pid);
+        break;
+      }
+    }
+  }
+  ::closedir(proc);
+  return found;
+}
+
+// A bridge that dies as the plan starts ends the experiment at once, by name. The sequencer
+// stops by itself when a bridge it has heard goes stale, but one it has not heard yet is only
+// "not there yet": it asked again at every prompt, and scripts/experiment, its operator, waited
+// for the next prompt (18 minutes, once, until a test gave up). Now the script exits 2 within
+// seconds, says which process exited with the end of its log, and leaves no process behind.
+TEST(ExperimentLive, ABridgeThatDiesAsThePlanStartsEndsTheExperimentNamingIt) {
+  ASSERT_TRUE(testing::InNetns());
+  const std::string dir = testing::MakeTempDir();
+  ExperimentRun run{"bridge-dies", "qualisys", "", nullptr};
+  Start(run, dir);
+  const std::string said_path = dir + "/" + run.name + ".out";
+  // Until the script starts the sequencer, which has then heard nothing yet.
+  const std::string step3 = "== 3/4";
+  for (int i = 0; i < 3000 && testing::ReadFile(said_path).find(step3) == std::string::npos; ++i) {
+    ASSERT_TRUE(run.child->running())
+        << testing::ReadFile(said_path) << testing::ReadFile(dir + "/" + run.name + ".err");
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  ASSERT_NE(testing::ReadFile(said_path).find(step3), std::string::npos);
+  const std::string config = run.out + "/config.pbtxt";
+  pid_t ati = 0;
+  for (pid_t pid : ProcessesWithArg(config)) {
+    if (testing::ReadFile("/proc/" + std::to_string(pid) + "/comm").rfind("ftcal-ati-bri", 0) ==
+        0) {
+      ati = pid;
+    }
+  }
+  ASSERT_GT(ati, 0) << "no ftcal-ati-bridge running with --config " << config;
+  const auto killed_at = std::chrono::steady_clock::now();
+  ASSERT_EQ(::kill(ati, SIGKILL), 0);
+  const auto status = run.child->Wait(60);
+  const double took_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - killed_at).count();
+  const std::string err = testing::ReadFile(dir + "/" + run.name + ".err");
+  if (!status) {
+    run.child->Signal(SIGTERM);  // the script's own exit trap stops the group
+    run.child->Wait(30);
+    for (pid_t pid : ProcessesWithArg(config)) ::kill(pid, SIGKILL);  // should that not have
+  }
+  ASSERT_TRUE(status.has_value()) << "scripts/experiment still ran 60 s after its ATI bridge died\n"
+                                  << err;
+  std::printf("[ figure ] ATI bridge killed -> scripts/experiment ended: %.2f s\n", took_s);
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 2)
+      << testing::DescribeWaitStatus(*status) << "\n"
+      << err;
+  EXPECT_LT(took_s, 10.0);
+  EXPECT_NE(err.find("ati exited while the plan ran"), std::string::npos) << err;
+  EXPECT_NE(err.find("the experiment stopped because ati exited"), std::string::npos) << err;
+  // The rest of the group went with it (the script's exit stops every process it started).
+  std::vector<pid_t> left;
+  for (int i = 0; i < 50; ++i) {
+    left = ProcessesWithArg(config);
+    if (left.empty()) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_TRUE(left.empty()) << left.size() << " processes of the group still run";
+  for (pid_t pid : left) ::kill(pid, SIGKILL);  // not into the next test
 }
 
 TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNatNetAlike) {
