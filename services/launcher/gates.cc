@@ -50,9 +50,9 @@ GateWatcher::GateWatcher(const std::string& lcm_url, const std::string& status_c
 
 int64_t GateWatcher::Now() const { return bus_->NowUtime(); }
 
-void GateWatcher::Pump(double seconds) {
+void GateWatcher::Pump(double seconds, const std::function<bool()>& done) {
   const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(seconds);
-  while (true) {
+  while (!(done && done())) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
                           end - std::chrono::steady_clock::now())
                           .count();

@@ -27,8 +27,9 @@ class GateWatcher {
  public:
   GateWatcher(const std::string& lcm_url, const std::string& status_channel);
 
-  // Handles messages for `seconds`.
-  void Pump(double seconds);
+  // Handles messages for `seconds`, or until `done` (checked after each message and every
+  // 50 ms) says so.
+  void Pump(double seconds, const std::function<bool()>& done = nullptr);
 
   // The gate judged now, for the process with `pid` and heartbeat name `status_name`;
   // `since_utime` is when the process started (nothing heard before counts).

@@ -366,17 +366,40 @@ int Launcher::Restart() {
 
 int Launcher::Status() {
   return RunCommand([&]() -> int {
-    if (o_.listen_s > 0) Watcher().Pump(o_.listen_s);
+    // The supervisors first: they say which processes run, under which pids, and so whose
+    // heartbeats to wait for.
+    std::map<std::string, std::map<std::string, std::map<std::string, ProgramStatus>>> by_group;
+    std::vector<std::pair<std::string, int64_t>> expected;  // (heartbeat name, pid)
+    for (const auto& group : config_.launch().group()) {
+      if (!o_.group.empty() && group.name() != o_.group) continue;
+      auto& by_host = by_group[group.name()];
+      for (const auto& h : HostsOf(group)) {
+        HostSupervisor& hs = Host(h);
+        by_host[h] = hs.Alive() ? hs.Status() : std::map<std::string, ProgramStatus>{};
+      }
+      for (const auto& p : group.process()) {
+        const auto& st = by_host[p.host()];
+        const auto it = st.find(group.name() + ":" + p.name());
+        if (!StatusName(p).empty() && it != st.end() && it->second.pid > 0) {
+          expected.emplace_back(StatusName(p), it->second.pid);
+        }
+      }
+    }
+    if (o_.listen_s > 0) {
+      GateWatcher& watcher = Watcher();
+      watcher.Pump(o_.listen_s, [&] {
+        for (const auto& [name, pid] : expected) {
+          if (!watcher.Heartbeat(name, pid)) return false;
+        }
+        return true;
+      });
+    }
     std::printf("%-12s %-28s %-9s %-26s %-9s %s\n", "HOST", "PROCESS", "SUPERVISOR", "DETAIL",
                 "HEARTBEAT", "LAST ERROR");
     bool silent_or_down = false;
     for (const auto& group : config_.launch().group()) {
       if (!o_.group.empty() && group.name() != o_.group) continue;
-      std::map<std::string, std::map<std::string, ProgramStatus>> by_host;
-      for (const auto& h : HostsOf(group)) {
-        HostSupervisor& hs = Host(h);
-        by_host[h] = hs.Alive() ? hs.Status() : std::map<std::string, ProgramStatus>{};
-      }
+      auto& by_host = by_group[group.name()];
       for (const auto& p : group.process()) {
         const auto& st = by_host[p.host()];
         const auto it = st.find(group.name() + ":" + p.name());

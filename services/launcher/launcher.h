@@ -26,7 +26,9 @@ struct Options {
   std::string process;
   std::string host;
   std::string out_dir;
-  double listen_s = 1.5;
+  // status: listens until every running process has been heard, at most this long (two and a
+  // half heartbeat periods: one lost datagram does not make a process SILENT).
+  double listen_s = 2.5;
 };
 
 class Launcher {

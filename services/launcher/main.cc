@@ -48,7 +48,10 @@ int main(int argc, char** argv) {
                                     "every host's supervisor state of the group's "
                                     "processes, with their heartbeats");
   status->add_option("group", o.group, "launch group name (default: every group)");
-  status->add_option("--listen", o.listen_s, "seconds to listen for heartbeats")
+  status
+      ->add_option("--listen", o.listen_s,
+                   "at most this many seconds to listen for heartbeats (less once every "
+                   "running process has been heard)")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
   auto* systemd =
