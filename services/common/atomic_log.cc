@@ -118,6 +118,14 @@ void AtomicLogFile::WriterLoop() {
       p += n;
       left -= static_cast<size_t>(n);
     }
+    if (error.empty()) {
+      // Starts the disk on what was just written, without waiting for it: Commit()'s fsync then
+      // finds little left to do, instead of a whole replay's output at once. (Best effort: where
+      // the filesystem does not support it, the fsync does it all as before.)
+      ::sync_file_range(fd_, static_cast<off_t>(written_), static_cast<off_t>(pending_bytes_),
+                        SYNC_FILE_RANGE_WRITE);
+      written_ += static_cast<int64_t>(pending_bytes_);
+    }
     pending_bytes_ = 0;
     lock.lock();
     if (!error.empty() && error_.empty()) error_ = error;

@@ -66,6 +66,7 @@ class AtomicLogFile {
   size_t fill_bytes_ = 0;
   std::vector<char> pending_;  // the writer writes this one (guarded by mutex_ while handed off)
   size_t pending_bytes_ = 0;
+  int64_t written_ = 0;  // bytes the writer has written: where the next sync_file_range starts
   std::mutex mutex_;
   std::condition_variable cv_;
   bool has_pending_ = false;
