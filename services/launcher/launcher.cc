@@ -2,12 +2,14 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <future>
 #include <iostream>
+#include <optional>
 #include <sstream>
 
 #include <spdlog/spdlog.h>
@@ -368,58 +370,52 @@ int Launcher::Status() {
   return RunCommand([&]() -> int {
     // The supervisors first: they say which processes run, under which pids, and so whose
     // heartbeats to wait for.
-    std::map<std::string, std::map<std::string, std::map<std::string, ProgramStatus>>> by_group;
-    std::vector<std::pair<std::string, int64_t>> expected;  // (heartbeat name, pid)
+    struct Row {
+      std::string host, name, heartbeat_name;
+      std::optional<ProgramStatus> supervised;
+      bool Expects() const { return !heartbeat_name.empty() && supervised && supervised->pid > 0; }
+    };
+    std::vector<Row> rows;
     for (const auto& group : config_.launch().group()) {
       if (!o_.group.empty() && group.name() != o_.group) continue;
-      auto& by_host = by_group[group.name()];
+      std::map<std::string, std::map<std::string, ProgramStatus>> by_host;
       for (const auto& h : HostsOf(group)) {
         HostSupervisor& hs = Host(h);
         by_host[h] = hs.Alive() ? hs.Status() : std::map<std::string, ProgramStatus>{};
       }
       for (const auto& p : group.process()) {
+        Row r{p.host(), group.name() + ":" + p.name(), StatusName(p), std::nullopt};
         const auto& st = by_host[p.host()];
-        const auto it = st.find(group.name() + ":" + p.name());
-        if (!StatusName(p).empty() && it != st.end() && it->second.pid > 0) {
-          expected.emplace_back(StatusName(p), it->second.pid);
-        }
+        if (const auto it = st.find(r.name); it != st.end()) r.supervised = it->second;
+        rows.push_back(std::move(r));
       }
     }
     if (o_.listen_s > 0) {
       GateWatcher& watcher = Watcher();
       watcher.Pump(o_.listen_s, [&] {
-        for (const auto& [name, pid] : expected) {
-          if (!watcher.Heartbeat(name, pid)) return false;
-        }
-        return true;
+        return std::all_of(rows.begin(), rows.end(), [&](const Row& r) {
+          return !r.Expects() || watcher.Heartbeat(r.heartbeat_name, r.supervised->pid);
+        });
       });
     }
     std::printf("%-12s %-28s %-9s %-26s %-9s %s\n", "HOST", "PROCESS", "SUPERVISOR", "DETAIL",
                 "HEARTBEAT", "LAST ERROR");
     bool silent_or_down = false;
-    for (const auto& group : config_.launch().group()) {
-      if (!o_.group.empty() && group.name() != o_.group) continue;
-      auto& by_host = by_group[group.name()];
-      for (const auto& p : group.process()) {
-        const auto& st = by_host[p.host()];
-        const auto it = st.find(group.name() + ":" + p.name());
-        const std::string state = it == st.end() ? "ABSENT" : it->second.state;
-        const std::string detail = it == st.end() ? "" : it->second.detail;
-        std::string beat = "-", error;
-        const std::string sname = StatusName(p);
-        if (watcher_ && !sname.empty() && it != st.end() && it->second.pid > 0) {
-          if (auto hb = watcher_->Heartbeat(sname, it->second.pid)) {
-            beat = hb->state >= 0 && hb->state <= 4 ? kStateNames[hb->state] : "?";
-            error = hb->last_error;
-          } else {
-            beat = "SILENT";
-          }
+    for (const Row& r : rows) {
+      const std::string state = r.supervised ? r.supervised->state : "ABSENT";
+      const std::string detail = r.supervised ? r.supervised->detail : "";
+      std::string beat = "-", error;
+      if (watcher_ && r.Expects()) {
+        if (auto hb = watcher_->Heartbeat(r.heartbeat_name, r.supervised->pid)) {
+          beat = hb->state >= 0 && hb->state <= 4 ? kStateNames[hb->state] : "?";
+          error = hb->last_error;
+        } else {
+          beat = "SILENT";
         }
-        if (state != "RUNNING" || beat == "SILENT") silent_or_down = true;
-        std::printf("%-12s %-28s %-9s %-26s %-9s %s\n", p.host().c_str(),
-                    (group.name() + ":" + p.name()).c_str(), state.c_str(),
-                    detail.substr(0, 26).c_str(), beat.c_str(), error.c_str());
       }
+      if (state != "RUNNING" || beat == "SILENT") silent_or_down = true;
+      std::printf("%-12s %-28s %-9s %-26s %-9s %s\n", r.host.c_str(), r.name.c_str(), state.c_str(),
+                  detail.substr(0, 26).c_str(), beat.c_str(), error.c_str());
     }
     return silent_or_down ? kExitRefused : kExitDone;
   });
