@@ -16,7 +16,9 @@ target_compile_definitions(pipeline_live_test PRIVATE
 add_dependencies(pipeline_live_test ftcal-pose-segmenter ftcal-calibrator ftcal-corrector)
 set_target_properties(pipeline_live_test PROPERTIES
   CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
+# RUN_SERIAL: the live chain keeps pace with lcm-logplayer only if the machine is its own; in
+# CI's sanitizer run, beside other tests on two cores, it failed (it passes alone).
 gtest_discover_tests(pipeline_live_test
-  PROPERTIES LABELS integration TIMEOUT 180
+  PROPERTIES LABELS integration TIMEOUT 180 RUN_SERIAL TRUE
   DISCOVERY_TIMEOUT 60
   DISCOVERY_MODE PRE_TEST)

@@ -22,6 +22,7 @@
 #include <fstream>
 #include <iostream>
 #include <regex>
+#include <sstream>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -134,6 +135,19 @@ Recorded ReadLog(const std::string& path) {
   return r;
 }
 
+// The warnings and errors a process logged (spdlog's "[warning]" and "[error]" lines).
+std::string WarningsAndErrors(const std::string& err_path) {
+  std::istringstream in(testing::ReadFile(err_path));
+  std::string out, line;
+  while (std::getline(in, line)) {
+    if (line.find("] [warning] ") != std::string::npos ||
+        line.find("] [error] ") != std::string::npos) {
+      out += line + "\n";
+    }
+  }
+  return out;
+}
+
 // One servo's fresh samples: logger time, Realtime Tick (s) and angle.
 struct ServoSample {
   double t_s, tick_s, angle;
@@ -203,6 +217,18 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
   SleepS(0.3);
   Terminate(ati, "ftcal-ati-bridge", path("ati.err"));
   Terminate(dxl, "ftcal-dynamixel-bridge", path("dxl.err"));
+  // A machine too loaded for the loop shows in the bridge's log first (replies late, servos
+  // lost, commands refused): on any failure below, that log tells the loop's fault from the
+  // machine's.
+  struct ExplainFailure {
+    std::string err_path;
+    ~ExplainFailure() {
+      if (!::testing::Test::HasFailure()) return;
+      const std::string logged = WarningsAndErrors(err_path);
+      std::cout << "ftcal-dynamixel-bridge's warnings and errors:\n"
+                << (logged.empty() ? "(none)\n" : logged);
+    }
+  } explain{path("dxl.err")};
   Terminate(sim, "ftcal-sim live", path("sim.err"));
   SleepS(0.3);
   logger.Signal(SIGINT);
@@ -244,16 +270,24 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
   for (const Window& w : windows) {
     SCOPED_TRACE(w.name);
     for (int k = 0; k < kNumLegs; ++k) {
-      int n = 0;
+      // One verdict per leg and window, on its worst sample: a servo that left its goal does so
+      // for many samples, and each would repeat the same failure.
+      int n = 0, off_goal = 0, wrong_torque = 0;
+      double worst = 0, worst_at = 0;
       for (const ServoSample& s : servo[k]) {
         if (s.t_s < w.from_s || s.t_s > w.to_s) continue;
         ++n;
         const double counts = std::abs(s.angle - w.goal[k]) / kOneCountRad;
-        EXPECT_LE(counts, 1.0) << kLegNames[k] << " at " << s.t_s - t_a
-                               << " s after the first command";
-        worst_settled_counts = std::max(worst_settled_counts, counts);
-        EXPECT_EQ(s.torque_off, !w.torque_on) << kLegNames[k];
+        off_goal += counts > 1.0;
+        wrong_torque += s.torque_off == w.torque_on;
+        if (counts > worst) worst = counts, worst_at = s.t_s - t_a;
       }
+      EXPECT_LE(worst, 1.0) << kLegNames[k] << ": " << off_goal << " of " << n
+                            << " samples off the goal, the worst at " << worst_at
+                            << " s after the first command";
+      EXPECT_EQ(wrong_torque, 0) << kLegNames[k] << ": torque " << (w.torque_on ? "off" : "on")
+                                 << " in " << wrong_torque << " of " << n << " samples";
+      worst_settled_counts = std::max(worst_settled_counts, worst);
       // SERVO_STATE at 100 Hz; at least half of it fresh and heard.
       EXPECT_GT(n, 50 * (w.to_s - w.from_s)) << kLegNames[k];
     }
