@@ -199,6 +199,18 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
       path("ati.out"), path("ati.err"));
   Child dxl({FTCAL_DYNAMIXEL_BRIDGE, "--config", config_path, "--lcm-url", kUrl}, path("dxl.out"),
             path("dxl.err"));
+  // A machine too loaded for the loop shows in the bridge's log first (replies late, servos
+  // lost, commands refused): on any failure, that log tells the loop's fault from the
+  // machine's.
+  struct ExplainFailure {
+    std::string err_path;
+    ~ExplainFailure() {
+      if (!::testing::Test::HasFailure()) return;
+      const std::string logged = WarningsAndErrors(err_path);
+      std::cout << "ftcal-dynamixel-bridge's warnings and errors:\n"
+                << (logged.empty() ? "(none)\n" : logged);
+    }
+  } explain{path("dxl.err")};
   SleepS(2.5);  // the bridges start; the last second of it is the start pose's window
 
   std::vector<int> ids(id.begin(), id.end());
@@ -217,18 +229,6 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
   SleepS(0.3);
   Terminate(ati, "ftcal-ati-bridge", path("ati.err"));
   Terminate(dxl, "ftcal-dynamixel-bridge", path("dxl.err"));
-  // A machine too loaded for the loop shows in the bridge's log first (replies late, servos
-  // lost, commands refused): on any failure below, that log tells the loop's fault from the
-  // machine's.
-  struct ExplainFailure {
-    std::string err_path;
-    ~ExplainFailure() {
-      if (!::testing::Test::HasFailure()) return;
-      const std::string logged = WarningsAndErrors(err_path);
-      std::cout << "ftcal-dynamixel-bridge's warnings and errors:\n"
-                << (logged.empty() ? "(none)\n" : logged);
-    }
-  } explain{path("dxl.err")};
   Terminate(sim, "ftcal-sim live", path("sim.err"));
   SleepS(0.3);
   logger.Signal(SIGINT);
