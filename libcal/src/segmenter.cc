@@ -160,12 +160,21 @@ void PoseSegmenter::Evaluate() {
   last_rate_ = std::sqrt(sum_sq);
   const SyncSample& centre = window_[options_.savgol_window / 2];
   if (last_rate_ < options_.max_force_rate_n_s) {
-    if (run_.empty()) run_markers_ok_ = true;
-    run_.push_back(centre);
-    if (!centre.attitude_ok || (options_.require_all_markers && !centre.markers_ok)) {
-      run_markers_ok_ = false;
+    if (run_steady_samples_ == 0) {
+      run_markers_ok_ = true;
+      run_start_utime_ = centre.utime;
     }
-    const double span_s = 1e-6 * static_cast<double>(run_.back().utime - run_.front().utime);
+    ++run_steady_samples_;
+    run_end_utime_ = centre.utime;
+    // A sample without a fresh, tracked attitude (a late or lost motion-capture frame) carries
+    // no attitude to take a median of, and no marker verdict: it leaves the median, and the run
+    // goes on, since the forces say the robot held still through it. Dropping the whole pose for
+    // it loses a good pose to a 40 ms scheduling stall.
+    if (centre.attitude_ok) {
+      run_.push_back(centre);
+      if (options_.require_all_markers && !centre.markers_ok) run_markers_ok_ = false;
+    }
+    const double span_s = 1e-6 * static_cast<double>(run_end_utime_ - run_start_utime_);
     if (span_s >= options_.max_pose_s) CloseRun();
   } else {
     CloseRun();
@@ -173,16 +182,20 @@ void PoseSegmenter::Evaluate() {
 }
 
 void PoseSegmenter::CloseRun() {
-  if (run_.empty()) return;
+  if (run_steady_samples_ == 0) return;
+  const int64_t steady = run_steady_samples_;
+  run_steady_samples_ = 0;
   std::vector<SyncSample> run;
   run.swap(run_);
-  const double span_s = 1e-6 * static_cast<double>(run.back().utime - run.front().utime) +
-                        1.0 / options_.sample_rate_hz;
+  const double span_s =
+      1e-6 * static_cast<double>(run_end_utime_ - run_start_utime_) + 1.0 / options_.sample_rate_hz;
   if (span_s <= options_.min_steady_s) {
     ++counters_.dropped_short;
     return;
   }
-  if (!run_markers_ok_) {
+  // Attitude for under half the run is no longer a short lapse: the median would rest on a
+  // fraction of the pose, so it goes with the runs whose markers failed.
+  if (!run_markers_ok_ || 2 * static_cast<int64_t>(run.size()) < steady) {
     ++counters_.dropped_markers;
     return;
   }

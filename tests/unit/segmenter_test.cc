@@ -148,5 +148,58 @@ TEST(PoseSegmenter, StreamIsSplitAtTimeGaps) {
   }
 }
 
+// Motion capture late or lost for a few samples (a machine stall): those samples have no
+// attitude, the forces show the robot still, and the pose stays, its median over the rest.
+TEST(PoseSegmenter, ALapseOfAttitudeLeavesTheMedianNotThePose) {
+  std::vector<SyncSample> session = MakeSession({{5.0, 10.0, false}, {5.0, 20.0, false}}, 11);
+  const Mat3 tilted = Eigen::AngleAxisd(0.3, Vec3::UnitX()).toRotationMatrix();
+  const Mat3 held = Eigen::AngleAxisd(-0.2, Vec3::UnitY()).toRotationMatrix();
+  for (SyncSample& s : session) s.R_WC = tilted;
+  // Four samples mid-way through the first plateau, holding an attitude that is not the robot's.
+  const size_t lapse = 50 + 250;
+  for (size_t i = lapse; i < lapse + 4; ++i) {
+    session[i].attitude_ok = session[i].markers_ok = false;
+    session[i].R_WC = held;
+  }
+  std::vector<SteadyPoseOut> poses;
+  PoseSegmenter seg(SegmenterOptions{}, [&](const SteadyPoseOut& p) { poses.push_back(p); });
+  std::vector<SteadyPoseOut> whole;
+  PoseSegmenter reference(SegmenterOptions{}, [&](const SteadyPoseOut& p) { whole.push_back(p); });
+  std::vector<SyncSample> intact = session;
+  for (size_t i = lapse; i < lapse + 4; ++i) {
+    intact[i].attitude_ok = intact[i].markers_ok = true;
+    intact[i].R_WC = tilted;
+  }
+  for (size_t i = 0; i < session.size(); ++i) {
+    seg.Add(session[i]);
+    reference.Add(intact[i]);
+  }
+  seg.Flush();
+  reference.Flush();
+
+  ASSERT_EQ(whole.size(), 2u);
+  ASSERT_EQ(poses.size(), 2u);
+  EXPECT_EQ(seg.counters().dropped_markers, 0);
+  // The same steady run, four samples fewer in its median, none of them the held attitude.
+  EXPECT_EQ(poses[0].num_samples, whole[0].num_samples - 4);
+  EXPECT_EQ(poses[0].start_utime, whole[0].start_utime);
+  EXPECT_EQ(poses[0].end_utime, whole[0].end_utime);
+  EXPECT_LT(LogSO3(poses[0].pose.R_WC * tilted.transpose()).norm(), 1e-12);
+  EXPECT_NEAR(poses[0].pose.wrench[0][2], 10.0, 0.015);
+  EXPECT_EQ(poses[1].num_samples, whole[1].num_samples);
+}
+
+TEST(PoseSegmenter, AttitudeForUnderHalfTheRunDropsThePose) {
+  std::vector<SyncSample> session = MakeSession({{5.0, 10.0, false}}, 13);
+  // The plateau's samples are 50..549: attitude only in its first and last 100.
+  for (size_t i = 150; i < 450; ++i) session[i].attitude_ok = session[i].markers_ok = false;
+  std::vector<SteadyPoseOut> poses;
+  PoseSegmenter seg(SegmenterOptions{}, [&](const SteadyPoseOut& p) { poses.push_back(p); });
+  for (const SyncSample& s : session) seg.Add(s);
+  seg.Flush();
+  EXPECT_TRUE(poses.empty());
+  EXPECT_EQ(seg.counters().dropped_markers, 1);
+}
+
 }  // namespace
 }  // namespace ftcal

@@ -45,6 +45,8 @@ struct SegmenterOptions {
   int savgol_order = 2;
   double max_force_rate_n_s = 1.0;
   double min_steady_s = 1.5;
+  // Drop a run when a sample with an attitude says a chassis marker is untracked (the report).
+  // Samples with no attitude at all leave the median instead (segmenter.cc).
   bool require_all_markers = true;
   // A steady run longer than this is closed as one pose and a new run starts (bounds memory).
   double max_pose_s = 60.0;
@@ -64,7 +66,7 @@ struct SegmenterCounters {
   int64_t samples = 0;
   int64_t poses = 0;
   int64_t dropped_short = 0;     // steady runs shorter than min_steady_s
-  int64_t dropped_markers = 0;   // runs with an untracked marker or attitude
+  int64_t dropped_markers = 0;   // runs with an untracked marker, or attitude for < half
   int64_t window_resets = 0;     // time gaps or non-finite samples
   int64_t rejected_samples = 0;  // non-finite or out-of-order samples
 };
@@ -92,7 +94,10 @@ class PoseSegmenter {
   PoseCallback on_pose_;
   std::vector<double> coeff_;
   std::deque<SyncSample> window_;
-  std::vector<SyncSample> run_;
+  std::vector<SyncSample> run_;     // the steady samples with an attitude
+  int64_t run_steady_samples_ = 0;  // all steady samples, with an attitude or not
+  int64_t run_start_utime_ = 0;
+  int64_t run_end_utime_ = 0;
   bool run_markers_ok_ = true;
   double last_rate_;
   SegmenterCounters counters_;
