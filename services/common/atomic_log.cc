@@ -172,16 +172,20 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
   if (fill_.size() < end) fill_.resize(end);  // an event larger than the slack
   fill_bytes_ = end;
   char* head = fill_.data() + at;
-  auto put = [head](int offset, uint64_t v, int bytes) {
-    for (int i = 0; i < bytes; ++i) {
-      head[offset + i] = static_cast<char>(static_cast<uint8_t>(v >> (8 * (bytes - 1 - i))));
-    }
+  // Big-endian, one store per field (a byte loop here was a twentieth of a replay's time).
+  auto put32 = [head](int offset, uint32_t v) {
+    v = __builtin_bswap32(v);
+    std::memcpy(head + offset, &v, 4);
   };
-  put(0, 0xEDA1DA01u, 4);
-  put(4, static_cast<uint64_t>(event_number_), 8);
-  put(12, static_cast<uint64_t>(utime), 8);
-  put(20, channel.size(), 4);
-  put(24, static_cast<uint32_t>(size), 4);
+  auto put64 = [head](int offset, uint64_t v) {
+    v = __builtin_bswap64(v);
+    std::memcpy(head + offset, &v, 8);
+  };
+  put32(0, 0xEDA1DA01u);
+  put64(4, static_cast<uint64_t>(event_number_));
+  put64(12, static_cast<uint64_t>(utime));
+  put32(20, static_cast<uint32_t>(channel.size()));
+  put32(24, static_cast<uint32_t>(size));
   std::memcpy(head + 28, channel.data(), channel.size());
   if (size > 0) std::memcpy(head + head_bytes, data, static_cast<size_t>(size));
   ++event_number_;
