@@ -58,6 +58,36 @@ double Median(std::vector<double>& v) {
   return m;
 }
 
+// Whether pose->wrench already holds the median of each wrench component over the samples
+// (MedianPose's own result): the MAD about it then skips 36 of the scatter's 78 medians. The
+// medians of a pose were most of the calibrator's segmenting time.
+enum class WrenchMedians { kCompute, kInPose };
+
+void Scatter(const std::vector<SyncSample>& samples, WrenchMedians medians, StandingPose* pose) {
+  const size_t n = samples.size();
+  pose->samples = static_cast<int>(n);
+  if (n == 0) return;
+  const double to_sem = 1.4826 * std::sqrt(M_PI / 2.0) / std::sqrt(static_cast<double>(n));
+  std::vector<double> buf(n);
+  auto mad_about = [&buf](double m) {
+    for (double& v : buf) v = std::abs(v - m);
+    return Median(buf);
+  };
+  for (int k = 0; k < kNumLegs; ++k) {
+    for (int c = 0; c < 6; ++c) {
+      for (size_t i = 0; i < n; ++i) buf[i] = samples[i].wrench[k][c];
+      const double m = medians == WrenchMedians::kInPose ? pose->wrench[k][c] : Median(buf);
+      pose->wrench_sem[k][c] = to_sem * mad_about(m);
+    }
+  }
+  std::vector<Vec3> deviation(n);
+  for (size_t i = 0; i < n; ++i) deviation[i] = LogSO3(samples[i].R_WC * pose->R_WC.transpose());
+  for (int c = 0; c < 3; ++c) {
+    for (size_t i = 0; i < n; ++i) buf[i] = deviation[i][c];
+    pose->attitude_sem_rad[c] = to_sem * mad_about(Median(buf));
+  }
+}
+
 }  // namespace
 
 StandingPose MedianPose(const std::vector<SyncSample>& samples) {
@@ -85,31 +115,12 @@ StandingPose MedianPose(const std::vector<SyncSample>& samples) {
   Quat q(q_med[3], q_med[0], q_med[1], q_med[2]);  // coeffs() order is x, y, z, w
   pose.R_WC = q.normalized().toRotationMatrix();
   pose.t_s = 0.5e-6 * static_cast<double>(samples.front().utime + samples.back().utime);
-  SetWithinPoseScatter(samples, &pose);
+  Scatter(samples, WrenchMedians::kInPose, &pose);
   return pose;
 }
 
 void SetWithinPoseScatter(const std::vector<SyncSample>& samples, StandingPose* pose) {
-  const size_t n = samples.size();
-  pose->samples = static_cast<int>(n);
-  if (n == 0) return;
-  const double to_sem = 1.4826 * std::sqrt(M_PI / 2.0) / std::sqrt(static_cast<double>(n));
-  std::vector<double> buf(n);
-  auto mad = [&buf]() {
-    const double m = Median(buf);
-    for (double& v : buf) v = std::abs(v - m);
-    return Median(buf);
-  };
-  for (int k = 0; k < kNumLegs; ++k) {
-    for (int c = 0; c < 6; ++c) {
-      for (size_t i = 0; i < n; ++i) buf[i] = samples[i].wrench[k][c];
-      pose->wrench_sem[k][c] = to_sem * mad();
-    }
-  }
-  for (int c = 0; c < 3; ++c) {
-    for (size_t i = 0; i < n; ++i) buf[i] = LogSO3(samples[i].R_WC * pose->R_WC.transpose())[c];
-    pose->attitude_sem_rad[c] = to_sem * mad();
-  }
+  Scatter(samples, WrenchMedians::kCompute, pose);
 }
 
 PoseSegmenter::PoseSegmenter(const SegmenterOptions& options, PoseCallback on_pose)
