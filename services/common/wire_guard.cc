@@ -87,7 +87,8 @@ bool PlainFixed(const Field& f) {
 // bounds check instead of one per field: most of a message's fields are fixed-size numbers.
 // Only the integers a later field's length refers to are read in a run (most types have none,
 // and reading every integer of every message was most of Check()'s time in a replay): `reads`
-// lists them per run start, with their offset from it.
+// lists them for the run starting at each field i (a run that does not fit is walked field by
+// field, and the rest of it taken from the next field on), with their offsets from field i.
 struct RunRead {
   int field;
   int64_t offset;
