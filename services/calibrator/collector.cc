@@ -76,6 +76,9 @@ void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, in
                    refused->detail);
   }
   if (phases_.open()) CountRecord(k, msg.rdt_sequence);
+  // Aligned samples of a STANDING phase not segmented again would go nowhere. The servo states
+  // and mocap frames still go in, so the phase after it aligns as if they had.
+  if (standing_not_segmented_) return;
   aligner_.AddFt(inputs_.FromFt(k, msg));
 }
 
@@ -135,6 +138,16 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
   } else if (phase.code == experiment_marker_t::STANDING) {
     current_poses_.clear();
+    const auto logged = logged_sessions_scatter_.find(phase.session);
+    if (skip_logged_sessions_ && logged != logged_sessions_scatter_.end() && logged->second) {
+      ++counters_.standing_not_segmented;
+      standing_not_segmented_ = true;
+      spdlog::info(
+          "EXPERIMENT: STANDING started (session '{}'); its STEADY_POSE events, read before, "
+          "carry their within-pose scatter: not segmented again",
+          phase.session);
+      return;
+    }
     segmenter_ =
         std::make_unique<PoseSegmenter>(segmenter_options_, [this](const SteadyPoseOut& p) {
           if (!p.markers_ok) return;
@@ -155,6 +168,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
 void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
   SegmenterCounters segmented;
+  standing_not_segmented_ = false;
   if (segmenter_) {
     segmenter_->Flush();
     segmented = segmenter_->counters();
@@ -178,8 +192,12 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
     current_hang_ = HangingRecording();
   } else if (phase.code == experiment_marker_t::STANDING) {
     if (completed) {
-      spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
-                   current_poses_.size());
+      if (segmented.samples > 0 || !current_poses_.empty()) {
+        spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
+                     current_poses_.size());
+      } else {
+        spdlog::info("STANDING complete (session '{}')", phase.session);
+      }
       segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(), current_poses_.end());
       standing_session_ = phase.session;
     }
@@ -225,7 +243,10 @@ void CalibrationCollector::Flush() {
 
 void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
   ++counters_.logged_poses;
-  const SteadyPoseOut p = FromLcm(msg);
+  SteadyPoseHeader header;
+  const SteadyPoseOut p = FromLcm(msg, &header);
+  const auto session = logged_sessions_scatter_.emplace(header.session_id, true).first;
+  session->second = session->second && p.pose.samples > 0;
   if (!p.markers_ok) {
     ++counters_.poses_dropped_markers;
     return;
@@ -312,15 +333,18 @@ std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
   // Poses a segmenter already published are what the operator saw; when the log has none, the
   // same segmenter logic over the STANDING spans gives them.
   if (logged_poses_.empty()) return segmented_poses_;
-  // A STEADY_POSE message carries medians only; the within-pose scatter (the noise floor,
-  // docs/method.md) comes from this collector's own segmentation of the same span, matched by
-  // time (the same logic on the same samples finds the same runs) and shaft angles.
+  // A STEADY_POSE message carries its within-pose scatter (the noise floor, docs/method.md).
+  // One that does not (a publisher that computed none) takes it from this collector's own
+  // segmentation of the same span, matched by time (the same logic on the same samples finds
+  // the same runs) and shaft angles.
   std::vector<StandingPose> out = logged_poses_;
+  if (segmented_poses_.empty()) return out;
   std::vector<const StandingPose*> by_time;
   for (const StandingPose& p : segmented_poses_) by_time.push_back(&p);
   std::sort(by_time.begin(), by_time.end(),
             [](const StandingPose* a, const StandingPose* b) { return a->t_s < b->t_s; });
   for (StandingPose& pose : out) {
+    if (pose.samples > 0) continue;
     auto it = std::lower_bound(by_time.begin(), by_time.end(), pose.t_s,
                                [](const StandingPose* p, double t) { return p->t_s < t; });
     for (auto c : {it, it == by_time.begin() ? it : it - 1}) {

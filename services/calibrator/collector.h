@@ -18,6 +18,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <optional>
 #include <set>
@@ -56,6 +57,7 @@ struct CollectorCounters {
   int64_t standing_samples = 0;
   int64_t logged_poses = 0;            // STEADY_POSE events seen
   int64_t segmented_poses = 0;         // poses the collector's own segmenter found
+  int64_t standing_not_segmented = 0;  // STANDING phases whose poses (with scatter) came first
   int64_t poses_dropped_markers = 0;   // logged poses without every marker
   int64_t walking_samples = 0;         // aligned samples inside WALKING phases (kept or not)
   int64_t tripod_samples = 0;          // aligned samples inside TRIPOD phases
@@ -96,6 +98,12 @@ class CalibrationCollector {
   void SetOnStandingStop(std::function<void()> fn) { on_standing_stop_ = std::move(fn); }
   // Called after every STEADY_POSE event (live mode waits for the segmenter's last pose).
   void SetOnSteadyPose(std::function<void()> fn) { on_steady_pose_ = std::move(fn); }
+  // Offline, with the poses log read before the session: a STANDING phase whose session's
+  // STEADY_POSE events were all read already, each with its within-pose scatter, is not
+  // segmented again (that was half the calibrator's time on a report-scale log). Live, the
+  // poses arrive during the phase, so the collector always segments it (the live calibrator
+  // waits for the segmenter's last pose by comparing the two counts).
+  void SetSkipSegmentingLoggedSessions(bool skip) { skip_logged_sessions_ = skip; }
   // Poses with every marker tracked: from STEADY_POSE events, and found by the collector's own
   // segmenter over the completed STANDING phases (the same rule as ftcal-pose-segmenter).
   size_t logged_pose_count() const { return logged_poses_.size(); }
@@ -158,6 +166,10 @@ class CalibrationCollector {
   std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
   std::vector<StandingPose> segmented_poses_;
   std::vector<StandingPose> logged_poses_;
+  // Per session of the STEADY_POSE events read: whether every one carried its scatter.
+  std::map<std::string, bool> logged_sessions_scatter_;
+  bool skip_logged_sessions_ = false;
+  bool standing_not_segmented_ = false;  // in such a phase now
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent

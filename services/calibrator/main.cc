@@ -177,8 +177,20 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
   return options;
 }
 
+// A poses log read after its session leaves the STANDING phase segmented again, only for the
+// within-pose scatter its STEADY_POSE events carry: say how to skip that.
+void HintPosesFirst(const ftcal::CalibrationCollector& collector) {
+  const ftcal::CollectorCounters& c = collector.counters();
+  if (c.logged_poses > 0 && c.segmented_poses > 0 && c.standing_not_segmented == 0) {
+    spdlog::info(
+        "the STANDING phase was segmented again although STEADY_POSE events were given: with "
+        "the poses log before the session (--log POSES --log SESSION) it is not");
+  }
+}
+
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
+  collector.SetSkipSegmentingLoggedSessions(true);
   // Provenance hashes every input log: on the second core while the first reads them.
   std::map<std::string, std::shared_future<std::string>> hashes;
   for (const std::string& path : args.logs) {
@@ -192,6 +204,7 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
     return it != hashes.end() ? it->second.get() : ftcal::Sha256File(path);
   };
   if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
+  HintPosesFirst(collector);
   ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   std::optional<ftcal::RobotCalibration> truth;
   if (!args.truth.empty()) {
@@ -218,7 +231,9 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
 // Offset drift: the base calibration's offsets re-estimated from the logs, all else kept.
 int ReestimateOffsets(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
+  collector.SetSkipSegmentingLoggedSessions(true);
   if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
+  HintPosesFirst(collector);
   const ftcal::OffsetReestimationRun run = ftcal::RunOffsetReestimation(
       collector, config, args.reestimate_base, args.partial, OptionsOf(args));
   ftcal::WriteCalibrationFile(run.proto, args.out);

@@ -62,7 +62,7 @@ void Bus::SubscribeRaw(const std::string& channel, RawHandler handler) {
                                 "expression: " +
                                 e.what());
   }
-  subscriptions_.push_back({channel, std::move(pattern), std::move(handler)});
+  subscriptions_.push_back({channel, std::move(pattern), std::move(handler), 0, {}, {}});
   handlers_by_channel_.clear();
   ++subscription_generation_;
   TransportSubscribe(subscriptions_.size() - 1, channel);

@@ -180,10 +180,19 @@ SteadyPoseOut FromLcm(const steady_pose_t& msg, SteadyPoseHeader* header) {
     if (!k) throw BadInput("STEADY_POSE unknown leg", "leg '" + msg.leg[i] + "'");
     if (seen[*k]) throw BadInput("STEADY_POSE duplicate leg", "leg " + msg.leg[i] + " twice");
     seen[*k] = true;
-    for (int c = 0; c < 6; ++c) p.pose.wrench[*k][c] = msg.wrench[i][c];
+    for (int c = 0; c < 6; ++c) {
+      p.pose.wrench[*k][c] = msg.wrench[i][c];
+      p.pose.wrench_sem[*k][c] = msg.wrench_sem[i][c];
+    }
     p.pose.angle_rad[*k] = msg.angle_rad[i];
   }
   p.pose.R_WC = RotationOf(msg.q_wc);
+  for (int c = 0; c < 3; ++c) p.pose.attitude_sem_rad[c] = msg.attitude_sem_rad[c];
+  // The scatter is over the medians' samples; one NaN (a publisher that computed none) and the
+  // pose has no noise floor, rather than a floor with a hole in it.
+  bool scatter = msg.num_samples > 0 && p.pose.attitude_sem_rad.allFinite();
+  for (int k = 0; k < kNumLegs && scatter; ++k) scatter = p.pose.wrench_sem[k].allFinite();
+  p.pose.samples = scatter ? msg.num_samples : 0;
   p.pose.t_s = 0.5e-6 * static_cast<double>(msg.start_utime + msg.end_utime);
   p.start_utime = msg.start_utime;
   p.end_utime = msg.end_utime;
@@ -201,12 +210,19 @@ steady_pose_t ToLcm(const SteadyPoseOut& p, const SteadyPoseHeader& header) {
   msg.start_utime = p.start_utime;
   msg.end_utime = p.end_utime;
   msg.num_samples = p.num_samples;
+  // The scatter travels only when it is over the same samples as the medians.
+  const bool scatter = p.pose.samples > 0 && p.pose.samples == p.num_samples;
+  constexpr double kNan = std::numeric_limits<double>::quiet_NaN();
   for (int k = 0; k < kNumLegs; ++k) {
     msg.leg[k] = kLegNames[k];
-    for (int i = 0; i < 6; ++i) msg.wrench[k][i] = p.pose.wrench[k][i];
+    for (int i = 0; i < 6; ++i) {
+      msg.wrench[k][i] = p.pose.wrench[k][i];
+      msg.wrench_sem[k][i] = scatter ? p.pose.wrench_sem[k][i] : kNan;
+    }
     msg.angle_rad[k] = p.pose.angle_rad[k];
   }
   QuaternionOf(p.pose.R_WC, msg.q_wc);
+  for (int c = 0; c < 3; ++c) msg.attitude_sem_rad[c] = scatter ? p.pose.attitude_sem_rad[c] : kNan;
   msg.markers_ok = p.markers_ok;
   return msg;
 }

@@ -94,7 +94,9 @@ struct SteadyPoseHeader {
   int32_t pose_index = 0;
 };
 // Legs by name, any order (BadInput for another count or an unknown leg); pose.t_s is the
-// centre of [start_utime, end_utime].
+// centre of [start_utime, end_utime]. The within-pose scatter travels with the medians when it
+// was taken over the same samples (pose.samples == num_samples), else as NaN; a message with
+// any NaN in it gives pose.samples = 0 (no scatter).
 SteadyPoseOut FromLcm(const steady_pose_t& msg, SteadyPoseHeader* header = nullptr);
 steady_pose_t ToLcm(const SteadyPoseOut& pose, const SteadyPoseHeader& header);
 

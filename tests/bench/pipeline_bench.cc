@@ -152,14 +152,15 @@ int main(int argc, char** argv) {
   Print("ftcal-pose-segmenter", seg, fig);
 
   // The logs are in the page cache after the segmenter's pass, as after a lab's recording; the
-  // first run is a warm-up, not counted.
+  // first run is a warm-up, not counted. The poses log first, as scripts/demo gives it: its
+  // poses carry their scatter, so the STANDING phase is not segmented again.
   const std::vector<std::string> cal_argv = {FTCAL_CALIBRATOR,
                                              "--config",
                                              config,
                                              "--log",
-                                             dir + "/session.lcmlog",
-                                             "--log",
                                              dir + "/poses.lcmlog",
+                                             "--log",
+                                             dir + "/session.lcmlog",
                                              "--out",
                                              dir + "/cal.pbtxt"};
   Run(cal_argv, dir + "/cal.out");

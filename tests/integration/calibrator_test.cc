@@ -326,6 +326,45 @@ TEST_F(CalibratorTest, RefusesAPhaseThatLostRecordsUnlessAllowedAndCountsThemExa
 
 // --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
 // four candidates; the file says so.
+// The segmenter's poses log carries each pose's within-pose scatter. Read before the session,
+// it spares the calibrator segmenting the STANDING phase again; read after, the calibrator
+// segments it (and says how to skip that). Both give the same calibration, number for number.
+TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber) {
+  const std::string poses = fx->dir + "/poses.lcmlog";
+  {
+    Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", poses},
+              fx->dir + "/seg.out", fx->dir + "/seg.err");
+    const auto status = seg.Wait(120);
+    ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+        << ReadFile(fx->dir + "/seg.err");
+  }
+  const std::string after = fx->dir + "/cal-poses-after.pbtxt";
+  const std::string before = fx->dir + "/cal-poses-before.pbtxt";
+  const Result ra =
+      Run({"--log", fx->log, "--log", poses, "--config", kConfig, "--out", after}, "poses_after");
+  const Result rb =
+      Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out", before}, "poses_before");
+  ASSERT_EQ(ra.exit_code, 0) << ra.err;
+  ASSERT_EQ(rb.exit_code, 0) << rb.err;
+  EXPECT_NE(rb.err.find("carry their within-pose scatter: not segmented again"), std::string::npos)
+      << rb.err;
+  EXPECT_EQ(rb.err.find("steady poses segmented"), std::string::npos) << rb.err;
+  EXPECT_NE(ra.err.find("steady poses segmented"), std::string::npos) << ra.err;
+  EXPECT_NE(ra.err.find("with the poses log before the session"), std::string::npos) << ra.err;
+
+  calibration::Calibration a = ReadCalibrationFile(after), b = ReadCalibrationFile(before);
+  EXPECT_GE(b.standing_poses(), kPoses * 9 / 10);
+  // The scatter came from the messages: the noise floor is there, from every pose.
+  ASSERT_TRUE(b.has_noise_floor());
+  EXPECT_EQ(b.noise_floor().poses_with_scatter(), b.standing_poses());
+  EXPECT_EQ(a.noise_floor().DebugString(), b.noise_floor().DebugString());
+  // Everything but the provenance (input order, command line, time) is the same.
+  a.clear_provenance();
+  b.clear_provenance();
+  EXPECT_EQ(a.DebugString(), b.DebugString());
+  EXPECT_EQ(ReadFile(ResidualsPathFor(after)), ReadFile(ResidualsPathFor(before)));
+}
+
 TEST_F(CalibratorTest, ReportProfileFromTheCommandLine) {
   const std::string out = fx->dir + "/cal-report.pbtxt";
   const Result r =

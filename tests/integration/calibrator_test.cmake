@@ -6,5 +6,6 @@ ftcal_add_gtest(calibrator_test integration TIMEOUT 300
 target_compile_definitions(calibrator_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
   FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>"
+  FTCAL_POSE_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>"
   FTCAL_PYTHON_DIR="${PROJECT_BINARY_DIR}/python")
-add_dependencies(calibrator_test ftcal-calibrator)
+add_dependencies(calibrator_test ftcal-calibrator ftcal-pose-segmenter)

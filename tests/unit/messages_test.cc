@@ -7,6 +7,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -162,9 +163,12 @@ TEST(Messages, SteadyPoseRoundTripAndLegsByName) {
   SteadyPoseOut p;
   for (int k = 0; k < kNumLegs; ++k) {
     p.pose.wrench[k] = DistinctVec6(d);
+    p.pose.wrench_sem[k] = DistinctVec6(d);
     p.pose.angle_rad[k] = d();
   }
   p.pose.R_WC = SomeRotation();
+  p.pose.attitude_sem_rad = Vec3(d(), d(), d());
+  p.pose.samples = 201;
   p.start_utime = 1'000'000;
   p.end_utime = 3'000'000;
   p.pose.t_s = 2.0;  // the centre of the span: what the message implies
@@ -185,11 +189,25 @@ TEST(Messages, SteadyPoseRoundTripAndLegsByName) {
   EXPECT_EQ(back.end_utime, p.end_utime);
   EXPECT_EQ(back.num_samples, 201);
   EXPECT_FALSE(back.markers_ok);
+  EXPECT_EQ(back.pose.samples, 201);
+  EXPECT_EQ(back.pose.wrench_sem, p.pose.wrench_sem);
+  EXPECT_EQ(back.pose.attitude_sem_rad, p.pose.attitude_sem_rad);
+
+  // A scatter over other samples than the medians' does not travel, and one NaN is no scatter.
+  SteadyPoseOut other = p;
+  other.pose.samples = 150;
+  EXPECT_EQ(FromLcm(ToLcm(other, header)).pose.samples, 0);
+  EXPECT_TRUE(std::isnan(ToLcm(other, header).wrench_sem[5][5]));
+  steady_pose_t holed = ToLcm(p, header);
+  holed.attitude_sem_rad[1] = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_EQ(FromLcm(holed).pose.samples, 0);
 
   std::swap(msg.leg[0], msg.leg[3]);
   std::swap(msg.wrench[0], msg.wrench[3]);
+  std::swap(msg.wrench_sem[0], msg.wrench_sem[3]);
   std::swap(msg.angle_rad[0], msg.angle_rad[3]);
   EXPECT_EQ(FromLcm(msg).pose.wrench, p.pose.wrench);
+  EXPECT_EQ(FromLcm(msg).pose.wrench_sem, p.pose.wrench_sem);
   msg.leg[1] = "HR";  // twice now
   EXPECT_NE(BadInputReason([&] { FromLcm(msg); }).find("HR twice"), std::string::npos);
 }
