@@ -128,6 +128,21 @@ mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_ma
   return msg;
 }
 
+void SetBodyPose(const Pose3* X_GC, double residual_m, mocap_body_t* msg) {
+  if (X_GC == nullptr) {
+    for (int i = 0; i < 4; ++i) msg->q_gc[i] = msg->q_wc[i] = kNaN;
+    for (double& p : msg->position_m) p = kNaN;
+    msg->yaw_rad = kNaN;
+    msg->residual_m = kNaN;
+    return;
+  }
+  QuaternionOf(X_GC->R, msg->q_gc);
+  QuaternionOf(RemoveHeading(X_GC->R), msg->q_wc);
+  msg->yaw_rad = HeadingYaw(X_GC->R);
+  for (int i = 0; i < 3; ++i) msg->position_m[i] = X_GC->p(i);
+  msg->residual_m = residual_m;
+}
+
 // ---- SYNC_SAMPLE ----
 
 AlignedSample FromLcm(const sync_sample_t& msg) {

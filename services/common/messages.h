@@ -79,6 +79,10 @@ servo_state_t ToLcm(const ServoInput& in);
 MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers);
 // `chassis_markers` markers, tracked when in.markers_ok, positions NaN; q_gc = q_wc.
 mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_markers);
+// The mocap bridges' side: the chassis pose X^G_C (m) into q_gc, its heading-free q_wc, yaw_rad
+// and position_m, with `residual_m`; with no pose (nullptr: untracked) every one of them NaN,
+// never zeros and never the last pose, so a consumer that ignores `tracked` still sees no number.
+void SetBodyPose(const Pose3* X_GC, double residual_m, mocap_body_t* msg);
 
 // ---- SYNC_SAMPLE: sync_sample_t <-> AlignedSample ----
 AlignedSample FromLcm(const sync_sample_t& msg);

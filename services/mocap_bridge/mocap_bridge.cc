@@ -15,6 +15,7 @@
 #include <cstring>
 #include <limits>
 
+#include "common/messages.h"
 #include "ftcal/geometry.h"
 
 namespace ftcal {
@@ -569,22 +570,10 @@ void MocapBridge::HandleData(const qtm::Packet& packet) {
   msg.tracked = tracked;
   const double nan = std::numeric_limits<double>::quiet_NaN();
   if (tracked) {
-    const Mat3 R_GC = body.R_GB;
-    const Eigen::Vector4d q_gc = RotationToQuaternion(R_GC);
-    const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(R_GC));
-    for (int i = 0; i < 4; ++i) {
-      msg.q_gc[i] = q_gc(i);
-      msg.q_wc[i] = q_wc(i);
-    }
-    msg.yaw_rad = HeadingYaw(R_GC);
-    for (int i = 0; i < 3; ++i) msg.position_m[i] = body.p_GoBo_G_mm(i) / 1000.0;
-    msg.residual_m = body.residual_mm / 1000.0;  // NaN stays NaN
+    const Pose3 X_GC(body.R_GB, body.p_GoBo_G_mm / 1000.0);
+    SetBodyPose(&X_GC, body.residual_mm / 1000.0, &msg);  // a NaN residual stays NaN
   } else {
-    // Never zeros and never the last pose: a consumer that ignores `tracked` still sees NaN.
-    for (int i = 0; i < 4; ++i) msg.q_gc[i] = msg.q_wc[i] = nan;
-    for (int i = 0; i < 3; ++i) msg.position_m[i] = nan;
-    msg.yaw_rad = nan;
-    msg.residual_m = nan;
+    SetBodyPose(nullptr, nan, &msg);
     ++stats_.Counter("untracked");
   }
   msg.num_markers = static_cast<int32_t>(frame.markers.size());

@@ -12,6 +12,7 @@
 #include <cstring>
 #include <limits>
 
+#include "common/messages.h"
 #include "ftcal/config.h"
 
 namespace ftcal {
@@ -727,21 +728,10 @@ void NatNetBridge::HandleFrame(const natnet::Packet& p, int64_t receive_us) {
   const double nan = std::numeric_limits<double>::quiet_NaN();
   if (tracked) {
     const Pose3 X_GC = frames_.Chassis(body->position, body->orientation);
-    const Eigen::Vector4d q_gc = RotationToQuaternion(X_GC.R);
-    const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(X_GC.R));
-    for (int i = 0; i < 4; ++i) {
-      msg.q_gc[i] = q_gc(i);
-      msg.q_wc[i] = q_wc(i);
-    }
-    msg.yaw_rad = HeadingYaw(X_GC.R);
-    for (int i = 0; i < 3; ++i) msg.position_m[i] = X_GC.p(i);
-    msg.residual_m = body->mean_error;
+    SetBodyPose(&X_GC, body->mean_error, &msg);
   } else {
     // An untracked body's pose is Motive's last one (§4.2): never published as a value.
-    for (int i = 0; i < 4; ++i) msg.q_gc[i] = msg.q_wc[i] = nan;
-    for (int i = 0; i < 3; ++i) msg.position_m[i] = nan;
-    msg.yaw_rad = nan;
-    msg.residual_m = nan;
+    SetBodyPose(nullptr, nan, &msg);
     ++stats_.Counter("untracked");
   }
   msg.num_markers = static_cast<int32_t>(marker_ids_.size());

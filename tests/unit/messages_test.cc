@@ -126,6 +126,32 @@ TEST(Messages, MocapBodyRoundTrip) {
   EXPECT_FALSE(FromLcm(bad, 4).R_WC.allFinite());
 }
 
+// The bridges' side: roll 0.1, pitch -0.2, heading 0.3 at (1, -2, 0.5) m. q_wc is the same
+// attitude without its heading, read back through the consumers' FromLcm; untracked is NaN.
+TEST(Messages, BodyPoseFromTheBridgesSide) {
+  const Pose3 X_GC(RotationFromRollPitchYaw(0.1, -0.2, 0.3), Vec3(1.0, -2.0, 0.5));
+  mocap_body_t msg{};
+  msg.tracked = true;
+  SetBodyPose(&X_GC, 0.002, &msg);
+  EXPECT_NEAR(msg.yaw_rad, 0.3, 1e-12);
+  EXPECT_EQ(msg.position_m[0], 1.0);
+  EXPECT_EQ(msg.position_m[1], -2.0);
+  EXPECT_EQ(msg.position_m[2], 0.5);
+  EXPECT_EQ(msg.residual_m, 0.002);
+  ExpectRotationNear(
+      QuaternionToRotation(Eigen::Vector4d(msg.q_gc[0], msg.q_gc[1], msg.q_gc[2], msg.q_gc[3])),
+      X_GC.R);
+  msg.num_markers = 0;
+  ExpectRotationNear(FromLcm(msg, 0).R_WC, RotationFromRollPitchYaw(0.1, -0.2, 0.0));
+
+  SetBodyPose(nullptr, 0.002, &msg);
+  for (double q : msg.q_gc) EXPECT_TRUE(std::isnan(q));
+  for (double q : msg.q_wc) EXPECT_TRUE(std::isnan(q));
+  for (double p : msg.position_m) EXPECT_TRUE(std::isnan(p));
+  EXPECT_TRUE(std::isnan(msg.yaw_rad));
+  EXPECT_TRUE(std::isnan(msg.residual_m));
+}
+
 TEST(Messages, SyncSampleRoundTrip) {
   Distinct d;
   AlignedSample a;
