@@ -38,6 +38,19 @@ inline double Pct(std::vector<double>& v, double q) {
   return v[std::min(v.size() - 1, size_t(q * double(v.size())))];
 }
 
+// Steps `bridge` (10 ms at a time) until `done`, then 200 ms more for what is still in flight;
+// returns the CPU seconds this thread spent doing so.
+template <class Bridge, class Flag>
+double StepUntilDoneAndDrain(Bridge& bridge, const Flag& done) {
+  const double c0 = ThreadCpuS();
+  while (!done) bridge.Step(10);
+  const auto drain = std::chrono::steady_clock::now();
+  while (std::chrono::steady_clock::now() - drain < std::chrono::milliseconds(200)) {
+    bridge.Step(10);
+  }
+  return ThreadCpuS() - c0;
+}
+
 // The LCM a bench publishes on, or null with `*exit_code` set: 2 (after `outside_netns`, on
 // stderr) outside scripts/netns-exec, where its multicast would reach the machine's other
 // tests; 1 when LCM does not open.

@@ -99,11 +99,7 @@ Result RunAt(double rate_hz, bool multicast, double seconds, lcm::LCM& lcm) {
                    std::chrono::system_clock::now().time_since_epoch())
             .count();
       });
-  const double c0 = ThreadCpuS();
-  while (!done) bridge.Step(10);
-  const auto drain = Clock::now();
-  while (Clock::now() - drain < std::chrono::milliseconds(200)) bridge.Step(10);
-  const double bridge_cpu_s = ThreadCpuS() - c0;
+  const double bridge_cpu_s = ftcal::bench::StepUntilDoneAndDrain(bridge, done);
   const double wall_s = std::chrono::duration<double>(Clock::now() - t0).count();
   server.join();
 

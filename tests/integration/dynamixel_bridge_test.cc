@@ -314,6 +314,24 @@ TEST(DynamixelEmulator, SeededFaultsAreRepeatableAndRecorded) {
 
 class DynamixelBridgePty : public ::testing::Test {
  protected:
+  // A MOVE with torque on for servos 1..6 in order.
+  static servo_command_t Goals(const std::vector<double>& goal_angle_rad) {
+    servo_command_t cmd;
+    cmd.num_servos = 6;
+    cmd.id = {1, 2, 3, 4, 5, 6};
+    cmd.goal_angle_rad = goal_angle_rad;
+    cmd.torque_enable = true;
+    return cmd;
+  }
+  // The bridge's refusal of `cmd` (BadInput's text), or "" when it took it.
+  std::string Refusal(const servo_command_t& cmd) {
+    try {
+      bridge_->OnCommand(cmd);
+    } catch (const BadInput& e) {
+      return e.what();
+    }
+    return "";
+  }
   // `mode`: the config's dynamixel.operating_mode (sim.pbtxt's is EXTENDED_POSITION_MODE);
   // `before`: run on the emulator before the bridge connects.
   void Start(sim::DxlEmulatorOptions options, double limit_rad = M_PI - 0.01,
@@ -450,11 +468,7 @@ TEST_F(DynamixelBridgePty, CommandsAreClampedValidatedAndMoveTheServos) {
   options.time_constant_s = 0.02;
   Start(options, 1.0);
   ASSERT_TRUE(bridge_->Connect());
-  servo_command_t cmd;
-  cmd.num_servos = 6;
-  cmd.id = {1, 2, 3, 4, 5, 6};
-  cmd.goal_angle_rad = {0.2, -0.3, 5.0, 0.0, 0.5, -1.5};
-  cmd.torque_enable = true;
+  servo_command_t cmd = Goals({0.2, -0.3, 5.0, 0.0, 0.5, -1.5});
   servo_command_t bad = cmd;
   bad.id[2] = 9;
   EXPECT_THROW(bridge_->OnCommand(bad), BadInput);
@@ -498,12 +512,7 @@ TEST_F(DynamixelBridgePty, ExtendedModeIsWrittenAtStartAndGoalsPassOneTurn) {
     std::lock_guard<std::mutex> lock(emu_mu_);
     EXPECT_EQ(emu_->TableByte(id, dxl::kAddrOperatingMode), dxl::kExtendedPositionMode);
   }
-  servo_command_t cmd;
-  cmd.num_servos = 6;
-  cmd.id = {1, 2, 3, 4, 5, 6};
-  cmd.goal_angle_rad = {7.0, -7.0, 2 * M_PI + 0.5, 0.0, 12.0, -4 * M_PI};
-  cmd.torque_enable = true;
-  bridge_->OnCommand(cmd);
+  bridge_->OnCommand(Goals({7.0, -7.0, 2 * M_PI + 0.5, 0.0, 12.0, -4 * M_PI}));
   EXPECT_EQ(stats_->counters().at("goals_clamped"), 2);  // 12 and -4 pi beyond +-10 rad
   for (int i = 0; i < 40; ++i) {
     bridge_->Cycle();
@@ -534,17 +543,9 @@ TEST_F(DynamixelBridgePty, AServoHoldingItsLegIsNotSwitchedAndGetsNoGoals) {
     EXPECT_EQ(emu_->TableByte(2, dxl::kAddrOperatingMode), dxl::kPositionMode);
     EXPECT_EQ(emu_->TableByte(1, dxl::kAddrOperatingMode), dxl::kExtendedPositionMode);
   }
-  servo_command_t cmd;
-  cmd.num_servos = 6;
-  cmd.id = {1, 2, 3, 4, 5, 6};
-  cmd.goal_angle_rad = {0, 0, 0, 0, 0, 0};
-  cmd.torque_enable = true;
-  try {
-    bridge_->OnCommand(cmd);
-    FAIL() << "a goal for a servo in the wrong mode was taken";
-  } catch (const BadInput& e) {
-    EXPECT_NE(std::string(e.what()).find("servo 2 (ML)"), std::string::npos) << e.what();
-  }
+  const std::string refused = Refusal(Goals({0, 0, 0, 0, 0, 0}));
+  EXPECT_NE(refused.find("servo 2 (ML)"), std::string::npos)
+      << "a goal for a servo in the wrong mode: '" << refused << "'";
   bridge_->Cycle();
   std::string why;
   EXPECT_TRUE(bridge_->Degraded(&why));
@@ -671,18 +672,9 @@ TEST_F(DynamixelBridgePty, PositionModeRefusesGoalsPastOneTurn) {
   Start(sim::DxlEmulatorOptions{}, 10.0, "POSITION_MODE");
   ASSERT_TRUE(bridge_->Connect());
   EXPECT_EQ(stats_->counters().count("operating_mode_writes"), 0u) << "already the factory's mode";
-  servo_command_t cmd;
-  cmd.num_servos = 6;
-  cmd.id = {1, 2, 3, 4, 5, 6};
-  cmd.goal_angle_rad = {0.5, 0, 0, 0, 4.0, 0};
-  cmd.torque_enable = true;
-  try {
-    bridge_->OnCommand(cmd);
-    FAIL() << "a goal past one turn was taken in position mode";
-  } catch (const BadInput& e) {
-    EXPECT_NE(std::string(e.what()).find("outside 0..4095 of Operating Mode 3"), std::string::npos)
-        << e.what();
-  }
+  const std::string refused = Refusal(Goals({0.5, 0, 0, 0, 4.0, 0}));
+  EXPECT_NE(refused.find("outside 0..4095 of Operating Mode 3"), std::string::npos)
+      << "a goal past one turn in position mode: '" << refused << "'";
 }
 
 // ---- Real processes over LCM ----

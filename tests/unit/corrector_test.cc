@@ -8,33 +8,18 @@
 
 #include <gtest/gtest.h>
 
+#include "standing_test_data.h"
+
 namespace ftcal {
 namespace {
 
-constexpr double kDeg = M_PI / 180.0;
+using testdata::kDeg;
 
-// A BigAnt-like calibration with every parameter away from its trivial value.
+// A BigAnt-like calibration with every parameter away from its trivial value (standing_test's
+// truth, with a full mounting error).
 RobotCalibration MakeCalibration(uint64_t seed) {
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<double> u(-1.0, 1.0);
-  RobotCalibration cal;
-  cal.total_mass_kg = 8.18;
+  RobotCalibration cal = testdata::MakeTruth(seed, testdata::Mounting::kFull);
   cal.g0 = 9.80665;
-  const double hip_x[kNumLegs] = {-0.2, 0.0, 0.2, -0.2, 0.0, 0.2};
-  cal.p_C_B = Vec3(0.01 * u(rng), 0.01 * u(rng), 0.01 * u(rng));
-  for (int k = 0; k < kNumLegs; ++k) {
-    const bool left = k < 3;
-    cal.X_B_ft[k] = Pose3(left ? Mat3::Identity() : RotationFromRollPitchYaw(0, 0, M_PI),
-                          Vec3(hip_x[k], left ? 0.15 : -0.15, -0.03));
-    LegCalibration& l = cal.leg[k];
-    l.offset << 8 * u(rng), 8 * u(rng), 8 * u(rng), 0.3 * u(rng), 0.3 * u(rng), 0.3 * u(rng);
-    l.weight_n = 6.2 + 0.3 * u(rng);
-    l.com.x = {0.015 + 0.005 * u(rng), M_PI * u(rng), 0.01 * u(rng)};
-    l.com.y = 0.005 * u(rng);
-    l.com.z = {0.015 + 0.005 * u(rng), M_PI * u(rng), -0.06 + 0.02 * u(rng)};
-    l.R_tilde = ExpSO3(Vec3(u(rng), u(rng), u(rng)).normalized() * 2.5 * kDeg);
-    l.p_tilde_prime = Vec3(0.01 * u(rng), 0.01 * u(rng), 0.01 * u(rng));
-  }
   return cal;
 }
 

@@ -1,6 +1,7 @@
-// Standing data generated from known parameters (shared by standing_test and
-// offset_reestimation_test): the sensing model's forward direction (TransducerReading) with
-// physically consistent ground wrenches. Independent of the twin in services/sim on purpose.
+// Standing data generated from known parameters (shared by standing_test,
+// offset_reestimation_test and, for its calibration, corrector_test): the sensing model's forward
+// direction (TransducerReading) with physically consistent ground wrenches. Independent of the twin
+// in services/sim on purpose.
 #pragma once
 
 #include <algorithm>
