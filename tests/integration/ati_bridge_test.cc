@@ -146,18 +146,8 @@ std::int64_t Counter(const service_status_t& s, const std::string& name) {
   return -1;
 }
 
-class AtiBridgeTest : public ::testing::Test {
+class AtiBridgeTest : public testing::NetnsDirTest {
  protected:
-  void SetUp() override {
-    ASSERT_TRUE(testing::InNetns());
-    dir_ = testing::MakeTempDir();
-  }
-  void TearDown() override {
-    if (!dir_.empty() && !HasFailure()) testing::RemoveTree(dir_);
-    if (HasFailure()) std::cerr << "logs kept in " << dir_ << "\n";
-  }
-  std::string Path(const std::string& name) const { return dir_ + "/" + name; }
-
   // Starts the emulator and waits until its boxes are bound.
   std::unique_ptr<Child> StartEmulator(std::vector<std::string> args) {
     std::vector<std::string> argv = {FTCAL_EMULATE_ATI, "--ready", Path("ready"), "--truth",
@@ -199,8 +189,6 @@ class AtiBridgeTest : public ::testing::Test {
     EXPECT_EQ(last.pid, pid) << "no heartbeat heard from pid " << pid;
     return last;
   }
-
-  std::string dir_;
 };
 
 // Every sample heard must be a record the emulator generated and delivered intact, converted

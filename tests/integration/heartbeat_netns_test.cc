@@ -59,24 +59,14 @@ int64_t CounterIn(const std::vector<std::string>& row, const std::string& name) 
   return -1;
 }
 
-class HeartbeatNetnsTest : public ::testing::Test {
+class HeartbeatNetnsTest : public testing::NetnsDirTest {
  protected:
-  void SetUp() override {
-    ASSERT_TRUE(testing::InNetns());
-    dir_ = testing::MakeTempDir();
-  }
-  void TearDown() override {
-    if (!dir_.empty() && !HasFailure()) testing::RemoveTree(dir_);
-  }
-  std::string Path(const std::string& name) const { return dir_ + "/" + name; }
   std::unique_ptr<Child> Start(const std::string& tag, std::vector<std::string> argv) {
     return std::make_unique<Child>(argv, Path(tag + ".out"), Path(tag + ".err"));
   }
   std::unique_ptr<Child> StartDemo(const std::string& tag) {
     return Start(tag, {FTCAL_HEARTBEAT_DEMO, "--lcm-url", kUrl});
   }
-
-  std::string dir_;
 };
 
 TEST_F(HeartbeatNetnsTest, StatusShowsPublisherSigtermEndsItAndTheLogHoldsItsHeartbeats) {

@@ -9,6 +9,7 @@
 #include <chrono>
 #include <cstdint>
 #include <cstdlib>
+#include <iostream>
 #include <map>
 #include <string>
 #include <vector>
@@ -29,6 +30,27 @@ inline ::testing::AssertionResult InNetns() {
   return ::testing::AssertionFailure()
          << "this test sends UDP multicast: run it through scripts/netns-exec (ctest does)";
 }
+
+// A fixture for a multi-process test in its own network namespace: each test gets a fresh
+// directory for its processes' files (Path()), removed when the test passed and kept, and
+// named, when it failed.
+class NetnsDirTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(InNetns());
+    dir_ = MakeTempDir();
+  }
+  void TearDown() override {
+    if (dir_.empty()) return;
+    if (HasFailure()) {
+      std::cerr << "logs kept in " << dir_ << "\n";
+    } else {
+      RemoveTree(dir_);
+    }
+  }
+  std::string Path(const std::string& name) const { return dir_ + "/" + name; }
+  std::string dir_;
+};
 
 // A service that fails to stop on SIGTERM, or stops with an error, fails the test: a clean
 // shutdown is part of every service's contract.
