@@ -26,6 +26,7 @@
 #include <set>
 #include <sstream>
 #include <thread>
+#include <type_traits>
 
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
@@ -146,34 +147,26 @@ struct Recorded {
 };
 Recorded ReadLog(const std::string& path) {
   Recorded r;
-  testing::ForEachLogEvent(path, [&r](const lcm::LogEvent* e) {
+  // The event decoded into `out`, or counted as undecodable; false then.
+  auto keep = [&r](const lcm::LogEvent* e, auto* out) {
+    typename std::remove_pointer_t<decltype(out)>::value_type m;
+    if (!Decode(e, &m)) {
+      ++r.undecodable;
+      return false;
+    }
+    out->push_back(m);
+    return true;
+  };
+  testing::ForEachLogEvent(path, [&](const lcm::LogEvent* e) {
     const std::string& ch = e->channel;
     if (ch.rfind("FT_", 0) == 0) {
-      ft_sample_t m;
-      if (!Decode(e, &m)) {
-        ++r.undecodable;
-        return;
-      }
-      if (ch != "FT_" + m.leg) ++r.wrong_channel;
-      r.ft.push_back(m);
+      if (keep(e, &r.ft) && ch != "FT_" + r.ft.back().leg) ++r.wrong_channel;
     } else if (ch == "SERVO_STATE") {
-      servo_state_t m;
-      if (!Decode(e, &m))
-        ++r.undecodable;
-      else
-        r.servo.push_back(m);
+      keep(e, &r.servo);
     } else if (ch == "MOCAP_BODY") {
-      mocap_body_t m;
-      if (!Decode(e, &m))
-        ++r.undecodable;
-      else
-        r.mocap.push_back(m);
+      keep(e, &r.mocap);
     } else if (ch == "FTCAL_STATUS") {
-      service_status_t m;
-      if (!Decode(e, &m))
-        ++r.undecodable;
-      else
-        r.status.push_back(m);
+      keep(e, &r.status);
     }
   });
   return r;
