@@ -66,19 +66,25 @@ void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double
 
 using testing::SplitCsv;
 
-using AtiRow = testing::AtiTruthRow;
-std::vector<AtiRow> ReadAtiTruth(const std::string& path) {
+// Calls `row` with the fields of every line of the truth CSV at `path` after its header, and
+// the line itself for the message when the row is refused.
+template <class F>
+void ForEachCsvRow(const std::string& path, F row) {
   std::ifstream in(path);
   EXPECT_TRUE(in.good()) << path;
   std::string line;
   std::getline(in, line);
+  while (std::getline(in, line)) row(SplitCsv(line), line);
+}
+
+using AtiRow = testing::AtiTruthRow;
+std::vector<AtiRow> ReadAtiTruth(const std::string& path) {
   std::vector<AtiRow> rows;
-  while (std::getline(in, line)) {
-    const auto f = SplitCsv(line);
+  ForEachCsvRow(path, [&rows](const std::vector<std::string>& f, const std::string& line) {
     if (f.size() != testing::kAtiTruthColumns)
       throw std::runtime_error("bad ati truth line: " + line);
     rows.push_back(testing::ParseAtiTruthRow(f));
-  }
+  });
   return rows;
 }
 
@@ -90,17 +96,12 @@ struct DxlRow {
   double exact;
 };
 std::vector<DxlRow> ReadDxlTruth(const std::string& path) {
-  std::ifstream in(path);
-  EXPECT_TRUE(in.good()) << path;
-  std::string line;
-  std::getline(in, line);
   std::vector<DxlRow> rows;
-  while (std::getline(in, line)) {
-    const auto f = SplitCsv(line);
+  ForEachCsvRow(path, [&rows](const std::vector<std::string>& f, const std::string& line) {
     if (f.size() != 15) throw std::runtime_error("bad dynamixel truth line: " + line);
     rows.push_back({std::stod(f[0]), std::stoi(f[1]), std::stoi(f[3]), f[5], std::stoi(f[8]),
                     std::stoi(f[9]), std::stod(f[14])});
-  }
+  });
   return rows;
 }
 
@@ -112,13 +113,8 @@ struct QtmRow {
 };
 std::map<std::int64_t, QtmRow> ReadQtmTruth(const std::string& path) {
   std::map<std::int64_t, QtmRow> rows;
-  std::ifstream in(path);
-  EXPECT_TRUE(in.good()) << path;
-  std::string line;
-  std::getline(in, line);
-  while (std::getline(in, line)) {
+  ForEachCsvRow(path, [&rows](const std::vector<std::string>& f, const std::string& line) {
     // f32 values written with 9 significant digits give the float back when read as a float.
-    const auto f = SplitCsv(line);
     if (f.size() < 18) throw std::runtime_error("short qtm truth row: " + line);
     auto num = [&](int i) { return f[i] == "nan" ? NAN : static_cast<double>(std::stof(f[i])); };
     QtmRow r;
@@ -133,7 +129,7 @@ std::map<std::int64_t, QtmRow> ReadQtmTruth(const std::string& path) {
     }
     EXPECT_TRUE(rows.emplace(r.frame_number, r).second)
         << "frame " << r.frame_number << " sent twice";
-  }
+  });
   return rows;
 }
 
