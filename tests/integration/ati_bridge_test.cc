@@ -54,7 +54,7 @@ constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
 constexpr char kListenUrl[] = "udpm://239.255.76.67:7667?ttl=0&recv_buf_size=8388608";
 constexpr double kCountsPerUnit = 1e6;  // the emulator's default cfgcpf and cfgcpt
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 // One row of the emulator's truth CSV.
 using TruthRow = testing::AtiTruthRow;
@@ -689,7 +689,6 @@ class PageServer {
   int port() const { return port_; }
 
  private:
-  static void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
   httplib::Server server_;
   std::thread thread_;
   std::atomic<bool> stop_{false};

@@ -107,6 +107,8 @@ void RemoveTree(const std::string& dir) {
   std::filesystem::remove_all(dir, ec);
 }
 
+void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+
 std::string DescribeWaitStatus(int status) {
   if (WIFEXITED(status)) return "exit " + std::to_string(WEXITSTATUS(status));
   if (WIFSIGNALED(status)) {

@@ -37,5 +37,7 @@ std::string MakeTempDir();
 void RemoveTree(const std::string& dir);
 // "exit 3", "signal 9 (Killed)".
 std::string DescribeWaitStatus(int status);
+// Sleeps for `s` seconds (a test's waits for processes it started).
+void SleepS(double s);
 
 }  // namespace ftcal::testing

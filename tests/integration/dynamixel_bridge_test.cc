@@ -45,7 +45,7 @@ using Clock = std::chrono::steady_clock;
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
 constexpr double kOneCountRad = 2.0 * M_PI / 4096.0;
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 std::vector<dxl::StatusPacket> ParseAll(const std::vector<std::uint8_t>& bytes) {
   dxl::PacketParser parser;

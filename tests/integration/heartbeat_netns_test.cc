@@ -27,7 +27,7 @@ using testing::ReadFile;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 double SecondsSince(std::chrono::steady_clock::time_point t) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();

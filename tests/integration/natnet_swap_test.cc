@@ -44,7 +44,7 @@ constexpr std::uint64_t kSeed = 5;
 // dropout of the twin's may cost one (the segmenter keeps a pose only with every marker seen).
 constexpr double kRunS = 24.0;
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 std::string ConfigText(const std::string& device, bool optitrack) {
   std::string text = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");

@@ -24,7 +24,7 @@ using testing::Child;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0&recv_buf_size=4194304";
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 std::unique_ptr<Child> StartRecorder(const std::string& dir, const std::vector<std::string>& args,
                                      const std::string& tag) {

@@ -51,7 +51,7 @@ constexpr double kDeg = M_PI / 180.0;
 constexpr int kStride = 100;  // 8 poses of the 729
 constexpr double kMaxInputAgeS = 1.0;
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 std::string TestConfigText(const std::string& device) {
   std::string text = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");

@@ -63,7 +63,7 @@ constexpr double kTwinRateHz = 100.0;  // a new twin frame (a new noise draw) ev
 constexpr std::array<double, kNumLegs> kPoseA = {0.5, -0.3, 0.4, -0.5, 0.3, -0.4};
 constexpr std::array<double, kNumLegs> kPoseB = {-0.4, 0.5, -0.3, 0.4, -0.5, 0.2};
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 // The sim config with the Dynamixel device at `device` and the reply timeout longer than the
 // config's 10 ms, so that a loaded test machine does not turn a reply into a late one.

@@ -62,7 +62,7 @@ constexpr std::uint64_t kSeed = 3;
 constexpr double kRunS = 30.0;  // issue #4
 constexpr int kAtiRateHz = 500;
 
-void SleepS(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
+using testing::SleepS;
 
 using testing::SplitCsv;
 
