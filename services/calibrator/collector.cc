@@ -168,6 +168,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
 void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
   SegmenterCounters segmented;
+  const bool not_segmented = standing_not_segmented_;
   standing_not_segmented_ = false;
   if (segmenter_) {
     segmenter_->Flush();
@@ -192,11 +193,11 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
     current_hang_ = HangingRecording();
   } else if (phase.code == experiment_marker_t::STANDING) {
     if (completed) {
-      if (segmented.samples > 0 || !current_poses_.empty()) {
+      if (not_segmented) {
+        spdlog::info("STANDING complete (session '{}')", phase.session);
+      } else {
         spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
                      current_poses_.size());
-      } else {
-        spdlog::info("STANDING complete (session '{}')", phase.session);
       }
       segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(), current_poses_.end());
       standing_session_ = phase.session;

@@ -227,17 +227,16 @@ steady_pose_t ToLcm(const SteadyPoseOut& p, const SteadyPoseHeader& header) {
   msg.num_samples = p.num_samples;
   // The scatter travels only when it is over the same samples as the medians.
   const bool scatter = p.pose.samples > 0 && p.pose.samples == p.num_samples;
-  constexpr double kNan = std::numeric_limits<double>::quiet_NaN();
   for (int k = 0; k < kNumLegs; ++k) {
     msg.leg[k] = kLegNames[k];
     for (int i = 0; i < 6; ++i) {
       msg.wrench[k][i] = p.pose.wrench[k][i];
-      msg.wrench_sem[k][i] = scatter ? p.pose.wrench_sem[k][i] : kNan;
+      msg.wrench_sem[k][i] = scatter ? p.pose.wrench_sem[k][i] : kNaN;
     }
     msg.angle_rad[k] = p.pose.angle_rad[k];
   }
   QuaternionOf(p.pose.R_WC, msg.q_wc);
-  for (int c = 0; c < 3; ++c) msg.attitude_sem_rad[c] = scatter ? p.pose.attitude_sem_rad[c] : kNan;
+  for (int c = 0; c < 3; ++c) msg.attitude_sem_rad[c] = scatter ? p.pose.attitude_sem_rad[c] : kNaN;
   msg.markers_ok = p.markers_ok;
   return msg;
 }
