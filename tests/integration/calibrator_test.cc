@@ -324,8 +324,6 @@ TEST_F(CalibratorTest, RefusesAPhaseThatLostRecordsUnlessAllowedAndCountsThemExa
   }
 }
 
-// --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
-// four candidates; the file says so.
 // The segmenter's poses log carries each pose's within-pose scatter. Read before the session,
 // it spares the calibrator segmenting the STANDING phase again; read after, the calibrator
 // segments it (and says how to skip that). Both give the same calibration, number for number.
@@ -344,8 +342,12 @@ TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber
       Run({"--log", fx->log, "--log", poses, "--config", kConfig, "--out", after}, "poses_after");
   const Result rb =
       Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out", before}, "poses_before");
+  // The session alone: the calibrator's own segmentation gives every pose and its scatter.
+  const std::string own = fx->dir + "/cal-own-poses.pbtxt";
+  const Result ro = Run({"--log", fx->log, "--config", kConfig, "--out", own}, "own_poses");
   ASSERT_EQ(ra.exit_code, 0) << ra.err;
   ASSERT_EQ(rb.exit_code, 0) << rb.err;
+  ASSERT_EQ(ro.exit_code, 0) << ro.err;
   EXPECT_NE(rb.err.find("carry their within-pose scatter: not segmented again"), std::string::npos)
       << rb.err;
   EXPECT_EQ(rb.err.find("steady poses segmented"), std::string::npos) << rb.err;
@@ -358,6 +360,20 @@ TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber
   ASSERT_TRUE(b.has_noise_floor());
   EXPECT_EQ(b.noise_floor().poses_with_scatter(), b.standing_poses());
   EXPECT_EQ(a.noise_floor().DebugString(), b.noise_floor().DebugString());
+  // ...and it is the scatter the calibrator finds itself over the same samples: the message
+  // carries the segmenter's numbers, not something of its own (the medians' attitude crosses
+  // the message as a quaternion, hence a tolerance rather than equality).
+  const calibration::Calibration o = ReadCalibrationFile(own);
+  EXPECT_EQ(o.standing_poses(), b.standing_poses());
+  EXPECT_EQ(o.noise_floor().poses_with_scatter(), b.noise_floor().poses_with_scatter());
+  ASSERT_EQ(o.noise_floor().floor_rms_size(), 6);
+  ASSERT_EQ(b.noise_floor().floor_rms_size(), 6);
+  for (int i = 0; i < 6; ++i) {
+    EXPECT_GT(b.noise_floor().floor_rms(i), 0.0) << i;
+    EXPECT_NEAR(b.noise_floor().floor_rms(i), o.noise_floor().floor_rms(i),
+                1e-9 * o.noise_floor().floor_rms(i))
+        << i;
+  }
   // Everything but the provenance (input order, command line, time) is the same.
   a.clear_provenance();
   b.clear_provenance();
@@ -365,6 +381,8 @@ TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber
   EXPECT_EQ(ReadFile(ResidualsPathFor(after)), ReadFile(ResidualsPathFor(before)));
 }
 
+// --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
+// four candidates; the file says so.
 TEST_F(CalibratorTest, ReportProfileFromTheCommandLine) {
   const std::string out = fx->dir + "/cal-report.pbtxt";
   const Result r =
