@@ -69,7 +69,6 @@ AtomicLogFile::AtomicLogFile(const std::string& path, const std::string& what)
   }
   ::fchmod(fd_, 0644);  // mkostemp makes it 0600; logs are for everyone to read
   fill_.resize(kBufferBytes + 4096);
-  pending_.resize(kBufferBytes + 4096);
   try {
     writer_ = std::thread([this] { WriterLoop(); });
   } catch (...) {
@@ -98,13 +97,16 @@ void AtomicLogFile::StopWriter() {
 void AtomicLogFile::WriterLoop() {
   std::unique_lock<std::mutex> lock(mutex_);
   for (;;) {
-    cv_.wait(lock, [this] { return has_pending_ || stop_; });
-    if (!has_pending_) return;  // stopped with nothing left
-    // pending_ is the writer's until has_pending_ is cleared: write it without the lock.
+    cv_.wait(lock, [this] { return !queue_.empty() || stop_; });
+    if (queue_.empty()) return;  // stopped with nothing left
+    Full full = std::move(queue_.front());
+    queue_.pop_front();
+    writing_ = true;
+    const bool failed = !error_.empty();
     lock.unlock();
     std::string error;
-    const char* p = pending_.data();
-    size_t left = pending_bytes_;
+    const char* p = full.data.data();
+    size_t left = failed ? 0 : full.bytes;  // after a failure, the rest is only drained
     while (left > 0) {
       const ssize_t n = ::write(fd_, p, left);
       if (n < 0) {
@@ -118,18 +120,31 @@ void AtomicLogFile::WriterLoop() {
       p += n;
       left -= static_cast<size_t>(n);
     }
-    if (error.empty()) {
-      // Starts the disk on what was just written, without waiting for it: Commit()'s fsync then
-      // finds little left to do, instead of a whole replay's output at once. (Best effort: where
-      // the filesystem does not support it, the fsync does it all as before.)
-      ::sync_file_range(fd_, static_cast<off_t>(written_), static_cast<off_t>(pending_bytes_),
+    if (error.empty() && !failed) {
+      // Starts the disk on what was just written without waiting, so that the fdatasync below
+      // finds it under way. (Best effort: where the filesystem does not support it, the
+      // fdatasync does it all.)
+      ::sync_file_range(fd_, static_cast<off_t>(written_), static_cast<off_t>(full.bytes),
                         SYNC_FILE_RANGE_WRITE);
-      written_ += static_cast<int64_t>(pending_bytes_);
+      written_ += static_cast<int64_t>(full.bytes);
+      unsynced_ += static_cast<int64_t>(full.bytes);
     }
-    pending_bytes_ = 0;
     lock.lock();
     if (!error.empty() && error_.empty()) error_ = error;
-    has_pending_ = false;
+    spare_.push_back(std::move(full.data));
+    const bool sync = error_.empty() && unsynced_ >= kSyncBytes;
+    if (sync) {
+      // The buffer is back and the queue has room: the caller goes on while this waits.
+      cv_.notify_all();
+      lock.unlock();
+      const int synced = ::fdatasync(fd_) == 0 ? 0 : errno;
+      unsynced_ = 0;
+      lock.lock();
+      if (synced != 0 && synced != EINVAL && error_.empty()) {
+        error_ = std::string("fdatasync: ") + std::strerror(synced);
+      }
+    }
+    writing_ = false;
     cv_.notify_all();
   }
 }
@@ -140,19 +155,23 @@ void AtomicLogFile::ThrowWriteError(const std::string& error) const {
 
 void AtomicLogFile::HandOff() {
   std::unique_lock<std::mutex> lock(mutex_);
-  cv_.wait(lock, [this] { return !has_pending_; });
+  cv_.wait(lock, [this] { return queue_.size() < kMaxQueued || !error_.empty(); });
   if (!error_.empty()) ThrowWriteError(error_);
-  fill_.swap(pending_);  // pending_ was emptied by the writer: fill_ starts empty
-  pending_bytes_ = fill_bytes_;
+  queue_.push_back(Full{std::move(fill_), fill_bytes_});
+  if (spare_.empty()) {
+    fill_ = std::vector<char>(kBufferBytes + 4096);
+  } else {
+    fill_ = std::move(spare_.back());
+    spare_.pop_back();
+  }
   fill_bytes_ = 0;
-  has_pending_ = true;
   cv_.notify_all();
 }
 
 void AtomicLogFile::Drain() {
   if (fill_bytes_ > 0) HandOff();
   std::unique_lock<std::mutex> lock(mutex_);
-  cv_.wait(lock, [this] { return !has_pending_; });
+  cv_.wait(lock, [this] { return (queue_.empty() && !writing_) || !error_.empty(); });
   if (!error_.empty()) ThrowWriteError(error_);
 }
 
