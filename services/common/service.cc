@@ -64,7 +64,9 @@ std::shared_ptr<spdlog::logger> MakeLogger(const std::string& name) {
 
 std::vector<std::string> LcmUrlWarnings(const std::string& url, long long rmem_max) {
   std::vector<std::string> out;
-  if (url.rfind("udpm://", 0) != 0) return out;
+  // LCM's two multicast providers, one group and port (udpm) or one port per channel hash
+  // (mpudpm), take the same ttl and recv_buf_size.
+  if (url.rfind("udpm://", 0) != 0 && url.rfind("mpudpm://", 0) != 0) return out;
   const auto ttl = UrlOption(url, "ttl");
   if (ttl && *ttl > 0) {
     out.push_back("LCM URL " + url + ": ttl=" + std::to_string(*ttl) +

@@ -115,6 +115,12 @@ TEST(LcmUrlTest, TtlAboveZeroAndARecvBufferAboveTheKernelLimitAreNamed) {
             std::string::npos)
       << buf[0];
   EXPECT_NE(buf[0].find("sysctl -w net.core.rmem_max=8388608"), std::string::npos) << buf[0];
+  // LCM's multi-port provider takes the same two options.
+  EXPECT_TRUE(LcmUrlWarnings("mpudpm://239.255.76.67:7667?ttl=0&nports=64", 212992).empty());
+  EXPECT_EQ(
+      LcmUrlWarnings("mpudpm://239.255.76.67:7667?ttl=1&nports=64&recv_buf_size=8388608", 212992)
+          .size(),
+      2u);
 }
 
 // ---- AtomicLogFile's temporary file ----
