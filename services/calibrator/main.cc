@@ -103,9 +103,39 @@ int Report(const ftcal::CalibrationRun& run, const Args& args, const std::string
   return 0;
 }
 
-// Reads every --log into the collector, in order. Returns false when reading was interrupted
-// (a signal); throws CalibratorInputError for a missing, damaged or truncated log.
-bool ReadLogs(ftcal::CalibrationCollector& collector, const Args& args) {
+// The order in which to read the --logs: those with no transducer sample among their first
+// events (the segmenter's poses log: SYNC_SAMPLE and STEADY_POSE) first, then the rest, each
+// group in the order given. A poses log read before its session spares the collector aligning
+// and segmenting the STANDING phase again (its STEADY_POSE events carry the within-pose
+// scatter), and the calibration does not depend on the order; so the user need not know that.
+std::vector<std::string> ReadingOrder(const std::vector<std::string>& logs,
+                                      const std::string& ft_prefix) {
+  // A session log's transducers publish hundreds of samples a second from the start; a poses
+  // log has none at all.
+  constexpr int kEventsLooked = 256;
+  std::vector<std::string> first, rest;
+  for (const std::string& path : logs) {
+    bool samples = false;
+    for (const std::string& channel : ftcal::LogChannelsAtStart(path, kEventsLooked)) {
+      samples = samples || channel.compare(0, ft_prefix.size(), ft_prefix) == 0;
+    }
+    (samples ? rest : first).push_back(path);
+  }
+  std::vector<std::string> order = first;
+  order.insert(order.end(), rest.begin(), rest.end());
+  if (order != logs) {
+    spdlog::info(
+        "reading {} before {}: no {} samples at its start (a poses log), so the "
+        "STANDING phase need not be segmented again",
+        first.back(), rest.front(), ft_prefix);
+  }
+  return order;
+}
+
+// Reads every --log into the collector, in ReadingOrder(). Returns false when reading was
+// interrupted (a signal); throws CalibratorInputError for a missing, damaged or truncated log.
+bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Config& config,
+              const Args& args) {
   auto log = spdlog::default_logger();
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
@@ -126,7 +156,7 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const Args& args) {
       throw CalibratorInputError("input log '" + path + "' does not exist or is not a file");
     }
   }
-  for (const std::string& path : args.logs) {
+  for (const std::string& path : ReadingOrder(args.logs, config.channels().ft_prefix())) {
     ftcal::ServiceStats stats(log);
     // Nothing is published: the replay output stays uncommitted and is removed.
     ftcal::LogReplayBus bus(path, scratch, stats);
@@ -177,17 +207,6 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
   return options;
 }
 
-// A poses log read after its session leaves the STANDING phase segmented again, only for the
-// within-pose scatter its STEADY_POSE events carry: say how to skip that.
-void HintPosesFirst(const ftcal::CalibrationCollector& collector) {
-  const ftcal::CollectorCounters& c = collector.counters();
-  if (c.logged_poses > 0 && c.segmented_poses > 0 && c.standing_not_segmented == 0) {
-    spdlog::info(
-        "the STANDING phase was segmented again although STEADY_POSE events were given: with "
-        "the poses log before the session (--log POSES --log SESSION) it is not");
-  }
-}
-
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
@@ -203,8 +222,7 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
     const auto it = hashes.find(path);
     return it != hashes.end() ? it->second.get() : ftcal::Sha256File(path);
   };
-  if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
-  HintPosesFirst(collector);
+  if (!ReadLogs(collector, config, args)) return ftcal::kExitDeviceIo;
   ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   std::optional<ftcal::RobotCalibration> truth;
   if (!args.truth.empty()) {
@@ -232,8 +250,7 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
 int ReestimateOffsets(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
-  if (!ReadLogs(collector, args)) return ftcal::kExitDeviceIo;
-  HintPosesFirst(collector);
+  if (!ReadLogs(collector, config, args)) return ftcal::kExitDeviceIo;
   const ftcal::OffsetReestimationRun run = ftcal::RunOffsetReestimation(
       collector, config, args.reestimate_base, args.partial, OptionsOf(args));
   ftcal::WriteCalibrationFile(run.proto, args.out);

@@ -195,6 +195,27 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
   }
 }
 
+std::vector<std::string> LogChannelsAtStart(const std::string& path, int max_events,
+                                            int64_t max_bytes) {
+  std::vector<std::string> channels;
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return channels;
+  std::vector<uint8_t> bytes(static_cast<size_t>(std::max<int64_t>(max_bytes, 0)));
+  const int64_t n = PreadFully(fd, bytes.data(), static_cast<int64_t>(bytes.size()), 0);
+  ::close(fd);
+  for (int64_t at = 0; static_cast<int>(channels.size()) < max_events && at + kHeaderBytes <= n;) {
+    const uint8_t* header = bytes.data() + at;
+    if (Be32(header) != kSyncWord) break;
+    const int64_t channel_bytes = static_cast<int32_t>(Be32(header + 20));
+    const int64_t data_bytes = static_cast<int32_t>(Be32(header + 24));
+    if (channel_bytes <= 0 || data_bytes < 0 || at + kHeaderBytes + channel_bytes > n) break;
+    channels.emplace_back(reinterpret_cast<const char*>(header + kHeaderBytes),
+                          static_cast<size_t>(channel_bytes));
+    at += kHeaderBytes + channel_bytes + data_bytes;
+  }
+  return channels;
+}
+
 // ---- LogReplayBus ----
 
 // One read at a time on a thread of its own, into a buffer the caller takes when it needs it.

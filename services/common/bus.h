@@ -179,6 +179,13 @@ class LcmBus : public Bus {
   std::vector<std::unique_ptr<Trampoline>> trampolines_;
 };
 
+// The channels of the first events of the LCM log at `path` (at most `max_events`, read from
+// its first `max_bytes`), in order; empty when the file cannot be read. Reading stops at the
+// first bytes that are not a whole event (a damaged header's lengths are never trusted), so
+// this tells what a log holds, cheaply, and decides nothing about its integrity.
+std::vector<std::string> LogChannelsAtStart(const std::string& path, int max_events,
+                                            int64_t max_bytes = 1 << 20);
+
 // A recorded log in, a log out. The output is written to a temporary file beside `out_path`
 // and renamed onto it by Commit() (after fsync), so a failed or interrupted replay never leaves
 // a partial log under the final name.
