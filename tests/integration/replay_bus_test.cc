@@ -195,5 +195,45 @@ TEST_F(ReplayBusTest, ASubscriptionMadeInAHandlerTakesEffectAtOnce) {
                                              "first@1002", "second@1002"}));
 }
 
+// What the calibrator looks at to find a poses log among its inputs: the channels of a log's
+// first events, as written, and nothing past the first bytes that are not a whole event (a
+// header claiming more bytes than the file has is not followed).
+TEST_F(ReplayBusTest, ChannelsAtStartAreTheFirstEventsAndStopAtDamage) {
+  std::vector<Event> events = MakeEvents();
+  events.resize(400);
+  const std::string in = dir_ + "/in.lcmlog";
+  {
+    AtomicLogFile log(in, "test input");
+    for (const Event& e : events)
+      log.Write(e.utime, e.channel, e.data.data(), static_cast<int>(e.data.size()));
+    log.Commit();
+  }
+  std::vector<std::string> want;
+  for (size_t i = 0; i < 300; ++i) want.push_back(events[i].channel);
+  EXPECT_EQ(LogChannelsAtStart(in, 300), want);
+  // Within the first 64 kB: as many whole events as fit.
+  size_t fit = 0;
+  for (size_t at = 0; fit < events.size(); ++fit) {
+    at += 28 + events[fit].channel.size() + events[fit].data.size();
+    if (at - events[fit].data.size() > (64u << 10)) break;
+  }
+  EXPECT_EQ(LogChannelsAtStart(in, 400, 64 << 10).size(), fit);
+  // Event 10's channel length made impossible: events 0-9 only.
+  {
+    FILE* f = std::fopen(in.c_str(), "r+b");
+    ASSERT_NE(f, nullptr);
+    long at = 0;
+    for (size_t i = 0; i < 10; ++i)
+      at += static_cast<long>(28 + events[i].channel.size() + events[i].data.size());
+    const uint8_t huge[4] = {0x7F, 0xFF, 0xFF, 0xFF};
+    ASSERT_EQ(std::fseek(f, at + 20, SEEK_SET), 0);
+    ASSERT_EQ(std::fwrite(huge, 1, 4, f), 4u);
+    std::fclose(f);
+  }
+  want.resize(10);
+  EXPECT_EQ(LogChannelsAtStart(in, 300), want);
+  EXPECT_TRUE(LogChannelsAtStart(dir_ + "/no-such.lcmlog", 10).empty());
+}
+
 }  // namespace
 }  // namespace ftcal
