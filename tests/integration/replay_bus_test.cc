@@ -68,6 +68,13 @@ std::vector<Event> ReadWithLcm(const std::string& path) {
   return events;
 }
 
+void WriteWithAtomicLogFile(const std::string& path, const std::vector<Event>& events) {
+  AtomicLogFile log(path, "test input");
+  for (const Event& e : events)
+    log.Write(e.utime, e.channel, e.data.data(), static_cast<int>(e.data.size()));
+  log.Commit();
+}
+
 class ReplayBusTest : public ::testing::Test {
  protected:
   std::string dir_ = "/tmp/ftcal_replay_bus_test_" + std::to_string(::getpid());
@@ -126,12 +133,7 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
   std::vector<Event> events = MakeEvents();
   events.resize(3000);
   const std::string in = dir_ + "/in.lcmlog";
-  {
-    AtomicLogFile log(in, "test input");
-    for (const Event& e : events)
-      log.Write(e.utime, e.channel, e.data.data(), static_cast<int>(e.data.size()));
-    log.Commit();
-  }
+  WriteWithAtomicLogFile(in, events);
   // Insert garbage after event 1500 and cut the last event short, with the raw bytes.
   std::vector<uint8_t> bytes;
   {
@@ -202,12 +204,7 @@ TEST_F(ReplayBusTest, ChannelsAtStartAreTheFirstEventsAndStopAtDamage) {
   std::vector<Event> events = MakeEvents();
   events.resize(400);
   const std::string in = dir_ + "/in.lcmlog";
-  {
-    AtomicLogFile log(in, "test input");
-    for (const Event& e : events)
-      log.Write(e.utime, e.channel, e.data.data(), static_cast<int>(e.data.size()));
-    log.Commit();
-  }
+  WriteWithAtomicLogFile(in, events);
   std::vector<std::string> want;
   for (size_t i = 0; i < 300; ++i) want.push_back(events[i].channel);
   EXPECT_EQ(LogChannelsAtStart(in, 300), want);
