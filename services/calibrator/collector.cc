@@ -140,7 +140,6 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_poses_.clear();
     const auto logged = logged_sessions_scatter_.find(phase.session);
     if (skip_logged_sessions_ && logged != logged_sessions_scatter_.end() && logged->second) {
-      ++counters_.standing_not_segmented;
       standing_not_segmented_ = true;
       spdlog::info(
           "EXPERIMENT: STANDING started (session '{}'); its STEADY_POSE events, read before, "

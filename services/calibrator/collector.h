@@ -57,7 +57,6 @@ struct CollectorCounters {
   int64_t standing_samples = 0;
   int64_t logged_poses = 0;            // STEADY_POSE events seen
   int64_t segmented_poses = 0;         // poses the collector's own segmenter found
-  int64_t standing_not_segmented = 0;  // STANDING phases whose poses (with scatter) came first
   int64_t poses_dropped_markers = 0;   // logged poses without every marker
   int64_t walking_samples = 0;         // aligned samples inside WALKING phases (kept or not)
   int64_t tripod_samples = 0;          // aligned samples inside TRIPOD phases
