@@ -204,8 +204,11 @@ class PoseCost final : public ceres::CostFunction {
   }
 
  private:
+  // Flattened: GCC 12 at -O3 left the Jet's Eigen arithmetic as out-of-line calls (half of
+  // step 2's time in perf); inlined here it is the same arithmetic, in half the time.
   template <int kR>
-  bool EvaluateT(double const* const* parameters, double* residuals, double** jacobians) const {
+  [[gnu::flatten]] bool EvaluateT(double const* const* parameters, double* residuals,
+                                  double** jacobians) const {
     constexpr int kN = kR + 3;
     using J = ceres::Jet<double, kN>;
     const bool need_rot = jacobians != nullptr && jacobians[0] != nullptr;
