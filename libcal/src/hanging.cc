@@ -466,9 +466,9 @@ HangingVariant SolveVariant(const LegPairs& in, Variant variant, const HangingOp
   v.force_offset_n = Combine(v.pair[0].force_offset_n, v.pair[1].force_offset_n);
   v.torque_offset_nm = Combine(v.pair[0].torque_offset_nm, v.pair[1].torque_offset_nm);
   std::vector<Vec6> residual;
-  for (int slot = 0; slot < 4; ++slot) {
-    residual.reserve(residual.size() + (*in.com_raw)[slot].size());
-  }
+  size_t samples = 0;
+  for (int slot = 0; slot < 4; ++slot) samples += (*in.com_raw)[slot].size();
+  residual.reserve(samples);  // once: a reserve per slot reallocated (and copied) each time
   for (int slot = 0; slot < 4; ++slot) {
     const PairEstimate& e = est[slot / 2];
     const Vec3 axis = slot / 2 == 0 ? Vec3::UnitX() : Vec3::UnitZ();
@@ -508,6 +508,9 @@ void NaiveTare(const SeriesArray& by_series, int upright, int leg, const Hanging
   }
   out->naive_offset = sum / count;
   std::vector<Vec6> residual;
+  size_t samples = 0;
+  for (int s = 0; s < kNumHangSeries; ++s) samples += by_series[s]->legs[leg].wrench.size();
+  residual.reserve(samples);
   for (int s = 0; s < kNumHangSeries; ++s) {
     for (const Vec6& w : by_series[s]->legs[leg].wrench) residual.push_back(w - out->naive_offset);
   }

@@ -307,6 +307,7 @@ void CalibrationCollector::OnTripodStance(const SteadyPoseOut& p) {
 
 std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
   std::vector<HangingRecording> out;
+  out.reserve(kNumHangSeries);  // each is tens of MB at the report's scale: copied once
   std::string missing;
   for (int s = 0; s < kNumHangSeries; ++s) {
     if (hang_[s]) {
