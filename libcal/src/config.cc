@@ -207,33 +207,44 @@ std::string Sha256Hex(const std::string& bytes) {
   return ToHex(digest, length);
 }
 
+Sha256::Sha256() : ctx_(EVP_MD_CTX_new(), EVP_MD_CTX_free) {
+  if (!ctx_ || EVP_DigestInit_ex(ctx_.get(), EVP_sha256(), nullptr) != 1) {
+    throw std::runtime_error("SHA-256: OpenSSL digest init failed");
+  }
+}
+
+void Sha256::Update(const void* data, size_t size) {
+  if (size > 0 && EVP_DigestUpdate(ctx_.get(), data, size) != 1) {
+    throw std::runtime_error("SHA-256: OpenSSL digest update failed");
+  }
+}
+
+std::string Sha256::HexDigest() {
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  if (EVP_DigestFinal_ex(ctx_.get(), digest, &length) != 1) {
+    throw std::runtime_error("SHA-256: OpenSSL digest final failed");
+  }
+  return ToHex(digest, length);
+}
+
 std::string Sha256File(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {
     throw std::runtime_error("SHA-256: cannot open '" + path + "': " + std::strerror(errno));
   }
   // Streamed: logs can be far larger than memory would like.
-  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> ctx(EVP_MD_CTX_new(), EVP_MD_CTX_free);
-  if (!ctx || EVP_DigestInit_ex(ctx.get(), EVP_sha256(), nullptr) != 1) {
-    throw std::runtime_error("SHA-256: OpenSSL digest init failed");
-  }
+  Sha256 sha;
   std::vector<char> buffer(1 << 16);
   while (in) {
     in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
     const std::streamsize n = in.gcount();
-    if (n > 0 && EVP_DigestUpdate(ctx.get(), buffer.data(), static_cast<size_t>(n)) != 1) {
-      throw std::runtime_error("SHA-256: OpenSSL digest update failed");
-    }
+    if (n > 0) sha.Update(buffer.data(), static_cast<size_t>(n));
   }
   if (in.bad()) {
     throw std::runtime_error("SHA-256: cannot read '" + path + "': " + std::strerror(errno));
   }
-  unsigned char digest[EVP_MAX_MD_SIZE];
-  unsigned int length = 0;
-  if (EVP_DigestFinal_ex(ctx.get(), digest, &length) != 1) {
-    throw std::runtime_error("SHA-256: OpenSSL digest final failed");
-  }
-  return ToHex(digest, length);
+  return sha.HexDigest();
 }
 
 }  // namespace ftcal

@@ -8,7 +8,6 @@
 #include <cstdio>
 #include <exception>
 #include <filesystem>
-#include <future>
 #include <map>
 #include <iostream>
 #include <optional>
@@ -134,8 +133,10 @@ std::vector<std::string> ReadingOrder(const std::vector<std::string>& logs,
 
 // Reads every --log into the collector, in ReadingOrder(). Returns false when reading was
 // interrupted (a signal); throws CalibratorInputError for a missing, damaged or truncated log.
+// Reads the logs into `collector`; each one's SHA-256 (provenance) is taken from the bytes read,
+// on the read-ahead thread, into *sha256 by path.
 bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Config& config,
-              const Args& args) {
+              const Args& args, std::map<std::string, std::string>* sha256) {
   auto log = spdlog::default_logger();
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
@@ -160,6 +161,7 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
     ftcal::ServiceStats stats(log);
     // Nothing is published: the replay output stays uncommitted and is removed.
     ftcal::LogReplayBus bus(path, scratch, stats);
+    bus.HashInput();
     collector.Attach(bus);
     int64_t first_utime = -1;
     bus.Run(
@@ -191,14 +193,22 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
       spdlog::warn("{}: {} inputs dropped{}", path, stats.drops(), kinds);
     }
     spdlog::info("{}: {} events", path, bus.events_read());
+    const std::string hex = bus.TakeInputSha256();
+    if (!hex.empty()) (*sha256)[path] = hex;
   }
   collector.Flush();
   return true;
 }
 
-ftcal::CalibratorOptions OptionsOf(const Args& args) {
+ftcal::CalibratorOptions OptionsOf(const Args& args,
+                                   const std::map<std::string, std::string>& hashes = {}) {
   ftcal::CalibratorOptions options;
   options.log_paths = args.logs;
+  // A log the reading did not hash whole (none, as a rule) is hashed from its file.
+  options.sha256 = [hashes](const std::string& path) {
+    const auto it = hashes.find(path);
+    return it != hashes.end() ? it->second : ftcal::Sha256File(path);
+  };
   options.config_path = args.config_path;
   options.command_line = args.command_line;
   options.accept_mass_mismatch = args.accept_mass_mismatch;
@@ -210,19 +220,9 @@ ftcal::CalibratorOptions OptionsOf(const Args& args) {
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
-  // Provenance hashes every input log: on the second core while the first reads them.
-  std::map<std::string, std::shared_future<std::string>> hashes;
-  for (const std::string& path : args.logs) {
-    std::error_code ec;
-    if (hashes.count(path) || !std::filesystem::is_regular_file(path, ec)) continue;
-    hashes[path] = std::async(std::launch::async, ftcal::Sha256File, path).share();
-  }
-  ftcal::CalibratorOptions options = OptionsOf(args);
-  options.sha256 = [&hashes](const std::string& path) {
-    const auto it = hashes.find(path);
-    return it != hashes.end() ? it->second.get() : ftcal::Sha256File(path);
-  };
-  if (!ReadLogs(collector, config, args)) return ftcal::kExitDeviceIo;
+  std::map<std::string, std::string> hashes;
+  if (!ReadLogs(collector, config, args, &hashes)) return ftcal::kExitDeviceIo;
+  const ftcal::CalibratorOptions options = OptionsOf(args, hashes);
   ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   std::optional<ftcal::RobotCalibration> truth;
   if (!args.truth.empty()) {
@@ -250,9 +250,10 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
 int ReestimateOffsets(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
-  if (!ReadLogs(collector, config, args)) return ftcal::kExitDeviceIo;
+  std::map<std::string, std::string> hashes;
+  if (!ReadLogs(collector, config, args, &hashes)) return ftcal::kExitDeviceIo;
   const ftcal::OffsetReestimationRun run = ftcal::RunOffsetReestimation(
-      collector, config, args.reestimate_base, args.partial, OptionsOf(args));
+      collector, config, args.reestimate_base, args.partial, OptionsOf(args, hashes));
   ftcal::WriteCalibrationFile(run.proto, args.out);
   spdlog::info("wrote {} (version {})", args.out, run.proto.version());
   std::cout << ftcal::OffsetSummaryTable(run) << std::flush;

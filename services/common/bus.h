@@ -206,6 +206,12 @@ class LogReplayBus : public Bus {
   void Commit();
   // True when Run() read the whole input.
   bool finished() const { return finished_; }
+  // Hashes the input (SHA-256) with the bytes Run() reads, on the read-ahead thread: a caller
+  // that wants the log's hash as well as its events reads the file once. Call before Run().
+  void HashInput();
+  // The SHA-256 (hex) of the input as Run() read it, from its first byte to the size it had
+  // when Run() began; empty when HashInput() was not called or Run() did not finish. Once.
+  std::string TakeInputSha256();
   int64_t events_read() const { return events_read_; }
 
  protected:
@@ -232,6 +238,10 @@ class LogReplayBus : public Bus {
   // The next chunk, read on a thread of its own while this one is handled (ReadAhead in
   // bus.cc): the copy out of the page cache was a seventh of a replay's main thread.
   class ReadAhead;
+  // The hash of the bytes read so far, in order from the first (HashInput()); touched by the
+  // thread that reads, which the read-ahead's hand-over orders.
+  struct InputHash;
+  std::unique_ptr<InputHash> hash_;
   std::unique_ptr<ReadAhead> read_ahead_;
   std::vector<uint8_t> tail_;  // the straddling event's bytes on their way to the next chunk
   // The channels seen so far with their handlers, and for each the one that followed it last

@@ -15,6 +15,7 @@
 
 #include "common/atomic_log.h"
 #include "common/bus.h"
+#include "ftcal/config.h"
 
 namespace ftcal {
 namespace {
@@ -106,6 +107,7 @@ TEST_F(ReplayBusTest, ReadsAndWritesWhatLcmWritesAndReads) {
   std::vector<Event> seen;
   {
     LogReplayBus bus(in, out, stats);
+    bus.HashInput();
     bus.SubscribeRaw("CH_.*", [&](const MessageInfo& info, const void* data, int size) {
       const auto* p = static_cast<const uint8_t*>(data);
       seen.push_back({info.recv_utime, info.channel, std::vector<uint8_t>(p, p + size)});
@@ -114,6 +116,10 @@ TEST_F(ReplayBusTest, ReadsAndWritesWhatLcmWritesAndReads) {
     bus.Run([] {}, 100'000);
     ASSERT_TRUE(bus.finished());
     bus.Commit();
+    // Hashed on the way, through the read-ahead and the refill of the 3 MiB event: the file's
+    // SHA-256 as a separate read of it gives, once.
+    EXPECT_EQ(bus.TakeInputSha256(), Sha256File(in));
+    EXPECT_EQ(bus.TakeInputSha256(), "");
   }
   EXPECT_EQ(stats.errors(), 0);
   ASSERT_EQ(seen.size(), events.size());
@@ -160,6 +166,7 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
   ServiceStats stats(log_);
   std::vector<Event> seen;
   LogReplayBus bus(in, dir_ + "/out.lcmlog", stats);
+  bus.HashInput();
   bus.SubscribeRaw(".*", [&](const MessageInfo& info, const void* data, int size) {
     const auto* p = static_cast<const uint8_t*>(data);
     seen.push_back({info.recv_utime, info.channel, std::vector<uint8_t>(p, p + size)});
@@ -169,6 +176,24 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
   ASSERT_EQ(seen.size(), events.size());
   for (size_t i = 0; i < events.size(); ++i) ASSERT_TRUE(seen[i] == events[i]) << "event " << i;
   EXPECT_EQ(stats.errors(), 2) << stats.last_error();  // the garbage, the truncated tail
+  // The hash is of the file's bytes, the damaged ones too: provenance names the file as read.
+  EXPECT_EQ(bus.TakeInputSha256(), Sha256File(in));
+}
+
+// Without HashInput(), or before Run() has read the whole input, there is no hash to take.
+TEST_F(ReplayBusTest, NoHashUnlessAskedForAndReadWhole) {
+  std::vector<Event> events = MakeEvents();
+  events.resize(2000);
+  const std::string in = dir_ + "/in.lcmlog";
+  WriteWithAtomicLogFile(in, events);
+  ServiceStats stats(log_);
+  LogReplayBus plain(in, dir_ + "/out1.lcmlog", stats);
+  plain.Run([] {}, 100'000);
+  ASSERT_TRUE(plain.finished());
+  EXPECT_EQ(plain.TakeInputSha256(), "");
+  LogReplayBus unread(in, dir_ + "/out2.lcmlog", stats);
+  unread.HashInput();
+  EXPECT_EQ(unread.TakeInputSha256(), "");
 }
 
 // A handler that subscribes sees its new subscription from the same event on, in order, as

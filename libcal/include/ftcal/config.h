@@ -9,12 +9,17 @@
 #pragma once
 
 #include <array>
+#include <cstddef>
+#include <memory>
 #include <stdexcept>
 #include <string>
 
 #include "ftcal/geometry.h"
 #include "ftcal/legs.h"
 #include "proto/config.pb.h"
+
+// OpenSSL's digest context (EVP_MD_CTX), kept out of this header.
+struct evp_md_ctx_st;
 
 namespace ftcal {
 
@@ -37,5 +42,18 @@ Vec6 KWeights(const config::Calibrator& calibrator);
 // Hex SHA-256 of bytes / of a file's contents (provenance of configs, logs and calibrations).
 std::string Sha256Hex(const std::string& bytes);
 std::string Sha256File(const std::string& path);
+
+// SHA-256 of bytes given piece by piece (OpenSSL's digest): a file read for another purpose is
+// hashed on the way instead of read a second time. Throws std::runtime_error when OpenSSL fails.
+class Sha256 {
+ public:
+  Sha256();
+  void Update(const void* data, size_t size);
+  // Lowercase hex, as Sha256Hex and Sha256File; ends the digest (call once).
+  std::string HexDigest();
+
+ private:
+  std::unique_ptr<evp_md_ctx_st, void (*)(evp_md_ctx_st*)> ctx_;
+};
 
 }  // namespace ftcal
