@@ -161,7 +161,8 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
     ftcal::ServiceStats stats(log);
     // Nothing is published: the replay output stays uncommitted and is removed.
     ftcal::LogReplayBus bus(path, scratch, stats);
-    bus.HashInput();
+    ftcal::Sha256 sha;
+    bus.ConsumeInput([&sha](const uint8_t* data, size_t size) { sha.Update(data, size); });
     collector.Attach(bus);
     int64_t first_utime = -1;
     bus.Run(
@@ -193,8 +194,7 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
       spdlog::warn("{}: {} inputs dropped{}", path, stats.drops(), kinds);
     }
     spdlog::info("{}: {} events", path, bus.events_read());
-    const std::string hex = bus.TakeInputSha256();
-    if (!hex.empty()) (*sha256)[path] = hex;
+    if (bus.InputConsumedWhole()) (*sha256)[path] = sha.HexDigest();
   }
   collector.Flush();
   return true;

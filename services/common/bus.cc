@@ -13,7 +13,6 @@
 #include <thread>
 
 #include "common/shutdown.h"
-#include "ftcal/config.h"
 #include "common/user_errors.h"
 
 namespace ftcal {
@@ -219,14 +218,18 @@ std::vector<std::string> LogChannelsAtStart(const std::string& path, int max_eve
 
 // ---- LogReplayBus ----
 
-struct LogReplayBus::InputHash {
-  Sha256 sha;
-  int64_t upto = 0;  // bytes [0, upto) are in `sha`
-  // Bytes [offset, offset + got) were read: what of them extends the hashed prefix goes in.
+struct LogReplayBus::InputTap {
+  std::function<void(const uint8_t*, size_t)> consume;
+  int64_t upto = 0;  // bytes [0, upto) consumed; -1: an exception ended the consuming
+  // Bytes [offset, offset + got) were read: what of them extends the consumed prefix goes in.
   void Add(int64_t offset, const uint8_t* data, int64_t got) {
-    if (offset > upto || offset + got <= upto) return;
-    sha.Update(data + (upto - offset), static_cast<size_t>(offset + got - upto));
-    upto = offset + got;
+    if (upto < 0 || offset > upto || offset + got <= upto) return;
+    try {
+      consume(data + (upto - offset), static_cast<size_t>(offset + got - upto));
+      upto = offset + got;
+    } catch (...) {
+      upto = -1;
+    }
   }
 };
 
@@ -235,7 +238,7 @@ struct LogReplayBus::InputHash {
 // dependency for one pread.)
 class LogReplayBus::ReadAhead {
  public:
-  ReadAhead(int fd, InputHash* hash) : fd_(fd), hash_(hash), thread_([this] { Loop(); }) {}
+  ReadAhead(int fd, InputTap* tap) : fd_(fd), tap_(tap), thread_([this] { Loop(); }) {}
   ~ReadAhead() {
     {
       std::lock_guard<std::mutex> lock(mu_);
@@ -286,8 +289,8 @@ class LogReplayBus::ReadAhead {
       lock.unlock();  // the buffer is this thread's while kRequested
       if (spare_.size() < need) spare_.resize(need);
       const int64_t got = PreadFully(fd_, spare_.data() + kHeadroomBytes, len, offset);
-      // Here, not on the replay's thread: there it would add a third to the time per event.
-      if (hash_ != nullptr) hash_->Add(offset, spare_.data() + kHeadroomBytes, got);
+      // Here, not on the replay's thread: a hash there added a third to the time per event.
+      if (tap_ != nullptr) tap_->Add(offset, spare_.data() + kHeadroomBytes, got);
       lock.lock();
       got_ = got;
       state_ = State::kDone;
@@ -296,7 +299,7 @@ class LogReplayBus::ReadAhead {
   }
 
   int fd_;
-  InputHash* hash_;
+  InputTap* tap_;
   std::mutex mu_;
   std::condition_variable cv_;
   std::vector<uint8_t> spare_;
@@ -339,7 +342,7 @@ const uint8_t* LogReplayBus::InputBytes(int64_t at, int64_t n) {
   if (at < 0 || n < 0 || at + n > in_bytes_) return nullptr;
   const int64_t chunk_end = chunk_at_ + chunk_bytes_;
   if (at >= chunk_at_ && at + n <= chunk_end) return chunk_.data() + chunk_base_ + (at - chunk_at_);
-  if (!read_ahead_) read_ahead_ = std::make_unique<ReadAhead>(in_fd_, hash_.get());
+  if (!read_ahead_) read_ahead_ = std::make_unique<ReadAhead>(in_fd_, tap_.get());
   // Reading is sequential: the next chunk was asked for at this one's end. The last bytes of
   // this one go in front of it, where the event that straddles the two begins.
   const int64_t keep = std::min(kHeadroomBytes, chunk_bytes_);
@@ -362,7 +365,7 @@ const uint8_t* LogReplayBus::InputBytes(int64_t at, int64_t n) {
     chunk_base_ = 0;
     chunk_at_ = at;
     chunk_bytes_ = PreadFully(in_fd_, chunk_.data(), want, at);
-    if (hash_) hash_->Add(at, chunk_.data(), chunk_bytes_);
+    if (tap_) tap_->Add(at, chunk_.data(), chunk_bytes_);
   }
   const int64_t next = chunk_at_ + chunk_bytes_;
   if (next < in_bytes_) read_ahead_->Request(next, std::min(kChunkBytes, in_bytes_ - next));
@@ -540,16 +543,15 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
 
 void LogReplayBus::Commit() { out_->Commit(); }
 
-void LogReplayBus::HashInput() {
-  if (!hash_) hash_ = std::make_unique<InputHash>();
+void LogReplayBus::ConsumeInput(std::function<void(const uint8_t* data, size_t size)> consume) {
+  tap_ = std::make_unique<InputTap>();
+  tap_->consume = std::move(consume);
 }
 
-std::string LogReplayBus::TakeInputSha256() {
-  if (!hash_ || !finished_) return "";
-  if (read_ahead_) read_ahead_->Drop();     // a read still on its way adds its bytes first
-  if (hash_->upto != in_bytes_) return "";  // (-1 once taken)
-  hash_->upto = -1;  // ended: nothing more goes in, and a second call gets nothing
-  return hash_->sha.HexDigest();
+bool LogReplayBus::InputConsumedWhole() {
+  if (!tap_ || !finished_) return false;
+  if (read_ahead_) read_ahead_->Drop();  // a read still on its way hands over its bytes first
+  return tap_->upto == in_bytes_;
 }
 
 }  // namespace ftcal

@@ -206,12 +206,15 @@ class LogReplayBus : public Bus {
   void Commit();
   // True when Run() read the whole input.
   bool finished() const { return finished_; }
-  // Hashes the input (SHA-256) with the bytes Run() reads, on the read-ahead thread: a caller
-  // that wants the log's hash as well as its events reads the file once. Call before Run().
-  void HashInput();
-  // The SHA-256 (hex) of the input as Run() read it, from its first byte to the size it had
-  // when Run() began; empty when HashInput() was not called or Run() did not finish. Once.
-  std::string TakeInputSha256();
+  // Hands `consume` every byte of the input, in order from the first, each once, as Run()
+  // reads it: a caller that wants a digest of the log as well as its events (the calibrator's
+  // provenance hash) reads the file once. It runs on the read-ahead thread, so it must touch
+  // nothing the handlers do; an exception from it ends the consuming, not the replay. Call
+  // before Run().
+  void ConsumeInput(std::function<void(const uint8_t* data, size_t size)> consume);
+  // True when `consume` has had the whole input, from its first byte to the size it had when
+  // Run() began (Run() finished, nothing skipped, no exception), and is not running any more.
+  bool InputConsumedWhole();
   int64_t events_read() const { return events_read_; }
 
  protected:
@@ -238,10 +241,10 @@ class LogReplayBus : public Bus {
   // The next chunk, read on a thread of its own while this one is handled (ReadAhead in
   // bus.cc): the copy out of the page cache was a seventh of a replay's main thread.
   class ReadAhead;
-  // The hash of the bytes read so far, in order from the first (HashInput()); touched by the
-  // thread that reads, which the read-ahead's hand-over orders.
-  struct InputHash;
-  std::unique_ptr<InputHash> hash_;
+  // ConsumeInput()'s consumer and how far it has had the input; used by the thread that
+  // reads, which the read-ahead's hand-over orders.
+  struct InputTap;
+  std::unique_ptr<InputTap> tap_;
   std::unique_ptr<ReadAhead> read_ahead_;
   std::vector<uint8_t> tail_;  // the straddling event's bytes on their way to the next chunk
   // The channels seen so far with their handlers, and for each the one that followed it last

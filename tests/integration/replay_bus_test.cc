@@ -5,6 +5,7 @@
 #include <unistd.h>
 
 #include <cstdint>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -107,7 +108,8 @@ TEST_F(ReplayBusTest, ReadsAndWritesWhatLcmWritesAndReads) {
   std::vector<Event> seen;
   {
     LogReplayBus bus(in, out, stats);
-    bus.HashInput();
+    Sha256 sha;
+    bus.ConsumeInput([&](const uint8_t* data, size_t size) { sha.Update(data, size); });
     bus.SubscribeRaw("CH_.*", [&](const MessageInfo& info, const void* data, int size) {
       const auto* p = static_cast<const uint8_t*>(data);
       seen.push_back({info.recv_utime, info.channel, std::vector<uint8_t>(p, p + size)});
@@ -116,10 +118,10 @@ TEST_F(ReplayBusTest, ReadsAndWritesWhatLcmWritesAndReads) {
     bus.Run([] {}, 100'000);
     ASSERT_TRUE(bus.finished());
     bus.Commit();
-    // Hashed on the way, through the read-ahead and the refill of the 3 MiB event: the file's
-    // SHA-256 as a separate read of it gives, once.
-    EXPECT_EQ(bus.TakeInputSha256(), Sha256File(in));
-    EXPECT_EQ(bus.TakeInputSha256(), "");
+    // Every byte, in order, once, through the read-ahead and the refill of the 3 MiB event:
+    // the hash is the file's SHA-256 from a separate read of it.
+    ASSERT_TRUE(bus.InputConsumedWhole());
+    EXPECT_EQ(sha.HexDigest(), Sha256File(in));
   }
   EXPECT_EQ(stats.errors(), 0);
   ASSERT_EQ(seen.size(), events.size());
@@ -166,7 +168,8 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
   ServiceStats stats(log_);
   std::vector<Event> seen;
   LogReplayBus bus(in, dir_ + "/out.lcmlog", stats);
-  bus.HashInput();
+  Sha256 sha;
+  bus.ConsumeInput([&](const uint8_t* data, size_t size) { sha.Update(data, size); });
   bus.SubscribeRaw(".*", [&](const MessageInfo& info, const void* data, int size) {
     const auto* p = static_cast<const uint8_t*>(data);
     seen.push_back({info.recv_utime, info.channel, std::vector<uint8_t>(p, p + size)});
@@ -176,12 +179,14 @@ TEST_F(ReplayBusTest, DamageBetweenEventsLosesOnlyTheDamagedBytes) {
   ASSERT_EQ(seen.size(), events.size());
   for (size_t i = 0; i < events.size(); ++i) ASSERT_TRUE(seen[i] == events[i]) << "event " << i;
   EXPECT_EQ(stats.errors(), 2) << stats.last_error();  // the garbage, the truncated tail
-  // The hash is of the file's bytes, the damaged ones too: provenance names the file as read.
-  EXPECT_EQ(bus.TakeInputSha256(), Sha256File(in));
+  // The damaged bytes too: the consumer has the file as it is.
+  ASSERT_TRUE(bus.InputConsumedWhole());
+  EXPECT_EQ(sha.HexDigest(), Sha256File(in));
 }
 
-// Without HashInput(), or before Run() has read the whole input, there is no hash to take.
-TEST_F(ReplayBusTest, NoHashUnlessAskedForAndReadWhole) {
+// Not whole: nothing asked for, nothing read yet, or a consumer that threw part way (which
+// stops the consuming, not the replay).
+TEST_F(ReplayBusTest, InputConsumedWholeOnlyWhenEveryByteWent) {
   std::vector<Event> events = MakeEvents();
   events.resize(2000);
   const std::string in = dir_ + "/in.lcmlog";
@@ -190,10 +195,23 @@ TEST_F(ReplayBusTest, NoHashUnlessAskedForAndReadWhole) {
   LogReplayBus plain(in, dir_ + "/out1.lcmlog", stats);
   plain.Run([] {}, 100'000);
   ASSERT_TRUE(plain.finished());
-  EXPECT_EQ(plain.TakeInputSha256(), "");
+  EXPECT_FALSE(plain.InputConsumedWhole());
   LogReplayBus unread(in, dir_ + "/out2.lcmlog", stats);
-  unread.HashInput();
-  EXPECT_EQ(unread.TakeInputSha256(), "");
+  unread.ConsumeInput([](const uint8_t*, size_t) {});
+  EXPECT_FALSE(unread.InputConsumedWhole());
+  LogReplayBus throwing(in, dir_ + "/out3.lcmlog", stats);
+  int64_t consumed = 0;
+  throwing.ConsumeInput([&](const uint8_t*, size_t size) {
+    if (consumed > 0) throw std::runtime_error("consumer failed");
+    consumed += static_cast<int64_t>(size);
+  });
+  int64_t events_seen = 0;
+  throwing.SubscribeRaw(".*", [&](const MessageInfo&, const void*, int) { ++events_seen; });
+  throwing.Run([] {}, 100'000);
+  ASSERT_TRUE(throwing.finished());
+  EXPECT_EQ(events_seen, 2000);
+  EXPECT_GT(consumed, 0);
+  EXPECT_FALSE(throwing.InputConsumedWhole());
 }
 
 // A handler that subscribes sees its new subscription from the same event on, in order, as
