@@ -18,6 +18,12 @@
 
 #include "standing_internal.h"
 
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+#define FTCAL_FLATTEN
+#else
+#define FTCAL_FLATTEN [[gnu::flatten]]
+#endif
+
 namespace ftcal {
 namespace standing_detail {
 namespace {
@@ -205,10 +211,12 @@ class PoseCost final : public ceres::CostFunction {
 
  private:
   // Flattened: GCC 12 at -O3 left the Jet's Eigen arithmetic as out-of-line calls (half of
-  // step 2's time in perf); inlined here it is the same arithmetic, in half the time.
+  // step 2's time in perf); inlined here it is the same arithmetic, in half the time. Not under
+  // the sanitizers: their instrumentation of the flattened function kept GCC compiling this
+  // file for over 25 minutes.
   template <int kR>
-  [[gnu::flatten]] bool EvaluateT(double const* const* parameters, double* residuals,
-                                  double** jacobians) const {
+  FTCAL_FLATTEN bool EvaluateT(double const* const* parameters, double* residuals,
+                               double** jacobians) const {
     constexpr int kN = kR + 3;
     using J = ceres::Jet<double, kN>;
     const bool need_rot = jacobians != nullptr && jacobians[0] != nullptr;
