@@ -289,7 +289,7 @@ class LogReplayBus::ReadAhead {
       lock.unlock();  // the buffer is this thread's while kRequested
       if (spare_.size() < need) spare_.resize(need);
       const int64_t got = PreadFully(fd_, spare_.data() + kHeadroomBytes, len, offset);
-      // Here, not on the replay's thread: a hash there added a third to the time per event.
+      // Here, not on the replay's thread: a digest there would lengthen the replay's own work.
       if (tap_ != nullptr) tap_->Add(offset, spare_.data() + kHeadroomBytes, got);
       lock.lock();
       got_ = got;
