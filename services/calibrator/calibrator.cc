@@ -314,7 +314,9 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
   }
   SetInputFile(base_path, r->mutable_base_calibration());
   r->set_base_version(run.proto.version());
-  for (const std::string& path : options.log_paths) SetInputFile(path, r->add_input());
+  for (const std::string& path : options.log_paths) {
+    SetInputFile(path, r->add_input(), options.sha256);
+  }
   r->set_created_utc(UtcNowIso8601());
   r->set_command_line(options.command_line);
   r->set_standing_poses(static_cast<uint32_t>(poses.size()));

@@ -30,6 +30,7 @@
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"
+#include "ftcal/digest_cache.h"
 
 #ifndef FTCAL_PYTHON_DIR
 #define FTCAL_PYTHON_DIR "build/python"
@@ -133,10 +134,12 @@ std::vector<std::string> ReadingOrder(const std::vector<std::string>& logs,
 
 // Reads every --log into the collector, in ReadingOrder(). Returns false when reading was
 // interrupted (a signal); throws CalibratorInputError for a missing, damaged or truncated log.
-// Reads the logs into `collector`; each one's SHA-256 (provenance) is taken from the bytes read,
-// on the read-ahead thread, into *sha256 by path.
+// Each log's SHA-256 (provenance) goes into *sha256 by path: from `cache` when the file is
+// unchanged since it was hashed, else from the bytes read, on the read-ahead thread (and then
+// into the cache).
 bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Config& config,
-              const Args& args, std::map<std::string, std::string>* sha256) {
+              const Args& args, const ftcal::DigestCache& cache,
+              std::map<std::string, std::string>* sha256) {
   auto log = spdlog::default_logger();
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-calibrator-" + std::to_string(::getpid()) + ".lcmlog"))
@@ -161,8 +164,16 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
     ftcal::ServiceStats stats(log);
     // Nothing is published: the replay output stays uncommitted and is removed.
     ftcal::LogReplayBus bus(path, scratch, stats);
+    const std::optional<ftcal::FileKey> key = ftcal::FileKeyOf(path);
+    const std::optional<std::string> cached = cache.Lookup(path);
     ftcal::Sha256 sha;
-    bus.ConsumeInput([&sha](const uint8_t* data, size_t size) { sha.Update(data, size); });
+    if (cached) {
+      (*sha256)[path] = *cached;
+      spdlog::info("{}: SHA-256 from the digest cache in {} (the file is unchanged since)", path,
+                   cache.dir());
+    } else {
+      bus.ConsumeInput([&sha](const uint8_t* data, size_t size) { sha.Update(data, size); });
+    }
     collector.Attach(bus);
     int64_t first_utime = -1;
     bus.Run(
@@ -194,7 +205,11 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
       spdlog::warn("{}: {} inputs dropped{}", path, stats.drops(), kinds);
     }
     spdlog::info("{}: {} events", path, bus.events_read());
-    if (bus.InputConsumedWhole()) (*sha256)[path] = sha.HexDigest();
+    if (!cached && bus.InputConsumedWhole()) {
+      const std::string hex = sha.HexDigest();
+      (*sha256)[path] = hex;
+      if (key) cache.Store(path, *key, hex);
+    }
   }
   collector.Flush();
   return true;
@@ -221,7 +236,9 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
   std::map<std::string, std::string> hashes;
-  if (!ReadLogs(collector, config, args, &hashes)) return ftcal::kExitDeviceIo;
+  if (!ReadLogs(collector, config, args, ftcal::DigestCache::FromEnvironment(), &hashes)) {
+    return ftcal::kExitDeviceIo;
+  }
   const ftcal::CalibratorOptions options = OptionsOf(args, hashes);
   ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
   std::optional<ftcal::RobotCalibration> truth;
@@ -251,7 +268,9 @@ int ReestimateOffsets(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
   std::map<std::string, std::string> hashes;
-  if (!ReadLogs(collector, config, args, &hashes)) return ftcal::kExitDeviceIo;
+  if (!ReadLogs(collector, config, args, ftcal::DigestCache::FromEnvironment(), &hashes)) {
+    return ftcal::kExitDeviceIo;
+  }
   const ftcal::OffsetReestimationRun run = ftcal::RunOffsetReestimation(
       collector, config, args.reestimate_base, args.partial, OptionsOf(args, hashes));
   ftcal::WriteCalibrationFile(run.proto, args.out);

@@ -4,11 +4,13 @@
 // SHA-256, the report against the files it names; damaged or incomplete logs and a config for
 // other channels must be refused with exit 2, a message naming the problem, and no output.
 #include <sys/wait.h>
+#include <sys/stat.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -385,6 +387,30 @@ TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber
   b.clear_provenance();
   EXPECT_EQ(a.DebugString(), b.DebugString());
   EXPECT_EQ(ReadFile(ResidualsPathFor(after)), ReadFile(ResidualsPathFor(before)));
+}
+
+// The digest cache: a second run on an unchanged log takes its SHA-256 from the cache (and
+// says so) instead of hashing it again, and the provenance is the file's hash either way.
+TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
+  const std::string cache = fx->dir + "/digest-cache";
+  ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
+  // The cache stores a log whose ctime is 2 s old (a write in the same clock tick as the hash
+  // would not change its key): the fixture's log may be younger.
+  struct stat st {};
+  ASSERT_EQ(::stat(fx->log.c_str(), &st), 0);
+  while (std::time(nullptr) < st.st_ctim.tv_sec + 3) ::usleep(100'000);
+  const std::string first = fx->dir + "/cal-cache-1.pbtxt", second = fx->dir + "/cal-cache-2.pbtxt";
+  const Result r1 = Run({"--log", fx->log, "--config", kConfig, "--out", first}, "cache1");
+  const Result r2 = Run({"--log", fx->log, "--config", kConfig, "--out", second}, "cache2");
+  ::unsetenv("FTCAL_CACHE_DIR");
+  ASSERT_EQ(r1.exit_code, 0) << r1.err;
+  ASSERT_EQ(r2.exit_code, 0) << r2.err;
+  EXPECT_EQ(r1.err.find("from the digest cache"), std::string::npos) << r1.err;
+  EXPECT_NE(r2.err.find(fx->log + ": SHA-256 from the digest cache in " + cache), std::string::npos)
+      << r2.err;
+  const std::string sha = Sha256File(fx->log);
+  EXPECT_EQ(ReadCalibrationFile(first).provenance().input(0).sha256(), sha);
+  EXPECT_EQ(ReadCalibrationFile(second).provenance().input(0).sha256(), sha);
 }
 
 // --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),

@@ -1,0 +1,58 @@
+// SHA-256 digests of input files kept between runs, keyed by the file's identity and stat
+// times, so a log calibrated again (another profile, the offset re-estimation, the demo's
+// second run) is not hashed again: at report scale the hash was a fifth of the calibrator's
+// CPU. The rule is git's index: an entry holds while the file's device, inode, size, mtime
+// and ctime are the ones it was hashed under. Any write or rename changes the ctime, and no
+// unprivileged process can set it back. Only a file that had settled (its ctime well before
+// the hash began) is stored, since the kernel stamps ctime from a coarse clock: a write in
+// the same tick as the hash would leave the key unchanged.
+//
+// The cache is a convenience: every failure to read or write it is a miss, never an error.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+namespace ftcal {
+
+struct FileKey {
+  uint64_t device = 0;
+  uint64_t inode = 0;
+  int64_t size = 0;
+  int64_t mtime_ns = 0;
+  int64_t ctime_ns = 0;
+  bool operator==(const FileKey& o) const {
+    return device == o.device && inode == o.inode && size == o.size && mtime_ns == o.mtime_ns &&
+           ctime_ns == o.ctime_ns;
+  }
+};
+
+// nullopt when `path` cannot be stat'ed or is not a regular file.
+std::optional<FileKey> FileKeyOf(const std::string& path);
+
+class DigestCache {
+ public:
+  // Entries live in `dir`/sha256/; an empty `dir` is a cache that never hits nor stores.
+  explicit DigestCache(std::string dir) : dir_(std::move(dir)) {}
+  // $FTCAL_CACHE_DIR when set (set and empty: no cache), else $XDG_CACHE_HOME/ftcal, else
+  // $HOME/.cache/ftcal, else none.
+  static DigestCache FromEnvironment();
+
+  // The digest stored for `path` when the file's key is still the one it was stored under.
+  std::optional<std::string> Lookup(const std::string& path) const;
+  // Stores `sha256_hex` for `path`, hashed from the file while its key was `key_before`: only
+  // when the key is still that, and the file's ctime is at least `settled_s` before now.
+  // Returns whether it stored.
+  bool Store(const std::string& path, const FileKey& key_before, const std::string& sha256_hex,
+             double settled_s = 2.0) const;
+
+  bool enabled() const { return !dir_.empty(); }
+  const std::string& dir() const { return dir_; }
+
+ private:
+  std::string EntryPath(const FileKey& key) const;
+  std::string dir_;
+};
+
+}  // namespace ftcal

@@ -1,0 +1,96 @@
+// DigestCache (digest_cache.h).
+#include "ftcal/digest_cache.h"
+
+#include <sys/stat.h>
+
+#include <cstdlib>
+#include <ctime>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include "ftcal/calibration_io.h"
+
+namespace ftcal {
+
+namespace {
+
+constexpr const char* kEntryTag = "ftcal-sha256-v1";
+
+bool IsSha256Hex(const std::string& s) {
+  if (s.size() != 64) return false;
+  for (char c : s) {
+    if (!((c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'))) return false;
+  }
+  return true;
+}
+
+int64_t Nanoseconds(const timespec& t) {
+  return static_cast<int64_t>(t.tv_sec) * 1'000'000'000 + static_cast<int64_t>(t.tv_nsec);
+}
+
+}  // namespace
+
+std::optional<FileKey> FileKeyOf(const std::string& path) {
+  struct stat st {};
+  if (::stat(path.c_str(), &st) != 0 || !S_ISREG(st.st_mode)) return std::nullopt;
+  FileKey key;
+  key.device = static_cast<uint64_t>(st.st_dev);
+  key.inode = static_cast<uint64_t>(st.st_ino);
+  key.size = static_cast<int64_t>(st.st_size);
+  key.mtime_ns = Nanoseconds(st.st_mtim);
+  key.ctime_ns = Nanoseconds(st.st_ctim);
+  return key;
+}
+
+DigestCache DigestCache::FromEnvironment() {
+  if (const char* dir = std::getenv("FTCAL_CACHE_DIR")) return DigestCache(dir);
+  const char* xdg = std::getenv("XDG_CACHE_HOME");
+  if (xdg != nullptr && xdg[0] == '/') return DigestCache(std::string(xdg) + "/ftcal");
+  const char* home = std::getenv("HOME");
+  if (home != nullptr && home[0] == '/') return DigestCache(std::string(home) + "/.cache/ftcal");
+  return DigestCache("");
+}
+
+std::string DigestCache::EntryPath(const FileKey& key) const {
+  return dir_ + "/sha256/" + std::to_string(key.device) + "-" + std::to_string(key.inode);
+}
+
+std::optional<std::string> DigestCache::Lookup(const std::string& path) const {
+  if (!enabled()) return std::nullopt;
+  const std::optional<FileKey> key = FileKeyOf(path);
+  if (!key) return std::nullopt;
+  std::ifstream in(EntryPath(*key));
+  std::string tag, hex;
+  FileKey stored = *key;
+  if (!(in >> tag >> stored.size >> stored.mtime_ns >> stored.ctime_ns >> hex)) {
+    return std::nullopt;
+  }
+  if (tag != kEntryTag || !(stored == *key) || !IsSha256Hex(hex)) return std::nullopt;
+  return hex;
+}
+
+bool DigestCache::Store(const std::string& path, const FileKey& key_before,
+                        const std::string& sha256_hex, double settled_s) const {
+  if (!enabled() || !IsSha256Hex(sha256_hex)) return false;
+  const std::optional<FileKey> key = FileKeyOf(path);
+  if (!key || !(*key == key_before)) return false;  // changed while it was read
+  timespec now{};
+  ::clock_gettime(CLOCK_REALTIME, &now);
+  if (static_cast<double>(Nanoseconds(now) - key->ctime_ns) < settled_s * 1e9) return false;
+  std::error_code ec;
+  std::filesystem::create_directories(dir_ + "/sha256", ec);
+  if (ec) return false;
+  std::ostringstream entry;
+  entry << kEntryTag << ' ' << key->size << ' ' << key->mtime_ns << ' ' << key->ctime_ns << ' '
+        << sha256_hex << '\n'
+        << std::filesystem::absolute(path, ec).string() << '\n';
+  try {
+    WriteFileAtomic(EntryPath(*key), entry.str());
+  } catch (const std::exception&) {
+    return false;  // a read-only home, a full disk: the next run hashes again
+  }
+  return true;
+}
+
+}  // namespace ftcal

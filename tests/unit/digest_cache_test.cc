@@ -1,0 +1,149 @@
+// DigestCache: a stored digest comes back only while the file is the one that was hashed; any
+// write, a file still being written, or a fresh file is a miss; a broken entry is a miss.
+#include "ftcal/digest_cache.h"
+
+#include <gtest/gtest.h>
+#include <stdlib.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <optional>
+#include <string>
+#include <thread>
+
+#include "ftcal/config.h"
+
+namespace ftcal {
+namespace {
+
+namespace fs = std::filesystem;
+
+class DigestCacheTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string templ = (fs::temp_directory_path() / "ftcal_digest_XXXXXX").string();
+    ASSERT_NE(::mkdtemp(templ.data()), nullptr);
+    dir_ = templ;
+    file_ = dir_ + "/session.lcmlog";
+    Write("the bytes of a log");
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  void Write(const std::string& bytes, std::ios::openmode mode = std::ios::trunc) {
+    std::ofstream(file_, std::ios::binary | mode) << bytes;
+  }
+  // Past the kernel's timestamp tick (a jiffy, at most 10 ms): a write now gets a later ctime.
+  static void NextTick() { std::this_thread::sleep_for(std::chrono::milliseconds(30)); }
+
+  std::string dir_, file_;
+};
+
+TEST_F(DigestCacheTest, GivesTheStoredDigestWhileTheFileIsUnchanged) {
+  const DigestCache cache(dir_ + "/cache");
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+  const std::string hex = Sha256File(file_);
+  ASSERT_TRUE(cache.Store(file_, *FileKeyOf(file_), hex, /*settled_s=*/0.0));
+  EXPECT_EQ(cache.Lookup(file_), hex);
+  // Kept on disk: a later run (another object on the same directory) finds it.
+  EXPECT_EQ(DigestCache(dir_ + "/cache").Lookup(file_), hex);
+  // Even a new link changes the ctime (the link count is the inode's): conservative, a miss.
+  fs::create_hard_link(file_, dir_ + "/link.lcmlog");
+  EXPECT_EQ(cache.Lookup(dir_ + "/link.lcmlog"), std::nullopt);
+}
+
+TEST_F(DigestCacheTest, AnyWriteAfterwardsIsAMiss) {
+  const DigestCache cache(dir_ + "/cache");
+  auto store = [&] {
+    ASSERT_TRUE(cache.Store(file_, *FileKeyOf(file_), Sha256File(file_), 0.0));
+    ASSERT_TRUE(cache.Lookup(file_).has_value());
+    NextTick();
+  };
+  store();
+  Write("the bytes of a log");  // the same bytes again: still a write
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+  store();
+  Write("THE BYTES OF A LOG");  // same size, other bytes
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+  store();
+  Write("more", std::ios::app);
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+  store();
+  fs::last_write_time(file_, fs::last_write_time(file_) - std::chrono::hours(1));
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+  store();
+  fs::rename(file_, file_ + ".moved");  // renaming changes the ctime too
+  fs::rename(file_ + ".moved", file_);
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+}
+
+TEST_F(DigestCacheTest, StoresNeitherAFileChangedWhileReadNorOneTooFreshToTrust) {
+  const DigestCache cache(dir_ + "/cache");
+  const FileKey before = *FileKeyOf(file_);
+  const std::string hex = Sha256File(file_);
+  NextTick();
+  Write("appended while it was hashed", std::ios::app);
+  EXPECT_FALSE(cache.Store(file_, before, hex, 0.0));
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+  // Written just now: a write within the same tick would leave the key as it is.
+  EXPECT_FALSE(cache.Store(file_, *FileKeyOf(file_), Sha256File(file_)));
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+}
+
+TEST_F(DigestCacheTest, BrokenEntriesAndADisabledCacheMiss) {
+  const DigestCache off("");
+  EXPECT_FALSE(off.enabled());
+  EXPECT_FALSE(off.Store(file_, *FileKeyOf(file_), Sha256File(file_), 0.0));
+  EXPECT_EQ(off.Lookup(file_), std::nullopt);
+
+  const DigestCache cache(dir_ + "/cache");
+  EXPECT_FALSE(cache.Store(file_, *FileKeyOf(file_), "not a digest", 0.0));
+  ASSERT_TRUE(cache.Store(file_, *FileKeyOf(file_), Sha256File(file_), 0.0));
+  ASSERT_EQ(std::distance(fs::directory_iterator(dir_ + "/cache/sha256"), {}), 1);
+  const fs::path entry = fs::directory_iterator(dir_ + "/cache/sha256")->path();
+  for (const std::string& broken :
+       {std::string(""), std::string("garbage\n"), std::string("ftcal-sha256-v1 18 1 2 abc\n")}) {
+    std::ofstream(entry, std::ios::trunc) << broken;
+    EXPECT_EQ(cache.Lookup(file_), std::nullopt) << "entry '" << broken << "'";
+  }
+  EXPECT_EQ(cache.Lookup(dir_ + "/no such file"), std::nullopt);
+  EXPECT_EQ(cache.Lookup(dir_), std::nullopt);  // not a regular file
+  // A cache directory that cannot be made is a miss, not an error.
+  const DigestCache unwritable(file_ + "/cache");
+  EXPECT_FALSE(unwritable.Store(file_, *FileKeyOf(file_), Sha256File(file_), 0.0));
+}
+
+TEST(DigestCacheEnvironment, FtcalCacheDirThenXdgThenHome) {
+  auto keep = [](const char* name) -> std::optional<std::string> {
+    const char* v = std::getenv(name);
+    return v ? std::optional<std::string>(v) : std::nullopt;
+  };
+  const auto ftcal = keep("FTCAL_CACHE_DIR"), xdg = keep("XDG_CACHE_HOME"), home = keep("HOME");
+  ::setenv("FTCAL_CACHE_DIR", "/tmp/one", 1);
+  ::setenv("XDG_CACHE_HOME", "/tmp/two", 1);
+  ::setenv("HOME", "/tmp/three", 1);
+  EXPECT_EQ(DigestCache::FromEnvironment().dir(), "/tmp/one");
+  ::setenv("FTCAL_CACHE_DIR", "", 1);
+  EXPECT_FALSE(DigestCache::FromEnvironment().enabled());
+  ::unsetenv("FTCAL_CACHE_DIR");
+  EXPECT_EQ(DigestCache::FromEnvironment().dir(), "/tmp/two/ftcal");
+  ::setenv("XDG_CACHE_HOME", "relative", 1);  // the XDG rule: only absolute paths count
+  EXPECT_EQ(DigestCache::FromEnvironment().dir(), "/tmp/three/.cache/ftcal");
+  ::unsetenv("XDG_CACHE_HOME");
+  ::unsetenv("HOME");
+  EXPECT_FALSE(DigestCache::FromEnvironment().enabled());
+  auto restore = [](const char* name, const std::optional<std::string>& v) {
+    if (v) {
+      ::setenv(name, v->c_str(), 1);
+    } else {
+      ::unsetenv(name);
+    }
+  };
+  restore("FTCAL_CACHE_DIR", ftcal);
+  restore("XDG_CACHE_HOME", xdg);
+  restore("HOME", home);
+}
+
+}  // namespace
+}  // namespace ftcal
