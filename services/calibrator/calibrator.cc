@@ -184,7 +184,7 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
                           experiment_marker_t::HANG_Z_POS, experiment_marker_t::HANG_Z_NEG,
                           experiment_marker_t::STANDING},
                          options.allow_gaps, &gap_warnings);
-  const std::vector<HangingRecording> hanging = collector.HangingRecordings();
+  const std::vector<HangingRecording>& hanging = collector.HangingRecordings();
   const std::vector<StandingPose> poses = collector.StandingPoses();
   if (poses.empty()) {
     throw CalibratorInputError(

@@ -4,6 +4,7 @@
 #include <spdlog/fmt/fmt.h>
 #include <spdlog/spdlog.h>
 
+#include "common/wire_guard.h"
 #include "ftcal/hanging.h"
 
 namespace ftcal {
@@ -29,14 +30,23 @@ void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   // Each input log's signers count their sequences afresh: logs may be given in any order.
   verifier_ = auth::Verifier::FromConfig(config_);
-  bus.SubscribeRaw(
-      ".*", [this](const MessageInfo& info, const void*, int) { LegOfChannel(info.channel); });
-  // Every FT_* channel, not just the config's: a log from a robot with other legs must be told
-  // apart from one whose legs are silent.
-  bus.SubscribeRaw(ch.ft_prefix() + ".*", [this](const MessageInfo& info, const void* data,
-                                                 int size) { OnFtRaw(info, data, size); });
-  inputs_.Subscribe(bus, {nullptr, [this](const ServoInput& in) { aligner_.AddServo(in); },
-                          [this](const MocapInput& in) { aligner_.AddMocap(in); }});
+  // Every channel, FT_* ones of legs the config does not have among them: a log from a robot
+  // with other legs must be told apart from one whose legs are silent.
+  channel_ids_noted_.clear();
+  bus.SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) { NoteChannel(info); });
+  for (int k = 0; k < kNumLegs; ++k) {
+    bus.SubscribeRaw(inputs_.FtChannel(k), [this, k](const MessageInfo& info, const void* data,
+                                                     int size) { OnFtRaw(k, info, data, size); });
+  }
+  bus_ = &bus;
+  servo_channel_ = ch.servo_state();
+  mocap_channel_ = ch.mocap_body();
+  bus.SubscribeRaw(ch.servo_state(), [this](const MessageInfo& info, const void* data, int size) {
+    OnServoRaw(info, data, size);
+  });
+  bus.SubscribeRaw(ch.mocap_body(), [this](const MessageInfo& info, const void* data, int size) {
+    OnMocapRaw(info, data, size);
+  });
   // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
   // signature and the rising sequence still hold.
   bus.SubscribeSigned<experiment_marker_t>(
@@ -46,40 +56,135 @@ void CalibrationCollector::Attach(Bus& bus) {
       ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) { OnSteadyPose(m); });
 }
 
-int CalibrationCollector::LegOfChannel(const std::string& channel) {
-  if (channel == last_channel_) return last_leg_;
-  const auto it = channel_leg_.find(channel);
-  if (it != channel_leg_.end()) {
-    last_channel_ = channel;
-    last_leg_ = it->second;
-    return last_leg_;
+void CalibrationCollector::NoteChannel(const MessageInfo& info) {
+  const int id = info.channel_id;
+  if (id >= 0) {
+    if (static_cast<size_t>(id) < channel_ids_noted_.size() && channel_ids_noted_[id]) return;
+    if (static_cast<size_t>(id) >= channel_ids_noted_.size()) channel_ids_noted_.resize(id + 1);
+    channel_ids_noted_[id] = true;
+  }
+  const std::string& channel = info.channel;
+  const size_t n = channels_heard_.size();
+  for (size_t i = 0; i < n; ++i) {
+    const size_t j = (channel_guess_ + i) % n;
+    if (channels_heard_[j] == channel) {
+      channel_guess_ = j;
+      return;
+    }
   }
   // First event on this channel.
+  channels_heard_.push_back(channel);
+  channel_guess_ = channels_heard_.size() - 1;
   channels_seen_.insert(channel);
   if (std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
-  int leg = -1;
-  for (int k = 0; k < kNumLegs; ++k) {
-    if (channel == inputs_.FtChannel(k)) leg = k;
-  }
-  channel_leg_.emplace(channel, leg);
-  last_channel_ = channel;
-  last_leg_ = leg;
-  return leg;
 }
 
-void CalibrationCollector::OnFtRaw(const MessageInfo& info, const void* data, int size) {
-  const int k = LegOfChannel(info.channel);
-  if (k < 0) return;
+void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* data, int size) {
   ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
+  static const wire::Schema* const schema =
+      wire::FindSchema(static_cast<uint64_t>(ft_sample_t::getHash()));
+  if (standing_not_segmented_ && schema != nullptr) {
+    // Aligned samples of a STANDING phase not segmented again would go nowhere: the record is
+    // only counted. Checked as a decode would check it, so a damaged log is refused the same.
+    const std::optional<wire::Refusal> refused = wire::Check(*schema, data, size);
+    const std::optional<int64_t> sequence = refused ? std::nullopt : PeekRdtSequence(data, size);
+    if (!sequence) {
+      throw BadInput("undecodable ft_sample_t on " + info.channel + ": " +
+                         (refused ? refused->kind : std::string("not an ft_sample_t")),
+                     refused ? refused->detail : std::string());
+    }
+    if (phases_.open()) CountRecord(k, *sequence);
+    return;
+  }
   if (auto refused = wire::Decode(data, size, &msg)) {
     throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
                    refused->detail);
   }
   if (phases_.open()) CountRecord(k, msg.rdt_sequence);
-  // Aligned samples of a STANDING phase not segmented again would go nowhere. The servo states
-  // and mocap frames still go in, so the phase after it aligns as if they had.
-  if (standing_not_segmented_) return;
   aligner_.AddFt(inputs_.FromFt(k, msg));
+}
+
+namespace {
+
+// As Bus::Subscribe<Msg> decodes (the same drop kind): `data` into *msg, or BadInput.
+template <class Msg>
+void DecodeOrThrow(const MessageInfo& info, const void* data, int size, Msg* msg) {
+  if (auto refused = wire::Decode(data, size, msg)) {
+    throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
+                       refused->kind,
+                   refused->detail);
+  }
+}
+
+// The wire guard's checks alone, with the drop kind a decode would give.
+template <class Msg>
+void CheckOrThrow(const MessageInfo& info, const void* data, int size) {
+  static const wire::Schema* const schema = wire::FindSchema(static_cast<uint64_t>(Msg::getHash()));
+  const std::optional<wire::Refusal> refused =
+      schema != nullptr
+          ? wire::Check(*schema, data, size)
+          : wire::Refusal{"no wire schema", std::string("no schema for ") + Msg::getTypeName()};
+  if (refused) {
+    throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
+                       refused->kind,
+                   refused->detail);
+  }
+}
+
+}  // namespace
+
+void CalibrationCollector::DeferredTail::Push(const void* data, int size) {
+  std::vector<uint8_t>& slot = ring_[next_];
+  const auto* bytes = static_cast<const uint8_t*>(data);
+  slot.assign(bytes, bytes + size);  // the slot's storage is reused: no allocation per message
+  next_ = (next_ + 1) % kDepth;
+  ++count_;
+}
+
+void CalibrationCollector::OnServoRaw(const MessageInfo& info, const void* data, int size) {
+  if (Deferring()) {
+    CheckOrThrow<servo_state_t>(info, data, size);
+    deferred_servo_.Push(data, size);
+    return;
+  }
+  DecodeOrThrow(info, data, size, &servo_scratch_);
+  aligner_.AddServo(inputs_.FromServo(servo_scratch_));
+}
+
+void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data, int size) {
+  if (Deferring()) {
+    CheckOrThrow<mocap_body_t>(info, data, size);
+    deferred_mocap_.Push(data, size);
+    return;
+  }
+  DecodeOrThrow(info, data, size, &mocap_scratch_);
+  if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
+}
+
+// The deferred messages, in their order, as OnServoRaw/OnMocapRaw would have handled them (the
+// two streams do not meet in the aligner while it holds no pending sample). A decode refused
+// here (the checks passed, so only a decoder that disagrees) is counted as the bus counts one.
+void CalibrationCollector::FlushDeferred() {
+  auto drop = [this](const std::string& channel, const char* type, const wire::Refusal& r) {
+    if (bus_ != nullptr) {
+      bus_->stats().Drop(std::string("undecodable ") + type + " on " + channel + ": " + r.kind,
+                         r.detail);
+    }
+  };
+  deferred_servo_.Drain([&](const void* data, int size) {
+    if (auto refused = wire::Decode(data, size, &servo_scratch_)) {
+      drop(servo_channel_, servo_state_t::getTypeName(), *refused);
+      return;
+    }
+    aligner_.AddServo(inputs_.FromServo(servo_scratch_));
+  });
+  deferred_mocap_.Drain([&](const void* data, int size) {
+    if (auto refused = wire::Decode(data, size, &mocap_scratch_)) {
+      drop(mocap_channel_, mocap_body_t::getTypeName(), *refused);
+      return;
+    }
+    if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
+  });
 }
 
 // Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number
@@ -136,6 +241,22 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_hang_ = HangingRecording();
     current_hang_.series = SeriesOfPhase(phase.code);
     current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
+    // The series of one experiment are alike in length (the plan's cycles at one speed): room
+    // for the longest so far, a little more, saves growing each vector by copies (and, on a
+    // paravirtualised machine, the page faults of every fresh copy).
+    size_t expected = 0;
+    for (int s = 0; s < kNumHangSeries; ++s) {
+      if (have_hang_[s]) expected = std::max(expected, hang_[s].legs[0].t_s.size());
+    }
+    if (expected > 0) {
+      expected += expected / 16;
+      for (LegSamples& leg : current_hang_.legs) {
+        leg.t_s.reserve(expected);
+        leg.angle_rad.reserve(expected);
+        leg.wrench.reserve(expected);
+      }
+      current_hang_.attitude.reserve(expected);
+    }
   } else if (phase.code == experiment_marker_t::STANDING) {
     current_poses_.clear();
     const auto logged = logged_sessions_scatter_.find(phase.session);
@@ -169,6 +290,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   SegmenterCounters segmented;
   const bool not_segmented = standing_not_segmented_;
   standing_not_segmented_ = false;
+  FlushDeferred();
   if (segmenter_) {
     segmenter_->Flush();
     segmented = segmenter_->counters();
@@ -180,7 +302,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
       const int s = static_cast<int>(current_hang_.series);
       if (hang_gaps_index_[s] >= 0) phase_gaps_[hang_gaps_index_[s]].superseded = true;
       hang_gaps_index_[s] = static_cast<int>(phase_gaps_.size()) - 1;
-      if (hang_[s]) {
+      if (have_hang_[s]) {
         spdlog::warn("{} recorded again: the later recording replaces the earlier one",
                      HangSeriesName(current_hang_.series));
       }
@@ -188,6 +310,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
                    HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
                    current_hang_.attitude.size());
       hang_[s] = std::move(current_hang_);
+      have_hang_[s] = true;
     }
     current_hang_ = HangingRecording();
   } else if (phase.code == experiment_marker_t::STANDING) {
@@ -305,14 +428,10 @@ void CalibrationCollector::OnTripodStance(const SteadyPoseOut& p) {
   current_unloaded_.push_back(sample);
 }
 
-std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
-  std::vector<HangingRecording> out;
-  out.reserve(kNumHangSeries);  // each is tens of MB at the report's scale: copied once
+const std::vector<HangingRecording>& CalibrationCollector::HangingRecordings() const {
   std::string missing;
   for (int s = 0; s < kNumHangSeries; ++s) {
-    if (hang_[s]) {
-      out.push_back(*hang_[s]);
-    } else {
+    if (!have_hang_[s]) {
       missing += (missing.empty() ? "" : ", ") + HangSeriesName(static_cast<HangSeries>(s));
     }
   }
@@ -320,14 +439,14 @@ std::vector<HangingRecording> CalibrationCollector::HangingRecordings() const {
     throw CalibratorInputError("missing hanging series: " + missing +
                                " (no EXPERIMENT start..stop marker pair with samples)");
   }
-  for (const HangingRecording& r : out) {
+  for (const HangingRecording& r : hang_) {
     if (r.legs[0].t_s.empty()) {
       throw CalibratorInputError("hanging series " + HangSeriesName(r.series) +
                                  " has markers but no aligned samples (FT_*/SERVO_STATE "
                                  "missing in that span)");
     }
   }
-  return out;
+  return hang_;
 }
 
 std::vector<StandingPose> CalibrationCollector::StandingPoses() const {

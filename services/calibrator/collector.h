@@ -15,6 +15,7 @@
 // Nothing is guessed: a series without its start..stop pair is missing, not reconstructed.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <functional>
@@ -25,7 +26,6 @@
 #include <stdexcept>
 #include <regex>
 #include <string>
-#include <unordered_map>
 #include <vector>
 
 #include "common/bus.h"
@@ -109,7 +109,9 @@ class CalibrationCollector {
   size_t segmented_pose_count() const { return segmented_poses_.size(); }
 
   // What was collected. Throws CalibratorInputError naming what is missing or inconsistent.
-  std::vector<HangingRecording> HangingRecordings() const;
+  // The four series in HangSeries order, by reference: at the report's scale they are tens of
+  // MB, and a copy cost more than the hanging step's fit.
+  const std::vector<HangingRecording>& HangingRecordings() const;
   std::vector<StandingPose> StandingPoses() const;
   // Throws CalibratorInputError when there were no EXPERIMENT markers (`phases`: what cannot be
   // told apart without them) or the FT_* channels seen are not the config's legs.
@@ -135,7 +137,12 @@ class CalibrationCollector {
   const std::string& standing_session() const { return standing_session_; }
 
  private:
-  void OnFtRaw(const MessageInfo& info, const void* data, int size);
+  void OnFtRaw(int k, const MessageInfo& info, const void* data, int size);
+  void OnServoRaw(const MessageInfo& info, const void* data, int size);
+  void OnMocapRaw(const MessageInfo& info, const void* data, int size);
+  // Whether a servo state or mocap frame may wait in a DeferredTail (deferred_ below).
+  bool Deferring() const { return standing_not_segmented_ && aligner_.pending() == 0; }
+  void FlushDeferred();
   void OnExperiment(const experiment_marker_t& msg);
   void OnSteadyPose(const steady_pose_t& msg);
   void OnAligned(const AlignedSample& a);
@@ -162,7 +169,8 @@ class CalibrationCollector {
   int64_t tare_count_ = 0;
   std::optional<std::array<Vec6, kNumLegs>> tare_;
 
-  std::array<std::optional<HangingRecording>, kNumHangSeries> hang_;
+  std::vector<HangingRecording> hang_ = std::vector<HangingRecording>(kNumHangSeries);
+  std::array<bool, kNumHangSeries> have_hang_{};
   std::vector<StandingPose> segmented_poses_;
   std::vector<StandingPose> logged_poses_;
   // Per session of the STEADY_POSE events read: whether every one carried its scatter.
@@ -172,19 +180,50 @@ class CalibrationCollector {
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
-  // Per channel name heard: its leg index among the config's FT channels (-1: not a leg's, or
-  // not an FT channel). One hash lookup per event instead of a std::set insertion (two per FT
-  // event) and six name comparisons: a report-scale log has 4 M events on ten channels.
-  std::unordered_map<std::string, int> channel_leg_;
-  // The last channel looked up: every FT event asks twice in a row (the ".*" subscription, then
-  // OnFtRaw), and a compare is cheaper than a hash lookup.
-  std::string last_channel_;
-  int last_leg_ = -1;
+  // Every channel heard so far, in the order first heard, and where the last one was found.
+  // This runs for every event (4 M at report scale), where a hash lookup and a copied name
+  // cost a tenth of the reading: on replay the bus's channel ids (reset per bus) answer with
+  // no compare at all, live a scan of a few short names does.
+  std::vector<std::string> channels_heard_;
+  size_t channel_guess_ = 0;
+  std::vector<bool> channel_ids_noted_;
+  void NoteChannel(const MessageInfo& info);
   // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
   // config's).
   std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};
-  int LegOfChannel(const std::string& channel);
   ft_sample_t ft_scratch_;
+  servo_state_t servo_scratch_;
+  mocap_body_t mocap_scratch_;
+  // Over a STANDING phase not segmented again no transducer sample goes to the aligner, so of
+  // its servo states and mocap frames only the last few shape what the aligner holds when the
+  // phase ends (ServoHistory keeps 16 states, the mocap input 1 frame). Those are checked by
+  // the wire guard as they come (a damaged log is still refused) but decoded only at the
+  // phase's end, from this ring of their bytes: decoding the others (a million at report
+  // scale) went nowhere. The ring is deeper than the aligner's history so that states it
+  // would refuse (not newer, not finite) and other bodies' frames still leave it full.
+  class DeferredTail {
+   public:
+    static constexpr size_t kDepth = 64;
+    void Push(const void* data, int size);
+    // Calls fn(data, size) on each message held, oldest first, and empties the ring.
+    template <class Fn>
+    void Drain(Fn&& fn) {
+      const size_t first = count_ < kDepth ? 0 : next_;
+      for (size_t i = 0; i < std::min(count_, kDepth); ++i) {
+        const std::vector<uint8_t>& m = ring_[(first + i) % kDepth];
+        fn(m.data(), static_cast<int>(m.size()));
+      }
+      count_ = next_ = 0;
+    }
+    bool empty() const { return count_ == 0; }
+
+   private:
+    std::array<std::vector<uint8_t>, kDepth> ring_;
+    size_t next_ = 0, count_ = 0;
+  };
+  DeferredTail deferred_servo_, deferred_mocap_;
+  std::string servo_channel_, mocap_channel_;  // the config's, for drop messages
+  Bus* bus_ = nullptr;                         // the one attached last: its stats count drops
   void CountRecord(int k, int64_t sequence);
   PhaseGaps current_gaps_;
   std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase

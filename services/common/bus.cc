@@ -114,10 +114,10 @@ void Bus::Guarded(const std::string& what, const std::function<void()>& fn) {
 }
 
 void Bus::Dispatch(size_t subscription, const std::string& channel, int64_t recv_utime,
-                   const void* data, int size) {
+                   const void* data, int size, int channel_id) {
   stats_.CountIn();
   const Subscription& sub = subscriptions_.at(subscription);
-  const MessageInfo info{channel, recv_utime};
+  const MessageInfo info{channel, recv_utime, nullptr, channel_id};
   // Guarded()'s handling inline: its name argument would cost a string per event.
   try {
     sub.handler(info, data, size);
@@ -386,14 +386,14 @@ int64_t LogReplayBus::FindSyncWord(int64_t from) {
   return -1;
 }
 
-LogReplayBus::KnownChannel* LogReplayBus::FindChannel(const char* channel, size_t size,
-                                                      size_t guess) {
+LogReplayBus::KnownChannel* LogReplayBus::FindChannel(const char* channel, size_t size) {
   auto is = [&](const KnownChannel& c) {
     return c.name.size() == size && std::memcmp(c.name.data(), channel, size) == 0;
   };
   KnownChannel* found = nullptr;
-  if (guess < known_channels_.size() && is(known_channels_[guess])) {
-    found = &known_channels_[guess];
+  uint8_t& slot = channel_slots_[ChannelSlot(channel, size)];
+  if (slot > 0 && is(known_channels_[slot - 1])) {
+    found = &known_channels_[slot - 1];
   } else {
     for (KnownChannel& c : known_channels_) {
       if (is(c)) {
@@ -409,6 +409,8 @@ LogReplayBus::KnownChannel* LogReplayBus::FindChannel(const char* channel, size_
     found->handlers = &HandlersFor(found->name);
     found->generation = subscription_generation();
   }
+  static_assert(kMaxKnownChannels < 256, "slots hold an index + 1 in a byte");
+  slot = static_cast<uint8_t>(found - known_channels_.data() + 1);
   if (found->generation != subscription_generation()) {  // a handler subscribed since
     found->handlers = &HandlersFor(found->name);
     found->generation = subscription_generation();
@@ -449,8 +451,6 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
   };
   bool ticking = false;
   int64_t next_tick = 0;
-  size_t previous = kMaxKnownChannels;  // known_channels_ index of the last event's channel
-  size_t guess = 0;                     // and of the channel that followed it last time
   int64_t pos = 0;
   while (true) {
     if (ShutdownRequested()) {
@@ -508,23 +508,16 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
     // subscribes (the cached list goes stale) sees its new subscription from this event on.
     // (After the ticks: periodic work may subscribe.)
     const auto size = static_cast<size_t>(channel_bytes);
-    const KnownChannel* known = FindChannel(channel_at, size, guess);
-    if (known != nullptr) {
-      const size_t index = static_cast<size_t>(known - known_channels_.data());
-      if (previous < known_channels_.size()) known_channels_[previous].next = index;
-      previous = index;
-      guess = known->next;
-    } else {
-      channel_.assign(channel_at, size);
-      previous = guess = kMaxKnownChannels;
-    }
+    const KnownChannel* known = FindChannel(channel_at, size);
+    if (known == nullptr) channel_.assign(channel_at, size);
     const std::string& channel = known != nullptr ? known->name : channel_;
+    const int channel_id = known != nullptr ? static_cast<int>(known - known_channels_.data()) : -1;
     const std::vector<size_t>* handlers =
         known != nullptr ? known->handlers : &HandlersFor(channel);
     for (size_t j = 0; j < handlers->size(); ++j) {
       const size_t i = (*handlers)[j];
       const uint64_t generation = subscription_generation();
-      Dispatch(i, channel, timestamp, data, static_cast<int>(data_bytes));
+      Dispatch(i, channel, timestamp, data, static_cast<int>(data_bytes), channel_id);
       if (subscription_generation() != generation) {
         handlers = &HandlersFor(channel);
         j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -

@@ -14,6 +14,7 @@
 // message that does not pass or does not decode is counted as a drop.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <cstdio>
 #include <functional>
@@ -41,6 +42,10 @@ struct MessageInfo {
   // On a signed channel (Bus::SubscribeSigned), the name of the trusted key whose signature
   // verified; null for an unsigned message (and on other channels).
   const std::string* signer = nullptr;
+  // Replay: a small number naming `channel` for the life of the bus (0, 1, ... in the order
+  // first read), so a handler on many channels tells them apart without comparing names;
+  // -1 live and for channels past the replay's table of known ones.
+  int channel_id = -1;
 };
 
 // Thrown by a handler that refuses an input (a NaN, an unknown leg, a message from the
@@ -119,7 +124,7 @@ class Bus {
  protected:
   // The transports call this for every message a subscription receives.
   void Dispatch(size_t subscription, const std::string& channel, int64_t recv_utime,
-                const void* data, int size);
+                const void* data, int size, int channel_id = -1);
   // Runs `fn`, counting any exception it throws under `what` instead of propagating it.
   void Guarded(const std::string& what, const std::function<void()>& fn);
   // The subscriptions whose pattern matches `channel`, in subscription order. Cached per
@@ -247,21 +252,29 @@ class LogReplayBus : public Bus {
   std::unique_ptr<InputTap> tap_;
   std::unique_ptr<ReadAhead> read_ahead_;
   std::vector<uint8_t> tail_;  // the straddling event's bytes on their way to the next chunk
-  // The channels seen so far with their handlers, and for each the one that followed it last
-  // time: a log cycles through a few channels in a steady order (SERVO_STATE, MOCAP_BODY, the
-  // six FT_<LEG>), so the guess is nearly always right and an event's channel costs one
-  // compare instead of a copy into a string and a hash lookup. At most kMaxKnownChannels;
-  // channels beyond them take that slower path.
+  // The channels seen so far with their handlers, found through a small table indexed by a
+  // cheap hash of the name (its length and last two bytes, where FT_HL .. FT_FR differ): an
+  // event's channel costs one compare instead of a copy into a string and a hash lookup,
+  // whatever order the channels come in (six transducers' records arrive in any order within
+  // a frame, which defeated guessing the next channel). At most kMaxKnownChannels; channels
+  // beyond them take that slower path.
   struct KnownChannel {
     std::string name;
     const std::vector<size_t>* handlers = nullptr;  // HandlersFor(name) at `generation`
     uint64_t generation = 0;
-    size_t next = 0;  // index of the channel that followed it last
   };
   static constexpr size_t kMaxKnownChannels = 64;
-  // The entry of `channel` (its handlers current), or nullptr when it is not one and the
-  // table is full; `guess` is tried first.
-  KnownChannel* FindChannel(const char* channel, size_t size, size_t guess);
+  static constexpr size_t kChannelSlots = 256;
+  static size_t ChannelSlot(const char* channel, size_t size) {
+    const auto last = static_cast<unsigned char>(channel[size - 1]);
+    const auto before = size > 1 ? static_cast<unsigned char>(channel[size - 2]) : 0u;
+    return (size * 131 + last * 31 + before) % kChannelSlots;
+  }
+  // The entry of `channel` (size > 0; its handlers current), or nullptr when it is not one and
+  // the table is full.
+  KnownChannel* FindChannel(const char* channel, size_t size);
+  // known_channels_ index + 1 of the channel last found in each slot; 0: none.
+  std::array<uint8_t, kChannelSlots> channel_slots_{};
   std::vector<KnownChannel> known_channels_;
   std::string channel_;  // the current event's channel when not a known one (reused)
   std::unique_ptr<AtomicLogFile> out_;
@@ -316,7 +329,7 @@ void Bus::SubscribeSigned(const std::string& channel, auth::Verifier* verifier, 
                          " from " + *opened->signer + ": " + bad->kind,
                      bad->detail);
     }
-    handler(MessageInfo{info.channel, info.recv_utime, opened->signer}, msg);
+    handler(MessageInfo{info.channel, info.recv_utime, opened->signer, info.channel_id}, msg);
   });
 }
 

@@ -25,6 +25,32 @@ Mat3 RotationOf(const double q_wxyz[4]) {
 
 // ---- FT_<LEG> ----
 
+namespace {
+
+uint64_t BigEndian(const uint8_t* p, int bytes) {
+  uint64_t v = 0;
+  for (int i = 0; i < bytes; ++i) v = (v << 8) | p[i];
+  return v;
+}
+
+}  // namespace
+
+// LCM's encoding of ft_sample_t (lcm-gen's rules): the 8-byte fingerprint, then the fields in
+// their .lcm order, big-endian; a string is its int32 length (with the NUL) and its bytes and
+// NUL. So rdt_sequence follows the fingerprint, utime and leg. messages_test checks this
+// against the generated encoder, and the fingerprint check refuses any other layout.
+std::optional<int64_t> PeekRdtSequence(const void* data, int size) {
+  constexpr int kFingerprint = 0, kLegLength = 16, kLegBytes = 20;
+  const auto* p = static_cast<const uint8_t*>(data);
+  if (size < kLegBytes) return std::nullopt;
+  if (BigEndian(p + kFingerprint, 8) != static_cast<uint64_t>(ft_sample_t::getHash())) {
+    return std::nullopt;
+  }
+  const auto leg_length = static_cast<int32_t>(BigEndian(p + kLegLength, 4));
+  if (leg_length < 1 || leg_length > size - kLegBytes - 8) return std::nullopt;
+  return static_cast<int64_t>(BigEndian(p + kLegBytes + leg_length, 8));
+}
+
 FtInput FromLcm(const ft_sample_t& msg, int leg) {
   if (leg < 0 || leg >= kNumLegs || msg.leg != kLegNames[leg]) {
     throw BadInput(

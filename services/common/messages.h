@@ -66,6 +66,11 @@ static_assert(experiment_marker_t::TARE == static_cast<int>(ExperimentPhase::kTa
 // `leg` is the channel's leg; the message must name the same one (BadInput otherwise).
 FtInput FromLcm(const ft_sample_t& msg, int leg);
 ft_sample_t ToLcm(const FtInput& in);
+// rdt_sequence of an encoded ft_sample_t, read in place: a reader that only counts records (the
+// calibrator over a span it does not align) need not decode the rest. nullopt when `data` is
+// not long enough to be one or has another fingerprint. The rest is not looked at: run the wire
+// guard's Check first when the message is untrusted.
+std::optional<int64_t> PeekRdtSequence(const void* data, int size);
 
 // ---- SERVO_STATE: servo_state_t <-> ServoInput ----
 // Every leg exactly once, by name, in any order (BadInput otherwise).

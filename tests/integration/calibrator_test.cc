@@ -177,6 +177,31 @@ class CalibratorTest : public ::testing::Test {
     return r;
   }
 
+  // The segmenter's poses log of the session (made once): its STEADY_POSE events carry their
+  // scatter. Empty when the segmenter failed (a failure of this test's own).
+  static std::string PosesLog() {
+    const std::string poses = fx->dir + "/poses.lcmlog";
+    if (std::filesystem::exists(poses)) return poses;
+    Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", poses},
+              fx->dir + "/seg.out", fx->dir + "/seg.err");
+    const auto status = seg.Wait(120);
+    if (!(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)) {
+      ADD_FAILURE() << "ftcal-pose-segmenter failed: " << ReadFile(fx->dir + "/seg.err");
+      return "";
+    }
+    return poses;
+  }
+
+  // Reads `path` into `collector` as the calibrator does (its replay bus, to the end).
+  static void ReadInto(CalibrationCollector& collector, const std::string& path) {
+    ServiceStats stats(spdlog::default_logger());
+    LogReplayBus bus(path, fx->dir + "/replay-scratch.lcmlog", stats);
+    collector.Attach(bus);
+    bus.Run([] {}, 1'000'000);
+    ASSERT_TRUE(bus.finished());
+    ASSERT_EQ(stats.errors(), 0) << stats.last_error();
+  }
+
   // A refusal: exit 2, `what` in the message, neither the calibration nor its residuals.
   static void ExpectRefused(const std::vector<std::string>& args, const std::string& tag,
                             const std::string& what) {
@@ -332,14 +357,8 @@ TEST_F(CalibratorTest, RefusesAPhaseThatLostRecordsUnlessAllowedAndCountsThemExa
 // says so. Both orders give the same calibration, number for number, and its noise floor is
 // the one the calibrator finds by segmenting the session itself.
 TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber) {
-  const std::string poses = fx->dir + "/poses.lcmlog";
-  {
-    Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", poses},
-              fx->dir + "/seg.out", fx->dir + "/seg.err");
-    const auto status = seg.Wait(120);
-    ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
-        << ReadFile(fx->dir + "/seg.err");
-  }
+  const std::string poses = PosesLog();
+  ASSERT_FALSE(poses.empty());
   const std::string after = fx->dir + "/cal-poses-after.pbtxt";
   const std::string before = fx->dir + "/cal-poses-before.pbtxt";
   const Result ra =
@@ -411,6 +430,42 @@ TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   const std::string sha = Sha256File(fx->log);
   EXPECT_EQ(ReadCalibrationFile(first).provenance().input(0).sha256(), sha);
   EXPECT_EQ(ReadCalibrationFile(second).provenance().input(0).sha256(), sha);
+}
+
+// The walk follows the STANDING phase. Over a span not segmented again the transducer records
+// are only counted and the servo states and mocap frames decoded only at its end (the last
+// ones, all the aligner keeps): the walk is then aligned sample for sample as when the
+// collector segments that span itself, shaft angles and attitudes included.
+TEST_F(CalibratorTest, AStandingSpanNotSegmentedAgainLeavesTheAlignerAsSegmentingItWould) {
+  const std::string poses = PosesLog();
+  ASSERT_FALSE(poses.empty());
+  CalibrationCollector own(fx->config), skipping(fx->config);
+  skipping.SetSkipSegmentingLoggedSessions(true);
+  ReadInto(own, fx->log);
+  ReadInto(skipping, poses);
+  ReadInto(skipping, fx->log);
+  own.Flush();
+  skipping.Flush();
+  EXPECT_GT(own.segmented_pose_count(), 0u);
+  EXPECT_EQ(skipping.segmented_pose_count(), 0u);
+  const std::vector<SyncSample>& a = own.walking_samples();
+  const std::vector<SyncSample>& b = skipping.walking_samples();
+  ASSERT_GT(a.size(), 100u);
+  ASSERT_EQ(a.size(), b.size());
+  for (size_t i = 0; i < a.size(); ++i) {
+    SCOPED_TRACE("walking sample " + std::to_string(i));
+    ASSERT_EQ(a[i].utime, b[i].utime);
+    ASSERT_EQ(a[i].angle_rad, b[i].angle_rad);
+    ASSERT_EQ(a[i].wrench, b[i].wrench);
+    ASSERT_EQ(a[i].R_WC, b[i].R_WC);
+    ASSERT_EQ(a[i].attitude_ok, b[i].attitude_ok);
+  }
+  // The records of the span are counted all the same.
+  ASSERT_EQ(own.phase_gaps().size(), skipping.phase_gaps().size());
+  for (size_t p = 0; p < own.phase_gaps().size(); ++p) {
+    EXPECT_EQ(own.phase_gaps()[p].received, skipping.phase_gaps()[p].received) << p;
+    EXPECT_EQ(own.phase_gaps()[p].lost, skipping.phase_gaps()[p].lost) << p;
+  }
 }
 
 // --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),

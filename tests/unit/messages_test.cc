@@ -71,6 +71,31 @@ TEST(Messages, FtSampleRoundTrip) {
   EXPECT_NE(why.find("ML"), std::string::npos) << why;
 }
 
+// The in-place read agrees with the generated encoder for every leg name length and sign of
+// the number, and refuses what is not an ft_sample_t or is cut short.
+TEST(Messages, PeekRdtSequenceReadsWhatTheEncoderWrote) {
+  for (const std::string& leg : {std::string(""), std::string("HL"), std::string("LEG_SEVEN")}) {
+    for (int64_t seq : {int64_t{1}, int64_t{4'294'967'295}, int64_t{-7}, int64_t{1} << 40}) {
+      ft_sample_t msg{};
+      msg.utime = 1'700'000'000'123'456;
+      msg.leg = leg;
+      msg.rdt_sequence = seq;
+      msg.ft_sequence = 99;
+      std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+      ASSERT_EQ(msg.encode(bytes.data(), 0, static_cast<int>(bytes.size())),
+                static_cast<int>(bytes.size()));
+      const auto size = static_cast<int>(bytes.size());
+      EXPECT_EQ(PeekRdtSequence(bytes.data(), size), seq) << "leg '" << leg << "'";
+      // Cut short before the number ends: refused, not read past the end.
+      const int leg_end = 20 + static_cast<int>(leg.size()) + 1;
+      EXPECT_EQ(PeekRdtSequence(bytes.data(), leg_end + 7), std::nullopt);
+      EXPECT_EQ(PeekRdtSequence(bytes.data(), 19), std::nullopt);
+      bytes[3] ^= 0x01;  // another fingerprint
+      EXPECT_EQ(PeekRdtSequence(bytes.data(), size), std::nullopt);
+    }
+  }
+}
+
 TEST(Messages, ServoStateRoundTripAndLegsByName) {
   Distinct d;
   ServoInput in;
