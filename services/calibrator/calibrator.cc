@@ -174,8 +174,76 @@ std::vector<calibration::RecordingGaps> CheckRecordingGaps(const CalibrationColl
   return out;
 }
 
+namespace {
+
+CalibrateOptions CalibrateOptionsOf(const CalibrationCollector& collector,
+                                    const CalibratorOptions& options) {
+  CalibrateOptions co;
+  co.accept_mass_mismatch = options.accept_mass_mismatch;
+  co.accept_leg_map_mismatch = options.accept_leg_map_mismatch;
+  if (collector.tare()) {
+    co.has_naive_tare = true;
+    co.naive_tare = *collector.tare();
+  }
+  return co;
+}
+
+}  // namespace
+
+EarlyCalibration::EarlyCalibration(CalibrationCollector& collector, const config::Config& config,
+                                   const CalibratorOptions& options)
+    : collector_(collector), config_(config), options_(options) {
+  collector_.SetCalibrationInputHooks([this] { Start(); }, [this] { Discard(); });
+}
+
+EarlyCalibration::~EarlyCalibration() {
+  collector_.SetCalibrationInputHooks(nullptr, nullptr);
+  if (job_.valid()) job_.wait();
+}
+
+void EarlyCalibration::Start() {
+  if (valid_) return;  // one is running on these very inputs
+  if (job_.valid()) job_.wait();
+  std::vector<StandingPose> poses;
+  try {
+    collector_.HangingRecordings();  // all four there
+    poses = collector_.StandingPoses();
+  } catch (const CalibratorInputError&) {
+    return;  // not complete yet: RunCalibration() says what is missing
+  }
+  if (poses.empty()) return;
+  // The job refers to the collector's hanging series, which Discard() waits for before they
+  // change; the poses and options are its own copies.
+  const std::vector<HangingRecording>* hanging = &collector_.HangingRecordings();
+  job_ = std::async(std::launch::async, [this, hanging, poses = std::move(poses),
+                                         co = CalibrateOptionsOf(collector_, options_)] {
+    return Calibrate(*hanging, poses, config_, co);
+  });
+  started_ = valid_ = true;
+  spdlog::info("calibrating on another thread while the rest of the session is read");
+}
+
+void EarlyCalibration::Discard() {
+  if (!job_.valid()) return;
+  job_.wait();
+  valid_ = false;
+}
+
+std::optional<CalibrationRun> EarlyCalibration::Take() {
+  if (!job_.valid()) return std::nullopt;
+  const bool valid = valid_;
+  valid_ = false;
+  try {
+    CalibrationRun run = job_.get();
+    if (valid) return run;
+  } catch (const std::exception&) {
+    // Refused or failed: the caller's own run on the same inputs says why, in its own words.
+  }
+  return std::nullopt;
+}
+
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
-                              const CalibratorOptions& options) {
+                              const CalibratorOptions& options, EarlyCalibration* early) {
   collector.CheckMarkersAndLegs("hanging series from standing");
   std::vector<std::string> gap_warnings;
   const std::vector<calibration::RecordingGaps> gaps =
@@ -195,17 +263,14 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
                collector.counters().logged_poses > 0 ? "from STEADY_POSE events"
                                                      : "segmented from the STANDING spans");
   CalibrationRun run;
-  try {
-    CalibrateOptions co;
-    co.accept_mass_mismatch = options.accept_mass_mismatch;
-    co.accept_leg_map_mismatch = options.accept_leg_map_mismatch;
-    if (collector.tare()) {
-      co.has_naive_tare = true;
-      co.naive_tare = *collector.tare();
+  if (std::optional<CalibrationRun> taken = early ? early->Take() : std::nullopt) {
+    run = std::move(*taken);
+  } else {
+    try {
+      run = Calibrate(hanging, poses, config, CalibrateOptionsOf(collector, options));
+    } catch (const CalibrationStageError& e) {
+      throw CalibratorInputError(e.what());
     }
-    run = Calibrate(hanging, poses, config, co);
-  } catch (const CalibrationStageError& e) {
-    throw CalibratorInputError(e.what());
   }
   spdlog::info("calibration done: {} candidates, model {}", run.standing.fits.size(),
                StandingModelName(run.standing.selected));

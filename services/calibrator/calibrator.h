@@ -8,6 +8,8 @@
 #pragma once
 
 #include <functional>
+#include <future>
+#include <optional>
 #include <set>
 #include <string>
 #include <vector>
@@ -47,9 +49,41 @@ std::vector<calibration::RecordingGaps> CheckRecordingGaps(const CalibrationColl
                                                            bool allow_gaps,
                                                            std::vector<std::string>* warnings);
 
-// Checks the collected data, runs Calibrate() and fills provenance. Throws CalibratorInputError.
+// Offline: Calibrate() started on a thread of its own as soon as what it takes is in (the four
+// hanging series, the poses of a poses log read before the session, the tare), that is when
+// the session's STANDING phase starts and is not segmented again; the rest of the session (its
+// STANDING span, the tripods, the walk: two fifths of the reading) is then read beside the
+// solves. A change to those inputs afterwards (a series recorded again, more poses, a later
+// tare) waits for the early run and discards it: RunCalibration() then calibrates with what
+// was collected, as without this. Construct before reading; it outlives nothing it refers to.
+class EarlyCalibration {
+ public:
+  EarlyCalibration(CalibrationCollector& collector, const config::Config& config,
+                   const CalibratorOptions& options);
+  ~EarlyCalibration();
+  EarlyCalibration(const EarlyCalibration&) = delete;
+  EarlyCalibration& operator=(const EarlyCalibration&) = delete;
+  // The early run's result when its inputs are still the collector's and it succeeded; nullopt
+  // otherwise (never started, discarded, or refused: the caller's own run says why).
+  std::optional<CalibrationRun> Take();
+  bool started() const { return started_; }
+
+ private:
+  void Start();
+  void Discard();
+
+  CalibrationCollector& collector_;
+  const config::Config& config_;
+  const CalibratorOptions& options_;
+  std::future<CalibrationRun> job_;
+  bool started_ = false;
+  bool valid_ = false;
+};
+
+// Checks the collected data, runs Calibrate() (or takes `early`'s result, the same) and fills
+// provenance. Throws CalibratorInputError.
 CalibrationRun RunCalibration(const CalibrationCollector& collector, const config::Config& config,
-                              const CalibratorOptions& options);
+                              const CalibratorOptions& options, EarlyCalibration* early = nullptr);
 
 // Live mode: collects on `bus`; when a STANDING phase stops, calibrates from everything
 // collected so far, writes the calibration (and its residuals CSV) atomically, publishes

@@ -266,6 +266,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
           "EXPERIMENT: STANDING started (session '{}'); its STEADY_POSE events, read before, "
           "carry their within-pose scatter: not segmented again",
           phase.session);
+      if (on_inputs_ready_) on_inputs_ready_();
       return;
     }
     segmenter_ =
@@ -309,6 +310,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
       spdlog::info("{} complete: {} samples per leg, {} attitude samples",
                    HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
                    current_hang_.attitude.size());
+      BeforeInputsChange();
       hang_[s] = std::move(current_hang_);
       have_hang_[s] = true;
     }
@@ -321,6 +323,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
         spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
                      current_poses_.size());
       }
+      if (!current_poses_.empty()) BeforeInputsChange();
       segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(), current_poses_.end());
       standing_session_ = phase.session;
     }
@@ -329,6 +332,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
     if (completed && tare_count_ > 0) {
       std::array<Vec6, kNumLegs> mean;
       for (int k = 0; k < kNumLegs; ++k) mean[k] = tare_sum_[k] / static_cast<double>(tare_count_);
+      BeforeInputsChange();
       tare_ = mean;
       spdlog::info("TARE complete (session '{}'): naive tare from {} samples", phase.session,
                    tare_count_);
@@ -374,6 +378,7 @@ void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
     ++counters_.poses_dropped_markers;
     return;
   }
+  BeforeInputsChange();
   logged_poses_.push_back(p.pose);
   if (on_steady_pose_) on_steady_pose_();
 }

@@ -97,6 +97,15 @@ class CalibrationCollector {
   void SetOnStandingStop(std::function<void()> fn) { on_standing_stop_ = std::move(fn); }
   // Called after every STEADY_POSE event (live mode waits for the segmenter's last pose).
   void SetOnSteadyPose(std::function<void()> fn) { on_steady_pose_ = std::move(fn); }
+  // Offline pipelining (EarlyCalibration, calibrator.h). `ready` runs when what Calibrate()
+  // takes may be complete: a STANDING phase starts that is not segmented again (its poses were
+  // read before), the rest of the session still to read. `before_change` runs before the
+  // collector changes any of it: the hanging series (HangingRecordings() refers to them), the
+  // standing poses, the tare.
+  void SetCalibrationInputHooks(std::function<void()> ready, std::function<void()> before_change) {
+    on_inputs_ready_ = std::move(ready);
+    before_inputs_change_ = std::move(before_change);
+  }
   // Offline, with the poses log read before the session: a STANDING phase whose session's
   // STEADY_POSE events were all read already, each with its within-pose scatter, is not
   // segmented again (that was half the calibrator's time on a report-scale log). Live, the
@@ -231,6 +240,11 @@ class CalibrationCollector {
   std::array<int, kNumHangSeries> hang_gaps_index_;  // into phase_gaps_, -1: none
   std::function<void()> on_standing_stop_;
   std::function<void()> on_steady_pose_;
+  std::function<void()> on_inputs_ready_;
+  std::function<void()> before_inputs_change_;
+  void BeforeInputsChange() {
+    if (before_inputs_change_) before_inputs_change_();
+  }
   CollectorCounters counters_;
 };
 

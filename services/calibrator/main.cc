@@ -236,11 +236,13 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
   std::map<std::string, std::string> hashes;
+  ftcal::CalibratorOptions options = OptionsOf(args);
+  ftcal::EarlyCalibration early(collector, config, options);
   if (!ReadLogs(collector, config, args, ftcal::DigestCache::FromEnvironment(), &hashes)) {
     return ftcal::kExitDeviceIo;
   }
-  const ftcal::CalibratorOptions options = OptionsOf(args, hashes);
-  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options);
+  options = OptionsOf(args, hashes);  // the same Calibrate() options, with the digests read
+  ftcal::CalibrationRun run = ftcal::RunCalibration(collector, config, options, &early);
   std::optional<ftcal::RobotCalibration> truth;
   if (!args.truth.empty()) {
     try {

@@ -468,6 +468,45 @@ TEST_F(CalibratorTest, AStandingSpanNotSegmentedAgainLeavesTheAlignerAsSegmentin
   }
 }
 
+// Offline, Calibrate() starts on its own thread when the session's STANDING phase starts and
+// is not segmented again (its poses were read before): its result is the calibration the
+// calibrator computes after reading, and a change to its inputs afterwards discards it (here:
+// the poses log read again adds its poses).
+TEST_F(CalibratorTest, AnEarlyCalibrationIsTheLateOneAndIsDiscardedWhenItsInputsChange) {
+  const std::string poses = PosesLog();
+  ASSERT_FALSE(poses.empty());
+  CalibratorOptions options;
+  options.config_path = kConfig;
+  {
+    CalibrationCollector collector(fx->config);
+    collector.SetSkipSegmentingLoggedSessions(true);
+    EarlyCalibration early(collector, fx->config, options);
+    EXPECT_FALSE(early.started());
+    ReadInto(collector, poses);
+    EXPECT_FALSE(early.started());  // no hanging series yet
+    ReadInto(collector, fx->log);
+    collector.Flush();
+    EXPECT_TRUE(early.started());
+    CalibrationRun taken = RunCalibration(collector, fx->config, options, &early);
+    CalibrationRun computed = RunCalibration(collector, fx->config, options);
+    taken.proto.clear_provenance();
+    computed.proto.clear_provenance();
+    EXPECT_GT(taken.proto.leg_size(), 0);
+    EXPECT_EQ(taken.proto.DebugString(), computed.proto.DebugString());
+  }
+  {
+    CalibrationCollector collector(fx->config);
+    collector.SetSkipSegmentingLoggedSessions(true);
+    EarlyCalibration early(collector, fx->config, options);
+    ReadInto(collector, poses);
+    ReadInto(collector, fx->log);
+    ASSERT_TRUE(early.started());
+    ReadInto(collector, poses);
+    collector.Flush();
+    EXPECT_FALSE(early.Take().has_value());
+  }
+}
+
 // --profile report: the report's procedure (first-order hanging rotations, fixed CoM, no prior),
 // four candidates; the file says so.
 TEST_F(CalibratorTest, ReportProfileFromTheCommandLine) {
