@@ -38,7 +38,6 @@ void CalibrationCollector::Attach(Bus& bus) {
     bus.SubscribeRaw(inputs_.FtChannel(k), [this, k](const MessageInfo& info, const void* data,
                                                      int size) { OnFtRaw(k, info, data, size); });
   }
-  bus_ = &bus;
   servo_channel_ = ch.servo_state();
   mocap_channel_ = ch.mocap_body();
   bus.SubscribeRaw(ch.servo_state(), [this](const MessageInfo& info, const void* data, int size) {
@@ -161,30 +160,26 @@ void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data,
   if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
 }
 
-// The deferred messages, in their order, as OnServoRaw/OnMocapRaw would have handled them (the
-// two streams do not meet in the aligner while it holds no pending sample). A decode refused
-// here (the checks passed, so only a decoder that disagrees) is counted as the bus counts one.
+// The deferred messages, in their order, through OnServoRaw/OnMocapRaw (no longer deferring:
+// the phase has ended). The two streams do not meet in the aligner while it holds no pending
+// sample, so each may go in after the other. A message refused now (checked whole when it
+// came, so refused for its content, as the bus would have counted it then) is logged: the bus
+// that read it may be gone (the input can end inside the span).
 void CalibrationCollector::FlushDeferred() {
-  auto drop = [this](const std::string& channel, const char* type, const wire::Refusal& r) {
-    if (bus_ != nullptr) {
-      bus_->stats().Drop(std::string("undecodable ") + type + " on " + channel + ": " + r.kind,
-                         r.detail);
-    }
+  const MessageInfo servo{servo_channel_, 0}, mocap{mocap_channel_, 0};
+  auto through = [this](void (CalibrationCollector::*handler)(const MessageInfo&, const void*, int),
+                        const MessageInfo& info) {
+    return [this, handler, &info](const void* data, int size) {
+      try {
+        (this->*handler)(info, data, size);
+      } catch (const BadInput& e) {
+        spdlog::warn("{}: a message kept from a STANDING span not segmented again, refused: {}",
+                     info.channel, e.what());
+      }
+    };
   };
-  deferred_servo_.Drain([&](const void* data, int size) {
-    if (auto refused = wire::Decode(data, size, &servo_scratch_)) {
-      drop(servo_channel_, servo_state_t::getTypeName(), *refused);
-      return;
-    }
-    aligner_.AddServo(inputs_.FromServo(servo_scratch_));
-  });
-  deferred_mocap_.Drain([&](const void* data, int size) {
-    if (auto refused = wire::Decode(data, size, &mocap_scratch_)) {
-      drop(mocap_channel_, mocap_body_t::getTypeName(), *refused);
-      return;
-    }
-    if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
-  });
+  deferred_servo_.Drain(through(&CalibrationCollector::OnServoRaw, servo));
+  deferred_mocap_.Drain(through(&CalibrationCollector::OnMocapRaw, mocap));
 }
 
 // Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number

@@ -232,7 +232,6 @@ class CalibrationCollector {
   };
   DeferredTail deferred_servo_, deferred_mocap_;
   std::string servo_channel_, mocap_channel_;  // the config's, for drop messages
-  Bus* bus_ = nullptr;                         // the one attached last: its stats count drops
   void CountRecord(int k, int64_t sequence);
   PhaseGaps current_gaps_;
   std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase
