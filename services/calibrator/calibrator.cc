@@ -204,17 +204,17 @@ EarlyCalibration::~EarlyCalibration() {
 void EarlyCalibration::Start() {
   if (valid_) return;  // one is running on these very inputs
   if (job_.valid()) job_.wait();
+  // The job refers to the collector's hanging series, which Discard() waits for before they
+  // change; the poses and options are its own copies.
+  const std::vector<HangingRecording>* hanging = nullptr;
   std::vector<StandingPose> poses;
   try {
-    collector_.HangingRecordings();  // all four there
+    hanging = &collector_.HangingRecordings();  // all four there
     poses = collector_.StandingPoses();
   } catch (const CalibratorInputError&) {
     return;  // not complete yet: RunCalibration() says what is missing
   }
   if (poses.empty()) return;
-  // The job refers to the collector's hanging series, which Discard() waits for before they
-  // change; the poses and options are its own copies.
-  const std::vector<HangingRecording>* hanging = &collector_.HangingRecordings();
   job_ = std::async(std::launch::async, [this, hanging, poses = std::move(poses),
                                          co = CalibrateOptionsOf(collector_, options_)] {
     return Calibrate(*hanging, poses, config_, co);

@@ -78,31 +78,6 @@ void CalibrationCollector::NoteChannel(const MessageInfo& info) {
   if (std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
 }
 
-void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* data, int size) {
-  ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
-  static const wire::Schema* const schema =
-      wire::FindSchema(static_cast<uint64_t>(ft_sample_t::getHash()));
-  if (standing_not_segmented_ && schema != nullptr) {
-    // Aligned samples of a STANDING phase not segmented again would go nowhere: the record is
-    // only counted. Checked as a decode would check it, so a damaged log is refused the same.
-    const std::optional<wire::Refusal> refused = wire::Check(*schema, data, size);
-    const std::optional<int64_t> sequence = refused ? std::nullopt : PeekRdtSequence(data, size);
-    if (!sequence) {
-      throw BadInput("undecodable ft_sample_t on " + info.channel + ": " +
-                         (refused ? refused->kind : std::string("not an ft_sample_t")),
-                     refused ? refused->detail : std::string());
-    }
-    if (phases_.open()) CountRecord(k, *sequence);
-    return;
-  }
-  if (auto refused = wire::Decode(data, size, &msg)) {
-    throw BadInput("undecodable ft_sample_t on " + info.channel + ": " + refused->kind,
-                   refused->detail);
-  }
-  if (phases_.open()) CountRecord(k, msg.rdt_sequence);
-  aligner_.AddFt(inputs_.FromFt(k, msg));
-}
-
 namespace {
 
 // As Bus::Subscribe<Msg> decodes (the same drop kind): `data` into *msg, or BadInput.
@@ -131,6 +106,25 @@ void CheckOrThrow(const MessageInfo& info, const void* data, int size) {
 }
 
 }  // namespace
+
+void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* data, int size) {
+  if (standing_not_segmented_) {
+    // Aligned samples of a STANDING phase not segmented again would go nowhere: the record is
+    // only counted. Checked as a decode would check it, so a damaged log is refused the same.
+    CheckOrThrow<ft_sample_t>(info, data, size);
+    const std::optional<int64_t> sequence = PeekRdtSequence(data, size);
+    if (!sequence) {
+      throw BadInput("undecodable ft_sample_t on " + info.channel + ": not an ft_sample_t",
+                     "the wire guard's checks passed but rdt_sequence could not be read");
+    }
+    if (phases_.open()) CountRecord(k, *sequence);
+    return;
+  }
+  ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
+  DecodeOrThrow(info, data, size, &msg);
+  if (phases_.open()) CountRecord(k, msg.rdt_sequence);
+  aligner_.AddFt(inputs_.FromFt(k, msg));
+}
 
 void CalibrationCollector::DeferredTail::Push(const void* data, int size) {
   std::vector<uint8_t>& slot = ring_[next_];
