@@ -38,8 +38,6 @@ void CalibrationCollector::Attach(Bus& bus) {
     bus.SubscribeRaw(inputs_.FtChannel(k), [this, k](const MessageInfo& info, const void* data,
                                                      int size) { OnFtRaw(k, info, data, size); });
   }
-  servo_channel_ = ch.servo_state();
-  mocap_channel_ = ch.mocap_body();
   bus.SubscribeRaw(ch.servo_state(), [this](const MessageInfo& info, const void* data, int size) {
     OnServoRaw(info, data, size);
   });
@@ -63,18 +61,8 @@ void CalibrationCollector::NoteChannel(const MessageInfo& info) {
     channel_ids_noted_[id] = true;
   }
   const std::string& channel = info.channel;
-  const size_t n = channels_heard_.size();
-  for (size_t i = 0; i < n; ++i) {
-    const size_t j = (channel_guess_ + i) % n;
-    if (channels_heard_[j] == channel) {
-      channel_guess_ = j;
-      return;
-    }
-  }
+  if (!channels_seen_.insert(channel).second) return;
   // First event on this channel.
-  channels_heard_.push_back(channel);
-  channel_guess_ = channels_heard_.size() - 1;
-  channels_seen_.insert(channel);
   if (std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
 }
 
@@ -160,7 +148,8 @@ void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data,
 // came, so refused for its content, as the bus would have counted it then) is logged: the bus
 // that read it may be gone (the input can end inside the span).
 void CalibrationCollector::FlushDeferred() {
-  const MessageInfo servo{servo_channel_, 0}, mocap{mocap_channel_, 0};
+  const MessageInfo servo{config_.channels().servo_state(), 0},
+      mocap{config_.channels().mocap_body(), 0};
   auto through = [this](void (CalibrationCollector::*handler)(const MessageInfo&, const void*, int),
                         const MessageInfo& info) {
     return [this, handler, &info](const void* data, int size) {

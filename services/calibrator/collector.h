@@ -189,12 +189,9 @@ class CalibrationCollector {
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
-  // Every channel heard so far, in the order first heard, and where the last one was found.
-  // This runs for every event (4 M at report scale), where a hash lookup and a copied name
-  // cost a tenth of the reading: on replay the bus's channel ids (reset per bus) answer with
-  // no compare at all, live a scan of a few short names does.
-  std::vector<std::string> channels_heard_;
-  size_t channel_guess_ = 0;
+  // This runs for every event (4 M at report scale), where a set lookup cost a tenth of the
+  // reading: on replay the bus's channel ids (reset per bus) answer with no compare at all;
+  // live, channels_seen_ does.
   std::vector<bool> channel_ids_noted_;
   void NoteChannel(const MessageInfo& info);
   // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
@@ -231,7 +228,6 @@ class CalibrationCollector {
     size_t next_ = 0, count_ = 0;
   };
   DeferredTail deferred_servo_, deferred_mocap_;
-  std::string servo_channel_, mocap_channel_;  // the config's, for drop messages
   void CountRecord(int k, int64_t sequence);
   PhaseGaps current_gaps_;
   std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase
