@@ -33,7 +33,12 @@ int64_t Nanoseconds(const timespec& t) {
 
 std::optional<FileKey> FileKeyOf(const std::string& path) {
   struct stat st {};
-  if (::stat(path.c_str(), &st) != 0 || !S_ISREG(st.st_mode)) return std::nullopt;
+  if (::stat(path.c_str(), &st) != 0) return std::nullopt;
+  return FileKeyOf(st);
+}
+
+std::optional<FileKey> FileKeyOf(const struct stat& st) {
+  if (!S_ISREG(st.st_mode)) return std::nullopt;
   FileKey key;
   key.device = static_cast<uint64_t>(st.st_dev);
   key.inode = static_cast<uint64_t>(st.st_ino);
@@ -78,15 +83,28 @@ bool DigestCache::Store(const std::string& path, const FileKey& key_before,
   timespec now{};
   ::clock_gettime(CLOCK_REALTIME, &now);
   if (static_cast<double>(Nanoseconds(now) - key->ctime_ns) < settled_s * 1e9) return false;
+  return WriteEntry(path, *key, sha256_hex);
+}
+
+bool DigestCache::StoreWritten(const std::string& path, const FileKey& key_written,
+                               const std::string& sha256_hex) const {
+  if (!enabled() || !IsSha256Hex(sha256_hex)) return false;
+  const std::optional<FileKey> key = FileKeyOf(path);
+  if (!key || !(*key == key_written)) return false;  // changed, or replaced, since
+  return WriteEntry(path, *key, sha256_hex);
+}
+
+bool DigestCache::WriteEntry(const std::string& path, const FileKey& key,
+                             const std::string& hex) const {
   std::error_code ec;
   std::filesystem::create_directories(dir_ + "/sha256", ec);
   if (ec) return false;
   std::ostringstream entry;
-  entry << kEntryTag << ' ' << key->size << ' ' << key->mtime_ns << ' ' << key->ctime_ns << ' '
-        << sha256_hex << '\n'
+  entry << kEntryTag << ' ' << key.size << ' ' << key.mtime_ns << ' ' << key.ctime_ns << ' ' << hex
+        << '\n'
         << std::filesystem::absolute(path, ec).string() << '\n';
   try {
-    WriteFileAtomic(EntryPath(*key), entry.str());
+    WriteFileAtomic(EntryPath(key), entry.str());
   } catch (const std::exception&) {
     return false;  // a read-only home, a full disk: the next run hashes again
   }

@@ -121,6 +121,14 @@ void AtomicLogFile::WriterLoop() {
       left -= static_cast<size_t>(n);
     }
     if (error.empty() && !failed) {
+      if (tap_) {
+        try {
+          tap_(full.data.data(), full.bytes);
+        } catch (...) {
+          tap_ = nullptr;  // the tap has not seen every byte: its owner gets no status
+          tap_failed_ = true;
+        }
+      }
       // Starts the disk on what was just written without waiting, so that the fdatasync below
       // finds it under way. (Best effort: where the filesystem does not support it, the
       // fdatasync does it all.)
@@ -211,11 +219,21 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
   if (fill_bytes_ >= kBufferBytes) HandOff();
 }
 
+void AtomicLogFile::SetTap(std::function<void(const char* data, size_t size)> tap) {
+  if (event_number_ > 0) {
+    throw std::logic_error(what_ + " '" + path_ + "': tap set after the first event");
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  tap_ = std::move(tap);
+}
+
 void AtomicLogFile::Commit() {
   if (committed_) return;
   Drain();
   StopWriter();
+  struct stat written {};
   const int synced = ::fsync(fd_) == 0 ? 0 : errno;
+  if (::fstat(fd_, &written) != 0) written = {};
   const int closed = ::close(fd_) == 0 ? 0 : errno;
   fd_ = -1;
   if (synced != 0 || closed != 0) {
@@ -227,6 +245,16 @@ void AtomicLogFile::Commit() {
                              "': " + std::strerror(errno));
   }
   committed_ = true;
+  // Taken after the rename, which changes the file's ctime, and kept only when the name still
+  // holds this file as written (another run's output may have been renamed onto it, or the
+  // file written to, meanwhile).
+  struct stat now {};
+  if (!tap_failed_ && ::stat(path_.c_str(), &now) == 0 && written.st_ino != 0 &&
+      now.st_ino == written.st_ino && now.st_dev == written.st_dev &&
+      now.st_size == written.st_size && now.st_mtim.tv_sec == written.st_mtim.tv_sec &&
+      now.st_mtim.tv_nsec == written.st_mtim.tv_nsec) {
+    committed_stat_ = now;
+  }
   // The rename itself is durable only once the directory is synced.
   const auto slash = path_.rfind('/');
   const std::string dir = slash == std::string::npos ? "." : path_.substr(0, slash + 1);

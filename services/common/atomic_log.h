@@ -17,9 +17,12 @@
 // A write or sync error on the writer thread is reported by the next Write() or by Commit().
 #pragma once
 
+#include <sys/stat.h>
+
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -44,6 +47,14 @@ class AtomicLogFile {
   // Idempotent. Throws std::runtime_error on I/O failure (the temporary file then stays until
   // destruction removes it).
   void Commit();
+  // Gives `tap` every byte of the file, in order, as the writer thread writes it: a digest of
+  // the output taken on the way (the SHA-256 the calibrator would otherwise read the file
+  // again for). Set it before the first Write(); it runs on the writer thread.
+  void SetTap(std::function<void(const char* data, size_t size)> tap);
+  // The committed file's status, taken after the rename; all zero (st_ino 0) before Commit(),
+  // when the name no longer held this file as written by then, or when the tap threw (it
+  // then saw only part of the file, and is called no more).
+  const struct stat& committed_stat() const { return committed_stat_; }
   bool committed() const { return committed_; }
   const std::string& temp_path() const { return tmp_path_; }
   // Removes the temporary files of `path` left by runs no longer alive; returns how many.
@@ -91,6 +102,9 @@ class AtomicLogFile {
   std::thread writer_;
   int64_t event_number_ = 0;
   bool committed_ = false;
+  std::function<void(const char*, size_t)> tap_;  // the writer thread's once writing began
+  bool tap_failed_ = false;
+  struct stat committed_stat_ {};
 };
 
 }  // namespace ftcal

@@ -536,6 +536,12 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
 
 void LogReplayBus::Commit() { out_->Commit(); }
 
+void LogReplayBus::TapOutput(std::function<void(const char* data, size_t size)> tap) {
+  out_->SetTap(std::move(tap));
+}
+
+const struct stat& LogReplayBus::output_stat() const { return out_->committed_stat(); }
+
 void LogReplayBus::ConsumeInput(std::function<void(const uint8_t* data, size_t size)> consume) {
   tap_ = std::make_unique<InputTap>();
   tap_->consume = std::move(consume);

@@ -14,6 +14,8 @@
 // message that does not pass or does not decode is counted as a drop.
 #pragma once
 
+#include <sys/stat.h>
+
 #include <array>
 #include <cstdint>
 #include <cstdio>
@@ -209,6 +211,10 @@ class LogReplayBus : public Bus {
   bool IsReplay() const override { return true; }
   // Makes the output visible under its final name. Throws std::runtime_error on I/O failure.
   void Commit();
+  // Gives `tap` every byte of the output as it is written (AtomicLogFile::SetTap); before Run().
+  void TapOutput(std::function<void(const char* data, size_t size)> tap);
+  // The output's status after Commit() (AtomicLogFile::committed_stat()).
+  const struct stat& output_stat() const;
   // True when Run() read the whole input.
   bool finished() const { return finished_; }
   // Hands `consume` every byte of the input, in order from the first, each once, as Run()

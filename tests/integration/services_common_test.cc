@@ -28,7 +28,9 @@
 #include "common/service.h"
 #include "common/shutdown.h"
 #include "common/user_errors.h"
+#include "common/written_digest.h"
 #include "ftcal/config.h"
+#include "ftcal/digest_cache.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "status/status_board.h"
@@ -187,6 +189,61 @@ TEST(AtomicLogFileTest, TemporaryFileBesideTheTargetAndLeftoversOfDeadRunsRemove
     ADD_FAILURE() << "a directory as the output was accepted";
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("is a directory"), std::string::npos) << e.what();
+  }
+  testing::RemoveTree(dir);
+}
+
+// A writer's digest: the tap sees every byte of the committed file, in order (its SHA-256 is
+// the file's), the status after Commit() is the file's under its final name, and the digest
+// handed to the cache is what a reader then finds there. A tap set late, or one that fails,
+// hands nothing over.
+TEST(AtomicLogFileTest, ATapSeesEveryByteAndTheDigestIsHandedToTheCache) {
+  const std::string dir = testing::MakeTempDir();
+  const std::string out = dir + "/out.lcmlog";
+  const DigestCache cache(dir + "/cache");
+  const std::string cache_dir = dir + "/cache";
+  const char* suite_cache = std::getenv("FTCAL_CACHE_DIR");
+  const std::string restore = suite_cache != nullptr ? suite_cache : "";
+  ::setenv("FTCAL_CACHE_DIR", cache_dir.c_str(), 1);
+  std::string payload(3000, '\0');
+  for (size_t i = 0; i < payload.size(); ++i) payload[i] = static_cast<char>(i * 7);
+  {
+    AtomicLogFile log(out, "test output");
+    WrittenDigest digest;
+    digest.Tap(&log);
+    // Over 1 MiB, so that the writer thread hands over several buffers.
+    for (int i = 0; i < 1000; ++i)
+      log.Write(i, i % 2 ? "FT_LF" : "SERVO_STATE", payload.data(), 1 + (i * 37) % 3000);
+    EXPECT_THROW(log.SetTap([](const char*, size_t) {}), std::logic_error);
+    EXPECT_EQ(log.committed_stat().st_ino, 0u) << "a status before Commit()";
+    log.Commit();
+    struct stat st {};
+    ASSERT_EQ(::stat(out.c_str(), &st), 0);
+    EXPECT_EQ(log.committed_stat().st_ino, st.st_ino);
+    EXPECT_EQ(log.committed_stat().st_size, st.st_size);
+    EXPECT_GT(st.st_size, 1 << 20);
+    const std::string hex = digest.HandOver(out, log.committed_stat());
+    EXPECT_EQ(hex, Sha256File(out));
+    EXPECT_EQ(cache.Lookup(out), std::optional<std::string>(Sha256File(out)));
+  }
+  // A tap that throws has not seen every byte: no status, nothing handed over; the log is
+  // still written.
+  const std::string out2 = dir + "/out2.lcmlog";
+  {
+    AtomicLogFile log(out2, "test output");
+    log.SetTap([](const char*, size_t) { throw std::runtime_error("digest failed"); });
+    log.Write(1, "CH", "abc", 3);
+    log.Commit();
+    EXPECT_EQ(log.committed_stat().st_ino, 0u);
+    WrittenDigest digest;
+    EXPECT_EQ(digest.HandOver(out2, log.committed_stat()), "");
+    EXPECT_FALSE(cache.Lookup(out2));
+    EXPECT_TRUE(Exists(out2));
+  }
+  if (suite_cache != nullptr) {
+    ::setenv("FTCAL_CACHE_DIR", restore.c_str(), 1);
+  } else {
+    ::unsetenv("FTCAL_CACHE_DIR");
   }
   testing::RemoveTree(dir);
 }

@@ -91,6 +91,32 @@ TEST_F(DigestCacheTest, StoresNeitherAFileChangedWhileReadNorOneTooFreshToTrust)
   EXPECT_EQ(cache.Lookup(file_), std::nullopt);
 }
 
+// A writer's digest (StoreWritten) is stored at once, without the settling time a reader's
+// needs, but only while the file still has the key the writer took after its last change: not
+// once the file was written to again, nor once another file took its name.
+TEST_F(DigestCacheTest, AWritersDigestIsStoredAtOnceUnderTheKeyItsWriterTook) {
+  const DigestCache cache(dir_ + "/cache");
+  const std::string hex = Sha256File(file_);
+  EXPECT_FALSE(cache.Store(file_, *FileKeyOf(file_), hex)) << "a reader's store of a fresh file";
+  ASSERT_TRUE(cache.StoreWritten(file_, *FileKeyOf(file_), hex));
+  EXPECT_EQ(cache.Lookup(file_), hex);
+  EXPECT_FALSE(cache.StoreWritten(file_, *FileKeyOf(file_), "not a digest"));
+
+  const FileKey written = *FileKeyOf(file_);
+  NextTick();
+  Write("the bytes of a lot");  // same size, other bytes
+  EXPECT_FALSE(cache.StoreWritten(file_, written, hex)) << "the file changed since its writer";
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt);
+
+  const FileKey before = *FileKeyOf(file_);
+  const std::string other = dir_ + "/other.lcmlog";
+  std::ofstream(other, std::ios::binary) << "the bytes of a lot";
+  fs::rename(other, file_);
+  EXPECT_FALSE(cache.StoreWritten(file_, before, Sha256File(file_)))
+      << "another file renamed onto the name";
+  EXPECT_FALSE(DigestCache("").StoreWritten(file_, *FileKeyOf(file_), Sha256File(file_)));
+}
+
 TEST_F(DigestCacheTest, BrokenEntriesAndADisabledCacheMiss) {
   const DigestCache off("");
   EXPECT_FALSE(off.enabled());

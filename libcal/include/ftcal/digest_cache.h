@@ -10,6 +10,8 @@
 // The cache is a convenience: every failure to read or write it is a miss, never an error.
 #pragma once
 
+#include <sys/stat.h>
+
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -30,6 +32,9 @@ struct FileKey {
 
 // nullopt when `path` cannot be stat'ed or is not a regular file.
 std::optional<FileKey> FileKeyOf(const std::string& path);
+// The key of a status already taken (a writer's, after its last change); nullopt for a status
+// that is not a regular file's.
+std::optional<FileKey> FileKeyOf(const struct stat& st);
 
 class DigestCache {
  public:
@@ -46,12 +51,23 @@ class DigestCache {
   // Returns whether it stored.
   bool Store(const std::string& path, const FileKey& key_before, const std::string& sha256_hex,
              double settled_s = 2.0) const;
+  // Stores the digest a writer took of the bytes it wrote (ftcal-sim log, the segmenter's poses
+  // log, ftcal-record), when `path` still has `key_written`, the file's key after the writer's
+  // last change (its rename or final flush): the first calibration of a new log then reads it
+  // without hashing it. Unlike Store(), there is no waiting for the ctime to settle, because
+  // the writer knows the content under that key. What it cannot see is another process
+  // writing the same number of bytes into the file within the same clock tick (a few ms) as
+  // the writer's own last change; a write at any later moment changes the ctime, and the
+  // entry no longer holds.
+  bool StoreWritten(const std::string& path, const FileKey& key_written,
+                    const std::string& sha256_hex) const;
 
   bool enabled() const { return !dir_.empty(); }
   const std::string& dir() const { return dir_; }
 
  private:
   std::string EntryPath(const FileKey& key) const;
+  bool WriteEntry(const std::string& path, const FileKey& key, const std::string& hex) const;
   std::string dir_;
 };
 
