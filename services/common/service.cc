@@ -18,6 +18,7 @@
 #include "common/default_config.h"
 #include "common/exit_codes.h"
 #include "common/shutdown.h"
+#include "common/written_digest.h"
 #include "ftcal/config.h"
 
 namespace ftcal {
@@ -151,7 +152,14 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
 
   try {
     if (!replay_in_.empty()) {
-      bus_ = std::make_unique<LogReplayBus>(replay_in_, replay_out_, *stats_);
+      auto replay = std::make_unique<LogReplayBus>(replay_in_, replay_out_, *stats_);
+      if (spec_.digest_replay_output) {
+        output_digest_ = std::make_unique<WrittenDigest>();
+        replay->TapOutput([digest = output_digest_.get()](const char* data, size_t size) {
+          digest->Update(data, size);
+        });
+      }
+      bus_ = std::move(replay);
     } else {
       bus_ = std::make_unique<LcmBus>(lcm_url_, *stats_);
     }
@@ -306,6 +314,7 @@ int ServiceApp::Run() {
         replay->Commit();
         log_->info("replayed {} events from {} into {}", replay->events_read(), replay_in_,
                    replay_out_);
+        HandOverOutputDigest(*replay);
       } catch (const std::exception& e) {
         log_->critical("{}", UserText(e, "writing the replay's output"));
         rc = ExitCodeFor(e, kExitDeviceIo);
@@ -320,6 +329,12 @@ int ServiceApp::Run() {
   }
   stats_->LogSummary();
   return rc;
+}
+
+void ServiceApp::HandOverOutputDigest(const LogReplayBus& replay) {
+  if (!output_digest_) return;
+  const std::string hex = output_digest_->HandOver(replay_out_, replay.output_stat());
+  if (!hex.empty()) log_->info("{}: SHA-256 {} handed to the digest cache", replay_out_, hex);
 }
 
 void ServiceApp::OfferSchedulingFlags() {

@@ -37,6 +37,8 @@
 
 namespace ftcal {
 
+class WrittenDigest;
+
 // What a careful operator should hear about an LCM URL: a multicast ttl > 0 (traffic leaves
 // the host), a recv_buf_size above the kernel's limit `rmem_max` (the socket silently gets
 // less, and a recording loses bursts). Empty when there is nothing to say.
@@ -46,6 +48,9 @@ struct ServiceSpec {
   std::string name;         // e.g. "ftcal-status"; also the logger's and heartbeat's name
   std::string description;  // what the process reads and publishes, for --help
   bool replayable = false;  // a stage: offers --replay/--out
+  // The replay's output is a calibrator input (the segmenter's poses log): its SHA-256 is taken
+  // as it is written and handed to the digest cache, so the calibrator need not hash it.
+  bool digest_replay_output = false;
 };
 
 class ServiceApp {
@@ -122,6 +127,8 @@ class ServiceApp {
   void DeviceLoopStopped();
   void NotifyReady();
   void ApplySchedulingFlags();
+  // Stores the replay output's digest, taken as it was written, in the digest cache.
+  void HandOverOutputDigest(const LogReplayBus& replay);
   bool watchdog_ = false;  // systemd asked for WATCHDOG=1 (WatchdogSec=)
 
   ServiceSpec spec_;
@@ -140,6 +147,7 @@ class ServiceApp {
   std::unique_ptr<ServiceStats> stats_;
   config::Config config_;
   std::unique_ptr<Bus> bus_;
+  std::unique_ptr<WrittenDigest> output_digest_;  // spec_.digest_replay_output, when replaying
   int8_t state_;
   std::vector<Periodic> periodic_;
 };

@@ -15,7 +15,7 @@ int main(int argc, char** argv) {
        "pose (Savitzky-Golay force derivative below segmenter.max_force_rate_n_s for longer "
        "than min_steady_s; medians of its samples), with the session id and a running index. "
        "Channel names and parameters from the config.",
-       /*replayable=*/true});
+       /*replayable=*/true, /*digest_replay_output=*/true});
   if (auto rc = app.Init(argc, argv)) return *rc;
   try {
     ftcal::PoseSegmenterStage stage(app.config(), app.bus());

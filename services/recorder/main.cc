@@ -9,6 +9,8 @@
 // services/common's bus (a queue of kSubscriptionQueueCapacity), the events written with
 // lcm::LogFile; the file is the same format.
 #include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <filesystem>
@@ -19,6 +21,7 @@
 #include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
+#include "common/written_digest.h"
 
 namespace {
 
@@ -77,8 +80,11 @@ int main(int argc, char** argv) {
         "--lock-memory: mlockall refused (needs CAP_IPC_LOCK or root); recording anyway");
   }
 
-  int64_t events = 0, bytes = 0;
+  int64_t events = 0, bytes = 0, file_bytes = 0;
   bool failed = false;
+  // The recording's SHA-256, taken from the bytes as they are written: handed to the digest
+  // cache at the end, so that the first calibration of the recording need not hash it.
+  ftcal::WrittenDigest digest;
   app.bus().SubscribeRaw(".*", [&](const ftcal::MessageInfo& info, const void* data, int size) {
     if (failed) return;
     lcm::LogEvent e;
@@ -94,6 +100,22 @@ int main(int argc, char** argv) {
       ftcal::RequestShutdown();
       return;
     }
+    // The bytes lcm_eventlog_write_event() has just written: LCM's event header (sync word,
+    // event number = events written before, timestamp, channel and data lengths, big-endian),
+    // the channel, the data. The byte count is checked against the file at the end.
+    unsigned char head[28];
+    auto put = [&head](int at, uint64_t v, int n) {
+      for (int i = 0; i < n; ++i) head[at + i] = static_cast<unsigned char>(v >> (8 * (n - 1 - i)));
+    };
+    put(0, 0xEDA1DA01u, 4);
+    put(4, static_cast<uint64_t>(events), 8);
+    put(12, static_cast<uint64_t>(info.recv_utime), 8);
+    put(20, info.channel.size(), 4);
+    put(24, static_cast<uint64_t>(size), 4);
+    digest.Update(head, sizeof head);
+    digest.Update(info.channel.data(), info.channel.size());
+    digest.Update(data, static_cast<size_t>(size));
+    file_bytes += static_cast<int64_t>(sizeof head + info.channel.size()) + size;
     ++events;
     bytes += size;
   });
@@ -109,5 +131,14 @@ int main(int argc, char** argv) {
   const bool flushed = std::fflush(log.getFilePtr()) == 0;
   app.log().info("{}: {} events, {} bytes of payload", path, events, bytes);
   if (failed || !flushed) return ftcal::kExitDeviceIo;
+  struct stat written {};
+  if (::fstat(::fileno(log.getFilePtr()), &written) != 0) written = {};
+  if (written.st_size != file_bytes) {
+    // Bytes this process did not hash: the digest would be wrong, so it is not handed over.
+    app.log().warn("{}: {} bytes in the file, {} hashed; its SHA-256 is not cached", path,
+                   static_cast<long long>(written.st_size), static_cast<long long>(file_bytes));
+  } else if (const std::string hex = digest.HandOver(path, written); !hex.empty()) {
+    app.log().info("{}: SHA-256 {} handed to the digest cache", path, hex);
+  }
   return rc;
 }

@@ -51,6 +51,7 @@ int64_t SimLogCounts::Total() const {
 SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_path,
                            const SimLogOptions& options)
     : options_(options), log_(out_path, "sim log"), rng_(options.seed ^ 0x51D106ULL) {
+  digest_.Tap(&log_);
   if (config.robot().leg_size() != kNumLegs) {
     throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
                                 " legs expected, got " + std::to_string(config.robot().leg_size()));
@@ -240,7 +241,10 @@ void SimLogWriter::WriteMarker(int64_t utime, ExperimentPhase phase, bool start,
   ++counts_.markers;
 }
 
-void SimLogWriter::Commit() { log_.Commit(); }
+std::string SimLogWriter::Commit() {
+  log_.Commit();
+  return digest_.HandOver(log_.path(), log_.committed_stat());
+}
 
 double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLogWriter* writer) {
   if (plan.standing && plan.poses < 1) {

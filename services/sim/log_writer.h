@@ -34,6 +34,7 @@
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "common/atomic_log.h"
+#include "common/written_digest.h"
 #include "proto/config.pb.h"
 #include "sim/twin.h"
 
@@ -84,8 +85,10 @@ class SimLogWriter {
   double last_frame_t_s() const { return previous_t_s_; }
   const SimLogCounts& counts() const { return counts_; }
 
-  // fsync, close, rename onto the final name. Throws std::runtime_error on I/O failure.
-  void Commit();
+  // fsync, close, rename onto the final name, and the log's SHA-256 (taken as it was written)
+  // handed to the digest cache. Returns that digest when the cache took it, else "". Throws
+  // std::runtime_error on I/O failure.
+  std::string Commit();
 
  private:
   struct Pending {
@@ -100,6 +103,7 @@ class SimLogWriter {
 
   SimLogOptions options_;
   AtomicLogFile log_;
+  WrittenDigest digest_;
   std::mt19937_64 rng_;
 
   std::array<std::string, kNumLegs> ft_channel_;

@@ -576,7 +576,7 @@ int main(int argc, char** argv) {
     const double end_s = ftcal::WriteExperiment(twin, plan, &writer);
     twin.WriteTruthFile(truth_path);
     if (drift) twin.WriteTruthFile(drifted_truth_path, /*drifted=*/true);
-    writer.Commit();
+    const std::string digest = writer.Commit();
     const double wall_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
     const ftcal::SimLogCounts& c = writer.counts();
@@ -587,6 +587,9 @@ int main(int argc, char** argv) {
         static_cast<long long>(c.ft[0]), static_cast<long long>(c.servo),
         static_cast<long long>(c.mocap), static_cast<long long>(c.markers), wall_s,
         truth_path.c_str());
+    if (!digest.empty()) {
+      std::printf("ftcal-sim log: SHA-256 %s handed to the digest cache\n", digest.c_str());
+    }
     if (drift)
       std::printf("ftcal-sim log: offsets drift from %.1f s; drifted truth %s\n", plan.drift_at_s,
                   drifted_truth_path.c_str());

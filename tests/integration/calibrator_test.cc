@@ -412,6 +412,8 @@ TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber
 // says so) instead of hashing it again, and the provenance is the file's hash either way.
 TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   const std::string cache = fx->dir + "/digest-cache";
+  const char* suite_cache = std::getenv("FTCAL_CACHE_DIR");
+  const std::string restore = suite_cache != nullptr ? suite_cache : "";
   ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
   // The cache stores a log whose ctime is 2 s old (a write in the same clock tick as the hash
   // would not change its key): the fixture's log may be younger.
@@ -421,7 +423,11 @@ TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   const std::string first = fx->dir + "/cal-cache-1.pbtxt", second = fx->dir + "/cal-cache-2.pbtxt";
   const Result r1 = Run({"--log", fx->log, "--config", kConfig, "--out", first}, "cache1");
   const Result r2 = Run({"--log", fx->log, "--config", kConfig, "--out", second}, "cache2");
-  ::unsetenv("FTCAL_CACHE_DIR");
+  if (suite_cache != nullptr) {
+    ::setenv("FTCAL_CACHE_DIR", restore.c_str(), 1);
+  } else {
+    ::unsetenv("FTCAL_CACHE_DIR");
+  }
   ASSERT_EQ(r1.exit_code, 0) << r1.err;
   ASSERT_EQ(r2.exit_code, 0) << r2.err;
   EXPECT_EQ(r1.err.find("from the digest cache"), std::string::npos) << r1.err;
@@ -430,6 +436,45 @@ TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   const std::string sha = Sha256File(fx->log);
   EXPECT_EQ(ReadCalibrationFile(first).provenance().input(0).sha256(), sha);
   EXPECT_EQ(ReadCalibrationFile(second).provenance().input(0).sha256(), sha);
+}
+
+// A writer hands its log's digest over: the segmenter takes the poses log's SHA-256 as it
+// writes it, so the first calibration that reads the log takes the digest from the cache
+// (and says so), and the provenance is still the file's own hash. The session log, written
+// by this test and not by one of ftcal's writers, is hashed.
+TEST_F(CalibratorTest, TheFirstRunTakesThePosesLogsDigestFromTheSegmenterThatWroteIt) {
+  const std::string cache = fx->dir + "/writer-cache";
+  const char* suite_cache = std::getenv("FTCAL_CACHE_DIR");
+  const std::string restore = suite_cache != nullptr ? suite_cache : "";
+  ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
+  const std::string poses = fx->dir + "/poses-handed.lcmlog";
+  Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", poses},
+            fx->dir + "/seg-handed.out", fx->dir + "/seg-handed.err");
+  const auto status = seg.Wait(120);
+  const std::string out = fx->dir + "/cal-handed.pbtxt";
+  const Result r =
+      Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out", out}, "handed");
+  if (suite_cache != nullptr) {
+    ::setenv("FTCAL_CACHE_DIR", restore.c_str(), 1);
+  } else {
+    ::unsetenv("FTCAL_CACHE_DIR");
+  }
+  ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+      << ReadFile(fx->dir + "/seg-handed.err");
+  const std::string poses_sha = Sha256File(poses);
+  const std::string seg_log =
+      ReadFile(fx->dir + "/seg-handed.err") + ReadFile(fx->dir + "/seg-handed.out");
+  EXPECT_NE(seg_log.find("SHA-256 " + poses_sha + " handed to the digest cache"), std::string::npos)
+      << seg_log;
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(r.err.find(poses + ": SHA-256 from the digest cache in " + cache), std::string::npos)
+      << r.err;
+  EXPECT_EQ(r.err.find(fx->log + ": SHA-256 from the digest cache"), std::string::npos) << r.err;
+  const auto cal = ReadCalibrationFile(out);
+  ASSERT_EQ(cal.provenance().input_size(), 2);
+  for (const auto& input : cal.provenance().input()) {
+    EXPECT_EQ(input.sha256(), Sha256File(input.path())) << input.path();
+  }
 }
 
 // The walk follows the STANDING phase. Over a span not segmented again the transducer records

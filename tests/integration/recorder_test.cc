@@ -7,6 +7,7 @@
 
 #include <cstdlib>
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -15,6 +16,8 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "ftcal/config.h"
+#include "ftcal/digest_cache.h"
 #include "test_helpers.h"
 
 namespace ftcal {
@@ -46,6 +49,9 @@ TEST(Recorder, ABurstIsRecordedWholeInOrderAndNothingIsOverwritten) {
   ASSERT_TRUE(testing::InNetns());
   const std::string dir = testing::MakeTempDir();
   const std::string out = dir + "/session.lcmlog";
+  // The recording's digest, taken as it is written, goes to this cache (the programs inherit it).
+  const std::string cache = dir + "/cache";
+  ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
   auto recorder = StartRecorder(dir, {out}, "first");
   SleepS(1.0);  // subscribed
   // 2000 x 100 bytes: within the namespace's 4 MB socket buffer, so the kernel keeps them all
@@ -76,6 +82,15 @@ TEST(Recorder, ABurstIsRecordedWholeInOrderAndNothingIsOverwritten) {
     ++n;
   }
   EXPECT_EQ(n, kBurst) << "records lost or doubled";
+
+  // The digest handed to the cache is the file's: what the first calibration will take as its
+  // provenance instead of hashing the recording.
+  const std::string sha = Sha256File(out);
+  EXPECT_NE(
+      testing::ReadFile(dir + "/first.err").find("SHA-256 " + sha + " handed to the digest cache"),
+      std::string::npos)
+      << testing::ReadFile(dir + "/first.err");
+  EXPECT_EQ(DigestCache(cache).Lookup(out), std::optional<std::string>(sha));
 
   // The same OUT again: refused, exit 2, the recording untouched; --increment: OUT.00, OUT.01.
   const auto size = std::filesystem::file_size(out);

@@ -2,7 +2,7 @@
 if(TARGET ftcal-record)
   add_executable(recorder_test "${CMAKE_CURRENT_LIST_DIR}/recorder_test.cc")
   target_link_libraries(recorder_test PRIVATE
-    ftcal_lcmtypes ftcal_child_process GTest::gtest GTest::gtest_main Threads::Threads lcm::lcm)
+    ftcal_lcmtypes ftcal_child_process libcal GTest::gtest GTest::gtest_main Threads::Threads lcm::lcm)
   target_compile_definitions(recorder_test PRIVATE
     FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
     FTCAL_RECORD="$<TARGET_FILE:ftcal-record>")

@@ -19,6 +19,7 @@
 
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
+#include "ftcal/digest_cache.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/geometry.h"
@@ -159,7 +160,7 @@ class SimLogTest : public ::testing::Test {
     lo.session_id = "sim-log-test";
     SimLogWriter writer(*config_, *dir_ + "/a.lcmlog", lo);
     end_s_ = WriteExperiment(*twin_, Plan(), &writer);
-    writer.Commit();
+    handed_ = new std::string(writer.Commit());
     counts_ = writer.counts();
     log_ = new Decoded(ReadLog(*dir_ + "/a.lcmlog"));
     expected_ = new Expected(MakeExpected(*twin_, Plan()));
@@ -171,6 +172,7 @@ class SimLogTest : public ::testing::Test {
     delete twin_;
     delete config_;
     delete dir_;
+    delete handed_;
   }
   static int64_t Utime(double t_s) { return kSimLogT0Utime + std::llround(t_s * 1e6); }
 
@@ -181,7 +183,9 @@ class SimLogTest : public ::testing::Test {
   static Expected* expected_;
   static SimLogCounts counts_;
   static double end_s_;
+  static std::string* handed_;  // the digest Commit() handed to the digest cache
 };
+std::string* SimLogTest::handed_ = nullptr;
 std::string* SimLogTest::dir_ = nullptr;
 config::Config* SimLogTest::config_ = nullptr;
 BigAntTwin* SimLogTest::twin_ = nullptr;
@@ -198,6 +202,16 @@ TEST_F(SimLogTest, EveryEventDecodesAndTimeNeverGoesBack) {
         << "event " << i << " on " << log_->channel[i];
   }
   EXPECT_EQ(static_cast<int64_t>(log_->timestamp.size()), counts_.Total());
+}
+
+// The log's SHA-256, taken as it was written, is the file's, and is in the digest cache (the
+// suite's, FTCAL_CACHE_DIR) for the calibrator's first run.
+TEST_F(SimLogTest, TheDigestHandedToTheCacheIsTheFiles) {
+  const DigestCache cache = DigestCache::FromEnvironment();
+  if (!cache.enabled()) GTEST_SKIP() << "FTCAL_CACHE_DIR set empty: no digest cache";
+  const std::string path = *dir_ + "/a.lcmlog";
+  EXPECT_EQ(*handed_, Sha256File(path));
+  EXPECT_EQ(cache.Lookup(path), std::optional<std::string>(Sha256File(path)));
 }
 
 TEST_F(SimLogTest, OneEventPerDevicePerFrame) {
