@@ -108,7 +108,47 @@ bool DigestCache::WriteEntry(const std::string& path, const FileKey& key,
   } catch (const std::exception&) {
     return false;  // a read-only home, a full disk: the next run hashes again
   }
+  PruneWhenDue();
   return true;
+}
+
+void DigestCache::PruneWhenDue() const {
+  // The stamp's mtime is when the cache was last pruned.
+  const std::string stamp = dir_ + "/sha256.pruned";
+  struct stat st {};
+  timespec now{};
+  ::clock_gettime(CLOCK_REALTIME, &now);
+  if (::stat(stamp.c_str(), &st) == 0 &&
+      static_cast<double>(Nanoseconds(now) - Nanoseconds(st.st_mtim)) < kPruneEveryS * 1e9) {
+    return;
+  }
+  std::ofstream(stamp, std::ios::trunc) << "last pruned\n";
+  Prune();
+}
+
+int DigestCache::Prune() const {
+  if (!enabled()) return 0;
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  int removed = 0;
+  for (const fs::directory_entry& e : fs::directory_iterator(dir_ + "/sha256", ec)) {
+    const std::string name = e.path().filename().string();
+    if (name.empty() || name[0] == '.') continue;  // the stamp, a writer's temporary file
+    std::ifstream in(e.path());
+    std::string tag, hex, path;
+    FileKey stored;
+    const bool parsed =
+        static_cast<bool>(in >> tag >> stored.size >> stored.mtime_ns >> stored.ctime_ns >> hex) &&
+        static_cast<bool>(in >> std::ws) && static_cast<bool>(std::getline(in, path));
+    bool holds = false;
+    if (parsed && tag == kEntryTag) {
+      const std::optional<FileKey> key = FileKeyOf(path);
+      holds = key && fs::path(EntryPath(*key)).filename() == name && key->size == stored.size &&
+              key->mtime_ns == stored.mtime_ns && key->ctime_ns == stored.ctime_ns;
+    }
+    if (!holds && fs::remove(e.path(), ec)) ++removed;
+  }
+  return removed;
 }
 
 }  // namespace ftcal

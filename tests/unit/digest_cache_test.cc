@@ -117,6 +117,47 @@ TEST_F(DigestCacheTest, AWritersDigestIsStoredAtOnceUnderTheKeyItsWriterTook) {
   EXPECT_FALSE(DigestCache("").StoreWritten(file_, *FileKeyOf(file_), Sha256File(file_)));
 }
 
+// Pruning removes exactly the entries that can never hold again: a removed file's, a changed
+// file's; the entry of a file unchanged stays and still hits. A store prunes when the last
+// pruning is a day old, and not again the same day.
+TEST_F(DigestCacheTest, PruningRemovesTheEntriesOfFilesGoneOrChanged) {
+  const DigestCache cache(dir_ + "/cache");
+  const std::string gone = dir_ + "/gone.lcmlog", changed = dir_ + "/changed.lcmlog";
+  std::ofstream(gone) << "a log removed later";
+  std::ofstream(changed) << "a log changed later";
+  for (const std::string& f : {file_, gone, changed}) {
+    ASSERT_TRUE(cache.StoreWritten(f, *FileKeyOf(f), Sha256File(f))) << f;
+  }
+  auto entries = [&] {
+    int n = 0;
+    for (const auto& e : fs::directory_iterator(dir_ + "/cache/sha256")) {
+      if (e.path().filename().string()[0] != '.') ++n;
+    }
+    return n;
+  };
+  ASSERT_EQ(entries(), 3);
+  fs::remove(gone);
+  NextTick();
+  std::ofstream(changed, std::ios::app) << ", appended";
+  std::ofstream(dir_ + "/cache/sha256/1-2") << "not an entry\n";
+  EXPECT_EQ(cache.Prune(), 3);
+  EXPECT_EQ(entries(), 1);
+  EXPECT_EQ(cache.Lookup(file_), Sha256File(file_));
+  EXPECT_EQ(cache.Prune(), 0);
+
+  // Due: the stamp is older than a day (set back), so the next store prunes.
+  const std::string stamp = dir_ + "/cache/sha256.pruned";
+  ASSERT_TRUE(fs::exists(stamp)) << "the first store did not prune";
+  std::ofstream(dir_ + "/cache/sha256/3-4") << "not an entry either\n";
+  std::ofstream(changed, std::ios::app) << " again";
+  ASSERT_TRUE(cache.StoreWritten(changed, *FileKeyOf(changed), Sha256File(changed)));
+  EXPECT_TRUE(fs::exists(dir_ + "/cache/sha256/3-4")) << "pruned twice the same day";
+  fs::last_write_time(stamp, fs::file_time_type::clock::now() - std::chrono::hours(25));
+  ASSERT_TRUE(cache.StoreWritten(changed, *FileKeyOf(changed), Sha256File(changed)));
+  EXPECT_FALSE(fs::exists(dir_ + "/cache/sha256/3-4")) << "a day-old stamp, and no pruning";
+  EXPECT_EQ(entries(), 2);
+}
+
 TEST_F(DigestCacheTest, BrokenEntriesAndADisabledCacheMiss) {
   const DigestCache off("");
   EXPECT_FALSE(off.enabled());

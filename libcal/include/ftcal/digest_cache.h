@@ -62,12 +62,20 @@ class DigestCache {
   bool StoreWritten(const std::string& path, const FileKey& key_written,
                     const std::string& sha256_hex) const;
 
+  // Removes the entries that can never hold again: their file is gone, or is no longer the
+  // one they were stored under (any change moves the ctime on, and it never comes back).
+  // Returns how many it removed. Storing runs it at most once a day (kPruneEveryS), so the
+  // cache stays about as large as the set of logs that still exist.
+  int Prune() const;
+  static constexpr double kPruneEveryS = 24 * 3600.0;
+
   bool enabled() const { return !dir_.empty(); }
   const std::string& dir() const { return dir_; }
 
  private:
   std::string EntryPath(const FileKey& key) const;
   bool WriteEntry(const std::string& path, const FileKey& key, const std::string& hex) const;
+  void PruneWhenDue() const;
   std::string dir_;
 };
 
