@@ -412,9 +412,7 @@ TEST_F(CalibratorTest, APosesLogReadFirstSparesSegmentingAgainAndChangesNoNumber
 // says so) instead of hashing it again, and the provenance is the file's hash either way.
 TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   const std::string cache = fx->dir + "/digest-cache";
-  const char* suite_cache = std::getenv("FTCAL_CACHE_DIR");
-  const std::string restore = suite_cache != nullptr ? suite_cache : "";
-  ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
+  std::optional<testing::ScopedEnv> cache_env(std::in_place, "FTCAL_CACHE_DIR", cache);
   // The cache stores a log whose ctime is 2 s old (a write in the same clock tick as the hash
   // would not change its key): the fixture's log may be younger.
   struct stat st {};
@@ -423,11 +421,7 @@ TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   const std::string first = fx->dir + "/cal-cache-1.pbtxt", second = fx->dir + "/cal-cache-2.pbtxt";
   const Result r1 = Run({"--log", fx->log, "--config", kConfig, "--out", first}, "cache1");
   const Result r2 = Run({"--log", fx->log, "--config", kConfig, "--out", second}, "cache2");
-  if (suite_cache != nullptr) {
-    ::setenv("FTCAL_CACHE_DIR", restore.c_str(), 1);
-  } else {
-    ::unsetenv("FTCAL_CACHE_DIR");
-  }
+  cache_env.reset();
   ASSERT_EQ(r1.exit_code, 0) << r1.err;
   ASSERT_EQ(r2.exit_code, 0) << r2.err;
   EXPECT_EQ(r1.err.find("from the digest cache"), std::string::npos) << r1.err;
@@ -444,9 +438,7 @@ TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
 // by this test and not by one of ftcal's writers, is hashed.
 TEST_F(CalibratorTest, TheFirstRunTakesThePosesLogsDigestFromTheSegmenterThatWroteIt) {
   const std::string cache = fx->dir + "/writer-cache";
-  const char* suite_cache = std::getenv("FTCAL_CACHE_DIR");
-  const std::string restore = suite_cache != nullptr ? suite_cache : "";
-  ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
+  std::optional<testing::ScopedEnv> cache_env(std::in_place, "FTCAL_CACHE_DIR", cache);
   const std::string poses = fx->dir + "/poses-handed.lcmlog";
   Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", poses},
             fx->dir + "/seg-handed.out", fx->dir + "/seg-handed.err");
@@ -454,11 +446,7 @@ TEST_F(CalibratorTest, TheFirstRunTakesThePosesLogsDigestFromTheSegmenterThatWro
   const std::string out = fx->dir + "/cal-handed.pbtxt";
   const Result r =
       Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out", out}, "handed");
-  if (suite_cache != nullptr) {
-    ::setenv("FTCAL_CACHE_DIR", restore.c_str(), 1);
-  } else {
-    ::unsetenv("FTCAL_CACHE_DIR");
-  }
+  cache_env.reset();
   ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
       << ReadFile(fx->dir + "/seg-handed.err");
   const std::string poses_sha = Sha256File(poses);

@@ -40,4 +40,18 @@ std::string DescribeWaitStatus(int status);
 // Sleeps for `s` seconds (a test's waits for processes it started).
 void SleepS(double s);
 
+// Sets an environment variable (which the children started meanwhile inherit) and puts back
+// what it was, or unsets it, when it goes: e.g. FTCAL_CACHE_DIR, which the suite sets.
+class ScopedEnv {
+ public:
+  ScopedEnv(const char* name, const std::string& value);
+  ~ScopedEnv();
+  ScopedEnv(const ScopedEnv&) = delete;
+  ScopedEnv& operator=(const ScopedEnv&) = delete;
+
+ private:
+  std::string name_;
+  std::optional<std::string> before_;
+};
+
 }  // namespace ftcal::testing

@@ -51,7 +51,7 @@ TEST(Recorder, ABurstIsRecordedWholeInOrderAndNothingIsOverwritten) {
   const std::string out = dir + "/session.lcmlog";
   // The recording's digest, taken as it is written, goes to this cache (the programs inherit it).
   const std::string cache = dir + "/cache";
-  ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);
+  const testing::ScopedEnv cache_env("FTCAL_CACHE_DIR", cache);
   auto recorder = StartRecorder(dir, {out}, "first");
   SleepS(1.0);  // subscribed
   // 2000 x 100 bytes: within the namespace's 4 MB socket buffer, so the kernel keeps them all

@@ -201,10 +201,7 @@ TEST(AtomicLogFileTest, ATapSeesEveryByteAndTheDigestIsHandedToTheCache) {
   const std::string dir = testing::MakeTempDir();
   const std::string out = dir + "/out.lcmlog";
   const DigestCache cache(dir + "/cache");
-  const std::string cache_dir = dir + "/cache";
-  const char* suite_cache = std::getenv("FTCAL_CACHE_DIR");
-  const std::string restore = suite_cache != nullptr ? suite_cache : "";
-  ::setenv("FTCAL_CACHE_DIR", cache_dir.c_str(), 1);
+  const testing::ScopedEnv cache_env("FTCAL_CACHE_DIR", dir + "/cache");
   std::string payload(3000, '\0');
   for (size_t i = 0; i < payload.size(); ++i) payload[i] = static_cast<char>(i * 7);
   {
@@ -239,11 +236,6 @@ TEST(AtomicLogFileTest, ATapSeesEveryByteAndTheDigestIsHandedToTheCache) {
     EXPECT_EQ(digest.HandOver(out2, log.committed_stat()), "");
     EXPECT_FALSE(cache.Lookup(out2));
     EXPECT_TRUE(Exists(out2));
-  }
-  if (suite_cache != nullptr) {
-    ::setenv("FTCAL_CACHE_DIR", restore.c_str(), 1);
-  } else {
-    ::unsetenv("FTCAL_CACHE_DIR");
   }
   testing::RemoveTree(dir);
 }
