@@ -29,6 +29,28 @@ int64_t Nanoseconds(const timespec& t) {
   return static_cast<int64_t>(t.tv_sec) * 1'000'000'000 + static_cast<int64_t>(t.tv_nsec);
 }
 
+// One entry file: "<tag> <size> <mtime_ns> <ctime_ns> <sha256 hex>", then the file's path. The
+// device and inode are the entry's name.
+struct Entry {
+  int64_t size = 0, mtime_ns = 0, ctime_ns = 0;
+  std::string hex, path;
+  bool Holds(const FileKey& key) const {
+    return size == key.size && mtime_ns == key.mtime_ns && ctime_ns == key.ctime_ns;
+  }
+};
+
+// nullopt for a file that is not a whole entry of this version.
+std::optional<Entry> ReadEntry(const std::string& file) {
+  std::ifstream in(file);
+  std::string tag;
+  Entry e;
+  if (!(in >> tag >> e.size >> e.mtime_ns >> e.ctime_ns >> e.hex) || tag != kEntryTag ||
+      !IsSha256Hex(e.hex) || !(in >> std::ws) || !std::getline(in, e.path)) {
+    return std::nullopt;
+  }
+  return e;
+}
+
 }  // namespace
 
 std::optional<FileKey> FileKeyOf(const std::string& path) {
@@ -65,25 +87,18 @@ std::optional<std::string> DigestCache::Lookup(const std::string& path) const {
   if (!enabled()) return std::nullopt;
   const std::optional<FileKey> key = FileKeyOf(path);
   if (!key) return std::nullopt;
-  std::ifstream in(EntryPath(*key));
-  std::string tag, hex;
-  FileKey stored = *key;
-  if (!(in >> tag >> stored.size >> stored.mtime_ns >> stored.ctime_ns >> hex)) {
-    return std::nullopt;
-  }
-  if (tag != kEntryTag || !(stored == *key) || !IsSha256Hex(hex)) return std::nullopt;
-  return hex;
+  const std::optional<Entry> entry = ReadEntry(EntryPath(*key));
+  if (!entry || !entry->Holds(*key)) return std::nullopt;
+  return entry->hex;
 }
 
 bool DigestCache::Store(const std::string& path, const FileKey& key_before,
                         const std::string& sha256_hex, double settled_s) const {
-  if (!enabled() || !IsSha256Hex(sha256_hex)) return false;
-  const std::optional<FileKey> key = FileKeyOf(path);
-  if (!key || !(*key == key_before)) return false;  // changed while it was read
   timespec now{};
   ::clock_gettime(CLOCK_REALTIME, &now);
-  if (static_cast<double>(Nanoseconds(now) - key->ctime_ns) < settled_s * 1e9) return false;
-  return WriteEntry(path, *key, sha256_hex);
+  if (static_cast<double>(Nanoseconds(now) - key_before.ctime_ns) < settled_s * 1e9) return false;
+  // Settled, and StoreWritten() checks that the file still has the key it was hashed under.
+  return StoreWritten(path, key_before, sha256_hex);
 }
 
 bool DigestCache::StoreWritten(const std::string& path, const FileKey& key_written,
@@ -91,20 +106,15 @@ bool DigestCache::StoreWritten(const std::string& path, const FileKey& key_writt
   if (!enabled() || !IsSha256Hex(sha256_hex)) return false;
   const std::optional<FileKey> key = FileKeyOf(path);
   if (!key || !(*key == key_written)) return false;  // changed, or replaced, since
-  return WriteEntry(path, *key, sha256_hex);
-}
-
-bool DigestCache::WriteEntry(const std::string& path, const FileKey& key,
-                             const std::string& hex) const {
   std::error_code ec;
   std::filesystem::create_directories(dir_ + "/sha256", ec);
   if (ec) return false;
   std::ostringstream entry;
-  entry << kEntryTag << ' ' << key.size << ' ' << key.mtime_ns << ' ' << key.ctime_ns << ' ' << hex
-        << '\n'
+  entry << kEntryTag << ' ' << key->size << ' ' << key->mtime_ns << ' ' << key->ctime_ns << ' '
+        << sha256_hex << '\n'
         << std::filesystem::absolute(path, ec).string() << '\n';
   try {
-    WriteFileAtomic(EntryPath(key), entry.str());
+    WriteFileAtomic(EntryPath(*key), entry.str());
   } catch (const std::exception&) {
     return false;  // a read-only home, a full disk: the next run hashes again
   }
@@ -133,19 +143,10 @@ int DigestCache::Prune() const {
   int removed = 0;
   for (const fs::directory_entry& e : fs::directory_iterator(dir_ + "/sha256", ec)) {
     const std::string name = e.path().filename().string();
-    if (name.empty() || name[0] == '.') continue;  // the stamp, a writer's temporary file
-    std::ifstream in(e.path());
-    std::string tag, hex, path;
-    FileKey stored;
-    const bool parsed =
-        static_cast<bool>(in >> tag >> stored.size >> stored.mtime_ns >> stored.ctime_ns >> hex) &&
-        static_cast<bool>(in >> std::ws) && static_cast<bool>(std::getline(in, path));
-    bool holds = false;
-    if (parsed && tag == kEntryTag) {
-      const std::optional<FileKey> key = FileKeyOf(path);
-      holds = key && fs::path(EntryPath(*key)).filename() == name && key->size == stored.size &&
-              key->mtime_ns == stored.mtime_ns && key->ctime_ns == stored.ctime_ns;
-    }
+    if (name.empty() || name[0] == '.') continue;  // a writer's temporary file
+    const std::optional<Entry> entry = ReadEntry(e.path().string());
+    const std::optional<FileKey> key = entry ? FileKeyOf(entry->path) : std::nullopt;
+    const bool holds = key && fs::path(EntryPath(*key)).filename() == name && entry->Holds(*key);
     if (!holds && fs::remove(e.path(), ec)) ++removed;
   }
   return removed;

@@ -193,27 +193,15 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
                                 "' with a channel of " + std::to_string(channel.size()) +
                                 " bytes or " + std::to_string(size) + " data bytes");
   }
-  const size_t head_bytes = 28 + channel.size();
+  const size_t head_bytes = kLcmEventHeaderBytes + channel.size();
   const size_t at = fill_bytes_;
   const size_t end = at + head_bytes + static_cast<size_t>(size);
   if (fill_.size() < end) fill_.resize(end);  // an event larger than the slack
   fill_bytes_ = end;
   char* head = fill_.data() + at;
-  // Big-endian, one store per field (a byte loop here was a twentieth of a replay's time).
-  auto put32 = [head](int offset, uint32_t v) {
-    v = __builtin_bswap32(v);
-    std::memcpy(head + offset, &v, 4);
-  };
-  auto put64 = [head](int offset, uint64_t v) {
-    v = __builtin_bswap64(v);
-    std::memcpy(head + offset, &v, 8);
-  };
-  put32(0, 0xEDA1DA01u);
-  put64(4, static_cast<uint64_t>(event_number_));
-  put64(12, static_cast<uint64_t>(utime));
-  put32(20, static_cast<uint32_t>(channel.size()));
-  put32(24, static_cast<uint32_t>(size));
-  std::memcpy(head + 28, channel.data(), channel.size());
+  EncodeLcmEventHeader(head, event_number_, utime, static_cast<uint32_t>(channel.size()),
+                       static_cast<uint32_t>(size));
+  std::memcpy(head + kLcmEventHeaderBytes, channel.data(), channel.size());
   if (size > 0) std::memcpy(head + head_bytes, data, static_cast<size_t>(size));
   ++event_number_;
   if (fill_bytes_ >= kBufferBytes) HandOff();

@@ -21,6 +21,7 @@
 
 #include <condition_variable>
 #include <cstdint>
+#include <cstring>
 #include <deque>
 #include <functional>
 #include <mutex>
@@ -29,6 +30,27 @@
 #include <vector>
 
 namespace ftcal {
+
+// LCM's event-log header, as lcm_eventlog_write_event() writes it: sync word, event number,
+// timestamp, channel length, data length, all big-endian; the channel and the data follow.
+// One store per field (a byte loop here was a twentieth of a replay's time).
+constexpr size_t kLcmEventHeaderBytes = 28;
+inline void EncodeLcmEventHeader(char* head, int64_t event_number, int64_t utime,
+                                 uint32_t channel_bytes, uint32_t data_bytes) {
+  auto put32 = [head](int offset, uint32_t v) {
+    v = __builtin_bswap32(v);
+    std::memcpy(head + offset, &v, 4);
+  };
+  auto put64 = [head](int offset, uint64_t v) {
+    v = __builtin_bswap64(v);
+    std::memcpy(head + offset, &v, 8);
+  };
+  put32(0, 0xEDA1DA01u);
+  put64(4, static_cast<uint64_t>(event_number));
+  put64(12, static_cast<uint64_t>(utime));
+  put32(20, channel_bytes);
+  put32(24, data_bytes);
+}
 
 class AtomicLogFile {
  public:

@@ -155,9 +155,7 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
       auto replay = std::make_unique<LogReplayBus>(replay_in_, replay_out_, *stats_);
       if (spec_.digest_replay_output) {
         output_digest_ = std::make_unique<WrittenDigest>();
-        replay->TapOutput([digest = output_digest_.get()](const char* data, size_t size) {
-          digest->Update(data, size);
-        });
+        replay->TapOutput(output_digest_->Tap());
       }
       bus_ = std::move(replay);
     } else {

@@ -2,7 +2,6 @@
 
 #include <optional>
 
-#include "common/atomic_log.h"
 #include "ftcal/config.h"
 #include "ftcal/digest_cache.h"
 
@@ -14,9 +13,9 @@ WrittenDigest::WrittenDigest() {
 }
 WrittenDigest::~WrittenDigest() = default;
 
-void WrittenDigest::Tap(AtomicLogFile* log) {
-  if (!sha_) return;
-  log->SetTap([sha = sha_.get()](const char* data, size_t size) { sha->Update(data, size); });
+std::function<void(const char* data, size_t size)> WrittenDigest::Tap() {
+  if (!sha_) return {};
+  return [sha = sha_.get()](const char* data, size_t size) { sha->Update(data, size); };
 }
 
 void WrittenDigest::Update(const void* data, size_t size) {

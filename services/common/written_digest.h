@@ -8,12 +8,12 @@
 #include <sys/stat.h>
 
 #include <cstddef>
+#include <functional>
 #include <memory>
 #include <string>
 
 namespace ftcal {
 
-class AtomicLogFile;
 class Sha256;
 
 class WrittenDigest {
@@ -24,8 +24,9 @@ class WrittenDigest {
   WrittenDigest(const WrittenDigest&) = delete;
   WrittenDigest& operator=(const WrittenDigest&) = delete;
 
-  // Hashes every byte `log` writes, on its writer thread; before its first event.
-  void Tap(AtomicLogFile* log);
+  // The tap for an AtomicLogFile (SetTap) or a replay's output (LogReplayBus::TapOutput): it
+  // hashes every byte written, on the writer thread. Empty when the cache is off.
+  std::function<void(const char* data, size_t size)> Tap();
   // For a writer that writes the bytes itself: every byte of the file, in order.
   void Update(const void* data, size_t size);
   // Ends the digest and stores it for `path` when the file still has `written`, its status

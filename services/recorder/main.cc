@@ -18,6 +18,7 @@
 
 #include <lcm/lcm-cpp.hpp>
 
+#include "common/atomic_log.h"
 #include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
@@ -100,18 +101,12 @@ int main(int argc, char** argv) {
       ftcal::RequestShutdown();
       return;
     }
-    // The bytes lcm_eventlog_write_event() has just written: LCM's event header (sync word,
-    // event number = events written before, timestamp, channel and data lengths, big-endian),
-    // the channel, the data. The byte count is checked against the file at the end.
-    unsigned char head[28];
-    auto put = [&head](int at, uint64_t v, int n) {
-      for (int i = 0; i < n; ++i) head[at + i] = static_cast<unsigned char>(v >> (8 * (n - 1 - i)));
-    };
-    put(0, 0xEDA1DA01u, 4);
-    put(4, static_cast<uint64_t>(events), 8);
-    put(12, static_cast<uint64_t>(info.recv_utime), 8);
-    put(20, info.channel.size(), 4);
-    put(24, static_cast<uint64_t>(size), 4);
+    // The bytes lcm_eventlog_write_event() has just written (its event number is the count of
+    // events before); the byte count is checked against the file at the end.
+    char head[ftcal::kLcmEventHeaderBytes];
+    ftcal::EncodeLcmEventHeader(head, events, info.recv_utime,
+                                static_cast<uint32_t>(info.channel.size()),
+                                static_cast<uint32_t>(size));
     digest.Update(head, sizeof head);
     digest.Update(info.channel.data(), info.channel.size());
     digest.Update(data, static_cast<size_t>(size));

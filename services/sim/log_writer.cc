@@ -51,7 +51,7 @@ int64_t SimLogCounts::Total() const {
 SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_path,
                            const SimLogOptions& options)
     : options_(options), log_(out_path, "sim log"), rng_(options.seed ^ 0x51D106ULL) {
-  digest_.Tap(&log_);
+  log_.SetTap(digest_.Tap());
   if (config.robot().leg_size() != kNumLegs) {
     throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
                                 " legs expected, got " + std::to_string(config.robot().leg_size()));

@@ -207,7 +207,7 @@ TEST(AtomicLogFileTest, ATapSeesEveryByteAndTheDigestIsHandedToTheCache) {
   {
     AtomicLogFile log(out, "test output");
     WrittenDigest digest;
-    digest.Tap(&log);
+    log.SetTap(digest.Tap());
     // Over 1 MiB, so that the writer thread hands over several buffers.
     for (int i = 0; i < 1000; ++i)
       log.Write(i, i % 2 ? "FT_LF" : "SERVO_STATE", payload.data(), 1 + (i * 37) % 3000);

@@ -74,7 +74,6 @@ class DigestCache {
 
  private:
   std::string EntryPath(const FileKey& key) const;
-  bool WriteEntry(const std::string& path, const FileKey& key, const std::string& hex) const;
   void PruneWhenDue() const;
   std::string dir_;
 };
