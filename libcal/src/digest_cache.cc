@@ -51,6 +51,33 @@ std::optional<Entry> ReadEntry(const std::string& file) {
   return e;
 }
 
+// A note entry: "<tag> <size> <mtime_ns> <ctime_ns> <body bytes>", the file's path, the body.
+constexpr const char* kNoteTag = "ftcal-note-v1";
+// The kinds of note (DigestCache::StoreNote): a folder each, the only ones pruned besides sha256.
+constexpr const char* kSpansKind = "spans";
+
+struct Note {
+  Entry entry;  // hex unused
+  std::string body;
+};
+
+std::optional<Note> ReadNote(const std::string& file) {
+  std::ifstream in(file, std::ios::binary);
+  std::string tag;
+  Note n;
+  int64_t body_bytes = -1;
+  if (!(in >> tag >> n.entry.size >> n.entry.mtime_ns >> n.entry.ctime_ns >> body_bytes) ||
+      tag != kNoteTag || body_bytes < 0 || body_bytes > (int64_t{64} << 20) || in.get() != '\n' ||
+      !std::getline(in, n.entry.path)) {
+    return std::nullopt;
+  }
+  n.body.resize(static_cast<size_t>(body_bytes));
+  if (!in.read(n.body.data(), body_bytes) || in.peek() != std::char_traits<char>::eof()) {
+    return std::nullopt;  // cut short, or more than it says
+  }
+  return n;
+}
+
 }  // namespace
 
 std::optional<FileKey> FileKeyOf(const std::string& path) {
@@ -79,24 +106,63 @@ DigestCache DigestCache::FromEnvironment() {
   return DigestCache("");
 }
 
-std::string DigestCache::EntryPath(const FileKey& key) const {
-  return dir_ + "/sha256/" + std::to_string(key.device) + "-" + std::to_string(key.inode);
+std::string DigestCache::EntryPath(const std::string& kind, const FileKey& key) const {
+  return dir_ + "/" + kind + "/" + std::to_string(key.device) + "-" + std::to_string(key.inode);
 }
 
 std::optional<std::string> DigestCache::Lookup(const std::string& path) const {
   if (!enabled()) return std::nullopt;
   const std::optional<FileKey> key = FileKeyOf(path);
   if (!key) return std::nullopt;
-  const std::optional<Entry> entry = ReadEntry(EntryPath(*key));
+  const std::optional<Entry> entry = ReadEntry(EntryPath("sha256", *key));
   if (!entry || !entry->Holds(*key)) return std::nullopt;
   return entry->hex;
 }
 
-bool DigestCache::Store(const std::string& path, const FileKey& key_before,
-                        const std::string& sha256_hex, double settled_s) const {
+std::optional<std::string> DigestCache::LookupNote(const std::string& kind,
+                                                   const std::string& path) const {
+  if (!enabled()) return std::nullopt;
+  const std::optional<FileKey> key = FileKeyOf(path);
+  if (!key) return std::nullopt;
+  std::optional<Note> note = ReadNote(EntryPath(kind, *key));
+  if (!note || !note->entry.Holds(*key)) return std::nullopt;
+  return std::move(note->body);
+}
+
+bool DigestCache::StoreNote(const std::string& kind, const std::string& path,
+                            const FileKey& key_before, const std::string& body,
+                            double settled_s) const {
+  if (!enabled() || kind != kSpansKind || !Settled(key_before, settled_s)) {
+    return false;
+  }
+  const std::optional<FileKey> key = FileKeyOf(path);
+  if (!key || !(*key == key_before)) return false;
+  std::error_code ec;
+  std::filesystem::create_directories(dir_ + "/" + kind, ec);
+  if (ec) return false;
+  std::ostringstream entry;
+  entry << kNoteTag << ' ' << key->size << ' ' << key->mtime_ns << ' ' << key->ctime_ns << ' '
+        << body.size() << '\n'
+        << std::filesystem::absolute(path, ec).string() << '\n'
+        << body;
+  try {
+    WriteFileAtomic(EntryPath(kind, *key), entry.str());
+  } catch (const std::exception&) {
+    return false;
+  }
+  PruneWhenDue();
+  return true;
+}
+
+bool DigestCache::Settled(const FileKey& key_before, double settled_s) const {
   timespec now{};
   ::clock_gettime(CLOCK_REALTIME, &now);
-  if (static_cast<double>(Nanoseconds(now) - key_before.ctime_ns) < settled_s * 1e9) return false;
+  return static_cast<double>(Nanoseconds(now) - key_before.ctime_ns) >= settled_s * 1e9;
+}
+
+bool DigestCache::Store(const std::string& path, const FileKey& key_before,
+                        const std::string& sha256_hex, double settled_s) const {
+  if (!Settled(key_before, settled_s)) return false;
   // Settled, and StoreWritten() checks that the file still has the key it was hashed under.
   return StoreWritten(path, key_before, sha256_hex);
 }
@@ -114,7 +180,7 @@ bool DigestCache::StoreWritten(const std::string& path, const FileKey& key_writt
         << sha256_hex << '\n'
         << std::filesystem::absolute(path, ec).string() << '\n';
   try {
-    WriteFileAtomic(EntryPath(*key), entry.str());
+    WriteFileAtomic(EntryPath("sha256", *key), entry.str());
   } catch (const std::exception&) {
     return false;  // a read-only home, a full disk: the next run hashes again
   }
@@ -141,13 +207,22 @@ int DigestCache::Prune() const {
   namespace fs = std::filesystem;
   std::error_code ec;
   int removed = 0;
-  for (const fs::directory_entry& e : fs::directory_iterator(dir_ + "/sha256", ec)) {
-    const std::string name = e.path().filename().string();
-    if (name.empty() || name[0] == '.') continue;  // a writer's temporary file
-    const std::optional<Entry> entry = ReadEntry(e.path().string());
-    const std::optional<FileKey> key = entry ? FileKeyOf(entry->path) : std::nullopt;
-    const bool holds = key && fs::path(EntryPath(*key)).filename() == name && entry->Holds(*key);
-    if (!holds && fs::remove(e.path(), ec)) ++removed;
+  // Only the folders this code writes: $FTCAL_CACHE_DIR may be a directory shared with others.
+  for (const std::string kind : {"sha256", kSpansKind}) {
+    for (const fs::directory_entry& e : fs::directory_iterator(dir_ + "/" + kind, ec)) {
+      const std::string name = e.path().filename().string();
+      if (name.empty() || name[0] == '.') continue;  // a writer's temporary file
+      std::optional<Entry> entry;
+      if (kind == "sha256") {
+        entry = ReadEntry(e.path().string());
+      } else if (std::optional<Note> note = ReadNote(e.path().string())) {
+        entry = std::move(note->entry);
+      }
+      const std::optional<FileKey> key = entry ? FileKeyOf(entry->path) : std::nullopt;
+      const bool holds =
+          key && fs::path(EntryPath(kind, *key)).filename() == name && entry->Holds(*key);
+      if (!holds && fs::remove(e.path(), ec)) ++removed;
+    }
   }
   return removed;
 }

@@ -9,6 +9,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <optional>
 #include <string>
 #include <thread>
@@ -179,6 +180,45 @@ TEST_F(DigestCacheTest, BrokenEntriesAndADisabledCacheMiss) {
   // A cache directory that cannot be made is a miss, not an error.
   const DigestCache unwritable(file_ + "/cache");
   EXPECT_FALSE(unwritable.Store(file_, *FileKeyOf(file_), Sha256File(file_), 0.0));
+}
+
+// A note (the calibrator's span index) lives by the digest's rule: back while the file is
+// unchanged, any bytes included; stored only when settled and unchanged since its key was
+// taken; a miss once the file changes, and pruned then; cut short or overlong, a miss; only
+// the kinds the cache knows (Prune() cleans no folder it did not write).
+TEST_F(DigestCacheTest, ANoteLivesAsLongAsTheFileItDescribes) {
+  const DigestCache cache(dir_ + "/cache");
+  std::string body = "span {\n  from_offset: 10\n}\n";
+  body.push_back('\0');
+  body += "\nbinary too";
+  EXPECT_EQ(cache.LookupNote("spans", file_), std::nullopt);
+  EXPECT_FALSE(cache.StoreNote("spans", file_, *FileKeyOf(file_), body)) << "not settled";
+  EXPECT_FALSE(cache.StoreNote("other", file_, *FileKeyOf(file_), body, 0.0)) << "unknown kind";
+  EXPECT_FALSE(fs::exists(dir_ + "/cache/other"));
+  ASSERT_TRUE(cache.StoreNote("spans", file_, *FileKeyOf(file_), body, 0.0));
+  EXPECT_EQ(cache.LookupNote("spans", file_), body);
+  EXPECT_EQ(cache.Lookup(file_), std::nullopt) << "a note is not a digest";
+
+  const fs::path entry = fs::directory_iterator(dir_ + "/cache/spans")->path();
+  std::string whole;
+  {
+    std::ifstream in(entry, std::ios::binary);
+    whole.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  for (const std::string& broken : {whole.substr(0, whole.size() - 1), whole + "x"}) {
+    std::ofstream(entry, std::ios::binary | std::ios::trunc) << broken;
+    EXPECT_EQ(cache.LookupNote("spans", file_), std::nullopt);
+  }
+  std::ofstream(entry, std::ios::binary | std::ios::trunc) << whole;
+  ASSERT_EQ(cache.LookupNote("spans", file_), body);
+
+  const FileKey before = *FileKeyOf(file_);
+  NextTick();
+  Write(", appended", std::ios::app);
+  EXPECT_EQ(cache.LookupNote("spans", file_), std::nullopt);
+  EXPECT_FALSE(cache.StoreNote("spans", file_, before, body, 0.0)) << "changed since its key";
+  EXPECT_EQ(cache.Prune(), 1);
+  EXPECT_FALSE(fs::exists(entry));
 }
 
 TEST(DigestCacheEnvironment, FtcalCacheDirThenXdgThenHome) {

@@ -62,9 +62,18 @@ class DigestCache {
   bool StoreWritten(const std::string& path, const FileKey& key_written,
                     const std::string& sha256_hex) const;
 
-  // Removes the entries that can never hold again: their file is gone, or is no longer the
-  // one they were stored under (any change moves the ctime on, and it never comes back).
-  // Returns how many it removed. Storing runs it at most once a day (kPruneEveryS), so the
+  // Another fact about a file, kept under the same rule as its digest: the calibrator's index
+  // of a log (CalibrationCollector::TakeSpanIndex). `kind` names the folder of such entries:
+  // "spans", the only kind so far (another is refused, so that Prune() knows every folder it may
+  // clean); `body` is any bytes. LookupNote gives the body stored for `path` while its key holds;
+  // StoreNote stores as Store() does (the key unchanged since `key_before`, the ctime settled).
+  std::optional<std::string> LookupNote(const std::string& kind, const std::string& path) const;
+  bool StoreNote(const std::string& kind, const std::string& path, const FileKey& key_before,
+                 const std::string& body, double settled_s = 2.0) const;
+
+  // Removes the entries (digests and notes) that can never hold again: their file is gone, or
+  // is no longer the one they were stored under (any change moves the ctime on, and it never comes
+  // back). Returns how many it removed. Storing runs it at most once a day (kPruneEveryS), so the
   // cache stays about as large as the set of logs that still exist.
   int Prune() const;
   static constexpr double kPruneEveryS = 24 * 3600.0;
@@ -73,7 +82,8 @@ class DigestCache {
   const std::string& dir() const { return dir_; }
 
  private:
-  std::string EntryPath(const FileKey& key) const;
+  std::string EntryPath(const std::string& kind, const FileKey& key) const;
+  bool Settled(const FileKey& key_before, double settled_s) const;
   void PruneWhenDue() const;
   std::string dir_;
 };
