@@ -114,10 +114,11 @@ void Bus::Guarded(const std::string& what, const std::function<void()>& fn) {
 }
 
 void Bus::Dispatch(size_t subscription, const std::string& channel, int64_t recv_utime,
-                   const void* data, int size, int channel_id) {
+                   const void* data, int size, int channel_id, int64_t log_offset,
+                   int64_t log_end) {
   stats_.CountIn();
   const Subscription& sub = subscriptions_.at(subscription);
-  const MessageInfo info{channel, recv_utime, nullptr, channel_id};
+  const MessageInfo info{channel, recv_utime, nullptr, channel_id, log_offset, log_end};
   // Guarded()'s handling inline: its name argument would cost a string per event.
   try {
     sub.handler(info, data, size);
@@ -457,6 +458,16 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
       stats_.log().warn("replay interrupted after {} events; output not written", events_read_);
       return;
     }
+    if (skip_ && pos >= skip_->from) {
+      Skip skip = std::move(*skip_);
+      skip_.reset();
+      // Only at the event it names, forward, and inside what the file had when Run() began.
+      if (pos == skip.from && skip.to > pos && skip.to <= file_bytes && skip.at_from()) {
+        skipped_bytes_ += skip.to - pos;
+        pos = skip.to;
+        ticking = false;  // no periodic work for the skipped time: one tick, at the next event
+      }
+    }
     const int64_t sync = FindSyncWord(pos);
     if (sync < 0) {
       if (pos < file_bytes) damaged(pos);
@@ -517,7 +528,7 @@ void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
     for (size_t j = 0; j < handlers->size(); ++j) {
       const size_t i = (*handlers)[j];
       const uint64_t generation = subscription_generation();
-      Dispatch(i, channel, timestamp, data, static_cast<int>(data_bytes), channel_id);
+      Dispatch(i, channel, timestamp, data, static_cast<int>(data_bytes), channel_id, sync, end);
       if (subscription_generation() != generation) {
         handlers = &HandlersFor(channel);
         j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -
@@ -545,6 +556,12 @@ const struct stat& LogReplayBus::output_stat() const { return out_->committed_st
 void LogReplayBus::ConsumeInput(std::function<void(const uint8_t* data, size_t size)> consume) {
   tap_ = std::make_unique<InputTap>();
   tap_->consume = std::move(consume);
+}
+
+bool LogReplayBus::SkipAt(int64_t from, int64_t to, std::function<bool()> at_from) {
+  if (tap_ || from < 0 || to <= from || !at_from) return false;
+  skip_ = Skip{from, to, std::move(at_from)};
+  return true;
 }
 
 bool LogReplayBus::InputConsumedWhole() {

@@ -20,6 +20,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <functional>
+#include <optional>
 #include <memory>
 #include <regex>
 #include <stdexcept>
@@ -48,6 +49,9 @@ struct MessageInfo {
   // first read), so a handler on many channels tells them apart without comparing names;
   // -1 live and for channels past the replay's table of known ones.
   int channel_id = -1;
+  // Replay: the event's bytes in the input log, [log_offset, log_end); -1 live.
+  int64_t log_offset = -1;
+  int64_t log_end = -1;
 };
 
 // Thrown by a handler that refuses an input (a NaN, an unknown leg, a message from the
@@ -120,13 +124,22 @@ class Bus {
   // Handles at most one message, waiting up to `timeout_ms`; returns LCM's result (>0 handled,
   // 0 timeout, <0 error, or -1 on replay).
   virtual int HandleOnce(int /*timeout_ms*/) { return -1; }
+  // Replay: when reading reaches the event at input offset `from` (MessageInfo::log_offset),
+  // calls `at_from` and, when it returns true, reads on at offset `to` (> from), the events
+  // between unread. One skip at a time; a new one replaces it. The caller vouches that those
+  // events would have changed nothing it cannot account for (the calibrator's span index). False
+  // when the bus cannot skip: live, or while the whole input must be read (ConsumeInput).
+  virtual bool SkipAt(int64_t /*from*/, int64_t /*to*/, std::function<bool()> /*at_from*/) {
+    return false;
+  }
 
   ServiceStats& stats() { return stats_; }
 
  protected:
   // The transports call this for every message a subscription receives.
   void Dispatch(size_t subscription, const std::string& channel, int64_t recv_utime,
-                const void* data, int size, int channel_id = -1);
+                const void* data, int size, int channel_id = -1, int64_t log_offset = -1,
+                int64_t log_end = -1);
   // Runs `fn`, counting any exception it throws under `what` instead of propagating it.
   void Guarded(const std::string& what, const std::function<void()>& fn);
   // The subscriptions whose pattern matches `channel`, in subscription order. Cached per
@@ -227,6 +240,9 @@ class LogReplayBus : public Bus {
   // Run() began (Run() finished, nothing skipped, no exception), and is not running any more.
   bool InputConsumedWhole();
   int64_t events_read() const { return events_read_; }
+  bool SkipAt(int64_t from, int64_t to, std::function<bool()> at_from) override;
+  // Bytes of the input not read because of SkipAt().
+  int64_t skipped_bytes() const { return skipped_bytes_; }
 
  protected:
   void TransportSubscribe(size_t subscription, const std::string& channel) override;
@@ -258,6 +274,12 @@ class LogReplayBus : public Bus {
   std::unique_ptr<InputTap> tap_;
   std::unique_ptr<ReadAhead> read_ahead_;
   std::vector<uint8_t> tail_;  // the straddling event's bytes on their way to the next chunk
+  struct Skip {
+    int64_t from, to;
+    std::function<bool()> at_from;
+  };
+  std::optional<Skip> skip_;
+  int64_t skipped_bytes_ = 0;
   // The channels seen so far with their handlers, found through a small table indexed by a
   // cheap hash of the name (its length and last two bytes, where FT_HL .. FT_FR differ): an
   // event's channel costs one compare instead of a copy into a string and a hash lookup,

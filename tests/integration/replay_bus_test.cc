@@ -5,6 +5,8 @@
 #include <unistd.h>
 
 #include <cstdint>
+#include <functional>
+#include <tuple>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -212,6 +214,69 @@ TEST_F(ReplayBusTest, InputConsumedWholeOnlyWhenEveryByteWent) {
   EXPECT_EQ(events_seen, 2000);
   EXPECT_GT(consumed, 0);
   EXPECT_FALSE(throwing.InputConsumedWhole());
+}
+
+// Each event comes with its bytes' place in the file (the offsets of LCM's format, computed
+// here from the events' sizes), and SkipAt() reads on at the offset it names: from an event
+// far into the file (chunks already read ahead) to one several chunks on, the events between
+// unread and the rest as written; not when its callback says no, not at an offset that is no
+// event's start, and not while every byte must be consumed.
+TEST_F(ReplayBusTest, SkipAtReadsOnFromTheOffsetItNames) {
+  const std::vector<Event> events = MakeEvents();
+  const std::string in = dir_ + "/in.lcmlog";
+  WriteWithAtomicLogFile(in, events);
+  std::vector<int64_t> offset(events.size() + 1, 0);
+  for (size_t i = 0; i < events.size(); ++i) {
+    offset[i + 1] =
+        offset[i] + 28 + static_cast<int64_t>(events[i].channel.size() + events[i].data.size());
+  }
+  const size_t from = 2500, to = 6500;  // the 3 MiB event (4000) and 600 kB ones between
+  ASSERT_GT(offset[to] - offset[from], int64_t{6} << 20);  // several chunks
+  auto run = [&](std::function<bool()> at_from, int64_t from_at, std::vector<size_t>* seen,
+                 bool consume = false) {
+    ServiceStats stats(log_);
+    LogReplayBus bus(in, dir_ + "/out.lcmlog", stats);
+    if (consume) bus.ConsumeInput([](const uint8_t*, size_t) {});
+    size_t i = 0;
+    bool armed = false;
+    bus.SubscribeRaw(".*", [&](const MessageInfo& info, const void* data, int size) {
+      while (i < events.size() && offset[i] < info.log_offset) ++i;  // the skipped ones
+      ASSERT_LT(i, events.size());
+      ASSERT_EQ(info.log_offset, offset[i]);
+      ASSERT_EQ(info.log_end, offset[i + 1]);
+      const auto* p = static_cast<const uint8_t*>(data);
+      ASSERT_EQ(std::vector<uint8_t>(p, p + size), events[i].data) << i;
+      seen->push_back(i);
+      if (i == 100 && !armed) {
+        armed = true;
+        const bool took = bus.SkipAt(from_at, offset[to], at_from);
+        EXPECT_EQ(took, !consume);
+      }
+    });
+    bus.Run([] {}, 100'000);
+    EXPECT_TRUE(bus.finished());
+    EXPECT_EQ(stats.errors(), 0) << stats.last_error();
+    return bus.skipped_bytes();
+  };
+  std::vector<size_t> seen;
+  int calls = 0;
+  EXPECT_EQ(run([&] { return ++calls > 0; }, offset[from], &seen), offset[to] - offset[from]);
+  EXPECT_EQ(calls, 1);
+  ASSERT_EQ(seen.size(), events.size() - (to - from));
+  for (size_t j = 0; j < seen.size(); ++j) ASSERT_EQ(seen[j], j < from ? j : j + (to - from));
+
+  for (auto [why, at_from, from_at, consume] :
+       {std::make_tuple("declined", std::function<bool()>([] { return false; }), offset[from],
+                        false),
+        std::make_tuple("not an event's start", std::function<bool()>([] { return true; }),
+                        offset[from] + 1, false),
+        std::make_tuple("consuming every byte", std::function<bool()>([] { return true; }),
+                        offset[from], true)}) {
+    SCOPED_TRACE(why);
+    seen.clear();
+    EXPECT_EQ(run(at_from, from_at, &seen, consume), 0);
+    EXPECT_EQ(seen.size(), events.size());
+  }
 }
 
 // A handler that subscribes sees its new subscription from the same event on, in order, as
