@@ -15,6 +15,10 @@ bool IsHangPhase(int phase) { return HangSeriesOfPhase(phase).has_value(); }
 
 HangSeries SeriesOfPhase(int phase) { return *HangSeriesOfPhase(phase); }
 
+// Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number
+// up to this far below the highest seen fills a gap counted before.
+constexpr int64_t kReorderWindow = 64;
+
 }  // namespace
 
 CalibrationCollector::CalibrationCollector(const config::Config& config)
@@ -30,6 +34,11 @@ void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   // Each input log's signers count their sequences afresh: logs may be given in any order.
   verifier_ = auth::Verifier::FromConfig(config_);
+  bus_ = &bus;
+  event_end_ = -1;
+  noting_.active = false;
+  produced_.Clear();
+  channel_ids_barrier_.clear();
   // Every channel, FT_* ones of legs the config does not have among them: a log from a robot
   // with other legs must be told apart from one whose legs are silent.
   channel_ids_noted_.clear();
@@ -54,16 +63,178 @@ void CalibrationCollector::Attach(Bus& bus) {
 }
 
 void CalibrationCollector::NoteChannel(const MessageInfo& info) {
+  event_end_ = info.log_end;
   const int id = info.channel_id;
-  if (id >= 0) {
-    if (static_cast<size_t>(id) < channel_ids_noted_.size() && channel_ids_noted_[id]) return;
-    if (static_cast<size_t>(id) >= channel_ids_noted_.size()) channel_ids_noted_.resize(id + 1);
-    channel_ids_noted_[id] = true;
+  if (id >= 0 && static_cast<size_t>(id) < channel_ids_noted_.size() && channel_ids_noted_[id]) {
+    if (noting_.active) NoteSpanEvent(info, channel_ids_barrier_[id]);
+    return;
   }
   const std::string& channel = info.channel;
-  if (!channels_seen_.insert(channel).second) return;
+  // Markers and poses change what is collected; every other channel is counted, kept or only
+  // noted here.
+  const bool acts =
+      channel == config_.channels().experiment() || channel == config_.channels().steady_pose();
+  if (id >= 0) {
+    if (static_cast<size_t>(id) >= channel_ids_noted_.size()) {
+      channel_ids_noted_.resize(id + 1);
+      channel_ids_barrier_.resize(id + 1);
+    }
+    channel_ids_noted_[id] = true;
+    channel_ids_barrier_[id] = acts;
+  }
+  const bool first = channels_seen_.insert(channel).second;
   // First event on this channel.
-  if (std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
+  if (first && std::regex_match(channel, ft_pattern_)) ft_channels_seen_.insert(channel);
+  if (noting_.active) NoteSpanEvent(info, acts || first || id < 0);
+}
+
+// ---- The span index ----
+
+CalibrationCollector::CountState CalibrationCollector::Counts() const {
+  CountState c;
+  c.received = current_gaps_.received;
+  c.lost = current_gaps_.lost;
+  c.restarts = current_gaps_.restarts;
+  c.last_sequence = last_sequence_;
+  return c;
+}
+
+void CalibrationCollector::SetCounts(const CountState& c) {
+  current_gaps_.received = c.received;
+  current_gaps_.lost = c.lost;
+  current_gaps_.restarts = c.restarts;
+  last_sequence_ = c.last_sequence;
+}
+
+const CalibrationCollector::Mark* CalibrationCollector::MarkRing::FirstFrom(int64_t offset) const {
+  const size_t n = std::min(count, marks.size());
+  const size_t first = count < marks.size() ? 0 : next;
+  for (size_t i = 0; i < n; ++i) {
+    const Mark& m = marks[(first + i) % marks.size()];
+    if (m.offset >= offset) return &m;
+  }
+  return nullptr;
+}
+
+namespace {
+
+void CountsToProto(const std::array<int64_t, kNumLegs>& received,
+                   const std::array<int64_t, kNumLegs>& lost,
+                   const std::array<int64_t, kNumLegs>& restarts,
+                   const std::array<int64_t, kNumLegs>& last,
+                   google::protobuf::RepeatedPtrField<logindex::LegCount>* out) {
+  for (int k = 0; k < kNumLegs; ++k) {
+    logindex::LegCount* c = out->Add();
+    c->set_received(received[k]);
+    c->set_lost(lost[k]);
+    c->set_restarts(restarts[k]);
+    c->set_last_sequence(last[k]);
+  }
+}
+
+}  // namespace
+
+// Called first for every event while a not-segmented STANDING phase is read (NoteChannel):
+// a span begins after the last event that changed more than the counts and the kept messages
+// (`barrier`, or a handler that refused it), or after bytes that were not an event.
+void CalibrationCollector::NoteSpanEvent(const MessageInfo& info, bool barrier) {
+  if (info.log_offset < 0) {  // live: nothing to skip another time
+    noting_.active = false;
+    return;
+  }
+  if (noting_.barrier || info.log_offset != noting_.prev_end) {
+    noting_.clean = Mark{info.log_offset, noting_.events, Counts()};
+  }
+  noting_.barrier = barrier;
+  noting_.offset = info.log_offset;
+  noting_.prev_end = info.log_end;
+  ++noting_.events;
+}
+
+// At the phase's stop marker (the event noted last): the span runs from where it began to the
+// first of the servo states and mocap frames the phase's end kept (the last kDepth of each,
+// which a later run must read to keep the same), or to the marker.
+void CalibrationCollector::EndSpanNoting(const std::string& session) {
+  noting_.active = false;
+  Mark end{noting_.offset, noting_.events - 1, Counts()};
+  for (const MarkRing* ring : {&noting_.servo, &noting_.mocap}) {
+    const Mark* m = ring->FirstFrom(noting_.clean.offset);
+    if (m != nullptr && m->offset < end.offset) end = *m;
+  }
+  // Less than this is not worth an entry (a short test log's phase, a span cut by barriers).
+  constexpr int64_t kMinSpanBytes = 64 * 1024;
+  if (end.offset - noting_.clean.offset < kMinSpanBytes) return;
+  logindex::SkippableSpan* span = produced_.add_span();
+  span->set_session(session);
+  span->set_from_offset(noting_.clean.offset);
+  span->set_to_offset(end.offset);
+  span->set_events(end.events - noting_.clean.events);
+  const CountState& a = noting_.clean.counts;
+  CountsToProto(a.received, a.lost, a.restarts, a.last_sequence, span->mutable_at_from());
+  CountsToProto(end.counts.received, end.counts.lost, end.counts.restarts, end.counts.last_sequence,
+                span->mutable_at_to());
+}
+
+// At a STANDING phase's start, not segmented again: the first span of the index in it, if any.
+void CalibrationCollector::ArmSkip(const std::string& session) {
+  if (use_index_ == nullptr || bus_ == nullptr || event_end_ < 0) return;
+  const logindex::SkippableSpan* best = nullptr;
+  for (const logindex::SkippableSpan& s : use_index_->span()) {
+    if (s.session() != session || s.from_offset() < event_end_ ||
+        s.to_offset() <= s.from_offset() || s.at_from_size() != kNumLegs ||
+        s.at_to_size() != kNumLegs) {
+      continue;
+    }
+    if (best == nullptr || s.from_offset() < best->from_offset()) best = &s;
+  }
+  if (best == nullptr) return;
+  auto counts_of = [](const google::protobuf::RepeatedPtrField<logindex::LegCount>& legs) {
+    CountState c;
+    for (int k = 0; k < kNumLegs; ++k) {
+      c.received[k] = legs[k].received();
+      c.lost[k] = legs[k].lost();
+      c.restarts[k] = legs[k].restarts();
+      c.last_sequence[k] = legs[k].last_sequence();
+    }
+    return c;
+  };
+  const CountState from = counts_of(best->at_from()), to = counts_of(best->at_to());
+  const int64_t events = best->events(), bytes = best->to_offset() - best->from_offset();
+  bus_->SkipAt(best->from_offset(), best->to_offset(), [=] {
+    // Every event of the span would only have been counted or kept: the same phase, no sample
+    // waiting in the aligner (so no servo state or mocap frame goes to it), the same counts.
+    if (!standing_not_segmented_ || current_gaps_.session != session || !Deferring() ||
+        !(Counts() == from)) {
+      spdlog::info("STANDING (session '{}'): the span index does not fit this reading; read",
+                   session);
+      return false;
+    }
+    SetCounts(to);
+    noting_.active = false;
+    counters_.span_events_skipped += events;
+    spdlog::info(
+        "STANDING (session '{}'): {} events ({:.0f} MB) not read: their records were counted "
+        "when this log was last read whole (span index in the digest cache)",
+        session, events, 1e-6 * static_cast<double>(bytes));
+    return true;
+  });
+}
+
+logindex::LogIndex CalibrationCollector::TakeSpanIndex() {
+  logindex::LogIndex out = std::move(produced_);
+  produced_.Clear();
+  out.set_rules(SpanIndexRules());
+  return out;
+}
+
+std::string CalibrationCollector::SpanIndexRules() const {
+  const auto& ch = config_.channels();
+  std::string rules = "ftcal collector spans v1; kept " + std::to_string(DeferredTail::kDepth) +
+                      "; reorder window " + std::to_string(kReorderWindow) + "; FT";
+  for (int k = 0; k < kNumLegs; ++k) rules += " " + inputs_.FtChannel(k);
+  rules += "; " + ch.servo_state() + " " + ch.mocap_body() + " " + ch.experiment() + " " +
+           ch.steady_pose();
+  return rules;
 }
 
 namespace {
@@ -99,6 +270,8 @@ void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* d
   if (standing_not_segmented_) {
     // Aligned samples of a STANDING phase not segmented again would go nowhere: the record is
     // only counted. Checked as a decode would check it, so a damaged log is refused the same.
+    const bool barrier = noting_.barrier;
+    noting_.barrier = true;  // unless counted
     CheckOrThrow<ft_sample_t>(info, data, size);
     const std::optional<int64_t> sequence = PeekRdtSequence(data, size);
     if (!sequence) {
@@ -106,6 +279,7 @@ void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* d
                      "the wire guard's checks passed but rdt_sequence could not be read");
     }
     if (phases_.open()) CountRecord(k, *sequence);
+    noting_.barrier = barrier;
     return;
   }
   ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
@@ -124,20 +298,30 @@ void CalibrationCollector::DeferredTail::Push(const void* data, int size) {
 
 void CalibrationCollector::OnServoRaw(const MessageInfo& info, const void* data, int size) {
   if (Deferring()) {
+    const bool barrier = noting_.barrier;
+    noting_.barrier = true;  // unless kept
     CheckOrThrow<servo_state_t>(info, data, size);
     deferred_servo_.Push(data, size);
+    if (noting_.active) noting_.servo.Push(Mark{info.log_offset, noting_.events - 1, Counts()});
+    noting_.barrier = barrier;
     return;
   }
+  noting_.barrier = true;  // into the aligner
   DecodeOrThrow(info, data, size, &servo_scratch_);
   aligner_.AddServo(inputs_.FromServo(servo_scratch_));
 }
 
 void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data, int size) {
   if (Deferring()) {
+    const bool barrier = noting_.barrier;
+    noting_.barrier = true;  // unless kept
     CheckOrThrow<mocap_body_t>(info, data, size);
     deferred_mocap_.Push(data, size);
+    if (noting_.active) noting_.mocap.Push(Mark{info.log_offset, noting_.events - 1, Counts()});
+    noting_.barrier = barrier;
     return;
   }
+  noting_.barrier = true;  // into the aligner
   DecodeOrThrow(info, data, size, &mocap_scratch_);
   if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
 }
@@ -164,10 +348,6 @@ void CalibrationCollector::FlushDeferred() {
   deferred_servo_.Drain(through(&CalibrationCollector::OnServoRaw, servo));
   deferred_mocap_.Drain(through(&CalibrationCollector::OnMocapRaw, mocap));
 }
-
-// Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number
-// up to this far below the highest seen fills a gap counted before.
-constexpr int64_t kReorderWindow = 64;
 
 void CalibrationCollector::CountRecord(int k, int64_t sequence) {
   int64_t& last = last_sequence_[k];
@@ -245,6 +425,9 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
           "carry their within-pose scatter: not segmented again",
           phase.session);
       if (on_inputs_ready_) on_inputs_ready_();
+      noting_ = SpanNoting();
+      noting_.active = event_end_ >= 0;  // replay
+      ArmSkip(phase.session);
       return;
     }
     segmenter_ =
@@ -268,6 +451,12 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
   SegmenterCounters segmented;
   const bool not_segmented = standing_not_segmented_;
+  if (noting_.active) {
+    if (completed && not_segmented && phase.code == experiment_marker_t::STANDING) {
+      EndSpanNoting(phase.session);
+    }
+    noting_.active = false;
+  }
   standing_not_segmented_ = false;
   FlushDeferred();
   if (segmenter_) {

@@ -40,6 +40,7 @@
 #include "ftcal/steady_pose_t.hpp"
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
+#include "proto/log_index.pb.h"
 
 namespace ftcal {
 
@@ -62,6 +63,7 @@ struct CollectorCounters {
   int64_t tripod_samples = 0;          // aligned samples inside TRIPOD phases
   int64_t tripod_stances = 0;          // steady tripod stances with a leg unloaded, kept
   int64_t tripod_stances_dropped = 0;  // steady, but no leg lifted
+  int64_t span_events_skipped = 0;     // events of STANDING spans not read (the span index)
 };
 
 // One completed phase's transducer records per leg, counted by the devices' RDT sequence
@@ -112,6 +114,20 @@ class CalibrationCollector {
   // poses arrive during the phase, so the collector always segments it (the live calibrator
   // waits for the segmenter's last pose by comparing the two counts).
   void SetSkipSegmentingLoggedSessions(bool skip) { skip_logged_sessions_ = skip; }
+  // The span index (log_index.proto), offline. Reading a log whole, the collector notes the
+  // spans of its STANDING phases not segmented again where it only counted transducer records
+  // and kept the last servo states and mocap frames (the events after such a span refill the
+  // kept ones): TakeSpanIndex() gives them, with the counts before and after each, for the
+  // digest cache. SetSpanIndex(index) before Attach(bus) lets the collector skip those spans
+  // of the bus's log: on reaching a span with the counts it had then, it takes the counts it
+  // had after and the bus reads on from the span's end. Everything collected is as if it had
+  // read the span: the cache's key vouches that the bytes are the ones counted (the rule that
+  // gives the log's digest), the rules string that they were counted the same way.
+  void SetSpanIndex(const logindex::LogIndex* index) { use_index_ = index; }
+  logindex::LogIndex TakeSpanIndex();
+  // The rules a span index is made under: this code's version and the config's channels.
+  std::string SpanIndexRules() const;
+
   // Poses with every marker tracked: from STEADY_POSE events, and found by the collector's own
   // segmenter over the completed STANDING phases (the same rule as ftcal-pose-segmenter).
   size_t logged_pose_count() const { return logged_poses_.size(); }
@@ -228,6 +244,53 @@ class CalibrationCollector {
     size_t next_ = 0, count_ = 0;
   };
   DeferredTail deferred_servo_, deferred_mocap_;
+
+  // The span index: the counts of the phase in progress (the state CountRecord() changes).
+  struct CountState {
+    std::array<int64_t, kNumLegs> received{}, lost{}, restarts{}, last_sequence{};
+    bool operator==(const CountState& o) const {
+      return received == o.received && lost == o.lost && restarts == o.restarts &&
+             last_sequence == o.last_sequence;
+    }
+  };
+  CountState Counts() const;
+  void SetCounts(const CountState& c);
+  // Noting a span while reading a not-segmented STANDING phase whole: where the events began
+  // from which each one only counted or kept (clean_from), and the offsets of the last
+  // DeferredTail::kDepth servo states and mocap frames kept, each with the counts before it.
+  struct Mark {
+    int64_t offset = -1;
+    int64_t events = 0;  // events of the span before this one
+    CountState counts;
+  };
+  struct MarkRing {
+    std::array<Mark, DeferredTail::kDepth> marks;
+    size_t next = 0, count = 0;
+    void Push(const Mark& m) {
+      marks[next] = m;
+      next = (next + 1) % marks.size();
+      ++count;
+    }
+    // The oldest mark at or after `offset`: of the kept messages, the first a skip must not pass.
+    const Mark* FirstFrom(int64_t offset) const;
+  };
+  struct SpanNoting {
+    bool active = false;
+    bool barrier = true;  // the event now handled changed more than the counts and kept ones
+    int64_t prev_end = -1, offset = -1, events = 0;
+    Mark clean;  // where the span begins
+    MarkRing servo, mocap;
+  };
+  void NoteSpanEvent(const MessageInfo& info, bool barrier);
+  void EndSpanNoting(const std::string& session);
+  void ArmSkip(const std::string& session);
+  SpanNoting noting_;
+  logindex::LogIndex produced_;
+  const logindex::LogIndex* use_index_ = nullptr;
+  Bus* bus_ = nullptr;                     // the bus attached last
+  int64_t event_end_ = -1;                 // the end of the event being handled (replay)
+  std::vector<bool> channel_ids_barrier_;  // by channel id: a channel that is not only counted
+
   void CountRecord(int k, int64_t sequence);
   PhaseGaps current_gaps_;
   std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase

@@ -17,6 +17,7 @@
 #include <CLI/CLI.hpp>
 #include <spdlog/cfg/env.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
+#include <google/protobuf/text_format.h>
 #include <spdlog/spdlog.h>
 
 #include "calibrator/calibrator.h"
@@ -174,6 +175,19 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
     } else {
       bus.ConsumeInput([&sha](const uint8_t* data, size_t size) { sha.Update(data, size); });
     }
+    // The spans a whole reading of this file found it need not read again: only while the
+    // file is the one its digest is cached for (no hash to feed), under the same rules.
+    std::optional<ftcal::logindex::LogIndex> index;
+    if (cached) {
+      if (const std::optional<std::string> text = cache.LookupNote("spans", path)) {
+        index.emplace();
+        if (!google::protobuf::TextFormat::ParseFromString(*text, &*index) ||
+            index->rules() != collector.SpanIndexRules()) {
+          index.reset();
+        }
+      }
+    }
+    collector.SetSpanIndex(index ? &*index : nullptr);
     collector.Attach(bus);
     int64_t first_utime = -1;
     bus.Run(
@@ -205,10 +219,20 @@ bool ReadLogs(ftcal::CalibrationCollector& collector, const ftcal::config::Confi
       spdlog::warn("{}: {} inputs dropped{}", path, stats.drops(), kinds);
     }
     spdlog::info("{}: {} events", path, bus.events_read());
+    collector.SetSpanIndex(nullptr);
     if (!cached && bus.InputConsumedWhole()) {
       const std::string hex = sha.HexDigest();
       (*sha256)[path] = hex;
       if (key) cache.Store(path, *key, hex);
+    }
+    // Read whole: what it found to skip another time goes beside the digest.
+    const ftcal::logindex::LogIndex found = collector.TakeSpanIndex();
+    if (key && bus.skipped_bytes() == 0 && found.span_size() > 0) {
+      std::string text;
+      if (google::protobuf::TextFormat::PrintToString(found, &text) &&
+          cache.StoreNote("spans", path, *key, text)) {
+        spdlog::debug("{}: span index stored in the digest cache", path);
+      }
     }
   }
   collector.Flush();

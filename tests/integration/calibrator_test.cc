@@ -432,6 +432,41 @@ TEST_F(CalibratorTest, ASecondRunTakesTheLogsDigestFromTheCache) {
   EXPECT_EQ(ReadCalibrationFile(second).provenance().input(0).sha256(), sha);
 }
 
+// The span index in the digest cache: the first run reads the session whole and leaves the
+// index beside the digest; the second skips the STANDING span (and says so) and writes the
+// same calibration, residuals and walk, number for number.
+TEST_F(CalibratorTest, ASecondRunSkipsTheStandingSpanAndWritesTheSameCalibration) {
+  const std::string poses = PosesLog();
+  ASSERT_FALSE(poses.empty());
+  const std::string cache = fx->dir + "/span-cache";
+  std::optional<testing::ScopedEnv> cache_env(std::in_place, "FTCAL_CACHE_DIR", cache);
+  struct stat st {};
+  ASSERT_EQ(::stat(fx->log.c_str(), &st), 0);
+  while (std::time(nullptr) < st.st_ctim.tv_sec + 3) ::usleep(100'000);  // settled: see above
+  const std::string first = fx->dir + "/cal-span-1.pbtxt", second = fx->dir + "/cal-span-2.pbtxt";
+  const std::vector<std::string> logs = {"--log", poses, "--log", fx->log, "--config", kConfig};
+  auto args = [&](const std::string& out) {
+    std::vector<std::string> a = logs;
+    a.insert(a.end(), {"--out", out});
+    return a;
+  };
+  const Result r1 = Run(args(first), "span1");
+  const Result r2 = Run(args(second), "span2");
+  cache_env.reset();
+  ASSERT_EQ(r1.exit_code, 0) << r1.err;
+  ASSERT_EQ(r2.exit_code, 0) << r2.err;
+  const std::string skipped = "not read: their records were counted when this log was last read";
+  EXPECT_EQ(r1.err.find(skipped), std::string::npos) << r1.err;
+  EXPECT_NE(r2.err.find(skipped), std::string::npos) << r2.err;
+  calibration::Calibration a = ReadCalibrationFile(first), b = ReadCalibrationFile(second);
+  EXPECT_EQ(a.recording_gaps_size(), b.recording_gaps_size());
+  a.clear_provenance();
+  b.clear_provenance();
+  EXPECT_EQ(a.DebugString(), b.DebugString());
+  EXPECT_EQ(ReadFile(ResidualsPathFor(first)), ReadFile(ResidualsPathFor(second)));
+  EXPECT_EQ(ReadFile(WalkingPathFor(first)), ReadFile(WalkingPathFor(second)));
+}
+
 // A writer hands its log's digest over: the segmenter takes the poses log's SHA-256 as it
 // writes it, so the first calibration that reads the log takes the digest from the cache
 // (and says so), and the provenance is still the file's own hash. The session log, written
@@ -498,6 +533,142 @@ TEST_F(CalibratorTest, AStandingSpanNotSegmentedAgainLeavesTheAlignerAsSegmentin
   for (size_t p = 0; p < own.phase_gaps().size(); ++p) {
     EXPECT_EQ(own.phase_gaps()[p].received, skipping.phase_gaps()[p].received) << p;
     EXPECT_EQ(own.phase_gaps()[p].lost, skipping.phase_gaps()[p].lost) << p;
+  }
+}
+
+// The span index. Reading a session whole after its poses log, the collector notes the span of
+// the STANDING phase where it only counted records and kept servo states and mocap frames: from
+// after the last event that did more (here a channel first seen inside the phase) to the first
+// of the messages the phase's end keeps. Given that index, another collector skips the span
+// and collects exactly what the whole reading did: every phase's counts (the span has records
+// lost, two out of order and a restarted RDT stream) and the walk after it, aligned sample for
+// sample from the servo states and mocap frames kept. An index whose counts do not match the
+// reading's is not used.
+TEST_F(CalibratorTest, ASpanIndexSkipsWhatItCountedAndChangesNothingCollected) {
+  const std::string poses = PosesLog();
+  ASSERT_FALSE(poses.empty());
+  const auto& ch = fx->config.channels();
+  std::vector<Event> events;
+  std::vector<int64_t> offset{0};  // of each event written, and the end
+  int phase = -1;
+  int64_t hl = 0, ml = 0, mr = 0, note_offset = -1, stop_offset = -1;
+  std::optional<Event> held;
+  auto push = [&](const Event& e) {
+    events.push_back(e);
+    offset.push_back(offset.back() + 28 + static_cast<int64_t>(e.channel.size() + e.data.size()));
+  };
+  for (const Event& e : fx->events) {
+    if (e.channel == ch.experiment()) {
+      experiment_marker_t m;
+      ASSERT_GT(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())), 0);
+      if (m.phase == experiment_marker_t::STANDING && !m.start) stop_offset = offset.back();
+      phase = m.start ? m.phase : -1;
+    }
+    if (phase == experiment_marker_t::STANDING) {
+      if (e.channel == ch.ft_prefix() + "HL" && ++hl % 7 == 0) continue;  // lost
+      if (e.channel == ch.ft_prefix() + "ML" && ++ml > 2000) {            // a new RDT stream
+        ft_sample_t m;
+        ASSERT_GT(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())), 0);
+        m.rdt_sequence = ml - 2000;
+        push(Encode(e.utime, e.channel, m));
+        continue;
+      }
+      if (e.channel == ch.ft_prefix() + "MR" && ++mr == 1500) {  // one record late
+        held = e;
+        continue;
+      }
+      if (note_offset < 0 && hl == 300) {  // a channel never seen before: not only counted
+        note_offset = offset.back();
+        push(Event{e.utime, "OPERATOR_NOTE", {1, 2, 3}});
+      }
+    }
+    push(e);
+    if (held && e.channel == ch.ft_prefix() + "MR") {
+      push(*held);
+      held.reset();
+    }
+  }
+  ASSERT_GT(note_offset, 0);
+  ASSERT_GT(stop_offset, note_offset);
+  ASSERT_GT(ml, 2100);
+  const std::string log = fx->dir + "/span-index.lcmlog";
+  WriteLog(log, events);
+
+  // Reads the poses log, then `log` with `index`: the bytes skipped.
+  auto read = [&](CalibrationCollector& c, const logindex::LogIndex* index) {
+    c.SetSkipSegmentingLoggedSessions(true);
+    ReadInto(c, poses);
+    ServiceStats stats(spdlog::default_logger());
+    LogReplayBus bus(log, fx->dir + "/replay-scratch.lcmlog", stats);
+    c.SetSpanIndex(index);
+    c.Attach(bus);
+    bus.Run([] {}, 1'000'000);
+    c.SetSpanIndex(nullptr);
+    c.Flush();
+    EXPECT_TRUE(bus.finished());
+    EXPECT_EQ(stats.errors(), 0) << stats.last_error();
+    return bus.skipped_bytes();
+  };
+  CalibrationCollector whole(fx->config);
+  EXPECT_EQ(read(whole, nullptr), 0);
+  const logindex::LogIndex index = whole.TakeSpanIndex();
+  ASSERT_EQ(index.span_size(), 1) << index.DebugString();
+  const logindex::SkippableSpan& span = index.span(0);
+  EXPECT_EQ(index.rules(), whole.SpanIndexRules());
+  EXPECT_EQ(span.session(), "calibrator-test");
+  // It begins at the event after the new channel's, and ends before the stop marker with a
+  // servo state or mocap frame (the first the end keeps).
+  EXPECT_EQ(span.from_offset(), *std::upper_bound(offset.begin(), offset.end(), note_offset));
+  EXPECT_LT(span.to_offset(), stop_offset);
+  const auto at_to = std::find(offset.begin(), offset.end(), span.to_offset());
+  ASSERT_NE(at_to, offset.end()) << "not an event's start";
+  const std::string& first_kept = events[static_cast<size_t>(at_to - offset.begin())].channel;
+  EXPECT_TRUE(first_kept == ch.servo_state() || first_kept == ch.mocap_body()) << first_kept;
+  EXPECT_EQ(span.events(),
+            (at_to - offset.begin()) -
+                (std::find(offset.begin(), offset.end(), span.from_offset()) - offset.begin()));
+
+  CalibrationCollector skipping(fx->config);
+  EXPECT_EQ(read(skipping, &index), span.to_offset() - span.from_offset());
+  EXPECT_EQ(skipping.counters().span_events_skipped, span.events());
+  EXPECT_EQ(skipping.TakeSpanIndex().span_size(), 0) << "a reading with skips notes nothing";
+
+  logindex::LogIndex other = index;
+  other.mutable_span(0)->mutable_at_from(3)->set_received(span.at_from(3).received() + 1);
+  CalibrationCollector declined(fx->config);
+  EXPECT_EQ(read(declined, &other), 0);
+  EXPECT_EQ(declined.counters().span_events_skipped, 0);
+
+  for (const CalibrationCollector* c : {&skipping, &declined}) {
+    ASSERT_EQ(c->phase_gaps().size(), whole.phase_gaps().size());
+    for (size_t p = 0; p < whole.phase_gaps().size(); ++p) {
+      const PhaseGaps &a = whole.phase_gaps()[p], &b = c->phase_gaps()[p];
+      SCOPED_TRACE(PhaseName(a.phase));
+      EXPECT_EQ(a.phase, b.phase);
+      EXPECT_EQ(a.received, b.received);
+      EXPECT_EQ(a.lost, b.lost);
+      EXPECT_EQ(a.restarts, b.restarts);
+      if (a.phase == experiment_marker_t::STANDING) {
+        EXPECT_EQ(a.lost[0], hl / 7 - (hl % 7 == 0 ? 1 : 0)) << "HL: every 7th record";
+        EXPECT_EQ(a.restarts[1], 1) << "ML's new stream";
+        EXPECT_EQ(a.lost[4], 0) << "MR's late record fills its gap";
+      }
+    }
+    const std::vector<SyncSample>&wa = whole.walking_samples(), &wb = c->walking_samples();
+    ASSERT_GT(wa.size(), 100u);
+    ASSERT_EQ(wa.size(), wb.size());
+    for (size_t i = 0; i < wa.size(); ++i) {
+      ASSERT_EQ(wa[i].utime, wb[i].utime) << i;
+      ASSERT_EQ(wa[i].angle_rad, wb[i].angle_rad) << i;
+      ASSERT_EQ(wa[i].wrench, wb[i].wrench) << i;
+      ASSERT_EQ(wa[i].R_WC, wb[i].R_WC) << i;
+    }
+    EXPECT_EQ(c->StandingPoses().size(), whole.StandingPoses().size());
+    EXPECT_EQ(c->unloaded_samples().size(), whole.unloaded_samples().size());
+    EXPECT_EQ(c->tare().has_value(), whole.tare().has_value());
+    if (c->tare() && whole.tare()) {
+      EXPECT_EQ((*c->tare())[2], (*whole.tare())[2]);
+    }
   }
 }
 
