@@ -29,56 +29,50 @@ int64_t Nanoseconds(const timespec& t) {
   return static_cast<int64_t>(t.tv_sec) * 1'000'000'000 + static_cast<int64_t>(t.tv_nsec);
 }
 
-// One entry file: "<tag> <size> <mtime_ns> <ctime_ns> <sha256 hex>", then the file's path. The
-// device and inode are the entry's name.
-struct Entry {
+// The kinds of note (DigestCache::StoreNote): a folder each, the only ones pruned besides sha256.
+constexpr const char* kSpansKind = "spans";
+constexpr const char* kNoteTag = "ftcal-note-v1";
+
+const char* TagOf(const std::string& kind) { return kind == "sha256" ? kEntryTag : kNoteTag; }
+
+}  // namespace
+
+// One entry file: "<tag> <size> <mtime_ns> <ctime_ns> <field>", the file's path, then a body.
+// A digest's field is its hex and it has no body; a note's field is the length of its body.
+// The device and inode are the entry's name.
+struct DigestCache::Entry {
   int64_t size = 0, mtime_ns = 0, ctime_ns = 0;
-  std::string hex, path;
+  std::string field, path, body;
   bool Holds(const FileKey& key) const {
     return size == key.size && mtime_ns == key.mtime_ns && ctime_ns == key.ctime_ns;
   }
 };
 
-// nullopt for a file that is not a whole entry of this version.
-std::optional<Entry> ReadEntry(const std::string& file) {
-  std::ifstream in(file);
+// nullopt for a file that is not a whole entry of this version and kind.
+std::optional<DigestCache::Entry> DigestCache::ReadEntry(const std::string& file,
+                                                         const std::string& kind) {
+  std::ifstream in(file, std::ios::binary);
   std::string tag;
   Entry e;
-  if (!(in >> tag >> e.size >> e.mtime_ns >> e.ctime_ns >> e.hex) || tag != kEntryTag ||
-      !IsSha256Hex(e.hex) || !(in >> std::ws) || !std::getline(in, e.path)) {
+  if (!(in >> tag >> e.size >> e.mtime_ns >> e.ctime_ns >> e.field) || tag != TagOf(kind) ||
+      in.get() != '\n' || !std::getline(in, e.path)) {
     return std::nullopt;
+  }
+  if (kind == "sha256") {
+    if (!IsSha256Hex(e.field)) return std::nullopt;
+    return e;
+  }
+  int64_t body_bytes = -1;
+  if (!(std::istringstream(e.field) >> body_bytes) || body_bytes < 0 ||
+      body_bytes > (int64_t{64} << 20)) {
+    return std::nullopt;
+  }
+  e.body.resize(static_cast<size_t>(body_bytes));
+  if (!in.read(e.body.data(), body_bytes) || in.peek() != std::char_traits<char>::eof()) {
+    return std::nullopt;  // cut short, or more than it says
   }
   return e;
 }
-
-// A note entry: "<tag> <size> <mtime_ns> <ctime_ns> <body bytes>", the file's path, the body.
-constexpr const char* kNoteTag = "ftcal-note-v1";
-// The kinds of note (DigestCache::StoreNote): a folder each, the only ones pruned besides sha256.
-constexpr const char* kSpansKind = "spans";
-
-struct Note {
-  Entry entry;  // hex unused
-  std::string body;
-};
-
-std::optional<Note> ReadNote(const std::string& file) {
-  std::ifstream in(file, std::ios::binary);
-  std::string tag;
-  Note n;
-  int64_t body_bytes = -1;
-  if (!(in >> tag >> n.entry.size >> n.entry.mtime_ns >> n.entry.ctime_ns >> body_bytes) ||
-      tag != kNoteTag || body_bytes < 0 || body_bytes > (int64_t{64} << 20) || in.get() != '\n' ||
-      !std::getline(in, n.entry.path)) {
-    return std::nullopt;
-  }
-  n.body.resize(static_cast<size_t>(body_bytes));
-  if (!in.read(n.body.data(), body_bytes) || in.peek() != std::char_traits<char>::eof()) {
-    return std::nullopt;  // cut short, or more than it says
-  }
-  return n;
-}
-
-}  // namespace
 
 std::optional<FileKey> FileKeyOf(const std::string& path) {
   struct stat st {};
@@ -111,47 +105,34 @@ std::string DigestCache::EntryPath(const std::string& kind, const FileKey& key) 
 }
 
 std::optional<std::string> DigestCache::Lookup(const std::string& path) const {
-  if (!enabled()) return std::nullopt;
-  const std::optional<FileKey> key = FileKeyOf(path);
-  if (!key) return std::nullopt;
-  const std::optional<Entry> entry = ReadEntry(EntryPath("sha256", *key));
-  if (!entry || !entry->Holds(*key)) return std::nullopt;
-  return entry->hex;
+  std::optional<Entry> entry = Find("sha256", path);
+  if (!entry) return std::nullopt;
+  return std::move(entry->field);
 }
 
 std::optional<std::string> DigestCache::LookupNote(const std::string& kind,
                                                    const std::string& path) const {
+  if (kind != kSpansKind) return std::nullopt;
+  std::optional<Entry> entry = Find(kind, path);
+  if (!entry) return std::nullopt;
+  return std::move(entry->body);
+}
+
+std::optional<DigestCache::Entry> DigestCache::Find(const std::string& kind,
+                                                    const std::string& path) const {
   if (!enabled()) return std::nullopt;
   const std::optional<FileKey> key = FileKeyOf(path);
   if (!key) return std::nullopt;
-  std::optional<Note> note = ReadNote(EntryPath(kind, *key));
-  if (!note || !note->entry.Holds(*key)) return std::nullopt;
-  return std::move(note->body);
+  std::optional<Entry> entry = ReadEntry(EntryPath(kind, *key), kind);
+  if (!entry || !entry->Holds(*key)) return std::nullopt;
+  return entry;
 }
 
 bool DigestCache::StoreNote(const std::string& kind, const std::string& path,
                             const FileKey& key_before, const std::string& body,
                             double settled_s) const {
-  if (!enabled() || kind != kSpansKind || !Settled(key_before, settled_s)) {
-    return false;
-  }
-  const std::optional<FileKey> key = FileKeyOf(path);
-  if (!key || !(*key == key_before)) return false;
-  std::error_code ec;
-  std::filesystem::create_directories(dir_ + "/" + kind, ec);
-  if (ec) return false;
-  std::ostringstream entry;
-  entry << kNoteTag << ' ' << key->size << ' ' << key->mtime_ns << ' ' << key->ctime_ns << ' '
-        << body.size() << '\n'
-        << std::filesystem::absolute(path, ec).string() << '\n'
-        << body;
-  try {
-    WriteFileAtomic(EntryPath(kind, *key), entry.str());
-  } catch (const std::exception&) {
-    return false;
-  }
-  PruneWhenDue();
-  return true;
+  if (kind != kSpansKind || !Settled(key_before, settled_s)) return false;
+  return WriteEntry(kind, path, key_before, std::to_string(body.size()), body);
 }
 
 bool DigestCache::Settled(const FileKey& key_before, double settled_s) const {
@@ -169,20 +150,27 @@ bool DigestCache::Store(const std::string& path, const FileKey& key_before,
 
 bool DigestCache::StoreWritten(const std::string& path, const FileKey& key_written,
                                const std::string& sha256_hex) const {
-  if (!enabled() || !IsSha256Hex(sha256_hex)) return false;
-  const std::optional<FileKey> key = FileKeyOf(path);
-  if (!key || !(*key == key_written)) return false;  // changed, or replaced, since
+  if (!IsSha256Hex(sha256_hex)) return false;
+  return WriteEntry("sha256", path, key_written, sha256_hex, "");
+}
+
+bool DigestCache::WriteEntry(const std::string& kind, const std::string& path, const FileKey& key,
+                             const std::string& field, const std::string& body) const {
+  if (!enabled()) return false;
+  const std::optional<FileKey> now = FileKeyOf(path);
+  if (!now || !(*now == key)) return false;  // changed, or replaced, since
   std::error_code ec;
-  std::filesystem::create_directories(dir_ + "/sha256", ec);
+  std::filesystem::create_directories(dir_ + "/" + kind, ec);
   if (ec) return false;
   std::ostringstream entry;
-  entry << kEntryTag << ' ' << key->size << ' ' << key->mtime_ns << ' ' << key->ctime_ns << ' '
-        << sha256_hex << '\n'
-        << std::filesystem::absolute(path, ec).string() << '\n';
+  entry << TagOf(kind) << ' ' << key.size << ' ' << key.mtime_ns << ' ' << key.ctime_ns << ' '
+        << field << '\n'
+        << std::filesystem::absolute(path, ec).string() << '\n'
+        << body;
   try {
-    WriteFileAtomic(EntryPath("sha256", *key), entry.str());
+    WriteFileAtomic(EntryPath(kind, key), entry.str());
   } catch (const std::exception&) {
-    return false;  // a read-only home, a full disk: the next run hashes again
+    return false;  // a read-only home, a full disk: the next run hashes (or reads) again
   }
   PruneWhenDue();
   return true;
@@ -212,12 +200,7 @@ int DigestCache::Prune() const {
     for (const fs::directory_entry& e : fs::directory_iterator(dir_ + "/" + kind, ec)) {
       const std::string name = e.path().filename().string();
       if (name.empty() || name[0] == '.') continue;  // a writer's temporary file
-      std::optional<Entry> entry;
-      if (kind == "sha256") {
-        entry = ReadEntry(e.path().string());
-      } else if (std::optional<Note> note = ReadNote(e.path().string())) {
-        entry = std::move(note->entry);
-      }
+      const std::optional<Entry> entry = ReadEntry(e.path().string(), kind);
       const std::optional<FileKey> key = entry ? FileKeyOf(entry->path) : std::nullopt;
       const bool holds =
           key && fs::path(EntryPath(kind, *key)).filename() == name && entry->Holds(*key);

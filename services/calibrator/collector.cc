@@ -116,23 +116,28 @@ const CalibrationCollector::Mark* CalibrationCollector::MarkRing::FirstFrom(int6
   return nullptr;
 }
 
-namespace {
-
-void CountsToProto(const std::array<int64_t, kNumLegs>& received,
-                   const std::array<int64_t, kNumLegs>& lost,
-                   const std::array<int64_t, kNumLegs>& restarts,
-                   const std::array<int64_t, kNumLegs>& last,
-                   google::protobuf::RepeatedPtrField<logindex::LegCount>* out) {
+void CalibrationCollector::CountsToProto(
+    const CountState& c, google::protobuf::RepeatedPtrField<logindex::LegCount>* out) {
   for (int k = 0; k < kNumLegs; ++k) {
-    logindex::LegCount* c = out->Add();
-    c->set_received(received[k]);
-    c->set_lost(lost[k]);
-    c->set_restarts(restarts[k]);
-    c->set_last_sequence(last[k]);
+    logindex::LegCount* leg = out->Add();
+    leg->set_received(c.received[k]);
+    leg->set_lost(c.lost[k]);
+    leg->set_restarts(c.restarts[k]);
+    leg->set_last_sequence(c.last_sequence[k]);
   }
 }
 
-}  // namespace
+CalibrationCollector::CountState CalibrationCollector::CountsFromProto(
+    const google::protobuf::RepeatedPtrField<logindex::LegCount>& legs) {
+  CountState c;
+  for (int k = 0; k < kNumLegs; ++k) {
+    c.received[k] = legs[k].received();
+    c.lost[k] = legs[k].lost();
+    c.restarts[k] = legs[k].restarts();
+    c.last_sequence[k] = legs[k].last_sequence();
+  }
+  return c;
+}
 
 // Called first for every event while a not-segmented STANDING phase is read (NoteChannel):
 // a span begins after the last event that changed more than the counts and the kept messages
@@ -169,10 +174,8 @@ void CalibrationCollector::EndSpanNoting(const std::string& session) {
   span->set_from_offset(noting_.clean.offset);
   span->set_to_offset(end.offset);
   span->set_events(end.events - noting_.clean.events);
-  const CountState& a = noting_.clean.counts;
-  CountsToProto(a.received, a.lost, a.restarts, a.last_sequence, span->mutable_at_from());
-  CountsToProto(end.counts.received, end.counts.lost, end.counts.restarts, end.counts.last_sequence,
-                span->mutable_at_to());
+  CountsToProto(noting_.clean.counts, span->mutable_at_from());
+  CountsToProto(end.counts, span->mutable_at_to());
 }
 
 // At a STANDING phase's start, not segmented again: the first span of the index in it, if any.
@@ -188,17 +191,7 @@ void CalibrationCollector::ArmSkip(const std::string& session) {
     if (best == nullptr || s.from_offset() < best->from_offset()) best = &s;
   }
   if (best == nullptr) return;
-  auto counts_of = [](const google::protobuf::RepeatedPtrField<logindex::LegCount>& legs) {
-    CountState c;
-    for (int k = 0; k < kNumLegs; ++k) {
-      c.received[k] = legs[k].received();
-      c.lost[k] = legs[k].lost();
-      c.restarts[k] = legs[k].restarts();
-      c.last_sequence[k] = legs[k].last_sequence();
-    }
-    return c;
-  };
-  const CountState from = counts_of(best->at_from()), to = counts_of(best->at_to());
+  const CountState from = CountsFromProto(best->at_from()), to = CountsFromProto(best->at_to());
   const int64_t events = best->events(), bytes = best->to_offset() - best->from_offset();
   bus_->SkipAt(best->from_offset(), best->to_offset(), [=] {
     // Every event of the span would only have been counted or kept: the same phase, no sample

@@ -255,6 +255,10 @@ class CalibrationCollector {
   };
   CountState Counts() const;
   void SetCounts(const CountState& c);
+  static void CountsToProto(const CountState& c,
+                            google::protobuf::RepeatedPtrField<logindex::LegCount>* out);
+  static CountState CountsFromProto(
+      const google::protobuf::RepeatedPtrField<logindex::LegCount>& legs);
   // Noting a span while reading a not-segmented STANDING phase whole: where the events began
   // from which each one only counted or kept (clean_from), and the offsets of the last
   // DeferredTail::kDepth servo states and mocap frames kept, each with the counts before it.

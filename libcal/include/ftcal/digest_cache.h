@@ -84,6 +84,13 @@ class DigestCache {
  private:
   std::string EntryPath(const std::string& kind, const FileKey& key) const;
   bool Settled(const FileKey& key_before, double settled_s) const;
+  struct Entry;  // one entry file (digest_cache.cc)
+  static std::optional<Entry> ReadEntry(const std::string& file, const std::string& kind);
+  // The entry of `kind` for `path` while the file's key is the one it was stored under.
+  std::optional<Entry> Find(const std::string& kind, const std::string& path) const;
+  // Writes the entry of `kind` for `path` (digest_cache.cc's format) when `path` has `key` now.
+  bool WriteEntry(const std::string& kind, const std::string& path, const FileKey& key,
+                  const std::string& field, const std::string& body) const;
   void PruneWhenDue() const;
   std::string dir_;
 };
