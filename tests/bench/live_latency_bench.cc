@@ -75,11 +75,35 @@
 // (89 %); this subscriber heard 37 % against 56 % of the window's FT, FT p50 3.1 ms p99 94 ms
 // against 0.7 ms and 5.6 ms, CONTACT_WRENCH p99 121 ms against 54 ms. Far better, and still
 // far from the goal: the twin's six boxes share the two cores with everything else.
+//
+// Where the CPU goes (the figures since 2026-12-05 print it): each stage's share of one core
+// over the window, from /proc, and two figures of the machine taken before the run, the CPU
+// price of one datagram through the loopback and one thread-to-thread hop's latency.
+// Measured 2026-12-05, load average 1.3-3, six --realtime bridges, --duration 8, per box rate:
+//   CPU (of 200 %), CONTACT_WRENCH lost, its p99   udpm                    mpudpm (nports=64)
+//   6 x 1000/s                                     121 %, 0.02 %, 1.9 ms   115 %, 0.00 %, 1.9 ms
+//   6 x 2000/s                                     167 %, 0.8 %, 8.9 ms    154 %, 0.4 %, 3.0 ms
+//   6 x 3500/s                                     186 %, 12.7 %, 50 ms    189 %, 18.5 %, 50 ms
+//   6 x 7000/s                                     194 %, 72 %, 86 ms      193 %, 47 %, 54 ms
+// The machine: a datagram sent and received through the loopback 4.0-6.8 us of CPU, a hop
+// between two threads p50 12-13 us, p99 25-53 us. perf record -a at 6 x 7000/s: 72.6 % of all
+// CPU in the kernel (38 % in pvm_irq_enable alone: this VM is paravirtualised, so every kernel
+// entry and wake-up is expensive), 18.6 % in libc's system-call wrappers, 3.1 % in liblcm, and
+// every ftcal program together 3.6 %. liblcm's UDP provider pays several system calls per
+// message and receiver (its receive thread's select and recvmsg, the notify pipe's write and
+// read, the handler thread's wake-up): a recorder at 6 x 1000/s spent 62 % of its CPU in
+// pvm_irq_enable. So on this machine the pipeline loses samples at 2/7 of the goal's rate,
+// fills the two cores at half of it, and its p99 misses 200 us already at a seventh of it;
+// ftcal's own code is not where the time goes.
+#include <arpa/inet.h>
 #include <fcntl.h>
+#include <netinet/in.h>
 #include <poll.h>
 #include <sched.h>
 #include <signal.h>
 #include <stdlib.h>
+#include <sys/resource.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <termios.h>
 #include <unistd.h>
@@ -91,6 +115,7 @@
 #include <cmath>
 #include <cstdio>
 #include <ctime>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <memory>
@@ -385,6 +410,156 @@ KernelDrops ReadKernelDrops() {
   return d;
 }
 
+// CPU seconds (user + system, every thread) of a process and of every process below it, from
+// /proc (utime and stime of /proc/<pid>/stat, in clock ticks): what each stage costs the two
+// cores, so that loss can be told from a machine that has not the CPU for the rate.
+double TreeCpuS(pid_t root) {
+  std::map<pid_t, std::pair<pid_t, double>> procs;  // pid -> (parent, cpu s)
+  const double tick = static_cast<double>(::sysconf(_SC_CLK_TCK));
+  for (const auto& entry : std::filesystem::directory_iterator("/proc")) {
+    const std::string name = entry.path().filename().string();
+    if (name.find_first_not_of("0123456789") != std::string::npos) continue;
+    const std::string stat = ftcal::testing::ReadFile(entry.path().string() + "/stat");
+    const auto close = stat.rfind(')');
+    if (close == std::string::npos) continue;
+    std::istringstream f(stat.substr(close + 2));
+    std::string field;
+    std::vector<std::string> v;
+    while (f >> field && v.size() < 13) v.push_back(field);
+    if (v.size() < 13) continue;  // state ppid ... utime(12th after the name) stime(13th)
+    procs[static_cast<pid_t>(std::stol(name))] = {static_cast<pid_t>(std::stol(v[1])),
+                                                  (std::stod(v[11]) + std::stod(v[12])) / tick};
+  }
+  double sum = 0;
+  for (const auto& [pid, p] : procs) {
+    for (pid_t at = pid; at > 1;) {
+      if (at == root) {
+        sum += p.second;
+        break;
+      }
+      const auto it = procs.find(at);
+      if (it == procs.end()) break;
+      at = it->second.first;
+    }
+  }
+  return sum;
+}
+
+double SelfCpuS() {
+  rusage u{};
+  ::getrusage(RUSAGE_SELF, &u);
+  return static_cast<double>(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
+         1e-6 * static_cast<double>(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
+}
+
+// The machine's "cpu" line of /proc/stat: user, nice, system, idle, iowait, irq, softirq.
+std::array<long long, 7> MachineTicks() {
+  std::istringstream in(ftcal::testing::ReadFile("/proc/stat"));
+  std::string cpu;
+  std::array<long long, 7> t{};
+  in >> cpu;
+  for (auto& v : t) in >> v;
+  return t;
+}
+
+// This machine's price of one UDP datagram through the loopback's multicast, sent and
+// received (the hop every stage of the pipeline pays per sample, once per receiver): one
+// socket sends 200-byte datagrams to a group another socket of the same thread joined, each
+// read back before the next. CPU of this thread (the loopback delivers in the sender's
+// softirq, so it is counted here) per datagram, in us.
+double DatagramCostUs(int count) {
+  const int rx = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+  const int tx = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+  double cost = -1;
+  sockaddr_in group{};
+  group.sin_family = AF_INET;
+  group.sin_port = htons(7699);
+  ::inet_pton(AF_INET, "239.255.76.68", &group.sin_addr);
+  sockaddr_in any = group;
+  any.sin_addr.s_addr = htonl(INADDR_ANY);
+  ip_mreq join{};
+  join.imr_multiaddr = group.sin_addr;
+  join.imr_interface.s_addr = htonl(INADDR_ANY);
+  const int one = 1, ttl = 0;
+  timeval timeout{1, 0};
+  if (rx >= 0 && tx >= 0 && ::setsockopt(rx, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one) == 0 &&
+      ::bind(rx, reinterpret_cast<sockaddr*>(&any), sizeof any) == 0 &&
+      ::setsockopt(rx, IPPROTO_IP, IP_ADD_MEMBERSHIP, &join, sizeof join) == 0 &&
+      ::setsockopt(rx, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof timeout) == 0 &&
+      ::setsockopt(tx, IPPROTO_IP, IP_MULTICAST_TTL, &ttl, sizeof ttl) == 0 &&
+      ::setsockopt(tx, IPPROTO_IP, IP_MULTICAST_LOOP, &one, sizeof one) == 0) {
+    char out[200] = {}, in[256];
+    auto thread_cpu = [] {
+      timespec t{};
+      ::clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+      return static_cast<double>(t.tv_sec) * 1e6 + static_cast<double>(t.tv_nsec) * 1e-3;
+    };
+    const double from = thread_cpu();
+    int done = 0;
+    for (; done < count; ++done) {
+      if (::sendto(tx, out, sizeof out, 0, reinterpret_cast<sockaddr*>(&group), sizeof group) !=
+              static_cast<ssize_t>(sizeof out) ||
+          ::recv(rx, in, sizeof in, 0) != static_cast<ssize_t>(sizeof out)) {
+        break;
+      }
+    }
+    if (done == count) cost = (thread_cpu() - from) / count;
+  }
+  if (rx >= 0) ::close(rx);
+  if (tx >= 0) ::close(tx);
+  return cost;
+}
+
+// This machine's floor for a hop's latency: two threads ping-pong a 200-byte datagram over
+// the loopback (unicast, blocking reads, SCHED_OTHER), `count` round trips; half of each round
+// trip, in us, as Quantiles() prints them. Every stage of the pipeline is at least one such
+// hop (plus LCM's own hand-over to its handler thread), so no p99 below is under this one's.
+std::string HopLatency(int count) {
+  auto open_bound = [](sockaddr_in* addr) {
+    const int fd = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+    addr->sin_family = AF_INET;
+    addr->sin_port = 0;
+    addr->sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    socklen_t len = sizeof *addr;
+    if (fd < 0 || ::bind(fd, reinterpret_cast<sockaddr*>(addr), sizeof *addr) != 0 ||
+        ::getsockname(fd, reinterpret_cast<sockaddr*>(addr), &len) != 0) {
+      if (fd >= 0) ::close(fd);
+      return -1;
+    }
+    timeval timeout{1, 0};
+    ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof timeout);
+    return fd;
+  };
+  sockaddr_in a{}, b{};
+  const int fa = open_bound(&a), fb = open_bound(&b);
+  std::vector<std::int64_t> half;
+  if (fa >= 0 && fb >= 0) {
+    std::thread echo([&] {
+      char buf[256];
+      for (int i = 0; i < count; ++i) {
+        const ssize_t n = ::recv(fb, buf, sizeof buf, 0);
+        if (n <= 0 || ::sendto(fb, buf, n, 0, reinterpret_cast<sockaddr*>(&a), sizeof a) != n) {
+          break;
+        }
+      }
+    });
+    char out[200] = {}, in[256];
+    for (int i = 0; i < count; ++i) {
+      const std::int64_t t0 = NowUs();
+      if (::sendto(fa, out, sizeof out, 0, reinterpret_cast<sockaddr*>(&b), sizeof b) !=
+              static_cast<ssize_t>(sizeof out) ||
+          ::recv(fa, in, sizeof in, 0) != static_cast<ssize_t>(sizeof out)) {
+        break;
+      }
+      half.push_back((NowUs() - t0) / 2);
+    }
+    echo.join();
+  }
+  if (fa >= 0) ::close(fa);
+  if (fb >= 0) ::close(fb);
+  return Quantiles(half);
+}
+
 void Stop(std::unique_ptr<Child>& c, double timeout_s = 10) {
   if (!c || !c->running()) return;
   c->Signal(SIGTERM);
@@ -440,6 +615,9 @@ int main(int argc, char** argv) {
     return 2;
   }
 
+  // Before anything else runs: the machine's own price of a datagram hop.
+  const double datagram_us = DatagramCostUs(20000);
+  const std::string hop_latency = HopLatency(20000);
   const std::string dir = ftcal::testing::MakeTempDir();
   auto path = [&](const std::string& name) { return dir + "/" + name; };
   int rc = 0;
@@ -531,7 +709,31 @@ int main(int argc, char** argv) {
 
     const std::int64_t window_from = NowUs() + static_cast<std::int64_t>(warmup_s * 1e6);
     const std::int64_t window_to = window_from + static_cast<std::int64_t>(duration_s * 1e6);
-    SleepS(warmup_s + duration_s);
+    // What each stage costs over the counted window (CPU s, in the order of `roles`).
+    const std::vector<std::string> roles = {"twin",           "ATI bridge(s)", "Dynamixel bridge",
+                                            "mocap bridge",   "corrector",     "recorder",
+                                            "this subscriber"};
+    auto cpu_now = [&] {
+      double bridges_cpu = 0;
+      for (const auto& a : ati) bridges_cpu += TreeCpuS(a->pid());
+      return std::vector<double>{TreeCpuS(sim->pid()),
+                                 bridges_cpu,
+                                 TreeCpuS(dxl->pid()),
+                                 TreeCpuS(mocap->pid()),
+                                 TreeCpuS(corrector->pid()),
+                                 recorder ? TreeCpuS(recorder->pid()) : 0.0,
+                                 SelfCpuS()};
+    };
+    SleepS(std::max(0.0, double(window_from - NowUs()) * 1e-6));
+    const std::vector<double> cpu_from = cpu_now();
+    const auto ticks_from = MachineTicks();
+    const KernelDrops kernel_from = ReadKernelDrops();
+    const std::int64_t cpu_window_from = NowUs();
+    SleepS(std::max(0.0, double(window_to - NowUs()) * 1e-6));
+    const std::vector<double> cpu_to = cpu_now();
+    const auto ticks_to = MachineTicks();
+    const KernelDrops kernel_to = ReadKernelDrops();
+    const double cpu_window_s = double(NowUs() - cpu_window_from) * 1e-6;
     // The ATI stages end here (the bridges send the boxes RDT stop), unless the commands are to
     // run under the ATI load: on two busy cores that load starves the twin's servo emulator
     // (and this program's bus tap) until the Dynamixel bridge's replies come late, it degrades
@@ -755,6 +957,53 @@ int main(int argc, char** argv) {
         kernel_after.rcvbuf_errors - kernel_before.rcvbuf_errors,
         kernel_after.in_errors - kernel_before.in_errors,
         kernel_after.backlog_drops - kernel_before.backlog_drops);
+    {
+      // The CPU budget of the window: each stage's share of one core, the machine's split, and
+      // the cost per leg-sample the twin sent. Under loss the stages were starved, so the cost
+      // per sample offered is a lower bound; at a rate where nothing is lost it is the price.
+      std::string shares;
+      double total = 0, twin = 0;
+      for (std::size_t i = 0; i < roles.size(); ++i) {
+        if (roles[i] == "recorder" && !recorder) continue;
+        const double share = (cpu_to[i] - cpu_from[i]) / cpu_window_s;
+        total += share;
+        if (i == 0) twin = share;
+        char buf[96];
+        std::snprintf(buf, sizeof buf, "%s%s %.1f", shares.empty() ? "" : ", ", roles[i].c_str(),
+                      100 * share);
+        shares += buf;
+      }
+      long long dt[7], all = 0;
+      for (int i = 0; i < 7; ++i) all += dt[i] = ticks_to[i] - ticks_from[i];
+      auto pct = [&](long long v) { return all > 0 ? 100.0 * double(v) / double(all) : 0.0; };
+      const long cores = ::sysconf(_SC_NPROCESSORS_ONLN);
+      std::printf(
+          "CPU in the window (%% of one core): %s; sum %.1f of %ld cores' %ld; machine: user "
+          "%.0f%% system %.0f%% softirq %.0f%% idle %.0f%%\n",
+          shares.c_str(), 100 * total, cores, 100 * cores, pct(dt[0] + dt[1]), pct(dt[2]),
+          pct(dt[6]), pct(dt[3] + dt[4]));
+      if (window_sent > 0) {
+        const double per = total * cpu_window_s / double(window_sent) * 1e6;
+        const double per_no_twin = (total - twin) * cpu_window_s / double(window_sent) * 1e6;
+        const double delivered =
+            double(kernel_to.in_datagrams - kernel_from.in_datagrams) / double(window_sent);
+        std::printf(
+            "CPU per leg-sample the twin sent in the window: %.1f us (%.1f us without the "
+            "twin)%s; UDP datagrams delivered to sockets per leg-sample %.2f, at %.2f us each "
+            "on this machine (one sent and received through the loopback, measured before the "
+            "run): the datagram hops alone cost %.1f us per leg-sample, %.2f cores at "
+            "6 x 7000/s\n",
+            per, per_no_twin,
+            window_sent - window_cw > window_sent / 100
+                ? " [over 1% lost: the stages were starved, a lower bound]"
+                : "",
+            delivered, datagram_us, delivered * datagram_us, delivered * datagram_us * 42000e-6);
+      }
+    }
+    std::printf(
+        "this machine before the run, one UDP hop between two threads over the loopback (half a "
+        "round trip, nothing else running): %s\n",
+        hop_latency.c_str());
     std::printf(
         "RDT receipt in the bridge -> FT_<LEG> in this subscriber's handler (bridge + LCM "
         "hop): %s\n",
