@@ -4,9 +4,10 @@
 
 namespace ftcal {
 
-PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus)
+PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus, bool publish_sync)
     : config_(config),
       bus_(bus),
+      publish_sync_(publish_sync),
       inputs_(config),
       segmenter_options_(SegmenterOptionsFromConfig(config.segmenter())),
       aligner_(AlignerOptionsFromConfig(config), [this](const AlignedSample& s) { OnAligned(s); }) {
@@ -86,8 +87,10 @@ void PoseSegmenterStage::OnExperiment(const experiment_marker_t& msg) {
 }
 
 void PoseSegmenterStage::OnAligned(const AlignedSample& a) {
-  ToLcm(a, &sync_msg_);
-  bus_.Publish(config_.channels().sync_sample(), sync_msg_);
+  if (publish_sync_) {
+    ToLcm(a, &sync_msg_);
+    bus_.Publish(config_.channels().sync_sample(), sync_msg_);
+  }
   ++sync_published_;
   if (segmenter_) segmenter_->Add(a.sample);
 }

@@ -30,7 +30,9 @@ namespace ftcal {
 class PoseSegmenterStage {
  public:
   // Subscribes its handlers on `bus`. Throws std::invalid_argument for a config it cannot use.
-  PoseSegmenterStage(const config::Config& config, Bus& bus);
+  // publish_sync = false: SYNC_SAMPLE is counted but not encoded or published (a replay that
+  // writes only the poses log).
+  PoseSegmenterStage(const config::Config& config, Bus& bus, bool publish_sync = true);
 
   int64_t poses_published() const { return poses_published_; }
   const AlignerCounters& aligner_counters() const { return aligner_.counters(); }
@@ -50,6 +52,7 @@ class PoseSegmenterStage {
   // EXPERIMENT is a signed channel (common/envelope.h).
   auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
   Bus& bus_;
+  const bool publish_sync_;
   DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;
   Aligner aligner_;
@@ -58,7 +61,7 @@ class PoseSegmenterStage {
   std::string session_id_;
   int32_t pose_index_ = 0;
   int64_t poses_published_ = 0;
-  int64_t sync_published_ = 0;
+  int64_t sync_published_ = 0;          // aligned samples, published or not (publish_sync_)
   SegmenterCounters segmenter_totals_;  // of the segmenters of earlier phases
   sync_sample_t sync_msg_;              // reused: no allocation per sample
   // The status counters (ServiceStats' map entries: their addresses are stable), updated on

@@ -4,12 +4,12 @@
 // BM_SegmenterStageReplay is the definition: what `ftcal-pose-segmenter --replay IN
 // --out OUT` does, log in -> log out, in this process (LogReplayBus + PoseSegmenterStage, as
 // main.cc builds them; only process start-up and config parsing are left out): read and
-// decode every event, align, publish every SYNC_SAMPLE and STEADY_POSE into the output log,
-// fsync and rename it. The log is ten minutes of the twin's standing poses as the bridges
-// publish them (services/sim/log_writer.h) between EXPERIMENT STANDING markers.
-// x_real_time = seconds of log per second; the plain run divides by CPU time, the /real_time
-// run by wall time (on a loaded shared machine the two differ: quote the wall figure's median
-// from a quiet machine, or both).
+// decode every event, align, publish every STEADY_POSE into the output log, fsync and rename
+// it; /1 also publishes every SYNC_SAMPLE into it (--sync-samples), /0 does not (the default). The
+// log is ten minutes of the twin's standing poses as the bridges publish them
+// (services/sim/log_writer.h) between EXPERIMENT STANDING markers. x_real_time = seconds of log per
+// second; the plain run divides by CPU time, the /real_time run by wall time (on a loaded shared
+// machine the two differ: quote the wall figure's median from a quiet machine, or both).
 //
 // BM_AlignAndSegmentOneHour is the logic alone (no log, no LCM): the aligner and the segmenter
 // over one hour of the same frames held in memory (repeated six times, time shifted).
@@ -134,7 +134,7 @@ void BM_SegmenterStageReplay(benchmark::State& state) {
   for (auto _ : state) {
     ServiceStats stats(log);
     LogReplayBus bus(d.path, out, stats);
-    PoseSegmenterStage stage(d.config, bus);
+    PoseSegmenterStage stage(d.config, bus, /*publish_sync=*/state.range(0) != 0);
     bus.Run([] {}, 100'000);
     bus.Commit();
     poses = stage.poses_published();
@@ -147,11 +147,12 @@ void BM_SegmenterStageReplay(benchmark::State& state) {
   state.counters["x_real_time"] = benchmark::Counter(
       static_cast<double>(state.iterations()) * d.span_s, benchmark::Counter::kIsRate);
   state.counters["poses_per_pass"] = static_cast<double>(poses);
-  state.SetLabel("ftcal-pose-segmenter --replay path, log in -> log out, " +
+  state.SetLabel(std::string("ftcal-pose-segmenter --replay path") +
+                 (state.range(0) != 0 ? " --sync-samples" : "") + ", log in -> log out, " +
                  std::to_string(static_cast<int>(d.span_s)) + " s log");
 }
-BENCHMARK(BM_SegmenterStageReplay)->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_SegmenterStageReplay)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_SegmenterStageReplay)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_SegmenterStageReplay)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond)->UseRealTime();
 
 }  // namespace
 }  // namespace ftcal

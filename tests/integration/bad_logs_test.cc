@@ -176,7 +176,10 @@ class BadLogsTest : public ::testing::Test {
   static std::string Replay(const std::string& exe, const std::string& in, const std::string& tag,
                             const std::string& config = kConfig) {
     const std::string out = Path(tag + ".lcmlog");
-    const Result r = Run({exe, "--config", config, "--replay", in, "--out", out}, tag);
+    // The segmenter's SYNC_SAMPLE too: the tests here compare them.
+    std::vector<std::string> argv = {exe, "--config", config, "--replay", in, "--out", out};
+    if (exe == FTCAL_POSE_SEGMENTER) argv.push_back("--sync-samples");
+    const Result r = Run(argv, tag);
     EXPECT_EQ(r.exit_code, 0) << tag << ": " << r.err;
     return out;
   }

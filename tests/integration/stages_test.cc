@@ -192,8 +192,10 @@ class StagesTest : public ::testing::Test {
   // Runs a stage over a log to completion; returns the output log's path.
   static std::string Replay(const std::string& exe, const std::string& in, const std::string& tag) {
     const std::string out = fx->dir + "/" + tag + ".lcmlog";
-    Child child({exe, "--config", kConfig, "--replay", in, "--out", out},
-                fx->dir + "/" + tag + ".out", fx->dir + "/" + tag + ".err");
+    // The segmenter's SYNC_SAMPLE too: the tests here check the alignment by them.
+    std::vector<std::string> argv = {exe, "--config", kConfig, "--replay", in, "--out", out};
+    if (exe == FTCAL_POSE_SEGMENTER) argv.push_back("--sync-samples");
+    Child child(argv, fx->dir + "/" + tag + ".out", fx->dir + "/" + tag + ".err");
     const auto status = child.Wait(120);
     EXPECT_TRUE(status.has_value()) << tag << " did not finish";
     if (status) {
@@ -357,6 +359,35 @@ std::vector<std::vector<uint8_t>> RawChannel(const std::string& path, const std:
     out.emplace_back(b, b + e->datalen);
   }
   return out;
+}
+
+// A replay without --sync-samples writes the poses log the calibrator reads: not one
+// SYNC_SAMPLE, and the very STEADY_POSE events (byte for byte) of a replay that writes both;
+// the status still counts every aligned sample.
+TEST_F(StagesTest, SegmenterReplayWritesThePosesLogWithoutSyncSamples) {
+  const auto& ch = fx->config.channels();
+  const std::string both = Replay(FTCAL_POSE_SEGMENTER, fx->log_path, "with_sync");
+  const std::string poses = fx->dir + "/poses_only.lcmlog";
+  Child child({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log_path, "--out", poses},
+              fx->dir + "/poses_only.out", fx->dir + "/poses_only.err");
+  const auto status = child.Wait(120);
+  ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+      << ReadFile(fx->dir + "/poses_only.err");
+  EXPECT_EQ(RawChannel(poses, ch.sync_sample()).size(), 0u);
+  EXPECT_EQ(RawChannel(both, ch.sync_sample()).size(), fx->frames.size());
+  const auto a = RawChannel(both, ch.steady_pose()), b = RawChannel(poses, ch.steady_pose());
+  ASSERT_EQ(b.size(), static_cast<size_t>(kPoses));
+  EXPECT_EQ(a, b);
+  auto aligned = [&](const std::string& log) {
+    const auto st = ReadChannel<service_status_t>(log, ch.status());
+    if (st.size() != 1u) return int64_t{-1};
+    for (int i = 0; i < st[0].num_counters; ++i) {
+      if (st[0].counter_name[i] == "sync_samples") return st[0].counter_value[i];
+    }
+    return int64_t{-1};
+  };
+  EXPECT_EQ(aligned(poses), static_cast<int64_t>(fx->frames.size()));
+  EXPECT_EQ(aligned(both), static_cast<int64_t>(fx->frames.size()));
 }
 
 TEST_F(StagesTest, BadInputsAreCountedAsDropsAndChangeNoOutput) {
