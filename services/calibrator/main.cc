@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <exception>
 #include <filesystem>
+#include <future>
 #include <map>
 #include <iostream>
 #include <optional>
@@ -276,14 +277,23 @@ int Offline(const ftcal::config::Config& config, const Args& args) {
                                  "': " + ftcal::UserText(e, "reading the truth file"));
     }
   }
+  // The walking file (2 M numbers for the report's walk) is formatted on its own thread while
+  // the calibration file and the residuals are: it reads the calibration, the rest writes only
+  // the calibration proto. It is written after them, so that a calibration that could not be
+  // written leaves no walking file beside it.
+  std::future<std::string> walking_csv;
+  if (!collector.walking_samples().empty()) {
+    walking_csv = std::async(std::launch::async, [&] {
+      return ftcal::WalkingCsv(collector.walking_samples(), run, truth ? &*truth : nullptr);
+    });
+  }
   ftcal::AddResultRmse(collector.walking_samples(), truth ? &*truth : nullptr, &run);
   ftcal::WriteCalibrationOutputs(run, args.out);
   spdlog::info("wrote {} and {}", args.out, ftcal::ResidualsPathFor(args.out));
   std::string walking;
-  if (!collector.walking_samples().empty()) {
+  if (walking_csv.valid()) {
     walking = ftcal::WalkingPathFor(args.out);
-    ftcal::WriteFileAtomic(
-        walking, ftcal::WalkingCsv(collector.walking_samples(), run, truth ? &*truth : nullptr));
+    ftcal::WriteFileAtomic(walking, walking_csv.get());
     spdlog::info("wrote {} (the walking session corrected, for the report)", walking);
   }
   return Report(run, args, walking);
