@@ -21,7 +21,7 @@ int main(int argc, char** argv) {
       "--sync-samples", sync_samples,
       "with --replay: write SYNC_SAMPLE (every aligned sample) into --out as well. Without it a "
       "replay writes the poses log the calibrator reads: STEADY_POSE and this process's status, "
-      "about 1 MB for the report's experiment instead of 240 MB of SYNC_SAMPLE that nothing "
+      "0.5 MB for the report's experiment instead of 243 MB of SYNC_SAMPLE that nothing "
       "reads from a file. Live, SYNC_SAMPLE is always published");
   if (auto rc = app.Init(argc, argv)) return *rc;
   try {

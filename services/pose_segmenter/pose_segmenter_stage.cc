@@ -91,7 +91,7 @@ void PoseSegmenterStage::OnAligned(const AlignedSample& a) {
     ToLcm(a, &sync_msg_);
     bus_.Publish(config_.channels().sync_sample(), sync_msg_);
   }
-  ++sync_published_;
+  ++sync_aligned_;
   if (segmenter_) segmenter_->Add(a.sample);
 }
 
@@ -112,7 +112,7 @@ void PoseSegmenterStage::PublishCounters() {
     s.window_resets += c.window_resets;
   }
   Counters& o = counters_;
-  *o.sync_samples = sync_published_;
+  *o.sync_samples = sync_aligned_;
   *o.standing_samples = s.samples;
   *o.poses = poses_published_;
   *o.drop_out_of_order = a.out_of_order;

@@ -61,7 +61,7 @@ class PoseSegmenterStage {
   std::string session_id_;
   int32_t pose_index_ = 0;
   int64_t poses_published_ = 0;
-  int64_t sync_published_ = 0;          // aligned samples, published or not (publish_sync_)
+  int64_t sync_aligned_ = 0;            // aligned samples, published or not (publish_sync_)
   SegmenterCounters segmenter_totals_;  // of the segmenters of earlier phases
   sync_sample_t sync_msg_;              // reused: no allocation per sample
   // The status counters (ServiceStats' map entries: their addresses are stable), updated on
