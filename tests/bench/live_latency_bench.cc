@@ -410,11 +410,11 @@ KernelDrops ReadKernelDrops() {
   return d;
 }
 
-// CPU seconds (user + system, every thread) of a process and of every process below it, from
-// /proc (utime and stime of /proc/<pid>/stat, in clock ticks): what each stage costs the two
-// cores, so that loss can be told from a machine that has not the CPU for the rate.
-double TreeCpuS(pid_t root) {
-  std::map<pid_t, std::pair<pid_t, double>> procs;  // pid -> (parent, cpu s)
+// Every process's parent and CPU seconds (user + system, every thread: utime and stime of
+// /proc/<pid>/stat, in clock ticks), read once per snapshot.
+using ProcTable = std::map<pid_t, std::pair<pid_t, double>>;
+ProcTable ReadProcTable() {
+  ProcTable procs;
   const double tick = static_cast<double>(::sysconf(_SC_CLK_TCK));
   for (const auto& entry : std::filesystem::directory_iterator("/proc")) {
     const std::string name = entry.path().filename().string();
@@ -430,6 +430,12 @@ double TreeCpuS(pid_t root) {
     procs[static_cast<pid_t>(std::stol(name))] = {static_cast<pid_t>(std::stol(v[1])),
                                                   (std::stod(v[11]) + std::stod(v[12])) / tick};
   }
+  return procs;
+}
+
+// The CPU seconds of a process and of every process below it: what each stage costs the two
+// cores, so that loss can be told from a machine that has not the CPU for the rate.
+double TreeCpuS(const ProcTable& procs, pid_t root) {
   double sum = 0;
   for (const auto& [pid, p] : procs) {
     for (pid_t at = pid; at > 1;) {
@@ -714,14 +720,15 @@ int main(int argc, char** argv) {
                                             "mocap bridge",   "corrector",     "recorder",
                                             "this subscriber"};
     auto cpu_now = [&] {
+      const ProcTable procs = ReadProcTable();
       double bridges_cpu = 0;
-      for (const auto& a : ati) bridges_cpu += TreeCpuS(a->pid());
-      return std::vector<double>{TreeCpuS(sim->pid()),
+      for (const auto& a : ati) bridges_cpu += TreeCpuS(procs, a->pid());
+      return std::vector<double>{TreeCpuS(procs, sim->pid()),
                                  bridges_cpu,
-                                 TreeCpuS(dxl->pid()),
-                                 TreeCpuS(mocap->pid()),
-                                 TreeCpuS(corrector->pid()),
-                                 recorder ? TreeCpuS(recorder->pid()) : 0.0,
+                                 TreeCpuS(procs, dxl->pid()),
+                                 TreeCpuS(procs, mocap->pid()),
+                                 TreeCpuS(procs, corrector->pid()),
+                                 recorder ? TreeCpuS(procs, recorder->pid()) : 0.0,
                                  SelfCpuS()};
     };
     SleepS(std::max(0.0, double(window_from - NowUs()) * 1e-6));
