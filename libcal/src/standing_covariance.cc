@@ -28,16 +28,8 @@ void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFi
                    const StandingOptions& options) {
   Params params = ParamsFromFit(*fit);
   Built b = Build(prep, ids, fit->model, BuildOptions(), &params, options);
-  ceres::Problem::EvaluateOptions eo;
-  eo.parameter_blocks = b.free_blocks;
-  eo.apply_loss_function = true;
   std::vector<double> res;
-  ceres::CRSMatrix crs;
-  b.problem->Evaluate(eo, nullptr, &res, nullptr, &crs);
-  Eigen::MatrixXd J = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
-  for (int r = 0; r < crs.num_rows; ++r) {
-    for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i) J(r, crs.cols[i]) = crs.values[i];
-  }
+  const Eigen::MatrixXd J = DenseJacobian(b.problem.get(), b.free_blocks, &res);
   // Pose residual blocks come first (Build adds them before the prior's), six rows each.
   const int pose_rows = 6 * static_cast<int>(ids.size());
   const double P = static_cast<double>(ids.size());
@@ -46,11 +38,9 @@ void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFi
   for (int r = 0; r < pose_rows; ++r) s2c[r % 6] += res[r] * res[r];
   s2c /= std::max(1.0, P - dof_per_row);
   const Eigen::MatrixXd H = J.transpose() * J;
-  Eigen::MatrixXd M = Eigen::MatrixXd::Zero(H.rows(), H.cols());
-  for (int r = 0; r < J.rows(); ++r) {
-    const double s2 = r < pose_rows ? s2c[r % 6] : fit->residual_variance;
-    M.noalias() += s2 * J.row(r).transpose() * J.row(r);
-  }
+  Eigen::VectorXd s2(J.rows());
+  for (int r = 0; r < J.rows(); ++r) s2[r] = r < pose_rows ? s2c[r % 6] : fit->residual_variance;
+  const Eigen::MatrixXd M = J.transpose() * s2.asDiagonal() * J;
   const Eigen::LDLT<Eigen::MatrixXd> ldlt(H);
   const Eigen::VectorXd d = ldlt.vectorD();
   if (ldlt.info() != Eigen::Success || !(d.minCoeff() > 1e-14 * std::max(1.0, d.maxCoeff()))) {

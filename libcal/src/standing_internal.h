@@ -119,6 +119,12 @@ ceres::CostFunction* MakeCost(StandingModel model, RotationParams rotations, con
 std::vector<Vec6> ResidualsOfPoses(const Prepared& prep, const StandingFit& fit,
                                    const std::vector<int>& ids);
 
+// The Jacobian of every residual block (rows in the problem's order) with respect to `blocks`
+// (columns in that order, each block's tangent space), as Problem::Evaluate gives it with the
+// loss applied; the residuals too when `residuals` is not null.
+Eigen::MatrixXd DenseJacobian(ceres::Problem* problem, const std::vector<double*>& blocks,
+                              std::vector<double>* residuals);
+
 // Sigmas and correlation of a fit from the sandwich covariance (standing_covariance.cc).
 void AddCovariance(const Prepared& prep, const std::vector<int>& ids, StandingFit* fit,
                    const StandingOptions& options);

@@ -13,7 +13,9 @@
 #include <string>
 
 #include <Eigen/Cholesky>
+#include <Eigen/QR>
 #include <Eigen/SVD>
+#include <ceres/manifold.h>
 
 #include "standing_internal.h"
 
@@ -61,27 +63,95 @@ std::vector<std::string> ParameterNames(StandingModel model) {
   return names;
 }
 
-namespace {
-
-Eigen::MatrixXd DenseJacobian(ceres::Problem* problem, const std::vector<double*>& blocks) {
-  ceres::Problem::EvaluateOptions eo;
-  eo.parameter_blocks = blocks;
-  eo.apply_loss_function = true;
-  ceres::CRSMatrix crs;
-  problem->Evaluate(eo, nullptr, nullptr, nullptr, &crs);
-  Eigen::MatrixXd J = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
-  for (int r = 0; r < crs.num_rows; ++r) {
-    for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i) J(r, crs.cols[i]) = crs.values[i];
+// Ceres's Problem::Evaluate builds a program, an evaluator and a sparse Jacobian on every call:
+// in step 2 that set-up (and the page faults of its fresh buffers) was four fifths of each rank
+// check and half of each covariance. Here each residual block's cost is evaluated straight into
+// the dense matrix and taken to the tangent space as Ceres does (J_ambient * PlusJacobian).
+// With a loss function on any block, Ceres's own evaluation (its residual and Jacobian
+// correction).
+Eigen::MatrixXd DenseJacobian(ceres::Problem* problem, const std::vector<double*>& blocks,
+                              std::vector<double>* residuals) {
+  std::vector<ceres::ResidualBlockId> ids;
+  problem->GetResidualBlocks(&ids);
+  bool any_loss = false;
+  int rows = 0;
+  for (ceres::ResidualBlockId id : ids) {
+    any_loss = any_loss || problem->GetLossFunctionForResidualBlock(id) != nullptr;
+    rows += problem->GetCostFunctionForResidualBlock(id)->num_residuals();
+  }
+  if (any_loss) {
+    ceres::Problem::EvaluateOptions eo;
+    eo.parameter_blocks = blocks;
+    eo.apply_loss_function = true;
+    ceres::CRSMatrix crs;
+    problem->Evaluate(eo, nullptr, residuals, nullptr, &crs);
+    Eigen::MatrixXd J = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
+    for (int r = 0; r < crs.num_rows; ++r) {
+      for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i) J(r, crs.cols[i]) = crs.values[i];
+    }
+    return J;
+  }
+  std::vector<int> column(blocks.size());
+  int cols = 0;
+  for (size_t b = 0; b < blocks.size(); ++b) {
+    column[b] = cols;
+    cols += problem->ParameterBlockTangentSize(blocks[b]);
+  }
+  Eigen::MatrixXd J = Eigen::MatrixXd::Zero(rows, cols);
+  if (residuals != nullptr) residuals->assign(static_cast<size_t>(rows), 0.0);
+  using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+  std::vector<double*> params;
+  std::vector<RowMajor> ambient;
+  std::vector<double*> jacobians;
+  std::vector<int> which;  // per parameter of the block: index into blocks, or -1
+  Eigen::VectorXd r;
+  int row = 0;
+  for (ceres::ResidualBlockId id : ids) {
+    const ceres::CostFunction* cost = problem->GetCostFunctionForResidualBlock(id);
+    const int n = cost->num_residuals();
+    problem->GetParameterBlocksForResidualBlock(id, &params);
+    const std::vector<int32_t>& sizes = cost->parameter_block_sizes();
+    ambient.resize(params.size());
+    jacobians.assign(params.size(), nullptr);
+    which.assign(params.size(), -1);
+    for (size_t p = 0; p < params.size(); ++p) {
+      const auto at = std::find(blocks.begin(), blocks.end(), params[p]);
+      if (at == blocks.end()) continue;
+      which[p] = static_cast<int>(at - blocks.begin());
+      ambient[p].resize(n, sizes[p]);
+      jacobians[p] = ambient[p].data();
+    }
+    r.resize(n);
+    if (!cost->Evaluate(params.data(), r.data(), jacobians.data()) || !r.allFinite()) {
+      throw std::runtime_error("standing step: a residual could not be evaluated for the Jacobian");
+    }
+    if (residuals != nullptr) std::copy(r.data(), r.data() + n, residuals->begin() + row);
+    for (size_t p = 0; p < params.size(); ++p) {
+      if (which[p] < 0) continue;
+      const double* x = params[p];
+      const int tangent = problem->ParameterBlockTangentSize(x);
+      auto out = J.block(row, column[static_cast<size_t>(which[p])], n, tangent);
+      if (const ceres::Manifold* m = problem->GetManifold(x)) {
+        RowMajor plus(sizes[p], tangent);
+        m->PlusJacobian(x, plus.data());
+        out.noalias() = ambient[p] * plus;
+      } else {
+        out = ambient[p];
+      }
+    }
+    row += n;
   }
   return J;
 }
+
+namespace {
 
 // Refuses a model whose parameters the poses do not determine: SVD of the column-normalised
 // Jacobian; a singular value below 1e-8 of the largest marks a null direction, and the
 // parameters carrying it are named.
 void CheckIdentifiable(ceres::Problem* problem, const std::vector<double*>& blocks,
                        StandingModel model, size_t n_poses) {
-  Eigen::MatrixXd J = DenseJacobian(problem, blocks);
+  Eigen::MatrixXd J = DenseJacobian(problem, blocks, nullptr);
   const std::vector<std::string> names = ParameterNames(model);
   if (J.cols() != static_cast<int>(names.size())) {
     throw std::logic_error("standing step: Jacobian has " + std::to_string(J.cols()) +
@@ -97,9 +167,14 @@ void CheckIdentifiable(ceres::Problem* problem, const std::vector<double*>& bloc
     }
   }
   J = J * norms.cwiseInverse().asDiagonal();
-  // JacobiSVD (QR-preconditioned), not BDCSVD: Eigen 3.4.0's BDCSVD proved inaccurate on tall
-  // matrices (see offset_reestimation.cc).
-  Eigen::JacobiSVD<Eigen::MatrixXd> svd(J, Eigen::ComputeThinV);
+  // J = Q R, so J's singular values and right singular vectors are R's: a blocked Householder
+  // QR in place (backward stable: R's singular values are J's to within eps |J|, far below the
+  // threshold), then the SVD of the small square R. JacobiSVD, not BDCSVD: Eigen 3.4.0's BDCSVD
+  // proved inaccurate (see offset_reestimation.cc). On the 6P x <= 42 Jacobian this is several
+  // times faster than JacobiSVD of J itself, whose pivoted QR is unblocked and works on a copy.
+  const Eigen::HouseholderQR<Eigen::Ref<Eigen::MatrixXd>> qr(J);
+  const Eigen::MatrixXd R = J.topRows(std::min(J.rows(), J.cols())).triangularView<Eigen::Upper>();
+  const Eigen::JacobiSVD<Eigen::MatrixXd> svd(R, Eigen::ComputeThinV);
   const Eigen::VectorXd& sv = svd.singularValues();
   for (int i = 0; i < sv.size(); ++i) {
     if (sv[i] >= 1e-8 * sv[0]) continue;

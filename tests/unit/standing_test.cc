@@ -13,6 +13,7 @@
 #include <ceres/manifold.h>
 #include <gtest/gtest.h>
 
+#include "standing_internal.h"  // libcal/src: DenseJacobian against Ceres's own evaluation
 #include "standing_test_data.h"
 
 namespace ftcal {
@@ -96,6 +97,83 @@ TEST(Standing, PoseCostJacobianPassesGradientChecker) {
       ceres::GradientChecker checker(cost.get(), no_manifolds, nd);
       ceres::GradientChecker::ProbeResults results;
       EXPECT_TRUE(checker.Probe(params, 1e-7, &results)) << results.error_log;
+    }
+  }
+}
+
+// The step's own dense Jacobian (rank check, covariance) against Problem::Evaluate's, the
+// evaluation it replaces: quaternions on their manifold (tangent columns) and Cayley vectors,
+// shared and per-leg translations, the alternating scheme's halves held constant, the hanging
+// gravity prior's rows, and a robust loss.
+TEST(Standing, DenseJacobianEqualsCeresEvaluation) {
+  const RobotCalibration truth = MakeTruth(17, Mounting::kFull);
+  const auto poses = MakePoses(truth, GridSubset(40, 1), Noise{0.2, 0.01, 50, 0.1}, true, 3);
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (StandingLoss loss : {StandingLoss::kNone, StandingLoss::kCauchy}) {
+    StandingOptions options;
+    options.leg_aware_com = true;
+    options.robust_loss = loss;
+    standing_detail::Prepared prep = standing_detail::Prepare(Step1Of(truth), poses, options);
+    for (int k = 0; k < kNumLegs; ++k) {
+      HangingGravityObservation o;
+      o.leg = k;
+      o.u_B = Vec3(u(rng), u(rng), 1.0).normalized();
+      o.v_C = Vec3(u(rng), u(rng), 1.0).normalized();
+      o.sigma_rad = 0.01;
+      prep.gravity_prior.push_back(o);
+    }
+    prep.prior_scale = 0.5;
+    std::vector<int> ids;
+    for (int i = 0; i < static_cast<int>(poses.size()); i += 2) ids.push_back(i);
+    for (StandingModel model : {StandingModel::kFull, StandingModel::kRotationsOneTranslation,
+                                StandingModel::kOneTranslation}) {
+      for (RotationParams rotations : {RotationParams::kQuaternion, RotationParams::kCayley}) {
+        for (bool rotations_free : {true, false}) {
+          SCOPED_TRACE(std::string(StandingModelName(model)) +
+                       (rotations == RotationParams::kCayley ? " cayley" : " quaternion") +
+                       (rotations_free ? "" : " rotations constant") +
+                       (loss == StandingLoss::kNone ? "" : " cauchy"));
+          standing_detail::Params params;
+          for (int k = 0; k < kNumLegs; ++k) {
+            const Quat q(ExpSO3(0.1 * Vec3(u(rng), u(rng), u(rng))));
+            params.quat[4 * k] = q.x(), params.quat[4 * k + 1] = q.y(),
+                            params.quat[4 * k + 2] = q.z(), params.quat[4 * k + 3] = q.w();
+            for (int i = 0; i < 3; ++i) params.cayley[3 * k + i] = 0.05 * u(rng);
+          }
+          for (double& t : params.trans) t = 0.01 * u(rng);
+          standing_detail::BuildOptions build;
+          build.rotations = rotations;
+          build.rotations_free = rotations_free;
+          standing_detail::Built b =
+              standing_detail::Build(prep, ids, model, build, &params, options);
+          ASSERT_FALSE(b.free_blocks.empty());
+          std::vector<double> residuals;
+          const Eigen::MatrixXd J =
+              standing_detail::DenseJacobian(b.problem.get(), b.free_blocks, &residuals);
+
+          ceres::Problem::EvaluateOptions eo;
+          eo.parameter_blocks = b.free_blocks;
+          eo.apply_loss_function = true;
+          std::vector<double> want_residuals;
+          ceres::CRSMatrix crs;
+          b.problem->Evaluate(eo, nullptr, &want_residuals, nullptr, &crs);
+          Eigen::MatrixXd want = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
+          for (int r = 0; r < crs.num_rows; ++r) {
+            for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i)
+              want(r, crs.cols[i]) = crs.values[i];
+          }
+          ASSERT_EQ(J.rows(), want.rows());
+          ASSERT_EQ(J.cols(), want.cols());
+          EXPECT_GT(want.norm(), 0.0);
+          EXPECT_LE((J - want).cwiseAbs().maxCoeff(), 1e-12 * want.cwiseAbs().maxCoeff());
+          ASSERT_EQ(residuals.size(), want_residuals.size());
+          for (size_t i = 0; i < residuals.size(); ++i) {
+            EXPECT_NEAR(residuals[i], want_residuals[i],
+                        1e-12 * (1.0 + std::abs(want_residuals[i])));
+          }
+        }
+      }
     }
   }
 }
