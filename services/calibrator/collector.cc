@@ -1,6 +1,11 @@
 // CalibrationCollector: the bus's messages into what Calibrate() consumes (calibrator.h).
 #include "calibrator/collector.h"
 
+#include <sys/mman.h>
+#include <unistd.h>
+
+#include <system_error>
+
 #include <spdlog/fmt/fmt.h>
 #include <spdlog/spdlog.h>
 
@@ -18,6 +23,46 @@ HangSeries SeriesOfPhase(int phase) { return *HangSeriesOfPhase(phase); }
 // Records arriving a little out of order (two sockets, a busy receiver) are not lost: a number
 // up to this far below the highest seen fills a gap counted before.
 constexpr int64_t kReorderWindow = 64;
+
+// Room for a first hanging series before any is known: the report's ten 20 s cycles at 100
+// aligned samples a second, and more. Address space only until written.
+constexpr size_t kFirstHangReserve = size_t{1} << 15;
+
+// A vector's unwritten room [data, data + bytes), in `slices` equal parts.
+struct Room {
+  const void* data;
+  size_t bytes;
+};
+template <typename T>
+Room RoomOf(const std::vector<T>& v) {
+  return Room{v.data(), v.capacity() * sizeof(T)};
+}
+
+// Faults in the pages of every room, slice by slice across all of them (the reader fills them
+// side by side), with one madvise(MADV_POPULATE_WRITE) per slice instead of a trap per 4 KiB
+// page as they are first written: on the paravirtualised VMs we measure on, each trap costs
+// several microseconds, and a report-scale hanging series is ~2300 pages. The pages' contents
+// are unchanged. Best effort: a kernel before 5.14 refuses
+// the advice, and the pages are faulted in as they are written.
+void Prefault(const std::vector<Room>& rooms) {
+#ifdef MADV_POPULATE_WRITE
+  constexpr int kSlices = 16;
+  const auto page = static_cast<uintptr_t>(::sysconf(_SC_PAGESIZE));
+  for (int s = 0; s < kSlices; ++s) {
+    for (const Room& r : rooms) {
+      const auto at = reinterpret_cast<uintptr_t>(r.data);
+      const uintptr_t begin = (at + r.bytes * s / kSlices + page - 1) & ~(page - 1);
+      const uintptr_t end = (at + r.bytes * (s + 1) / kSlices) & ~(page - 1);
+      if (end > begin &&
+          ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_POPULATE_WRITE) != 0) {
+        return;
+      }
+    }
+  }
+#else
+  (void)rooms;
+#endif
+}
 
 }  // namespace
 
@@ -389,24 +434,36 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
   current_gaps_.session = phase.session;
   last_sequence_.fill(0);
   if (IsHangPhase(phase.code)) {
+    WaitPrefault();  // before the room it touches is freed
     current_hang_ = HangingRecording();
     current_hang_.series = SeriesOfPhase(phase.code);
     current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
     // The series of one experiment are alike in length (the plan's cycles at one speed): room
     // for the longest so far, a little more, saves growing each vector by copies (and, on a
     // paravirtualised machine, the page faults of every fresh copy).
+    // That room is faulted in on another thread (Prefault) while this one reads; the first
+    // series' guess is not, as it may be far more than the series needs.
     size_t expected = 0;
     for (int s = 0; s < kNumHangSeries; ++s) {
       if (have_hang_[s]) expected = std::max(expected, hang_[s].legs[0].t_s.size());
     }
-    if (expected > 0) {
-      expected += expected / 16;
-      for (LegSamples& leg : current_hang_.legs) {
-        leg.t_s.reserve(expected);
-        leg.angle_rad.reserve(expected);
-        leg.wrench.reserve(expected);
+    const bool known = expected > 0;
+    expected = known ? expected + expected / 16 : kFirstHangReserve;
+    std::vector<Room> rooms;
+    for (LegSamples& leg : current_hang_.legs) {
+      leg.t_s.reserve(expected);
+      leg.angle_rad.reserve(expected);
+      leg.wrench.reserve(expected);
+      rooms.insert(rooms.end(), {RoomOf(leg.t_s), RoomOf(leg.angle_rad), RoomOf(leg.wrench)});
+    }
+    current_hang_.attitude.reserve(expected);
+    rooms.push_back(RoomOf(current_hang_.attitude));
+    if (known) {
+      try {
+        prefault_ = std::async(std::launch::async, Prefault, std::move(rooms));
+      } catch (const std::system_error&) {
+        // No thread to spare: the pages are faulted in as they are written.
       }
-      current_hang_.attitude.reserve(expected);
     }
   } else if (phase.code == experiment_marker_t::STANDING) {
     current_poses_.clear();
@@ -436,6 +493,10 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_unloaded_.clear();
     segmenter_ = std::make_unique<PoseSegmenter>(
         segmenter_options_, [this](const SteadyPoseOut& p) { OnTripodStance(p); });
+  } else if (phase.code == experiment_marker_t::WALKING && walking_.empty()) {
+    // Room for all it may keep: grown by copies, the kept samples were copied about twice.
+    // Address space only until written.
+    current_walk_.reserve(kMaxWalkingSamples);
   }
   spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase.code), phase.session);
 }
@@ -471,9 +532,11 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
                    HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
                    current_hang_.attitude.size());
       BeforeInputsChange();
+      WaitPrefault();  // before the buffers it touches change hands (and, replaced, are freed)
       hang_[s] = std::move(current_hang_);
       have_hang_[s] = true;
     }
+    WaitPrefault();
     current_hang_ = HangingRecording();
   } else if (phase.code == experiment_marker_t::STANDING) {
     if (completed) {

@@ -19,6 +19,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <future>
 #include <map>
 #include <memory>
 #include <optional>
@@ -308,6 +309,13 @@ class CalibrationCollector {
     if (before_inputs_change_) before_inputs_change_();
   }
   CollectorCounters counters_;
+
+  // The hanging series' room faulted in on another thread while this one fills it (StartPhase).
+  // Last: destroyed, so waited for, before the buffers it touches are freed.
+  void WaitPrefault() {
+    if (prefault_.valid()) prefault_.wait();
+  }
+  std::future<void> prefault_;
 };
 
 }  // namespace ftcal
