@@ -602,6 +602,9 @@ void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
     return;
   }
   BeforeInputsChange();
+  // Room for a report-scale experiment's poses at once (address space until written), not
+  // grown by copies that move and fault in every pose read so far.
+  if (logged_poses_.capacity() == 0) logged_poses_.reserve(1024);
   logged_poses_.push_back(p.pose);
   if (on_steady_pose_) on_steady_pose_();
 }

@@ -201,19 +201,40 @@ std::vector<std::string> LogChannelsAtStart(const std::string& path, int max_eve
   std::vector<std::string> channels;
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) return channels;
-  std::vector<uint8_t> bytes(static_cast<size_t>(std::max<int64_t>(max_bytes, 0)));
-  const int64_t n = PreadFully(fd, bytes.data(), static_cast<int64_t>(bytes.size()), 0);
-  ::close(fd);
-  for (int64_t at = 0; static_cast<int>(channels.size()) < max_events && at + kHeaderBytes <= n;) {
+  // Read as far as the events need, a piece at a time: a few hundred events are tens of kB, not
+  // the whole allowance (1 MB by default) zeroed, faulted in and filled.
+  constexpr int64_t kPieceBytes = 64 << 10;
+  const int64_t limit = std::max<int64_t>(max_bytes, 0);
+  std::vector<uint8_t> bytes;
+  int64_t n = 0;  // bytes read
+  bool eof = false;
+  // Makes bytes [0, want) present when the file and the allowance have them.
+  auto have = [&](int64_t want) {
+    while (n < want && !eof && n < limit) {
+      const int64_t piece = std::min(limit - n, std::max(kPieceBytes, want - n));
+      bytes.resize(static_cast<size_t>(n + piece));
+      const int64_t got = PreadFully(fd, bytes.data() + n, piece, n);
+      if (got <= 0) {
+        eof = true;
+        break;
+      }
+      eof = got < piece;
+      n += got;
+    }
+    return n >= want;
+  };
+  for (int64_t at = 0; static_cast<int>(channels.size()) < max_events && have(at + kHeaderBytes);) {
     const uint8_t* header = bytes.data() + at;
     if (Be32(header) != kSyncWord) break;
     const int64_t channel_bytes = static_cast<int32_t>(Be32(header + 20));
     const int64_t data_bytes = static_cast<int32_t>(Be32(header + 24));
-    if (channel_bytes <= 0 || data_bytes < 0 || at + kHeaderBytes + channel_bytes > n) break;
+    if (channel_bytes <= 0 || data_bytes < 0 || !have(at + kHeaderBytes + channel_bytes)) break;
+    header = bytes.data() + at;  // the buffer may have moved
     channels.emplace_back(reinterpret_cast<const char*>(header + kHeaderBytes),
                           static_cast<size_t>(channel_bytes));
     at += kHeaderBytes + channel_bytes + data_bytes;
   }
+  ::close(fd);
   return channels;
 }
 
