@@ -28,7 +28,7 @@ constexpr int64_t kReorderWindow = 64;
 // aligned samples a second, and more. Address space only until written.
 constexpr size_t kFirstHangReserve = size_t{1} << 15;
 
-// A vector's unwritten room [data, data + bytes), in `slices` equal parts.
+// A vector's room, its whole capacity: [data, data + bytes).
 struct Room {
   const void* data;
   size_t bytes;
@@ -42,8 +42,8 @@ Room RoomOf(const std::vector<T>& v) {
 // side by side), with one madvise(MADV_POPULATE_WRITE) per slice instead of a trap per 4 KiB
 // page as they are first written: on the paravirtualised VMs we measure on, each trap costs
 // several microseconds, and a report-scale hanging series is ~2300 pages. The pages' contents
-// are unchanged. Best effort: a kernel before 5.14 refuses
-// the advice, and the pages are faulted in as they are written.
+// are unchanged. Best effort: a kernel before 5.14 refuses the advice, and the pages are
+// faulted in as they are written.
 void Prefault(const std::vector<Room>& rooms) {
 #ifdef MADV_POPULATE_WRITE
   constexpr int kSlices = 16;
