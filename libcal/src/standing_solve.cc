@@ -91,15 +91,23 @@ Eigen::MatrixXd DenseJacobian(ceres::Problem* problem, const std::vector<double*
     }
     return J;
   }
-  std::vector<int> column(blocks.size());
+  // Per block: its first column, its tangent size, and its manifold's Jacobian at the block's
+  // value (the same for every residual block that uses it; empty: no manifold).
+  using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+  std::vector<int> column(blocks.size()), tangent(blocks.size());
+  std::vector<RowMajor> plus(blocks.size());
   int cols = 0;
   for (size_t b = 0; b < blocks.size(); ++b) {
     column[b] = cols;
-    cols += problem->ParameterBlockTangentSize(blocks[b]);
+    tangent[b] = problem->ParameterBlockTangentSize(blocks[b]);
+    cols += tangent[b];
+    if (const ceres::Manifold* m = problem->GetManifold(blocks[b])) {
+      plus[b].resize(m->AmbientSize(), tangent[b]);
+      m->PlusJacobian(blocks[b], plus[b].data());
+    }
   }
   Eigen::MatrixXd J = Eigen::MatrixXd::Zero(rows, cols);
   if (residuals != nullptr) residuals->assign(static_cast<size_t>(rows), 0.0);
-  using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
   std::vector<double*> params;
   std::vector<RowMajor> ambient;
   std::vector<double*> jacobians;
@@ -128,13 +136,10 @@ Eigen::MatrixXd DenseJacobian(ceres::Problem* problem, const std::vector<double*
     if (residuals != nullptr) std::copy(r.data(), r.data() + n, residuals->begin() + row);
     for (size_t p = 0; p < params.size(); ++p) {
       if (which[p] < 0) continue;
-      const double* x = params[p];
-      const int tangent = problem->ParameterBlockTangentSize(x);
-      auto out = J.block(row, column[static_cast<size_t>(which[p])], n, tangent);
-      if (const ceres::Manifold* m = problem->GetManifold(x)) {
-        RowMajor plus(sizes[p], tangent);
-        m->PlusJacobian(x, plus.data());
-        out.noalias() = ambient[p] * plus;
+      const auto b = static_cast<size_t>(which[p]);
+      auto out = J.block(row, column[b], n, tangent[b]);
+      if (plus[b].size() > 0) {
+        out.noalias() = ambient[p] * plus[b];
       } else {
         out = ambient[p];
       }
