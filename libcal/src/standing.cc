@@ -306,7 +306,7 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
     try {
       pool.push_back(std::async(std::launch::async, work));
     } catch (const std::system_error&) {
-      break;  // no thread to spare: the workers there are take every candidate
+      break;  // no thread to spare: the workers started take every candidate
     }
   }
   work();

@@ -65,7 +65,7 @@ std::vector<std::string> ParameterNames(StandingModel model) {
 
 // Ceres's Problem::Evaluate builds a program, an evaluator and a sparse Jacobian on every call:
 // in step 2 that set-up (and the page faults of its fresh buffers) was four fifths of each rank
-// check and half of each covariance. Here each residual block's cost is evaluated straight into
+// check in perf. Here each residual block's cost is evaluated straight into
 // the dense matrix and taken to the tangent space as Ceres does (J_ambient * PlusJacobian).
 // With a loss function on any block, Ceres's own evaluation (its residual and Jacobian
 // correction).
@@ -107,7 +107,7 @@ Eigen::MatrixXd DenseJacobian(ceres::Problem* problem, const std::vector<double*
     }
   }
   Eigen::MatrixXd J = Eigen::MatrixXd::Zero(rows, cols);
-  if (residuals != nullptr) residuals->assign(static_cast<size_t>(rows), 0.0);
+  if (residuals != nullptr) residuals->resize(static_cast<size_t>(rows));
   std::vector<double*> params;
   std::vector<RowMajor> ambient;
   std::vector<double*> jacobians;
@@ -175,8 +175,9 @@ void CheckIdentifiable(ceres::Problem* problem, const std::vector<double*>& bloc
   // J = Q R, so J's singular values and right singular vectors are R's: a blocked Householder
   // QR in place (backward stable: R's singular values are J's to within eps |J|, far below the
   // threshold), then the SVD of the small square R. JacobiSVD, not BDCSVD: Eigen 3.4.0's BDCSVD
-  // proved inaccurate (see offset_reestimation.cc). On the 6P x <= 42 Jacobian this is several
-  // times faster than JacobiSVD of J itself, whose pivoted QR is unblocked and works on a copy.
+  // proved inaccurate (see offset_reestimation.cc). On a 3516 x 42 matrix this took half the time
+  // of JacobiSVD of J itself (1.9 ms against 3.8 ms, memory warm), whose pivoted QR is unblocked
+  // and works on a copy.
   const Eigen::HouseholderQR<Eigen::Ref<Eigen::MatrixXd>> qr(J);
   const Eigen::MatrixXd R = J.topRows(std::min(J.rows(), J.cols())).triangularView<Eigen::Upper>();
   const Eigen::JacobiSVD<Eigen::MatrixXd> svd(R, Eigen::ComputeThinV);

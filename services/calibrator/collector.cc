@@ -439,26 +439,26 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_hang_.series = SeriesOfPhase(phase.code);
     current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
     // The series of one experiment are alike in length (the plan's cycles at one speed): room
-    // for the longest so far, a little more, saves growing each vector by copies (and, on a
-    // paravirtualised machine, the page faults of every fresh copy).
-    // That room is faulted in on another thread (Prefault) while this one reads; the first
-    // series' guess is not, as it may be far more than the series needs.
+    // for the longest so far, a little more, saves growing each vector by copies, and is faulted
+    // in on another thread (Prefault) while this one reads. Before the first series, a guess
+    // that is not faulted in, as it may be far more than the series needs.
     size_t expected = 0;
     for (int s = 0; s < kNumHangSeries; ++s) {
       if (have_hang_[s]) expected = std::max(expected, hang_[s].legs[0].t_s.size());
     }
     const bool known = expected > 0;
     expected = known ? expected + expected / 16 : kFirstHangReserve;
-    std::vector<Room> rooms;
     for (LegSamples& leg : current_hang_.legs) {
       leg.t_s.reserve(expected);
       leg.angle_rad.reserve(expected);
       leg.wrench.reserve(expected);
-      rooms.insert(rooms.end(), {RoomOf(leg.t_s), RoomOf(leg.angle_rad), RoomOf(leg.wrench)});
     }
     current_hang_.attitude.reserve(expected);
-    rooms.push_back(RoomOf(current_hang_.attitude));
     if (known) {
+      std::vector<Room> rooms{RoomOf(current_hang_.attitude)};
+      for (const LegSamples& leg : current_hang_.legs) {
+        rooms.insert(rooms.end(), {RoomOf(leg.t_s), RoomOf(leg.angle_rad), RoomOf(leg.wrench)});
+      }
       try {
         prefault_ = std::async(std::launch::async, Prefault, std::move(rooms));
       } catch (const std::system_error&) {
@@ -520,6 +520,7 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   }
   if (completed) phase_gaps_.push_back(current_gaps_);
   if (IsHangPhase(phase.code)) {
+    WaitPrefault();  // the series' buffers are kept or freed below
     if (completed) {
       const int s = static_cast<int>(current_hang_.series);
       if (hang_gaps_index_[s] >= 0) phase_gaps_[hang_gaps_index_[s]].superseded = true;
@@ -532,11 +533,9 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
                    HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
                    current_hang_.attitude.size());
       BeforeInputsChange();
-      WaitPrefault();  // before the buffers it touches change hands (and, replaced, are freed)
       hang_[s] = std::move(current_hang_);
       have_hang_[s] = true;
     }
-    WaitPrefault();
     current_hang_ = HangingRecording();
   } else if (phase.code == experiment_marker_t::STANDING) {
     if (completed) {
