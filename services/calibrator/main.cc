@@ -22,6 +22,7 @@
 #include <spdlog/spdlog.h>
 
 #include "calibrator/calibrator.h"
+#include "common/batch_memory.h"
 #include "common/bus.h"
 #include "common/default_config.h"
 #include "common/exit_codes.h"
@@ -425,9 +426,17 @@ int main(int argc, char** argv) {
   cli.footer(ftcal::ExitCodeTable());
   if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
 
+  // Offline, the calibrator is a batch run: read, calibrate, write, exit (common/batch_memory.h).
+  // Live, it keeps malloc's defaults.
+  ftcal::BatchMemoryGranted memory;
+  if (!args.logs.empty()) memory = ftcal::UseBatchMemory();
   spdlog::set_default_logger(spdlog::stderr_color_mt("ftcal-calibrator"));
   spdlog::cfg::load_env_levels();
   if (!args.log_level.empty()) spdlog::set_level(spdlog::level::from_str(args.log_level));
+  if (!args.logs.empty()) {
+    spdlog::debug("batch memory: malloc thresholds {}, {} MiB of heap for huge pages",
+                  memory.thresholds ? "set" : "refused", memory.huge_bytes >> 20);
+  }
   ftcal::config::Config config;
   try {
     config = ftcal::LoadConfigOrDefault(args.config_path);
