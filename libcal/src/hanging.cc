@@ -31,12 +31,14 @@
 #include "ftcal/hanging.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
 
 #include "hanging_internal.h"
+#include "parallel.h"
 
 namespace ftcal {
 namespace hanging_detail {
@@ -545,7 +547,11 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
   result.exact_rotations = options.exact_rotations;
   result.phase_bins = options.phase_bins;
   for (int leg = 0; leg < kNumLegs; ++leg) result.leg[leg].saturated_samples = saturated[leg];
-  for (int leg = 0; leg < kNumLegs; ++leg) {
+  // The legs are independent: each on a worker of its own (parallel.h). A leg that fails
+  // throws; the first in leg order is the one reported, as when they ran one after another.
+  std::array<std::vector<HangingGravityObservation>, kNumLegs> observations;
+  ParallelFor(kNumLegs, [&](size_t leg_index) {
+    const int leg = static_cast<int>(leg_index);
     LegHangingResult& out = result.leg[leg];
     const std::array<int, 4> series_of_slot = SlotsOfLeg(by_series, g_b, X_B_ft[leg], leg, options);
     const LegMatched m = MatchLeg(by_series, series_of_slot, leg, options);
@@ -567,10 +573,14 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
 
     if (has_attitude) {
       for (int s = 0; s < kNumHangSeries; ++s) {
-        result.gravity_observations.push_back(
+        observations[leg].push_back(
             GravityObservation(*by_series[s], leg, X_B_ft[leg], out.with_s.force_offset_n));
       }
     }
+  });
+  for (const auto& leg_observations : observations) {
+    result.gravity_observations.insert(result.gravity_observations.end(), leg_observations.begin(),
+                                       leg_observations.end());
   }
   return result;
 }

@@ -21,20 +21,16 @@
 #include "ftcal/standing.h"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <memory>
 #include <sstream>
 #include <stdexcept>
-#include <system_error>
-#include <exception>
-#include <future>
 #include <limits>
-#include <thread>
 #include <utility>
 
 #include "ftcal/config.h"
 
+#include "parallel.h"
 #include "standing_internal.h"
 
 namespace ftcal {
@@ -258,16 +254,10 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
   result.poses = static_cast<int>(poses.size());
   const double P = static_cast<double>(poses.size());
   // The candidates (each a fit plus its 5-fold cross-validation) are independent Ceres problems
-  // on const inputs, so they run side by side: one worker per core, each taking the next
-  // candidate. Not a thread per candidate: each thread's allocations come from an arena of its
-  // own, and eight fresh arenas were eight sets of freshly faulted pages (on a paravirtualised
-  // VM a page's first touch costs microseconds); a worker reuses its arena's pages from one
-  // candidate to the next. Results are kept in candidate order, so the outcome does not depend
-  // on scheduling; the first candidate's exception (in that order) is rethrown here.
+  // on const inputs, so they run side by side (parallel.h); results are kept in candidate order.
   struct ModelRun {
     StandingFit fit;
     double cv_mse = 0.0;
-    std::exception_ptr error;
   };
   std::vector<bool> targets;
   if (options.select_com) {
@@ -284,36 +274,14 @@ StandingResult CalibrateStanding(const RobotCalibration& step1,
     for (StandingModel model : kStandingModels) candidates.emplace_back(aware, model);
   }
   std::vector<ModelRun> done(candidates.size());
-  std::atomic<size_t> next{0};
-  auto work = [&] {
-    for (size_t i = next++; i < candidates.size(); i = next++) {
-      StandingOptions o = options;
-      o.leg_aware_com = candidates[i].first;
-      const StandingModel model = candidates[i].second;
-      try {
-        done[i].fit = alternating ? FitStandingAlternating(step1, poses, model, o)
-                                  : FitStandingJoint(step1, poses, model, o);
-        done[i].cv_mse = CrossValidationMse(step1, poses, done[i].fit, o);
-      } catch (...) {
-        done[i].error = std::current_exception();
-      }
-    }
-  };
-  const size_t workers =
-      std::min<size_t>(candidates.size(), std::max(1u, std::thread::hardware_concurrency()));
-  std::vector<std::future<void>> pool;
-  for (size_t w = 1; w < workers; ++w) {
-    try {
-      pool.push_back(std::async(std::launch::async, work));
-    } catch (const std::system_error&) {
-      break;  // no thread to spare: the workers started take every candidate
-    }
-  }
-  work();
-  for (auto& f : pool) f.get();  // work() catches its candidates' exceptions
-  for (const ModelRun& run : done) {
-    if (run.error) std::rethrow_exception(run.error);
-  }
+  ParallelFor(candidates.size(), [&](size_t i) {
+    StandingOptions o = options;
+    o.leg_aware_com = candidates[i].first;
+    const StandingModel model = candidates[i].second;
+    done[i].fit = alternating ? FitStandingAlternating(step1, poses, model, o)
+                              : FitStandingJoint(step1, poses, model, o);
+    done[i].cv_mse = CrossValidationMse(step1, poses, done[i].fit, o);
+  });
   double best_bic = 0.0;
   size_t best = 0;
   for (size_t m = 0; m < done.size(); ++m) {
