@@ -36,25 +36,48 @@ Vec3 RobotCalibration::PTilde(int k) const { return leg[k].R_tilde * leg[k].p_ti
 
 Vec3 GravityInC(const Mat3& R_WC, double g0) { return R_WC.transpose() * Vec3(0, 0, -g0); }
 
-Vec6 LegGravityWrenchC(const RobotCalibration& cal, int k, double angle_rad, const Mat3& R_WC) {
-  const LegCalibration& l = cal.leg[k];
+namespace {
+
+// Eq. 3 in C for leg k given its X_C_ft (GroundWrenchC and GroundWrenchModel share it).
+Vec6 LegGravityWrenchGiven(const Pose3& X_C_ft, const LegCalibration& l, double angle_rad,
+                           const Mat3& R_WC) {
   // m_k g^C = weight * (unit gravity direction in C).
   const Vec3 f = l.weight_n * GravityInC(R_WC, 1.0);
-  const Vec3 r_C = cal.X_C_ft(k) * l.com.At(LegPhase(angle_rad));
+  const Vec3 r_C = X_C_ft * l.com.At(LegPhase(angle_rad));
   Vec6 w;
   w << f, r_C.cross(f);
   return w;
 }
 
+Vec6 GroundWrenchGivenC(const Pose3& X_C_ft, const LegCalibration& l, const Vec6& w_m,
+                        double angle_rad, const Mat3& R_WC) {
+  return TransformWrench(X_C_ft, w_m - l.offset) -
+         LegGravityWrenchGiven(X_C_ft, l, angle_rad, R_WC);
+}
+
+}  // namespace
+
+Vec6 LegGravityWrenchC(const RobotCalibration& cal, int k, double angle_rad, const Mat3& R_WC) {
+  return LegGravityWrenchGiven(cal.X_C_ft(k), cal.leg[k], angle_rad, R_WC);
+}
+
 Vec6 GroundWrenchC(const RobotCalibration& cal, int k, const Vec6& w_m, double angle_rad,
                    const Mat3& R_WC) {
-  return TransformWrench(cal.X_C_ft(k), w_m - cal.leg[k].offset) -
-         LegGravityWrenchC(cal, k, angle_rad, R_WC);
+  return GroundWrenchGivenC(cal.X_C_ft(k), cal.leg[k], w_m, angle_rad, R_WC);
 }
 
 Vec6 GroundWrenchW(const RobotCalibration& cal, int k, const Vec6& w_m, double angle_rad,
                    const Mat3& R_WC) {
   return TransformWrench(Pose3(R_WC, Vec3::Zero()), GroundWrenchC(cal, k, w_m, angle_rad, R_WC));
+}
+
+GroundWrenchModel::GroundWrenchModel(const RobotCalibration& cal) : cal_(cal) {
+  for (int k = 0; k < kNumLegs; ++k) X_C_ft_[k] = cal.X_C_ft(k);
+}
+
+Vec6 GroundWrenchModel::W(int k, const Vec6& w_m, double angle_rad, const Mat3& R_WC) const {
+  return TransformWrench(Pose3(R_WC, Vec3::Zero()),
+                         GroundWrenchGivenC(X_C_ft_[k], cal_.leg[k], w_m, angle_rad, R_WC));
 }
 
 Vec6 TransducerReading(const RobotCalibration& cal, int k, const Vec6& w_gc_C, double angle_rad,

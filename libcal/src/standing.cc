@@ -127,6 +127,7 @@ StandingOptions StandingOptionsFromConfig(const config::Calibrator& c) {
 std::vector<Vec6> TotalWrenchResiduals(const RobotCalibration& cal,
                                        const std::vector<StandingPose>& poses, bool leg_aware_com) {
   const double G = cal.TotalWeightN();
+  const GroundWrenchModel model(cal);
   std::vector<Vec6> out;
   out.reserve(poses.size());
   for (size_t p = 0; p < poses.size(); ++p) {
@@ -134,7 +135,7 @@ std::vector<Vec6> TotalWrenchResiduals(const RobotCalibration& cal,
     const Mat3 R_WC = ValidatedAttitude(pose.R_WC, p);
     Vec6 total = Vec6::Zero();
     for (int k = 0; k < kNumLegs; ++k) {
-      total += GroundWrenchW(cal, k, pose.wrench[k], pose.angle_rad[k], R_WC);
+      total += model.W(k, pose.wrench[k], pose.angle_rad[k], R_WC);
     }
     Vec6 target;
     target << 0, 0, G, 0, 0, 0;

@@ -79,6 +79,29 @@ TEST(Corrector, NoiseFreeReadingsReproduceTheTrueGroundWrenches) {
   }
 }
 
+// The precomputed form the calibrator's walking figures use: the same bits as GroundWrenchW,
+// and the ground's wrench the forward model was given.
+TEST(GroundWrenchModel, IsGroundWrenchWBitForBitAndInvertsTheForwardModel) {
+  std::mt19937_64 rng(23);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (uint64_t seed : {1, 4, 9}) {
+    const RobotCalibration cal = MakeCalibration(seed);
+    const GroundWrenchModel model(cal);
+    for (int i = 0; i < 50; ++i) {
+      const Mat3 R_WC = RotationFromRollPitchYaw(0.2 * u(rng), 0.2 * u(rng), 3.0 * u(rng));
+      for (int k = 0; k < kNumLegs; ++k) {
+        const double angle = 8.0 * u(rng);
+        const Vec6 w_C = RandomGroundWrenchC(rng);
+        const Vec6 reading = TransducerReading(cal, k, w_C, angle, R_WC);
+        const Vec6 got = model.W(k, reading, angle, R_WC);
+        const Vec6 expect = GroundWrenchW(cal, k, reading, angle, R_WC);
+        for (int c = 0; c < 6; ++c) EXPECT_EQ(got[c], expect[c]) << "leg " << k << " comp " << c;
+        EXPECT_LT((got - ToW(R_WC, w_C)).cwiseAbs().maxCoeff(), 1e-9) << "leg " << k;
+      }
+    }
+  }
+}
+
 TEST(Corrector, AgreesWithGroundWrenchWOnTheInterpolatedAngle) {
   const RobotCalibration cal = MakeCalibration(5);
   Corrector c({});

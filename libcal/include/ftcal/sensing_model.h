@@ -76,6 +76,19 @@ Vec6 GroundWrenchC(const RobotCalibration& cal, int k, const Vec6& w_m, double a
 Vec6 GroundWrenchW(const RobotCalibration& cal, int k, const Vec6& w_m, double angle_rad,
                    const Mat3& R_WC);
 
+// GroundWrenchW over many samples of one calibration: each leg's X_C_ft once, not twice per
+// sample. The same arithmetic in the same order, so the same bits. Refers to `cal`, which
+// must outlive it and not change.
+class GroundWrenchModel {
+ public:
+  explicit GroundWrenchModel(const RobotCalibration& cal);
+  Vec6 W(int k, const Vec6& w_m, double angle_rad, const Mat3& R_WC) const;
+
+ private:
+  const RobotCalibration& cal_;
+  std::array<Pose3, kNumLegs> X_C_ft_;
+};
+
 // Forward model (the twin): the noise-free reading of transducer k when the ground exerts
 // w_gc_C (in C about the CoM) on foot k.
 Vec6 TransducerReading(const RobotCalibration& cal, int k, const Vec6& w_gc_C, double angle_rad,
