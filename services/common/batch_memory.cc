@@ -35,8 +35,7 @@ BatchMemoryGranted UseBatchMemory(size_t heap_bytes) {
   const uintptr_t end = after & ~(kHugePage - 1);
   // No growth (brk refused, malloc fell back to a mapping, or another allocator): nothing to
   // advise.
-  if (end > begin &&
-      ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_HUGEPAGE) == 0) {
+  if (end > begin && ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_HUGEPAGE) == 0) {
     granted.huge_bytes = end - begin;
   }
 #endif
