@@ -204,7 +204,7 @@ void CalibrationCollector::NoteSpanEvent(const MessageInfo& info, bool barrier) 
 // At the phase's stop marker (the event noted last): the span runs from where it began to the
 // first of the servo states and mocap frames the phase's end kept (the last kDepth of each,
 // which a later run must read to keep the same), or to the marker.
-void CalibrationCollector::EndSpanNoting(const std::string& session) {
+void CalibrationCollector::EndSpanNoting(const std::string& session, int phase) {
   noting_.active = false;
   Mark end{noting_.offset, noting_.events - 1, Counts()};
   for (const MarkRing* ring : {&noting_.servo, &noting_.mocap}) {
@@ -216,6 +216,7 @@ void CalibrationCollector::EndSpanNoting(const std::string& session) {
   if (end.offset - noting_.clean.offset < kMinSpanBytes) return;
   logindex::SkippableSpan* span = produced_.add_span();
   span->set_session(session);
+  span->set_phase(phase);
   span->set_from_offset(noting_.clean.offset);
   span->set_to_offset(end.offset);
   span->set_events(end.events - noting_.clean.events);
@@ -223,12 +224,12 @@ void CalibrationCollector::EndSpanNoting(const std::string& session) {
   CountsToProto(end.counts, span->mutable_at_to());
 }
 
-// At a STANDING phase's start, not segmented again: the first span of the index in it, if any.
-void CalibrationCollector::ArmSkip(const std::string& session) {
+// At the start of a phase read only for its counts: the first span of the index in it, if any.
+void CalibrationCollector::ArmSkip(const std::string& session, int phase) {
   if (use_index_ == nullptr || bus_ == nullptr || event_end_ < 0) return;
   const logindex::SkippableSpan* best = nullptr;
   for (const logindex::SkippableSpan& s : use_index_->span()) {
-    if (s.session() != session || s.from_offset() < event_end_ ||
+    if (s.session() != session || s.phase() != phase || s.from_offset() < event_end_ ||
         s.to_offset() <= s.from_offset() || s.at_from_size() != kNumLegs ||
         s.at_to_size() != kNumLegs) {
       continue;
@@ -241,19 +242,19 @@ void CalibrationCollector::ArmSkip(const std::string& session) {
   bus_->SkipAt(best->from_offset(), best->to_offset(), [=] {
     // Every event of the span would only have been counted or kept: the same phase, no sample
     // waiting in the aligner (so no servo state or mocap frame goes to it), the same counts.
-    if (!standing_not_segmented_ || current_gaps_.session != session || !Deferring() ||
-        !(Counts() == from)) {
-      spdlog::info("STANDING (session '{}'): the span index does not fit this reading; read",
-                   session);
+    if (!counting_only_ || current_gaps_.phase != phase || current_gaps_.session != session ||
+        !Deferring() || !(Counts() == from)) {
+      spdlog::info("{} (session '{}'): the span index does not fit this reading; read",
+                   PhaseName(phase), session);
       return false;
     }
     SetCounts(to);
     noting_.active = false;
     counters_.span_events_skipped += events;
     spdlog::info(
-        "STANDING (session '{}'): {} events ({:.0f} MB) not read: their records were counted "
+        "{} (session '{}'): {} events ({:.0f} MB) not read: their records were counted "
         "when this log was last read whole (span index in the digest cache)",
-        session, events, 1e-6 * static_cast<double>(bytes));
+        PhaseName(phase), session, events, 1e-6 * static_cast<double>(bytes));
     return true;
   });
 }
@@ -267,7 +268,8 @@ logindex::LogIndex CalibrationCollector::TakeSpanIndex() {
 
 std::string CalibrationCollector::SpanIndexRules() const {
   const auto& ch = config_.channels();
-  std::string rules = "ftcal collector spans v1; kept " + std::to_string(DeferredTail::kDepth) +
+  // v2: spans of TRIPOD phases too, each span naming its phase.
+  std::string rules = "ftcal collector spans v2; kept " + std::to_string(DeferredTail::kDepth) +
                       "; reorder window " + std::to_string(kReorderWindow) + "; FT";
   for (int k = 0; k < kNumLegs; ++k) rules += " " + inputs_.FtChannel(k);
   rules += "; " + ch.servo_state() + " " + ch.mocap_body() + " " + ch.experiment() + " " +
@@ -305,8 +307,9 @@ void CheckOrThrow(const MessageInfo& info, const void* data, int size) {
 }  // namespace
 
 void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* data, int size) {
-  if (standing_not_segmented_) {
-    // Aligned samples of a STANDING phase not segmented again would go nowhere: the record is
+  if (counting_only_) {
+    // Aligned samples of a phase read only for its counts (a STANDING phase not segmented
+    // again, a TRIPOD phase whose stances are not collected) would go nowhere: the record is
     // only counted. Checked as a decode would check it, so a damaged log is refused the same.
     const bool barrier = noting_.barrier;
     noting_.barrier = true;  // unless counted
@@ -378,7 +381,7 @@ void CalibrationCollector::FlushDeferred() {
       try {
         (this->*handler)(info, data, size);
       } catch (const BadInput& e) {
-        spdlog::warn("{}: a message kept from a STANDING span not segmented again, refused: {}",
+        spdlog::warn("{}: a message kept from a phase read only for its counts, refused: {}",
                      info.channel, e.what());
       }
     };
@@ -469,7 +472,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_poses_.clear();
     const auto logged = logged_sessions_scatter_.find(phase.session);
     if (skip_logged_sessions_ && logged != logged_sessions_scatter_.end() && logged->second) {
-      standing_not_segmented_ = true;
+      counting_only_ = true;
       spdlog::info(
           "EXPERIMENT: STANDING started (session '{}'); its STEADY_POSE events, read before, "
           "carry their within-pose scatter: not segmented again",
@@ -477,7 +480,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
       if (on_inputs_ready_) on_inputs_ready_();
       noting_ = SpanNoting();
       noting_.active = event_end_ >= 0;  // replay
-      ArmSkip(phase.session);
+      ArmSkip(phase.session, phase.code);
       return;
     }
     segmenter_ =
@@ -489,6 +492,16 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
   } else if (phase.code == experiment_marker_t::TARE) {
     for (Vec6& w : tare_sum_) w.setZero();
     tare_count_ = 0;
+  } else if (phase.code == experiment_marker_t::TRIPOD && !collect_tripod_stances_) {
+    counting_only_ = true;
+    spdlog::info(
+        "EXPERIMENT: TRIPOD started (session '{}'); its stances serve only offset "
+        "re-estimation: records counted, not segmented",
+        phase.session);
+    noting_ = SpanNoting();
+    noting_.active = event_end_ >= 0;  // replay
+    ArmSkip(phase.session, phase.code);
+    return;
   } else if (phase.code == experiment_marker_t::TRIPOD) {
     current_unloaded_.clear();
     segmenter_ = std::make_unique<PoseSegmenter>(
@@ -504,14 +517,16 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
 void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   // A STANDING or TRIPOD phase's segmenter hands over the pose in progress first.
   SegmenterCounters segmented;
-  const bool not_segmented = standing_not_segmented_;
+  const bool not_segmented = counting_only_;
   if (noting_.active) {
-    if (completed && not_segmented && phase.code == experiment_marker_t::STANDING) {
-      EndSpanNoting(phase.session);
+    if (completed && not_segmented &&
+        (phase.code == experiment_marker_t::STANDING ||
+         phase.code == experiment_marker_t::TRIPOD)) {
+      EndSpanNoting(phase.session, phase.code);
     }
     noting_.active = false;
   }
-  standing_not_segmented_ = false;
+  counting_only_ = false;
   FlushDeferred();
   if (segmenter_) {
     segmenter_->Flush();
@@ -560,7 +575,9 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
                    tare_count_);
     }
   } else if (phase.code == experiment_marker_t::TRIPOD) {
-    if (completed) {
+    if (completed && not_segmented) {
+      spdlog::info("TRIPOD complete (session '{}'): not segmented", phase.session);
+    } else if (completed) {
       spdlog::info(
           "TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
           "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "

@@ -115,8 +115,15 @@ class CalibrationCollector {
   // poses arrive during the phase, so the collector always segments it (the live calibrator
   // waits for the segmenter's last pose by comparing the two counts).
   void SetSkipSegmentingLoggedSessions(bool skip) { skip_logged_sessions_ = skip; }
+  // Whether TRIPOD phases are segmented into steady stances (unloaded_samples()): what offset
+  // drift re-estimation takes (RunOffsetReestimation) and nothing else. Offline calibration
+  // does not, and then a TRIPOD phase is read as a STANDING phase not segmented again: its
+  // records only counted (the recording gaps are the same), its span noted and skipped
+  // another time. Default true (live, and --reestimate-offsets).
+  void SetCollectTripodStances(bool collect) { collect_tripod_stances_ = collect; }
   // The span index (log_index.proto), offline. Reading a log whole, the collector notes the
-  // spans of its STANDING phases not segmented again where it only counted transducer records
+  // spans of its STANDING phases not segmented again (and TRIPOD phases whose stances it does
+  // not collect) where it only counted transducer records
   // and kept the last servo states and mocap frames (the events after such a span refill the
   // kept ones): TakeSpanIndex() gives them, with the counts before and after each, for the
   // digest cache. SetSpanIndex(index) before Attach(bus) lets the collector skip those spans
@@ -167,7 +174,7 @@ class CalibrationCollector {
   void OnServoRaw(const MessageInfo& info, const void* data, int size);
   void OnMocapRaw(const MessageInfo& info, const void* data, int size);
   // Whether a servo state or mocap frame may wait in a DeferredTail (deferred_ below).
-  bool Deferring() const { return standing_not_segmented_ && aligner_.pending() == 0; }
+  bool Deferring() const { return counting_only_ && aligner_.pending() == 0; }
   void FlushDeferred();
   void OnExperiment(const experiment_marker_t& msg);
   void OnSteadyPose(const steady_pose_t& msg);
@@ -202,7 +209,10 @@ class CalibrationCollector {
   // Per session of the STEADY_POSE events read: whether every one carried its scatter.
   std::map<std::string, bool> logged_sessions_scatter_;
   bool skip_logged_sessions_ = false;
-  bool standing_not_segmented_ = false;  // in such a phase now
+  bool collect_tripod_stances_ = true;
+  // In a STANDING phase not segmented again, or a TRIPOD phase whose stances are not
+  // collected: its records are only counted, its last servo states and mocap frames kept.
+  bool counting_only_ = false;
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
@@ -287,8 +297,8 @@ class CalibrationCollector {
     MarkRing servo, mocap;
   };
   void NoteSpanEvent(const MessageInfo& info, bool barrier);
-  void EndSpanNoting(const std::string& session);
-  void ArmSkip(const std::string& session);
+  void EndSpanNoting(const std::string& session, int phase);
+  void ArmSkip(const std::string& session, int phase);
   SpanNoting noting_;
   logindex::LogIndex produced_;
   const logindex::LogIndex* use_index_ = nullptr;

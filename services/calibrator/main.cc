@@ -261,6 +261,7 @@ ftcal::CalibratorOptions OptionsOf(const Args& args,
 int Offline(const ftcal::config::Config& config, const Args& args) {
   ftcal::CalibrationCollector collector(config);
   collector.SetSkipSegmentingLoggedSessions(true);
+  collector.SetCollectTripodStances(false);  // they serve --reestimate-offsets only
   std::map<std::string, std::string> hashes;
   ftcal::CalibratorOptions options = OptionsOf(args);
   ftcal::EarlyCalibration early(collector, config, options);

@@ -672,6 +672,72 @@ TEST_F(CalibratorTest, ASpanIndexSkipsWhatItCountedAndChangesNothingCollected) {
   }
 }
 
+// Offline calibration does not collect tripod stances (only offset re-estimation takes them):
+// a TRIPOD phase is then only counted, to the same counts as a reading that segments it, its
+// span noted under its phase and skipped another time; a reading that wants the stances reads
+// it. Here the fixture's walk, a tripod gait, is marked TRIPOD.
+TEST_F(CalibratorTest, ATripodPhaseNotCollectedIsCountedTheSameAndSkippedAnotherTime) {
+  const auto& ch = fx->config.channels();
+  std::vector<Event> events;
+  for (const Event& e : fx->events) {
+    experiment_marker_t m;
+    if (e.channel == ch.experiment() &&
+        m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 &&
+        m.phase == experiment_marker_t::WALKING) {
+      m.phase = experiment_marker_t::TRIPOD;
+      events.push_back(Encode(e.utime, e.channel, m));
+      continue;
+    }
+    events.push_back(e);
+  }
+  const std::string log = fx->dir + "/tripod.lcmlog";
+  WriteLog(log, events);
+  auto read = [&](CalibrationCollector& c, bool collect, const logindex::LogIndex* index) {
+    c.SetCollectTripodStances(collect);
+    ServiceStats stats(spdlog::default_logger());
+    LogReplayBus bus(log, fx->dir + "/replay-scratch.lcmlog", stats);
+    c.SetSpanIndex(index);
+    c.Attach(bus);
+    bus.Run([] {}, 1'000'000);
+    c.SetSpanIndex(nullptr);
+    c.Flush();
+    EXPECT_TRUE(bus.finished());
+    EXPECT_EQ(stats.errors(), 0) << stats.last_error();
+    return bus.skipped_bytes();
+  };
+  CalibrationCollector segmenting(fx->config), counting(fx->config);
+  EXPECT_EQ(read(segmenting, true, nullptr), 0);
+  EXPECT_EQ(read(counting, false, nullptr), 0);
+  EXPECT_EQ(segmenting.TakeSpanIndex().span_size(), 0) << "a segmented phase is not skippable";
+  // No poses log was read first, so STANDING was segmented: the one span is the tripod's.
+  const logindex::LogIndex index = counting.TakeSpanIndex();
+  ASSERT_EQ(index.span_size(), 1) << index.DebugString();
+  const logindex::SkippableSpan& span = index.span(0);
+  EXPECT_EQ(span.phase(), int{experiment_marker_t::TRIPOD});
+  CalibrationCollector skipping(fx->config), collecting(fx->config);
+  EXPECT_EQ(read(skipping, false, &index), span.to_offset() - span.from_offset());
+  EXPECT_EQ(skipping.counters().span_events_skipped, span.events());
+  EXPECT_EQ(read(collecting, true, &index), 0) << "its stances wanted: the tripod is read";
+  bool tripod_seen = false;
+  for (const CalibrationCollector* c : {&counting, &skipping, &collecting}) {
+    ASSERT_EQ(c->phase_gaps().size(), segmenting.phase_gaps().size());
+    for (size_t p = 0; p < segmenting.phase_gaps().size(); ++p) {
+      const PhaseGaps &a = segmenting.phase_gaps()[p], &b = c->phase_gaps()[p];
+      SCOPED_TRACE(PhaseName(a.phase));
+      tripod_seen = tripod_seen || a.phase == experiment_marker_t::TRIPOD;
+      EXPECT_EQ(a.phase, b.phase);
+      EXPECT_EQ(a.received, b.received);
+      EXPECT_EQ(a.lost, b.lost);
+      EXPECT_EQ(a.restarts, b.restarts);
+    }
+    EXPECT_EQ(c->StandingPoses().size(), segmenting.StandingPoses().size());
+  }
+  EXPECT_TRUE(tripod_seen);
+  EXPECT_TRUE(counting.unloaded_samples().empty());
+  EXPECT_TRUE(skipping.unloaded_samples().empty());
+  EXPECT_EQ(collecting.unloaded_samples().size(), segmenting.unloaded_samples().size());
+}
+
 // Offline, Calibrate() starts on its own thread when the session's STANDING phase starts and
 // is not segmented again (its poses were read before): its result is the calibration the
 // calibrator computes after reading, and a change to its inputs afterwards discards it (here:
