@@ -25,7 +25,7 @@ HangSeries SeriesOfPhase(int phase) { return *HangSeriesOfPhase(phase); }
 constexpr int64_t kReorderWindow = 64;
 
 // Room for a first hanging series before any is known: the report's ten 20 s cycles at 100
-// aligned samples a second, and more. Address space only until written.
+// aligned samples a second, and more.
 constexpr size_t kFirstHangReserve = size_t{1} << 15;
 
 // A vector's room, its whole capacity: [data, data + bytes).
@@ -443,8 +443,10 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
     // The series of one experiment are alike in length (the plan's cycles at one speed): room
     // for the longest so far, a little more, saves growing each vector by copies, and is faulted
-    // in on another thread (Prefault) while this one reads. Before the first series, a guess
-    // that is not faulted in, as it may be far more than the series needs.
+    // in on another thread (Prefault) while this one reads. Before the first series, room for
+    // a guess (the report's scale), faulted in the same way: what the series does not fill stays
+    // resident (peak 86 MiB instead of 85 on the demo's logs), and the series is read in 52 ms
+    // instead of 54 (medians of 12 runs in turn).
     size_t expected = 0;
     for (int s = 0; s < kNumHangSeries; ++s) {
       if (have_hang_[s]) expected = std::max(expected, hang_[s].legs[0].t_s.size());
@@ -457,16 +459,14 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
       leg.wrench.reserve(expected);
     }
     current_hang_.attitude.reserve(expected);
-    if (known) {
-      std::vector<Room> rooms{RoomOf(current_hang_.attitude)};
-      for (const LegSamples& leg : current_hang_.legs) {
-        rooms.insert(rooms.end(), {RoomOf(leg.t_s), RoomOf(leg.angle_rad), RoomOf(leg.wrench)});
-      }
-      try {
-        prefault_ = std::async(std::launch::async, Prefault, std::move(rooms));
-      } catch (const std::system_error&) {
-        // No thread to spare: the pages are faulted in as they are written.
-      }
+    std::vector<Room> rooms{RoomOf(current_hang_.attitude)};
+    for (const LegSamples& leg : current_hang_.legs) {
+      rooms.insert(rooms.end(), {RoomOf(leg.t_s), RoomOf(leg.angle_rad), RoomOf(leg.wrench)});
+    }
+    try {
+      prefault_ = std::async(std::launch::async, Prefault, std::move(rooms));
+    } catch (const std::system_error&) {
+      // No thread to spare: the pages are faulted in as they are written.
     }
   } else if (phase.code == experiment_marker_t::STANDING) {
     current_poses_.clear();
