@@ -202,6 +202,22 @@ class CalibratorTest : public ::testing::Test {
     ASSERT_EQ(stats.errors(), 0) << stats.last_error();
   }
 
+  // Reads `path` into `collector` with the span index `index` (may be null) as the calibrator
+  // does; the bytes it skipped.
+  static int64_t ReadIndexed(CalibrationCollector& collector, const std::string& path,
+                             const logindex::LogIndex* index) {
+    ServiceStats stats(spdlog::default_logger());
+    LogReplayBus bus(path, fx->dir + "/replay-scratch.lcmlog", stats);
+    collector.SetSpanIndex(index);
+    collector.Attach(bus);
+    bus.Run([] {}, 1'000'000);
+    collector.SetSpanIndex(nullptr);
+    collector.Flush();
+    EXPECT_TRUE(bus.finished());
+    EXPECT_EQ(stats.errors(), 0) << stats.last_error();
+    return bus.skipped_bytes();
+  }
+
   // A refusal: exit 2, `what` in the message, neither the calibration nor its residuals.
   static void ExpectRefused(const std::vector<std::string>& args, const std::string& tag,
                             const std::string& what) {
@@ -598,16 +614,7 @@ TEST_F(CalibratorTest, ASpanIndexSkipsWhatItCountedAndChangesNothingCollected) {
   auto read = [&](CalibrationCollector& c, const logindex::LogIndex* index) {
     c.SetSkipSegmentingLoggedSessions(true);
     ReadInto(c, poses);
-    ServiceStats stats(spdlog::default_logger());
-    LogReplayBus bus(log, fx->dir + "/replay-scratch.lcmlog", stats);
-    c.SetSpanIndex(index);
-    c.Attach(bus);
-    bus.Run([] {}, 1'000'000);
-    c.SetSpanIndex(nullptr);
-    c.Flush();
-    EXPECT_TRUE(bus.finished());
-    EXPECT_EQ(stats.errors(), 0) << stats.last_error();
-    return bus.skipped_bytes();
+    return ReadIndexed(c, log, index);
   };
   CalibrationCollector whole(fx->config);
   EXPECT_EQ(read(whole, nullptr), 0);
@@ -694,16 +701,7 @@ TEST_F(CalibratorTest, ATripodPhaseNotCollectedIsCountedTheSameAndSkippedAnother
   WriteLog(log, events);
   auto read = [&](CalibrationCollector& c, bool collect, const logindex::LogIndex* index) {
     c.SetCollectTripodStances(collect);
-    ServiceStats stats(spdlog::default_logger());
-    LogReplayBus bus(log, fx->dir + "/replay-scratch.lcmlog", stats);
-    c.SetSpanIndex(index);
-    c.Attach(bus);
-    bus.Run([] {}, 1'000'000);
-    c.SetSpanIndex(nullptr);
-    c.Flush();
-    EXPECT_TRUE(bus.finished());
-    EXPECT_EQ(stats.errors(), 0) << stats.last_error();
-    return bus.skipped_bytes();
+    return ReadIndexed(c, log, index);
   };
   CalibrationCollector segmenting(fx->config), counting(fx->config);
   EXPECT_EQ(read(segmenting, true, nullptr), 0);
