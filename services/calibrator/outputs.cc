@@ -299,12 +299,7 @@ std::string WalkingCsv(const std::vector<SyncSample>& samples, const Calibration
                        const RobotCalibration* truth, double period_s) {
   if (samples.empty()) throw std::invalid_argument("WalkingCsv: no walking samples");
   // The naive-tare baseline as the corrector would apply it (standing.h's NaiveTareResiduals).
-  RobotCalibration naive = run.step1;
-  for (int k = 0; k < kNumLegs; ++k) {
-    naive.leg[k].offset = run.hanging.leg[k].naive_offset;
-    naive.leg[k].weight_n = 0.0;
-  }
-  naive.p_C_B = Vec3::Zero();
+  const RobotCalibration naive = NaiveTareCalibration(run);
   std::vector<std::pair<const char*, GroundWrenchModel>> variants = {
       {"full calibration", GroundWrenchModel(run.calibration)},
       {"naive tare", GroundWrenchModel(naive)}};

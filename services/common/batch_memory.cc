@@ -21,7 +21,8 @@ BatchMemoryGranted UseBatchMemory(size_t heap_bytes) {
 #ifdef MADV_HUGEPAGE
   // The heap grows by the request plus M_TOP_PAD: one request past the top chunk with the pad
   // raised grows it by heap_bytes at once; freed, it stays as the top chunk (trim threshold).
-  // The growth is a mapping of its own, advised as a whole; a later growth past it is not.
+  // The growth is advised from its first 2 MiB boundary to its end (madvise splits the heap's
+  // mapping there); a later growth past it is not advised.
   constexpr uintptr_t kHugePage = uintptr_t{2} << 20;
   constexpr size_t kDefaultTopPad = size_t{128} << 10;  // glibc's DEFAULT_TOP_PAD
   const auto before = reinterpret_cast<uintptr_t>(::sbrk(0));
