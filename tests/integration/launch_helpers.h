@@ -123,6 +123,28 @@ class Ear {
     }
     return out;
   }
+  // Waits up to `timeout_s` for a `window_s` in which each of `channels` channels matching
+  // `prefix` ran at >= `hz`; true when one came. The best window seen is in `best` (its slowest
+  // channel's rate), for the message. A twin starved of CPU for more than 50 ms by the other
+  // tests on the machine drops that stall's records as a NetBox would (no burst afterwards), so
+  // one snapshot can fall short while the group is healthy; a bridge that cannot keep the rate
+  // never gets a full window.
+  bool AtRate(const std::string& prefix, std::size_t channels, double hz, double window_s,
+              double timeout_s, double* best = nullptr) {
+    double best_slowest = 0;
+    const bool ok = PumpUntil(
+        [&] {
+          const auto r = Rates(prefix, window_s);
+          if (r.size() != channels) return false;
+          double slowest = hz * 10;
+          for (const auto& [ch, rate] : r) slowest = std::min(slowest, rate);
+          best_slowest = std::max(best_slowest, slowest);
+          return slowest >= hz;
+        },
+        timeout_s);
+    if (best) *best = best_slowest;
+    return ok;
+  }
   struct Beat {
     service_status_t status;
     Clock::time_point at;

@@ -103,10 +103,10 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
     ASSERT_EQ(before["sim:" + std::string(p)].state, "RUNNING") << p;
   }
   // The gate's claim, measured here: six FT_* channels at >= 95% of the twin's rate.
-  ear.Pump(2.0);
-  auto rates = ear.Rates("FT_", 1.0);
-  ASSERT_EQ(rates.size(), 6u);
-  for (const auto& [ch, hz] : rates) EXPECT_GE(hz, 0.95 * kAtiRateHz) << ch;
+  double best_hz = 0;
+  EXPECT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
+      << "no second with all six FT_* channels at 95% of " << kAtiRateHz
+      << " Hz; the best had its slowest at " << best_hz << " Hz";
 
   const pid_t victim = static_cast<pid_t>(before["sim:ati-bridge"].pid);
   ASSERT_GT(victim, 0);
@@ -145,17 +145,10 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
   EXPECT_LT(restart_s, 2.0);
 
   // The group carried on: the data is back at rate, nothing else was restarted.
-  ASSERT_TRUE(ear.PumpUntil(
-      [&] {
-        auto r = ear.Rates("FT_", 1.0);
-        if (r.size() != 6) return false;
-        for (const auto& [ch, hz] : r) {
-          if (hz < 0.95 * kAtiRateHz) return false;
-        }
-        return Since(t_kill) > 1.5;
-      },
-      6.0))
-      << "FT_* did not come back to 95% of the rate";
+  ear.Pump(std::max(0.0, 1.5 - Since(t_kill)));  // a window after the restart
+  ASSERT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
+      << "FT_* did not come back to 95% of the rate; the best second had its slowest at " << best_hz
+      << " Hz";
   // supervisor calls it RUNNING once it stayed up startsecs (2 s).
   auto after = SupervisorStatus(run);
   ASSERT_TRUE(ear.PumpUntil(
@@ -387,10 +380,10 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
             << up.out;
 
   // Every FT_* sample heard here crossed the link: the twin and the bridges run on the robot.
-  ear.Pump(2.0);
-  auto rates = ear.Rates("FT_", 1.0);
-  ASSERT_EQ(rates.size(), 6u) << "FT_* did not reach the workstation";
-  for (const auto& [ch, hz] : rates) EXPECT_GE(hz, 0.95 * kAtiRateHz) << ch;
+  double best_hz = 0;
+  ASSERT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
+      << "FT_* did not reach the workstation at 95% of " << kAtiRateHz
+      << " Hz; the best second had its slowest of six channels at " << best_hz << " Hz";
 
   const std::vector<std::string> robot_shell = {"ip", "netns", "exec", ns.robot, "sh", "-c"};
   auto robot_before = SupervisorStatus(robot_run, robot_shell);
@@ -435,16 +428,10 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
   EXPECT_LT(corrector_back->second, 2.0);
 
   // The data came back across the link; the other processes were left alone.
-  EXPECT_TRUE(ear.PumpUntil(
-      [&] {
-        auto r = ear.Rates("FT_", 1.0);
-        if (r.size() != 6 || Since(t_kill) < 1.5) return false;
-        for (const auto& [ch, hz] : r) {
-          if (hz < 0.95 * kAtiRateHz) return false;
-        }
-        return true;
-      },
-      6.0));
+  ear.Pump(std::max(0.0, 1.5 - Since(t_kill)));  // a window after the restart
+  EXPECT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
+      << "FT_* did not come back across the link; the best second had its slowest at " << best_hz
+      << " Hz";
   auto robot_after = SupervisorStatus(robot_run, robot_shell);
   auto ws_after = SupervisorStatus(ws_run);
   ASSERT_TRUE(ear.PumpUntil(
