@@ -244,19 +244,25 @@ void CalibrationCollector::ArmSkip(const std::string& session, int phase) {
     // waiting in the aligner (so no servo state or mocap frame goes to it), the same counts.
     if (!counting_only_ || current_gaps_.phase != phase || current_gaps_.session != session ||
         !Deferring() || !(Counts() == from)) {
-      spdlog::info("{} (session '{}'): the span index does not fit this reading; read",
-                   PhaseName(phase), session);
+      log_->info("{} (session '{}'): the span index does not fit this reading; read",
+                 PhaseName(phase), session);
       return false;
     }
     SetCounts(to);
     noting_.active = false;
     counters_.span_events_skipped += events;
-    spdlog::info(
+    log_->info(
         "{} (session '{}'): {} events ({:.0f} MB) not read: their records were counted "
-        "when this log was last read whole (span index in the digest cache)",
+        "when this log was read before, by the segmenter or a calibrator (span index in the digest "
+        "cache)",
         PhaseName(phase), session, events, 1e-6 * static_cast<double>(bytes));
     return true;
   });
+}
+
+void CalibrationCollector::SetIndexOnly() {
+  index_only_ = true;
+  collect_tripod_stances_ = false;
 }
 
 logindex::LogIndex CalibrationCollector::TakeSpanIndex() {
@@ -381,8 +387,8 @@ void CalibrationCollector::FlushDeferred() {
       try {
         (this->*handler)(info, data, size);
       } catch (const BadInput& e) {
-        spdlog::warn("{}: a message kept from a phase read only for its counts, refused: {}",
-                     info.channel, e.what());
+        log_->warn("{}: a message kept from a phase read only for its counts, refused: {}",
+                   info.channel, e.what());
       }
     };
   };
@@ -414,14 +420,14 @@ void CalibrationCollector::OnExperiment(const experiment_marker_t& msg) {
   ++counters_.markers;
   const PhaseChange c = phases_.OnMarker(msg.phase, msg.start, msg.session_id);
   if (c.stray_stop) {
-    spdlog::warn("EXPERIMENT: stop marker of {} (session '{}') without its start; ignored",
-                 PhaseName(msg.phase), msg.session_id);
+    log_->warn("EXPERIMENT: stop marker of {} (session '{}') without its start; ignored",
+               PhaseName(msg.phase), msg.session_id);
     return;
   }
   if (c.closes) {
     if (!c.completed) {
-      spdlog::warn("EXPERIMENT: {} started while {} had no stop marker; {} discarded",
-                   PhaseName(c.opened.code), PhaseName(c.closed.code), PhaseName(c.closed.code));
+      log_->warn("EXPERIMENT: {} started while {} had no stop marker; {} discarded",
+                 PhaseName(c.opened.code), PhaseName(c.closed.code), PhaseName(c.closed.code));
     }
     EndPhase(c.closed, c.completed);
     if (c.completed && c.closed.code == experiment_marker_t::STANDING && on_standing_stop_) {
@@ -441,6 +447,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_hang_ = HangingRecording();
     current_hang_.series = SeriesOfPhase(phase.code);
     current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
+    if (index_only_) return;  // nothing kept: no room
     // The series of one experiment are alike in length (the plan's cycles at one speed): room
     // for the longest so far, a little more, saves growing each vector by copies, and is faulted
     // in on another thread (Prefault) while this one reads. Before the first series, room for
@@ -471,12 +478,15 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
   } else if (phase.code == experiment_marker_t::STANDING) {
     current_poses_.clear();
     const auto logged = logged_sessions_scatter_.find(phase.session);
-    if (skip_logged_sessions_ && logged != logged_sessions_scatter_.end() && logged->second) {
+    if (index_only_ ||
+        (skip_logged_sessions_ && logged != logged_sessions_scatter_.end() && logged->second)) {
       counting_only_ = true;
-      spdlog::info(
-          "EXPERIMENT: STANDING started (session '{}'); its STEADY_POSE events, read before, "
-          "carry their within-pose scatter: not segmented again",
-          phase.session);
+      if (!index_only_) {
+        log_->info(
+            "EXPERIMENT: STANDING started (session '{}'); its STEADY_POSE events, read before, "
+            "carry their within-pose scatter: not segmented again",
+            phase.session);
+      }
       if (on_inputs_ready_) on_inputs_ready_();
       noting_ = SpanNoting();
       noting_.active = event_end_ >= 0;  // replay
@@ -494,7 +504,7 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     tare_count_ = 0;
   } else if (phase.code == experiment_marker_t::TRIPOD && !collect_tripod_stances_) {
     counting_only_ = true;
-    spdlog::info(
+    log_->info(
         "EXPERIMENT: TRIPOD started (session '{}'); its stances serve only offset "
         "re-estimation: records counted, not segmented",
         phase.session);
@@ -506,12 +516,12 @@ void CalibrationCollector::StartPhase(const MarkedPhase& phase, const experiment
     current_unloaded_.clear();
     segmenter_ = std::make_unique<PoseSegmenter>(
         segmenter_options_, [this](const SteadyPoseOut& p) { OnTripodStance(p); });
-  } else if (phase.code == experiment_marker_t::WALKING && walking_.empty()) {
+  } else if (phase.code == experiment_marker_t::WALKING && walking_.empty() && !index_only_) {
     // Room for all it may keep: grown by copies, the kept samples were copied about twice.
     // Address space only until written.
     current_walk_.reserve(kMaxWalkingSamples);
   }
-  spdlog::info("EXPERIMENT: {} started (session '{}')", PhaseName(phase.code), phase.session);
+  log_->info("EXPERIMENT: {} started (session '{}')", PhaseName(phase.code), phase.session);
 }
 
 void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
@@ -541,12 +551,12 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
       if (hang_gaps_index_[s] >= 0) phase_gaps_[hang_gaps_index_[s]].superseded = true;
       hang_gaps_index_[s] = static_cast<int>(phase_gaps_.size()) - 1;
       if (have_hang_[s]) {
-        spdlog::warn("{} recorded again: the later recording replaces the earlier one",
-                     HangSeriesName(current_hang_.series));
+        log_->warn("{} recorded again: the later recording replaces the earlier one",
+                   HangSeriesName(current_hang_.series));
       }
-      spdlog::info("{} complete: {} samples per leg, {} attitude samples",
-                   HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
-                   current_hang_.attitude.size());
+      log_->info("{} complete: {} samples per leg, {} attitude samples",
+                 HangSeriesName(current_hang_.series), current_hang_.legs[0].t_s.size(),
+                 current_hang_.attitude.size());
       BeforeInputsChange();
       hang_[s] = std::move(current_hang_);
       have_hang_[s] = true;
@@ -555,10 +565,10 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
   } else if (phase.code == experiment_marker_t::STANDING) {
     if (completed) {
       if (not_segmented) {
-        spdlog::info("STANDING complete (session '{}')", phase.session);
+        log_->info("STANDING complete (session '{}')", phase.session);
       } else {
-        spdlog::info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
-                     current_poses_.size());
+        log_->info("STANDING complete (session '{}'): {} steady poses segmented", phase.session,
+                   current_poses_.size());
       }
       if (!current_poses_.empty()) BeforeInputsChange();
       segmented_poses_.insert(segmented_poses_.end(), current_poses_.begin(), current_poses_.end());
@@ -571,14 +581,14 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
       for (int k = 0; k < kNumLegs; ++k) mean[k] = tare_sum_[k] / static_cast<double>(tare_count_);
       BeforeInputsChange();
       tare_ = mean;
-      spdlog::info("TARE complete (session '{}'): naive tare from {} samples", phase.session,
-                   tare_count_);
+      log_->info("TARE complete (session '{}'): naive tare from {} samples", phase.session,
+                 tare_count_);
     }
   } else if (phase.code == experiment_marker_t::TRIPOD) {
     if (completed && not_segmented) {
-      spdlog::info("TRIPOD complete (session '{}'): not segmented", phase.session);
+      log_->info("TRIPOD complete (session '{}'): not segmented", phase.session);
     } else if (completed) {
-      spdlog::info(
+      log_->info(
           "TRIPOD complete (session '{}'): {} steady stances with a leg lifted; left "
           "out: {} steady runs shorter than {} s, {} with a marker untracked, {} (so far) "
           "with no leg lifted",
@@ -590,8 +600,8 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
     current_unloaded_.clear();
   } else if (phase.code == experiment_marker_t::WALKING) {
     if (completed && walking_.empty() && !current_walk_.empty()) {
-      spdlog::info("WALKING complete (session '{}'): {} aligned samples kept for the report",
-                   phase.session, current_walk_.size());
+      log_->info("WALKING complete (session '{}'): {} aligned samples kept for the report",
+                 phase.session, current_walk_.size());
       walking_ = std::move(current_walk_);
     }
     current_walk_.clear();
@@ -601,8 +611,8 @@ void CalibrationCollector::EndPhase(const MarkedPhase& phase, bool completed) {
 void CalibrationCollector::Flush() {
   const PhaseChange c = phases_.End();
   if (c.closes) {
-    spdlog::warn("input ended inside {} (no stop marker): that phase is discarded",
-                 PhaseName(c.closed.code));
+    log_->warn("input ended inside {} (no stop marker): that phase is discarded",
+               PhaseName(c.closed.code));
     EndPhase(c.closed, false);
   }
 }
@@ -627,6 +637,7 @@ void CalibrationCollector::OnSteadyPose(const steady_pose_t& msg) {
 
 void CalibrationCollector::OnAligned(const AlignedSample& a) {
   ++counters_.aligned_samples;
+  if (index_only_) return;
   const SyncSample& s = a.sample;
   const int phase = phases_.current().code;
   if (IsHangPhase(phase)) {

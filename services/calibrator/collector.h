@@ -29,6 +29,9 @@
 #include <string>
 #include <vector>
 
+#include <spdlog/logger.h>
+#include <spdlog/spdlog.h>
+
 #include "common/bus.h"
 #include "common/messages.h"
 #include "ftcal/aligner.h"
@@ -135,6 +138,14 @@ class CalibrationCollector {
   logindex::LogIndex TakeSpanIndex();
   // The rules a span index is made under: this code's version and the config's channels.
   std::string SpanIndexRules() const;
+  // A collector that only makes the span index of a session log (IndexSessionLog,
+  // span_index.h), in a process that reads the log before the calibrator does: every STANDING
+  // phase is read as the calibrator reads one whose poses it has from a poses log, TRIPOD
+  // stances are not collected (as offline), and nothing is kept for a calibration (no hanging
+  // series, walk or poses). Before Attach().
+  void SetIndexOnly();
+  // Where the collector's lines go (default: spdlog's default logger).
+  void SetLogger(std::shared_ptr<spdlog::logger> log) { log_ = std::move(log); }
 
   // Poses with every marker tracked: from STEADY_POSE events, and found by the collector's own
   // segmenter over the completed STANDING phases (the same rule as ftcal-pose-segmenter).
@@ -210,6 +221,8 @@ class CalibrationCollector {
   std::map<std::string, bool> logged_sessions_scatter_;
   bool skip_logged_sessions_ = false;
   bool collect_tripod_stances_ = true;
+  bool index_only_ = false;
+  std::shared_ptr<spdlog::logger> log_ = spdlog::default_logger();
   // In a STANDING phase not segmented again, or a TRIPOD phase whose stances are not
   // collected: its records are only counted, its last servo states and mocap frames kept.
   bool counting_only_ = false;

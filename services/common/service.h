@@ -76,6 +76,8 @@ class ServiceApp {
   ServiceStats& stats() { return *stats_; }
   spdlog::logger& log() { return *log_; }
   bool replaying() const { return bus_ && bus_->IsReplay(); }
+  // The --replay input's path (empty live).
+  const std::string& replay_input() const { return replay_in_; }
 
   // The state the heartbeat reports (service_status_t::RUNNING, DEGRADED, ...). Run() moves
   // STARTING to RUNNING; a process sets DEGRADED/FAILED when an input or device is missing.

@@ -1,7 +1,10 @@
 // ftcal-pose-segmenter: aligned samples and steady standing poses (pipeline item 2).
 #include <exception>
+#include <future>
+#include <system_error>
 
 #include "common/exit_codes.h"
+#include "calibrator/span_index.h"
 #include "common/service.h"
 #include "pose_segmenter/pose_segmenter_stage.h"
 
@@ -27,7 +30,35 @@ int main(int argc, char** argv) {
   try {
     ftcal::PoseSegmenterStage stage(app.config(), app.bus(),
                                     /*publish_sync=*/!app.replaying() || sync_samples);
-    return app.Run();
+    // A replayed session is read by the calibrator next: its span index, made on the other
+    // core while this one segments, spares the first calibration the STANDING phase's bytes.
+    std::future<ftcal::SpanIndexPass> index;
+    if (app.replaying()) {
+      const ftcal::DigestCache cache = ftcal::DigestCache::FromEnvironment();
+      if (cache.enabled()) {
+        try {
+          index = std::async(std::launch::async, [&app, cache] {
+            return ftcal::IndexSessionLog(app.config(), app.replay_input(), cache);
+          });
+        } catch (const std::system_error&) {
+          // No thread to spare: the calibrator makes the index when it first reads the log.
+        }
+      }
+    }
+    const int rc = app.Run();
+    if (index.valid()) {
+      const ftcal::SpanIndexPass pass = index.get();
+      if (pass.stored) {
+        app.log().info(
+            "{}: span index for the calibrator in the digest cache: {} spans, {:.0f} MB it "
+            "need not read",
+            app.replay_input(), pass.spans, 1e-6 * static_cast<double>(pass.span_bytes));
+      } else {
+        app.log().info("{}: no span index for the calibrator: {}", app.replay_input(),
+                       pass.why_not);
+      }
+    }
+    return rc;
   } catch (const std::exception& e) {
     app.log().critical("config: {}", ftcal::UserText(e, "running the segmenter"));
     return ftcal::ExitCodeFor(e, ftcal::kExitConfig);

@@ -8,10 +8,12 @@
 //                            CSVs written), wall time, median (and min, max) of --runs runs;
 //                            three times: as the first calibration of the logs finds them
 //                            (their digests handed to the digest cache, a directory of the
-//                            bench's own, by ftcal-sim and the segmenter as they wrote them),
-//                            as every later run finds them (the first left the span index
-//                            beside the digest: the STANDING span is not read), and with no
-//                            digest cache (each log hashed for the provenance)
+//                            bench's own, by ftcal-sim and the segmenter as they wrote them,
+//                            and the span index the segmenter's replay left beside the
+//                            session's digest: the STANDING span is not read), as it finds a
+//                            session log the segmenter did not replay (no span index: read
+//                            whole), and with no digest cache (each log hashed for the
+//                            provenance)
 //   ftcal-corrector          --replay with the calibration: leg-samples/s (one FT_<LEG> sample
 //                            in, one CONTACT_WRENCH out, and a CONTACT_WRENCH_SUM per six)
 // The logs (~3 GB) go to a temporary directory under --dir (default /tmp), removed at the end
@@ -160,9 +162,16 @@ int main(int argc, char** argv) {
   const Timing seg = Run({FTCAL_POSE_SEGMENTER, "--config", config, "--replay",
                           dir + "/session.lcmlog", "--out", dir + "/poses.lcmlog"},
                          dir + "/seg.out");
-  std::snprintf(fig, sizeof fig, "%.0fx real time (wall), %.0fx (cpu)", robot_s / seg.wall_s,
-                robot_s / (seg.user_s + seg.sys_s));
+  const bool seg_indexed =
+      seg.out.find("span index for the calibrator in the digest cache") != std::string::npos;
+  std::snprintf(fig, sizeof fig, "%.0fx real time (wall), %.0fx (cpu)%s", robot_s / seg.wall_s,
+                robot_s / (seg.user_s + seg.sys_s),
+                seg_indexed ? ", span index of the session stored" : ", NO span index stored");
   Print("ftcal-pose-segmenter", seg, fig);
+  // The segmenter's span index, put back before each first run (a run that reads a log whole
+  // stores its own).
+  const std::string spans_dir = cache + "/spans", saved_spans = dir + "/spans-from-segmenter";
+  std::filesystem::copy(spans_dir, saved_spans, std::filesystem::copy_options::recursive);
 
   // The logs are in the page cache after the segmenter's pass, as after a lab's recording; the
   // first run is a warm-up, not counted. The poses log first, as scripts/demo gives it: its
@@ -202,21 +211,20 @@ int main(int argc, char** argv) {
                   skipped ? ", STANDING span skipped (span index)" : "");
     Print(name, cal, fig);
   };
-  // The first run on a new log, as a lab's first calibration after ftcal-record or the twin
-  // wrote it: the writers handed the digests over, and no calibrator has read the logs yet
-  // (the span index a run leaves is removed before the next).
-  const auto no_index = [&] { std::filesystem::remove_all(cache + "/spans"); };
-  time_calibrator("ftcal-calibrator", "digests from their writers", no_index);
-  // Every later run (another profile, the demo's report run, a re-calibration): the first
-  // left the span index beside the digest. It is stored only for a log whose ctime is 2 s old
-  // (DigestCache::StoreNote), which the session log may not be yet.
-  {
-    struct stat st {};
-    if (::stat((dir + "/session.lcmlog").c_str(), &st) == 0) {
-      while (std::time(nullptr) < st.st_ctim.tv_sec + 3) ::usleep(100'000);
-    }
-  }
-  time_calibrator("ftcal-calibrator again", "a later run (span index)", [] {});
+  // The first run on a new log, as a lab's first calibration after the twin or ftcal-record
+  // wrote the session and the segmenter replayed it: the writers handed the digests over, the
+  // segmenter the session's span index, and no calibrator has read the logs yet.
+  const auto segmenter_index = [&] {
+    std::filesystem::remove_all(spans_dir);
+    std::filesystem::copy(saved_spans, spans_dir, std::filesystem::copy_options::recursive);
+  };
+  time_calibrator("ftcal-calibrator", "digests from their writers, span index from the segmenter",
+                  segmenter_index);
+  // A session log the segmenter did not replay (its poses came live, or from elsewhere): no
+  // span index, so the STANDING span is read (the span index a run leaves is removed before
+  // the next).
+  const auto no_index = [&] { std::filesystem::remove_all(spans_dir); };
+  time_calibrator("ftcal-calibrator unindexed", "no span index", no_index);
   ::setenv("FTCAL_CACHE_DIR", "", 1);  // set and empty: no digest cache
   time_calibrator("ftcal-calibrator hash", "logs hashed (no digest cache)", [] {});
   ::setenv("FTCAL_CACHE_DIR", cache.c_str(), 1);

@@ -32,6 +32,7 @@
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
+#include "ftcal/digest_cache.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/ft_sample_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
@@ -471,7 +472,7 @@ TEST_F(CalibratorTest, ASecondRunSkipsTheStandingSpanAndWritesTheSameCalibration
   cache_env.reset();
   ASSERT_EQ(r1.exit_code, 0) << r1.err;
   ASSERT_EQ(r2.exit_code, 0) << r2.err;
-  const std::string skipped = "not read: their records were counted when this log was last read";
+  const std::string skipped = "not read: their records were counted when this log was read before";
   EXPECT_EQ(r1.err.find(skipped), std::string::npos) << r1.err;
   EXPECT_NE(r2.err.find(skipped), std::string::npos) << r2.err;
   calibration::Calibration a = ReadCalibrationFile(first), b = ReadCalibrationFile(second);
@@ -509,11 +510,85 @@ TEST_F(CalibratorTest, TheFirstRunTakesThePosesLogsDigestFromTheSegmenterThatWro
   EXPECT_NE(r.err.find(poses + ": SHA-256 from the digest cache in " + cache), std::string::npos)
       << r.err;
   EXPECT_EQ(r.err.find(fx->log + ": SHA-256 from the digest cache"), std::string::npos) << r.err;
+  // Nor did the segmenter index the session: the first calibration hashes it, reading it whole.
+  EXPECT_NE(seg_log.find(fx->log + ": no span index for the calibrator: its digest is not in "
+                                   "the cache"),
+            std::string::npos)
+      << seg_log;
   const auto cal = ReadCalibrationFile(out);
   ASSERT_EQ(cal.provenance().input_size(), 2);
   for (const auto& input : cal.provenance().input()) {
     EXPECT_EQ(input.sha256(), Sha256File(input.path())) << input.path();
   }
+}
+
+// The segmenter's replay leaves the session's span index beside its digest (here stored by the
+// test, as the session's writer would hand it over): the first calibration after it skips the
+// STANDING span and writes what a calibrator that reads everything writes, number for number.
+// The index is the one a calibrator makes when it reads the session whole, byte for byte.
+TEST_F(CalibratorTest, TheSegmentersReplayIndexesTheSessionForTheFirstCalibration) {
+  struct stat st {};
+  ASSERT_EQ(::stat(fx->log.c_str(), &st), 0);
+  while (std::time(nullptr) < st.st_ctim.tv_sec + 3) ::usleep(100'000);  // settled: see above
+  const std::optional<FileKey> key = FileKeyOf(fx->log);
+  ASSERT_TRUE(key);
+  const std::string sha = Sha256File(fx->log);
+  const std::string cache = fx->dir + "/segmenter-index-cache",
+                    by_calibrator = fx->dir + "/calibrator-index-cache";
+  for (const std::string& dir : {cache, by_calibrator}) {
+    ASSERT_TRUE(DigestCache(dir).Store(fx->log, *key, sha)) << dir;
+  }
+
+  std::optional<testing::ScopedEnv> cache_env(std::in_place, "FTCAL_CACHE_DIR", cache);
+  const std::string poses = fx->dir + "/poses-indexing.lcmlog";
+  Child seg({FTCAL_POSE_SEGMENTER, "--config", kConfig, "--replay", fx->log, "--out", poses},
+            fx->dir + "/seg-indexing.out", fx->dir + "/seg-indexing.err");
+  const auto status = seg.Wait(120);
+  ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+      << ReadFile(fx->dir + "/seg-indexing.err");
+  const std::string seg_log = ReadFile(fx->dir + "/seg-indexing.err");
+  EXPECT_TRUE(std::regex_search(
+      seg_log, std::regex("span index for the calibrator in the digest cache: [1-9][0-9]* spans")))
+      << seg_log;
+  const std::optional<std::string> index = DigestCache(cache).LookupNote("spans", fx->log);
+  ASSERT_TRUE(index) << seg_log;
+
+  const std::string first = fx->dir + "/cal-seg-index.pbtxt";
+  const Result r =
+      Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out", first}, "seg-index");
+  cache_env.reset();
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_NE(r.err.find("STANDING (session"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("not read: their records were counted when this log was read before"),
+            std::string::npos)
+      << r.err;
+
+  // What a calibrator writes reading everything (no cache: both logs hashed and read whole).
+  const std::string whole = fx->dir + "/cal-whole.pbtxt";
+  std::optional<testing::ScopedEnv> no_cache(std::in_place, "FTCAL_CACHE_DIR", "");
+  const Result w =
+      Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out", whole}, "whole");
+  no_cache.reset();
+  ASSERT_EQ(w.exit_code, 0) << w.err;
+  EXPECT_EQ(w.err.find("not read:"), std::string::npos) << w.err;
+  calibration::Calibration a = ReadCalibrationFile(first), b = ReadCalibrationFile(whole);
+  EXPECT_EQ(a.provenance().input(1).sha256(), sha);
+  a.clear_provenance();
+  b.clear_provenance();
+  EXPECT_EQ(a.DebugString(), b.DebugString());
+  EXPECT_EQ(ReadFile(ResidualsPathFor(first)), ReadFile(ResidualsPathFor(whole)));
+  EXPECT_EQ(ReadFile(WalkingPathFor(first)), ReadFile(WalkingPathFor(whole)));
+
+  // The index a calibrator stores reading the session whole is the segmenter's.
+  std::optional<testing::ScopedEnv> other(std::in_place, "FTCAL_CACHE_DIR", by_calibrator);
+  const Result c = Run({"--log", poses, "--log", fx->log, "--config", kConfig, "--out",
+                        fx->dir + "/cal-own-index.pbtxt"},
+                       "own-index");
+  other.reset();
+  ASSERT_EQ(c.exit_code, 0) << c.err;
+  const std::optional<std::string> own = DigestCache(by_calibrator).LookupNote("spans", fx->log);
+  ASSERT_TRUE(own) << c.err;
+  EXPECT_EQ(*index, *own);
 }
 
 // The walk follows the STANDING phase. Over a span not segmented again the transducer records
