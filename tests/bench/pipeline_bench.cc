@@ -171,7 +171,9 @@ int main(int argc, char** argv) {
   // The segmenter's span index, put back before each first run (a run that reads a log whole
   // stores its own).
   const std::string spans_dir = cache + "/spans", saved_spans = dir + "/spans-from-segmenter";
-  std::filesystem::copy(spans_dir, saved_spans, std::filesystem::copy_options::recursive);
+  // (None when the segmenter stored none: the row then says so, and times a whole reading.)
+  std::error_code no_spans;
+  std::filesystem::copy(spans_dir, saved_spans, std::filesystem::copy_options::recursive, no_spans);
 
   // The logs are in the page cache after the segmenter's pass, as after a lab's recording; the
   // first run is a warm-up, not counted. The poses log first, as scripts/demo gives it: its
@@ -216,7 +218,8 @@ int main(int argc, char** argv) {
   // segmenter the session's span index, and no calibrator has read the logs yet.
   const auto segmenter_index = [&] {
     std::filesystem::remove_all(spans_dir);
-    std::filesystem::copy(saved_spans, spans_dir, std::filesystem::copy_options::recursive);
+    std::error_code ec;
+    std::filesystem::copy(saved_spans, spans_dir, std::filesystem::copy_options::recursive, ec);
   };
   time_calibrator("ftcal-calibrator", "digests from their writers, span index from the segmenter",
                   segmenter_index);
