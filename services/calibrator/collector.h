@@ -138,7 +138,7 @@ class CalibrationCollector {
   logindex::LogIndex TakeSpanIndex();
   // The rules a span index is made under: this code's version and the config's channels.
   std::string SpanIndexRules() const;
-  // A collector that only makes the span index of a session log (IndexSessionLog,
+  // A collector that only makes the span index of a session log (SessionIndexer,
   // span_index.h), in a process that reads the log before the calibrator does: every STANDING
   // phase is read as the calibrator reads one whose poses it has from a poses log, TRIPOD
   // stances are not collected (as offline), and nothing is kept for a calibration (no hanging

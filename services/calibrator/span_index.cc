@@ -9,7 +9,6 @@
 
 #include <google/protobuf/text_format.h>
 
-#include "calibrator/collector.h"
 #include "common/bus.h"
 #include "common/service_stats.h"
 #include "common/user_errors.h"
@@ -30,9 +29,31 @@ constexpr int64_t kSettleNs = 100'000'000;
 
 }  // namespace
 
-SpanIndexPass IndexSessionLog(const config::Config& config, const std::string& path,
-                              const DigestCache& cache) {
+SessionIndexer::SessionIndexer(const config::Config& config, std::string path, DigestCache cache)
+    : path_(std::move(path)),
+      cache_(std::move(cache)),
+      // The collector's lines would repeat the segmenter's own; its drops are counted in Run().
+      quiet_(std::make_shared<spdlog::logger>("ftcal-span-index")) {
+  try {
+    collector_ = std::make_unique<CalibrationCollector>(config);
+    collector_->SetIndexOnly();
+    collector_->SetLogger(quiet_);
+    collector_->SpanIndexRules();  // every channel name it reads, read here
+  } catch (const std::exception& e) {
+    refused_ = UserText(e, "making the span index");
+  }
+}
+
+SessionIndexer::~SessionIndexer() = default;
+
+SpanIndexPass SessionIndexer::Run() {
+  const std::string& path = path_;
+  const DigestCache& cache = cache_;
   SpanIndexPass out;
+  if (!collector_) {
+    out.why_not = refused_;
+    return out;
+  }
   if (!cache.enabled()) {
     out.why_not = "no digest cache";
     return out;
@@ -57,16 +78,12 @@ SpanIndexPass IndexSessionLog(const config::Config& config, const std::string& p
     out.why_not = "the file is being written";
     return out;
   }
-  // The collector's lines would repeat the segmenter's own; its drops are counted below.
-  auto quiet = std::make_shared<spdlog::logger>("ftcal-span-index");
-  ServiceStats stats(quiet);
+  ServiceStats stats(quiet_);
   const std::string scratch = (std::filesystem::temp_directory_path() /
                                ("ftcal-span-index-" + std::to_string(::getpid()) + ".lcmlog"))
                                   .string();
   try {
-    CalibrationCollector collector(config);
-    collector.SetIndexOnly();
-    collector.SetLogger(quiet);
+    CalibrationCollector& collector = *collector_;
     // Nothing is published: the replay's output stays uncommitted and is removed.
     LogReplayBus bus(path, scratch, stats);
     collector.Attach(bus);

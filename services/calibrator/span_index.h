@@ -16,6 +16,7 @@
 #include <spdlog/logger.h>
 
 #include "ftcal/digest_cache.h"
+#include "calibrator/collector.h"
 #include "proto/config.pb.h"
 
 namespace ftcal {
@@ -28,10 +29,28 @@ struct SpanIndexPass {
 };
 
 // Reads the session log at `path` with a collector in index-only mode and stores the spans it
-// found in `cache`. Does nothing (why_not says so) when the cache is off or has no digest of
-// the file: a calibrator that must hash the file reads it whole anyway. Never throws: a log
-// this pass cannot read is refused by the calibrator when it reads it.
-SpanIndexPass IndexSessionLog(const config::Config& config, const std::string& path,
-                              const DigestCache& cache);
+// found in `cache`. Constructed on the thread that owns `config`, run on any one thread: the
+// constructor makes the collector, which reads the config's channel names. (protobuf builds a
+// string field's explicit default on its first read, behind a lock inside libprotobuf, which
+// ThreadSanitizer cannot see; so the owner's thread reads them first.)
+class SessionIndexer {
+ public:
+  SessionIndexer(const config::Config& config, std::string path, DigestCache cache);
+  ~SessionIndexer();
+  SessionIndexer(const SessionIndexer&) = delete;
+  SessionIndexer& operator=(const SessionIndexer&) = delete;
+
+  // Does nothing (why_not says so) when the cache is off or has no digest of the file: a
+  // calibrator that must hash the file reads it whole anyway. Never throws: a log this pass
+  // cannot read is refused by the calibrator when it reads it. Call once.
+  SpanIndexPass Run();
+
+ private:
+  std::string path_;
+  DigestCache cache_;
+  std::shared_ptr<spdlog::logger> quiet_;
+  std::unique_ptr<CalibrationCollector> collector_;
+  std::string refused_;  // why the collector could not be made
+};
 
 }  // namespace ftcal

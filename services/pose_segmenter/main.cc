@@ -1,6 +1,7 @@
 // ftcal-pose-segmenter: aligned samples and steady standing poses (pipeline item 2).
 #include <exception>
 #include <future>
+#include <memory>
 #include <system_error>
 
 #include "common/exit_codes.h"
@@ -37,9 +38,9 @@ int main(int argc, char** argv) {
       const ftcal::DigestCache cache = ftcal::DigestCache::FromEnvironment();
       if (cache.enabled()) {
         try {
-          index = std::async(std::launch::async, [&app, cache] {
-            return ftcal::IndexSessionLog(app.config(), app.replay_input(), cache);
-          });
+          auto indexer =
+              std::make_shared<ftcal::SessionIndexer>(app.config(), app.replay_input(), cache);
+          index = std::async(std::launch::async, [indexer] { return indexer->Run(); });
         } catch (const std::system_error&) {
           // No thread to spare: the calibrator makes the index when it first reads the log.
         }
