@@ -278,7 +278,25 @@ TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNat
   bool ran = true;
   for (ExperimentRun& r : runs) {
     SCOPED_TRACE(r.name);
-    const auto status = r.child->Wait(1100);
+    auto status = r.child->Wait(1100);
+    // Two process groups on two cores: a stall of the twin's boxes over 100 ms makes the ATI
+    // bridge report itself DEGRADED, and the sequencer then stops the motion, as it must (seen
+    // once in a clean-clone run). That run goes again, alone; a bridge that degrades by itself
+    // stops it again, and the test fails as before.
+    if (status && WIFEXITED(*status) && WEXITSTATUS(*status) > 1) {
+      const std::string sequencer = testing::ReadFile(r.out + "/logs/sequencer.err");
+      const std::regex degraded(
+          "plan '[^']*' stopped at step [0-9]+: ftcal-[a-z-]+-bridge reports "
+          "state 2 [^\n]*");
+      std::smatch why;
+      if (std::regex_search(sequencer, why, degraded)) {
+        std::cout << "==== " << r.name
+                  << ": run again, alone; the first run ended with: " << why.str() << "\n";
+        r.name += "-again";
+        Start(r, dir);
+        status = r.child->Wait(1100);
+      }
+    }
     const std::string said = testing::ReadFile(dir + "/" + r.name + ".out") +
                              testing::ReadFile(dir + "/" + r.name + ".err");
     std::cout << "==== " << r.name << " (FTCAL_EXPERIMENT_MOCAP=" << r.mocap << ")\n" << said;
