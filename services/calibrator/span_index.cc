@@ -47,31 +47,29 @@ SessionIndexer::SessionIndexer(const config::Config& config, std::string path, D
 SessionIndexer::~SessionIndexer() = default;
 
 SpanIndexPass SessionIndexer::Run() {
-  const std::string& path = path_;
-  const DigestCache& cache = cache_;
   SpanIndexPass out;
   if (!collector_) {
     out.why_not = refused_;
     return out;
   }
-  if (!cache.enabled()) {
+  if (!cache_.enabled()) {
     out.why_not = "no digest cache";
     return out;
   }
-  if (!cache.Lookup(path)) {
+  if (!cache_.Lookup(path_)) {
     out.why_not =
         "its digest is not in the cache (a calibrator hashes the log, reading it whole anyway)";
     return out;
   }
   // The key the index is stored under, taken once the ctime has settled (kSettleNs): the log's
   // writer may have finished a moment ago.
-  std::optional<FileKey> key = FileKeyOf(path);
+  std::optional<FileKey> key = FileKeyOf(path_);
   if (key) {
     const int64_t wait_ns = key->ctime_ns + kSettleNs - RealtimeNs();
     if (wait_ns > 0) {
       std::this_thread::sleep_for(std::chrono::nanoseconds(std::min(wait_ns, kSettleNs)));
     }
-    key = FileKeyOf(path);
+    key = FileKeyOf(path_);
   }
   const int64_t key_taken_ns = RealtimeNs();
   if (!key || key_taken_ns - key->ctime_ns < kSettleNs) {
@@ -85,7 +83,7 @@ SpanIndexPass SessionIndexer::Run() {
   try {
     CalibrationCollector& collector = *collector_;
     // Nothing is published: the replay's output stays uncommitted and is removed.
-    LogReplayBus bus(path, scratch, stats);
+    LogReplayBus bus(path_, scratch, stats);
     collector.Attach(bus);
     bus.Run([] {}, 60'000'000);
     if (!bus.finished()) {
@@ -114,12 +112,12 @@ SpanIndexPass SessionIndexer::Run() {
     }
     // Settled as of when the key was taken (above), whatever the reading took since.
     const double settled_s = 1e-9 * static_cast<double>(RealtimeNs() - key_taken_ns + kSettleNs);
-    out.stored = cache.StoreNote("spans", path, *key, text, settled_s);
+    out.stored = cache_.StoreNote("spans", path_, *key, text, settled_s);
     if (!out.stored) {
       out.why_not = "the file changed while it was read, or the cache is not writable";
     }
   } catch (const std::exception& e) {
-    out.why_not = UserText(e, "indexing " + path);
+    out.why_not = UserText(e, "indexing " + path_);
   }
   return out;
 }
