@@ -303,7 +303,15 @@ void DynamixelBusEmulator::Move(Servo& s, double from_s, double to_s) {
     if (s.table[kAddrTorque] != 0) {
       const double goal = static_cast<std::int32_t>(GetLe(s.table, kAddrGoalPosition, 4));
       const double alpha = 1.0 - std::exp(-dt / options_.time_constant_s);
-      const double next = s.position + (goal - s.position) * alpha;
+      double next = s.position + (goal - s.position) * alpha;
+      // A non-zero Profile Velocity caps the speed on the way to every goal (§2.7); the
+      // velocity-based profile's acceleration ramp is left to the first-order lag.
+      const double profile_counts_s =
+          GetLe(s.table, kAddrProfileVelocity, 4) * kCountsPerUnitVelocity;
+      if (profile_counts_s > 0) {
+        const double reach = profile_counts_s * dt;
+        next = std::clamp(next, s.position - reach, s.position + reach);
+      }
       s.velocity = (next - s.position) / dt;
       // Holding torque grows with the position error; a stand-in, not a motor model.
       s.current_a = std::clamp(0.002 * (goal - next), -5.0, 5.0);

@@ -7,7 +7,8 @@
 // adapter).
 //
 // Each servo has a control table (docs/device-protocols.md §2.7). Positions either follow Goal
-// Position with first-order dynamics while torque is on, or are driven from outside (the
+// Position with first-order dynamics while torque is on, no faster than a non-zero Profile
+// Velocity, or are driven from outside (the
 // twin's shaft angles) through a StateSource called whenever the table is read.
 //
 // Faults are injected on the servos' replies: per-packet rates (drop, corrupt CRC, noise bytes

@@ -85,7 +85,8 @@ int main(int argc, char** argv) {
   cli.add_option("--config", config_path, "config file: servo ids, zero counts, directions")
       ->check(CLI::ExistingFile);
   cli.add_option("--scenario", scenario,
-                 "dynamics: servos follow Goal Position (first-order); tripod-walk, standing: "
+                 "dynamics: servos follow Goal Position (first-order, capped at Profile Velocity); "
+                 "tripod-walk, standing: "
                  "positions are the twin's shaft angles in real time")
       ->capture_default_str()
       ->check(CLI::IsMember({"dynamics", "tripod-walk", "standing"}));
