@@ -1137,9 +1137,9 @@ TEST_F(DynamixelBridgeProcesses, SignedServoCommandsOverLcmMoveTheEmulatedServos
   // of at least 50 ms. The bridge's goals step at most the limit times its cycle's time
   // (CommandGate), and the servo keeps to the Profile Velocity the bridge wrote, however late a
   // goal. Time is the servo's own Realtime Tick, the clock its motion runs on (its floor to the
-  // ms and the rounding to counts are the slack). This once took 1 rad/s from a stale comment
-  // and timed pairs of states by their receipt; it failed when the listener got one state 25 ms
-  // after the one before and the servo had moved 66 ms at 2 rad/s in between.
+  // ms and the rounding to counts are the slack). This once took 1.5 rad/s from a stale comment
+  // (the limit is 3) and checked only pairs of states received 20 ms or more apart, timed by
+  // their receipt: it failed when such a pair came during the move (0.066 rad in 25 ms).
   int spans = 0;
   for (int k = 0; k < 6; ++k) {
     for (size_t i = 0, j = 0; i < heard.size(); ++i) {
@@ -1155,7 +1155,7 @@ TEST_F(DynamixelBridgeProcesses, SignedServoCommandsOverLcmMoveTheEmulatedServos
           << " s of its tick";
     }
   }
-  EXPECT_GT(spans, 6 * 100);  // over 2 s at 100 Hz a servo
+  EXPECT_GT(spans, 6 * 100);  // more than a second of each servo's states at 100 Hz
   const auto statuses = listener.Statuses();
   ASSERT_FALSE(statuses.empty());
   EXPECT_EQ(Counter(statuses.back(), "arms"), 1);
