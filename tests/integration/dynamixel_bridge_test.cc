@@ -1142,8 +1142,8 @@ TEST_F(DynamixelBridgeProcesses, SignedServoCommandsOverLcmMoveTheEmulatedServos
   // their receipt: it failed when such a pair came during the move (0.066 rad in 25 ms).
   int spans = 0;
   for (int k = 0; k < 6; ++k) {
+    const auto tick = [&](size_t n) { return heard[n].msg.device_tick_ms[k] / 1e3; };
     for (size_t i = 0, j = 0; i < heard.size(); ++i) {
-      const auto tick = [&](size_t n) { return heard[n].msg.device_tick_ms[k] / 1e3; };
       j = std::max(j, i + 1);
       while (j < heard.size() && tick(j) - tick(i) < 0.05) ++j;
       if (j == heard.size()) break;
