@@ -285,16 +285,6 @@ std::string CalibrationCollector::SpanIndexRules() const {
 
 namespace {
 
-// As Bus::Subscribe<Msg> decodes (the same drop kind): `data` into *msg, or BadInput.
-template <class Msg>
-void DecodeOrThrow(const MessageInfo& info, const void* data, int size, Msg* msg) {
-  if (auto refused = wire::Decode(data, size, msg)) {
-    throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
-                       refused->kind,
-                   refused->detail);
-  }
-}
-
 // The wire guard's checks alone, with the drop kind a decode would give.
 template <class Msg>
 void CheckOrThrow(const MessageInfo& info, const void* data, int size) {
@@ -329,6 +319,11 @@ void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* d
     noting_.barrier = barrier;
     return;
   }
+  if (const std::optional<FtPeek> peek = PeekFtSample(data, size, k)) {
+    if (phases_.open()) CountRecord(k, peek->rdt_sequence);
+    aligner_.AddFt(peek->in);
+    return;
+  }
   ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
   DecodeOrThrow(info, data, size, &msg);
   if (phases_.open()) CountRecord(k, msg.rdt_sequence);
@@ -354,6 +349,10 @@ void CalibrationCollector::OnServoRaw(const MessageInfo& info, const void* data,
     return;
   }
   noting_.barrier = true;  // into the aligner
+  if (const std::optional<ServoInput> peek = PeekServoState(data, size)) {
+    aligner_.AddServo(*peek);
+    return;
+  }
   DecodeOrThrow(info, data, size, &servo_scratch_);
   aligner_.AddServo(inputs_.FromServo(servo_scratch_));
 }
@@ -369,6 +368,10 @@ void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data,
     return;
   }
   noting_.barrier = true;  // into the aligner
+  if (const std::optional<MocapInput> peek = inputs_.PeekMocap(data, size)) {
+    aligner_.AddMocap(*peek);
+    return;
+  }
   DecodeOrThrow(info, data, size, &mocap_scratch_);
   if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
 }

@@ -313,6 +313,17 @@ class LogReplayBus : public Bus {
 
 // ---- templates ----
 
+// What a typed subscription does with a message's bytes (wire::Decode into *msg), for a raw
+// handler that decodes some messages itself: a BadInput naming the type, channel and refusal.
+template <class Msg>
+void DecodeOrThrow(const MessageInfo& info, const void* data, int size, Msg* msg) {
+  if (auto refused = wire::Decode(data, size, msg)) {
+    throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel + ": " +
+                       refused->kind,
+                   refused->detail);
+  }
+}
+
 template <class Msg>
 void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
   // One message object per subscription, decoded into again for every event: LCM's decoders
@@ -323,11 +334,7 @@ void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
   SubscribeRaw(channel, [handler = std::move(handler), scratch](const MessageInfo& info,
                                                                 const void* data, int size) {
     Msg& msg = *scratch;
-    if (auto refused = wire::Decode(data, size, &msg)) {
-      throw BadInput(std::string("undecodable ") + Msg::getTypeName() + " on " + info.channel +
-                         ": " + refused->kind,
-                     refused->detail);
-    }
+    DecodeOrThrow(info, data, size, &msg);
     handler(info, msg);
   });
 }

@@ -1,7 +1,11 @@
 #include "common/messages.h"
 
+#include <endian.h>
+
 #include <cmath>
+#include <cstring>
 #include <limits>
+#include <memory>
 #include <stdexcept>
 
 #include "ftcal/config.h"
@@ -27,10 +31,22 @@ Mat3 RotationOf(const double q_wxyz[4]) {
 
 namespace {
 
-uint64_t BigEndian(const uint8_t* p, int bytes) {
-  uint64_t v = 0;
-  for (int i = 0; i < bytes; ++i) v = (v << 8) | p[i];
-  return v;
+// LCM's big-endian scalars, read in place.
+int64_t Int64At(const uint8_t* p) {
+  uint64_t v;
+  std::memcpy(&v, p, sizeof v);
+  return static_cast<int64_t>(be64toh(v));
+}
+int32_t Int32At(const uint8_t* p) {
+  uint32_t v;
+  std::memcpy(&v, p, sizeof v);
+  return static_cast<int32_t>(be32toh(v));
+}
+double DoubleAt(const uint8_t* p) {
+  const auto bits = static_cast<uint64_t>(Int64At(p));
+  double d;
+  std::memcpy(&d, &bits, sizeof d);
+  return d;
 }
 
 }  // namespace
@@ -43,12 +59,34 @@ std::optional<int64_t> PeekRdtSequence(const void* data, int size) {
   constexpr int kFingerprint = 0, kLegLength = 16, kLegBytes = 20;
   const auto* p = static_cast<const uint8_t*>(data);
   if (size < kLegBytes) return std::nullopt;
-  if (BigEndian(p + kFingerprint, 8) != static_cast<uint64_t>(ft_sample_t::getHash())) {
+  if (Int64At(p + kFingerprint) != ft_sample_t::getHash()) return std::nullopt;
+  const int32_t leg_length = Int32At(p + kLegLength);
+  if (leg_length < 1 || leg_length > size - kLegBytes - 8) return std::nullopt;
+  return Int64At(p + kLegBytes + leg_length);
+}
+
+std::optional<FtPeek> PeekFtSample(const void* data, int size, int leg) {
+  // After the name: rdt_sequence, ft_sequence, status (int64), counts[6] (int32), wrench[6]
+  // (double), gap, flags (int32).
+  constexpr int kLegBytes = 20, kAfterLeg = 3 * 8 + 6 * 4 + 6 * 8 + 4 + 4;
+  constexpr int kWrench = 3 * 8 + 6 * 4, kFlags = kAfterLeg - 4;
+  if (leg < 0 || leg >= kNumLegs || size < kLegBytes) return std::nullopt;
+  const std::string_view name = kLegNames[leg];
+  const auto length = static_cast<int>(name.size()) + 1;  // with its NUL
+  const auto* p = static_cast<const uint8_t*>(data);
+  if (size != kLegBytes + length + kAfterLeg || Int64At(p) != ft_sample_t::getHash() ||
+      Int32At(p + 16) != length || std::memcmp(p + kLegBytes, name.data(), name.size()) != 0 ||
+      p[kLegBytes + name.size()] != 0) {
     return std::nullopt;
   }
-  const auto leg_length = static_cast<int32_t>(BigEndian(p + kLegLength, 4));
-  if (leg_length < 1 || leg_length > size - kLegBytes - 8) return std::nullopt;
-  return static_cast<int64_t>(BigEndian(p + kLegBytes + leg_length, 8));
+  const uint8_t* after = p + kLegBytes + length;
+  FtPeek out;
+  out.in.utime = Int64At(p + 8);
+  out.in.leg = leg;
+  for (int i = 0; i < 6; ++i) out.in.wrench[i] = DoubleAt(after + kWrench + 8 * i);
+  out.in.flags = Int32At(after + kFlags);
+  out.rdt_sequence = Int64At(after);
+  return out;
 }
 
 FtInput FromLcm(const ft_sample_t& msg, int leg) {
@@ -103,6 +141,35 @@ ServoInput FromLcm(const servo_state_t& msg) {
   return in;
 }
 
+std::optional<ServoInput> PeekServoState(const void* data, int size) {
+  // After the six names: id[6] (int32), angle_rad, velocity_rad_s, current_a (double[6]),
+  // hardware_error[6] (int32), device_tick_ms[6] (int64), flags[6] (int32).
+  constexpr int kAfterLegs = 6 * 4 + 3 * 6 * 8 + 6 * 4 + 6 * 8 + 6 * 4, kAngles = 6 * 4;
+  const auto* p = static_cast<const uint8_t*>(data);
+  if (size < 16 || Int64At(p) != servo_state_t::getHash()) return std::nullopt;
+  std::array<int, kNumLegs> leg_of{};
+  std::array<bool, kNumLegs> seen{};
+  int at = 16;
+  for (int i = 0; i < kNumLegs; ++i) {
+    if (at + 4 > size) return std::nullopt;
+    const int32_t length = Int32At(p + at);  // with its NUL
+    at += 4;
+    if (length < 2 || length > size - at || p[at + length - 1] != 0) return std::nullopt;
+    const auto k = LegIndex(
+        std::string_view(reinterpret_cast<const char*>(p + at), static_cast<size_t>(length - 1)));
+    // A leg name holds no NUL, so a match is also what the wire guard asks of a string.
+    if (!k || seen[*k]) return std::nullopt;
+    seen[*k] = true;
+    leg_of[i] = *k;
+    at += length;
+  }
+  if (size != at + kAfterLegs) return std::nullopt;
+  ServoInput in;
+  in.utime = Int64At(p + 8);
+  for (int i = 0; i < kNumLegs; ++i) in.angle_rad[leg_of[i]] = DoubleAt(p + at + kAngles + 8 * i);
+  return in;
+}
+
 servo_state_t ToLcm(const ServoInput& in) {
   servo_state_t msg{};
   msg.utime = in.utime;
@@ -115,24 +182,65 @@ servo_state_t ToLcm(const ServoInput& in) {
 
 // ---- MOCAP_BODY ----
 
-MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers) {
+namespace {
+
+MocapInput MocapInputOf(int64_t utime, bool tracked, const double q_wc[4], bool markers_ok) {
   MocapInput in;
-  in.utime = msg.utime;
-  in.tracked = msg.tracked;
-  if (msg.tracked) {
-    const Eigen::Vector4d q(msg.q_wc[0], msg.q_wc[1], msg.q_wc[2], msg.q_wc[3]);
+  in.utime = utime;
+  in.tracked = tracked;
+  if (tracked) {
+    const Eigen::Vector4d q(q_wc[0], q_wc[1], q_wc[2], q_wc[3]);
     if (q.allFinite() && std::abs(q.norm() - 1.0) > 1e-3) {
-      throw BadInput(
-          "mocap q_wc not a unit quaternion",
-          "|q_wc| = " + std::to_string(q.norm()) + " at utime " + std::to_string(msg.utime));
+      throw BadInput("mocap q_wc not a unit quaternion",
+                     "|q_wc| = " + std::to_string(q.norm()) + " at utime " + std::to_string(utime));
     }
     // A non-finite quaternion stays non-finite: the aligner/corrector count and drop it.
     in.R_WC = q.allFinite() ? QuaternionToRotation(q) : Mat3::Constant(kNaN);
   }
+  in.markers_ok = markers_ok;
+  return in;
+}
+
+}  // namespace
+
+MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers) {
   bool all = msg.tracked && msg.num_markers >= chassis_markers;
   for (int i = 0; all && i < msg.num_markers; ++i) all = msg.marker_tracked[i];
-  in.markers_ok = all;
-  return in;
+  return MocapInputOf(msg.utime, msg.tracked, msg.q_wc, all);
+}
+
+std::optional<MocapInput> PeekMocapBody(const void* data, int size, std::string_view body,
+                                        int chassis_markers) {
+  // The body's name is at 32, after utime, frame_number, device_utime; after it: tracked
+  // (boolean), q_wc[4], q_gc[4], position_m[3], yaw_rad, residual_m (double), num_markers
+  // (int32), marker_m[n][3] (double), marker_tracked[n] (boolean).
+  constexpr int kName = 32, kQwc = 1, kMarkers = 1 + 8 * (4 + 4 + 3 + 1 + 1);
+  constexpr int kAfterName = kMarkers + 4;
+  // Few markers only: the wire guard's bound on the decoded size then cannot refuse it.
+  constexpr int kMaxMarkers = 16;
+  const auto* p = static_cast<const uint8_t*>(data);
+  const auto length = static_cast<int>(body.size()) + 1;
+  if (size < kName + 4 + length + kAfterName || Int64At(p) != mocap_body_t::getHash() ||
+      Int32At(p + kName) != length || body.find('\0') != std::string_view::npos ||
+      std::memcmp(p + kName + 4, body.data(), body.size()) != 0 ||
+      p[kName + 4 + body.size()] != 0) {
+    return std::nullopt;
+  }
+  const uint8_t* after = p + kName + 4 + length;
+  const int32_t n = Int32At(after + kMarkers);
+  if (n < 0 || n > kMaxMarkers || size != kName + 4 + length + kAfterName + 25 * n ||
+      after[0] > 1) {
+    return std::nullopt;
+  }
+  const uint8_t* marker_tracked = after + kAfterName + 24 * n;
+  bool all = after[0] == 1 && n >= chassis_markers;
+  for (int i = 0; i < n; ++i) {
+    if (marker_tracked[i] > 1) return std::nullopt;
+    all = all && marker_tracked[i] == 1;
+  }
+  double q_wc[4];
+  for (int i = 0; i < 4; ++i) q_wc[i] = DoubleAt(after + kQwc + 8 * i);
+  return MocapInputOf(Int64At(p + 8), after[0] == 1, q_wc, all);
 }
 
 mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_markers) {
@@ -411,24 +519,40 @@ std::optional<MocapInput> DeviceInputs::FromMocap(const mocap_body_t& msg) const
   return FromLcm(msg, chassis_markers_);
 }
 
+// Each message read in place when it can be (Peek*), else decoded as a typed subscription
+// would (one message object per subscription, decoded into again).
 void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
   if (h.ft) {
     for (int k = 0; k < kNumLegs; ++k) {
-      bus.Subscribe<ft_sample_t>(
-          ft_channel_[k],
-          [k, f = h.ft](const MessageInfo&, const ft_sample_t& m) { f(FromLcm(m, k)); });
+      bus.SubscribeRaw(ft_channel_[k], [k, f = h.ft, scratch = std::make_shared<ft_sample_t>()](
+                                           const MessageInfo& info, const void* data, int size) {
+        if (const std::optional<FtPeek> peek = PeekFtSample(data, size, k)) return f(peek->in);
+        DecodeOrThrow(info, data, size, scratch.get());
+        f(FromLcm(*scratch, k));
+      });
     }
   }
   if (h.servo) {
-    bus.Subscribe<servo_state_t>(
-        channels_.servo_state(),
-        [f = h.servo](const MessageInfo&, const servo_state_t& m) { f(FromLcm(m)); });
+    bus.SubscribeRaw(channels_.servo_state(),
+                     [f = h.servo, scratch = std::make_shared<servo_state_t>()](
+                         const MessageInfo& info, const void* data, int size) {
+                       if (const std::optional<ServoInput> peek = PeekServoState(data, size)) {
+                         return f(*peek);
+                       }
+                       DecodeOrThrow(info, data, size, scratch.get());
+                       f(FromLcm(*scratch));
+                     });
   }
   if (h.mocap) {
-    bus.Subscribe<mocap_body_t>(channels_.mocap_body(),
-                                [this, f = h.mocap](const MessageInfo&, const mocap_body_t& m) {
-                                  if (const auto in = FromMocap(m)) f(*in);
-                                });
+    bus.SubscribeRaw(channels_.mocap_body(),
+                     [this, f = h.mocap, scratch = std::make_shared<mocap_body_t>()](
+                         const MessageInfo& info, const void* data, int size) {
+                       if (const std::optional<MocapInput> peek = PeekMocap(data, size)) {
+                         return f(*peek);
+                       }
+                       DecodeOrThrow(info, data, size, scratch.get());
+                       if (const auto in = FromMocap(*scratch)) f(*in);
+                     });
   }
 }
 

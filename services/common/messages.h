@@ -16,6 +16,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <string_view>
 
 #include "common/bus.h"
 #include "ftcal/aligner.h"
@@ -71,17 +72,39 @@ ft_sample_t ToLcm(const FtInput& in);
 // not long enough to be one or has another fingerprint. The rest is not looked at: run the wire
 // guard's Check first when the message is untrusted.
 std::optional<int64_t> PeekRdtSequence(const void* data, int size);
+// The Peek* functions below read an encoded device message in place, giving what wire::Decode
+// and FromLcm would give, bit for bit, when the bytes are exactly what lcm-gen's encoder writes
+// for a message they accept (the wire guard's rules, wire_guard.h, and FromLcm's). That is the
+// only case they read; nullopt for anything else (another fingerprint or leg name, a size that
+// is not the layout's, ...), which the caller then decodes through wire::Decode and FromLcm, and
+// they name what is wrong. Why by hand: LCM's generated decoder costs a function call per
+// scalar field and a string copy per name, after the wire guard's walk of the same bytes; for
+// the few fields a stage takes, that was a fifth of the calibrator's reading thread on the
+// report-scale log.
+//
+// An ft_sample_t on leg `leg`'s channel: its FtInput and rdt_sequence.
+struct FtPeek {
+  FtInput in;
+  int64_t rdt_sequence = 0;
+};
+std::optional<FtPeek> PeekFtSample(const void* data, int size, int leg);
 
 // ---- SERVO_STATE: servo_state_t <-> ServoInput ----
 // Every leg exactly once, by name, in any order (BadInput otherwise).
 ServoInput FromLcm(const servo_state_t& msg);
 // The legs in config order; ids, velocities, currents and ticks zero.
 servo_state_t ToLcm(const ServoInput& in);
+// A servo_state_t read in place (Peek*, above).
+std::optional<ServoInput> PeekServoState(const void* data, int size);
 
 // ---- MOCAP_BODY: mocap_body_t <-> MocapInput ----
 // markers_ok: tracked, at least `chassis_markers` markers, every one tracked. A tracked q_wc
 // that is finite but not a unit quaternion is a BadInput; a non-finite one stays non-finite.
 MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers);
+// A mocap_body_t of rigid body `body` read in place (Peek*, above); nullopt also for another
+// body's frame (the caller's decode then tells the two apart) and for more than 16 markers.
+std::optional<MocapInput> PeekMocapBody(const void* data, int size, std::string_view body,
+                                        int chassis_markers);
 // `chassis_markers` markers, tracked when in.markers_ok, positions NaN; q_gc = q_wc.
 mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_markers);
 // The mocap bridges' side: the chassis pose X^G_C (m) into q_gc, its heading-free q_wc, yaw_rad
@@ -150,6 +173,10 @@ class DeviceInputs {
   ServoInput FromServo(const servo_state_t& msg) const { return FromLcm(msg); }
   // nullopt for another rigid body than the config's chassis body.
   std::optional<MocapInput> FromMocap(const mocap_body_t& msg) const;
+  // PeekMocapBody for the chassis body.
+  std::optional<MocapInput> PeekMocap(const void* data, int size) const {
+    return PeekMocapBody(data, size, body_name_, chassis_markers_);
+  }
 
   // A null handler is not subscribed. Mocap frames of another body are not handed on.
   struct Handlers {

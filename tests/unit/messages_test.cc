@@ -8,6 +8,8 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -16,6 +18,7 @@
 #include <spdlog/sinks/null_sink.h>
 
 #include "ftcal/config.h"
+#include "common/wire_guard.h"
 #include "ftcal/geometry.h"
 
 namespace ftcal {
@@ -94,6 +97,250 @@ TEST(Messages, PeekRdtSequenceReadsWhatTheEncoderWrote) {
       EXPECT_EQ(PeekRdtSequence(bytes.data(), size), std::nullopt);
     }
   }
+}
+
+// ---- the in-place reads (Peek*) against the generated decoder ----
+
+template <class Msg>
+std::vector<uint8_t> Encoded(const Msg& msg) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+  EXPECT_EQ(msg.encode(bytes.data(), 0, static_cast<int>(bytes.size())),
+            static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+bool SameBits(double a, double b) { return std::memcmp(&a, &b, sizeof a) == 0; }
+
+// What wire::Decode then FromLcm give for these bytes; nullopt when either refuses.
+std::optional<FtInput> DecodedFt(const std::vector<uint8_t>& b, int leg) {
+  ft_sample_t msg;
+  if (wire::Decode(b.data(), static_cast<int>(b.size()), &msg)) return std::nullopt;
+  try {
+    return FromLcm(msg, leg);
+  } catch (const BadInput&) {
+    return std::nullopt;
+  }
+}
+std::optional<ServoInput> DecodedServo(const std::vector<uint8_t>& b) {
+  servo_state_t msg;
+  if (wire::Decode(b.data(), static_cast<int>(b.size()), &msg)) return std::nullopt;
+  try {
+    return FromLcm(msg);
+  } catch (const BadInput&) {
+    return std::nullopt;
+  }
+}
+// Also nullopt for another body than "chassis" (DeviceInputs::FromMocap) and more than 16
+// markers (not read in place); a BadInput (a tracked q_wc not a unit quaternion) is passed on.
+std::optional<MocapInput> DecodedMocap(const std::vector<uint8_t>& b, int chassis_markers) {
+  mocap_body_t msg;
+  if (wire::Decode(b.data(), static_cast<int>(b.size()), &msg)) return std::nullopt;
+  if (msg.body != "chassis" || msg.num_markers > 16) return std::nullopt;
+  return FromLcm(msg, chassis_markers);
+}
+
+void ExpectSame(const FtInput& a, const FtInput& b) {
+  EXPECT_EQ(a.utime, b.utime);
+  EXPECT_EQ(a.leg, b.leg);
+  for (int i = 0; i < 6; ++i) EXPECT_TRUE(SameBits(a.wrench[i], b.wrench[i])) << i;
+  EXPECT_EQ(a.flags, b.flags);
+}
+void ExpectSame(const ServoInput& a, const ServoInput& b) {
+  EXPECT_EQ(a.utime, b.utime);
+  for (int k = 0; k < kNumLegs; ++k) EXPECT_TRUE(SameBits(a.angle_rad[k], b.angle_rad[k])) << k;
+}
+void ExpectSame(const MocapInput& a, const MocapInput& b) {
+  EXPECT_EQ(a.utime, b.utime);
+  EXPECT_EQ(a.tracked, b.tracked);
+  EXPECT_EQ(a.markers_ok, b.markers_ok);
+  if (a.tracked && b.tracked) {
+    for (int i = 0; i < 9; ++i) EXPECT_TRUE(SameBits(a.R_WC(i), b.R_WC(i))) << i;
+  }
+}
+
+ft_sample_t SomeFtSample(int leg) {
+  Distinct d;
+  ft_sample_t msg{};
+  msg.utime = 1'700'000'000'123'456;
+  msg.leg = std::string(kLegNames[static_cast<size_t>(leg)]);
+  msg.rdt_sequence = 4'294'967'295;
+  msg.ft_sequence = -3;
+  msg.status = 0x20000;
+  for (int i = 0; i < 6; ++i) msg.counts[i] = -1000 * (i + 1);
+  for (int i = 0; i < 6; ++i) msg.wrench[i] = (i % 2 ? -1 : 1) * d();
+  msg.wrench[4] = std::numeric_limits<double>::quiet_NaN();
+  msg.gap = 2;
+  msg.flags = -2;  // every bit but the first: the sign bit read as the encoder wrote it
+  return msg;
+}
+
+servo_state_t SomeServoState() {
+  Distinct d;
+  servo_state_t msg{};
+  msg.utime = 42;
+  for (int i = 0; i < kNumLegs; ++i) {
+    msg.leg[i] = std::string(kLegNames[static_cast<size_t>(kNumLegs - 1 - i)]);  // bus order
+    msg.id[i] = i + 1;
+    msg.angle_rad[i] = -d();
+    msg.velocity_rad_s[i] = d();
+    msg.current_a[i] = d();
+    msg.device_tick_ms[i] = 1000 + i;
+  }
+  return msg;
+}
+
+mocap_body_t SomeMocapBody(const std::string& body, int markers, bool all_tracked) {
+  mocap_body_t msg = ToLcm(MocapInput{77, true, SomeRotation(), true}, body, markers);
+  msg.frame_number = 9;
+  msg.device_utime = 1234;
+  if (!all_tracked && markers > 0) msg.marker_tracked[static_cast<size_t>(markers - 1)] = false;
+  return msg;
+}
+
+TEST(Messages, PeekFtSampleGivesWhatTheDecoderGives) {
+  for (int leg = 0; leg < kNumLegs; ++leg) {
+    const std::vector<uint8_t> b = Encoded(SomeFtSample(leg));
+    const auto size = static_cast<int>(b.size());
+    const std::optional<FtPeek> peek = PeekFtSample(b.data(), size, leg);
+    ASSERT_TRUE(peek.has_value()) << kLegNames[static_cast<size_t>(leg)];
+    ExpectSame(peek->in, *DecodedFt(b, leg));
+    EXPECT_EQ(peek->rdt_sequence, 4'294'967'295);
+    EXPECT_EQ(peek->in.flags, -2);
+    // On another leg's channel, cut short, one byte too many, another fingerprint: not read
+    // here (the decoder then says what is wrong).
+    EXPECT_FALSE(PeekFtSample(b.data(), size, (leg + 1) % kNumLegs));
+    EXPECT_FALSE(PeekFtSample(b.data(), size - 1, leg));
+    std::vector<uint8_t> longer = b;
+    longer.push_back(0);
+    EXPECT_FALSE(PeekFtSample(longer.data(), size + 1, leg));
+    std::vector<uint8_t> other = b;
+    other[3] ^= 0x01;
+    EXPECT_FALSE(PeekFtSample(other.data(), size, leg));
+  }
+}
+
+TEST(Messages, PeekServoStateGivesWhatTheDecoderGives) {
+  const std::vector<uint8_t> b = Encoded(SomeServoState());
+  const auto size = static_cast<int>(b.size());
+  const std::optional<ServoInput> peek = PeekServoState(b.data(), size);
+  ASSERT_TRUE(peek.has_value());
+  ExpectSame(*peek, *DecodedServo(b));
+  EXPECT_EQ(peek->angle_rad[kNumLegs - 1], SomeServoState().angle_rad[0]);  // by name
+  EXPECT_FALSE(PeekServoState(b.data(), size - 1));
+  servo_state_t dup = SomeServoState();
+  dup.leg[5] = dup.leg[0];
+  const std::vector<uint8_t> dup_bytes = Encoded(dup);
+  EXPECT_FALSE(PeekServoState(dup_bytes.data(), static_cast<int>(dup_bytes.size())));
+  servo_state_t unknown = SomeServoState();
+  unknown.leg[2] = "XX";
+  const std::vector<uint8_t> unknown_bytes = Encoded(unknown);
+  EXPECT_FALSE(PeekServoState(unknown_bytes.data(), static_cast<int>(unknown_bytes.size())));
+}
+
+TEST(Messages, PeekMocapBodyGivesWhatTheDecoderGives) {
+  for (const int markers : {0, 4, 16}) {
+    for (const bool all_tracked : {true, false}) {
+      const std::vector<uint8_t> b = Encoded(SomeMocapBody("chassis", markers, all_tracked));
+      const auto size = static_cast<int>(b.size());
+      const std::optional<MocapInput> peek = PeekMocapBody(b.data(), size, "chassis", 4);
+      ASSERT_TRUE(peek.has_value()) << markers;
+      ExpectSame(*peek, *DecodedMocap(b, 4));
+      EXPECT_EQ(peek->markers_ok, markers >= 4 && all_tracked);
+      EXPECT_FALSE(PeekMocapBody(b.data(), size, "other", 4));
+      EXPECT_FALSE(PeekMocapBody(b.data(), size - 1, "chassis", 4));
+    }
+  }
+  mocap_body_t lost = ToLcm(MocapInput{78, false, Mat3::Identity(), false}, "chassis", 4);
+  const std::vector<uint8_t> lost_bytes = Encoded(lost);
+  const auto peek_lost =
+      PeekMocapBody(lost_bytes.data(), static_cast<int>(lost_bytes.size()), "chassis", 4);
+  ASSERT_TRUE(peek_lost.has_value());
+  EXPECT_FALSE(peek_lost->tracked);
+  EXPECT_FALSE(peek_lost->markers_ok);
+  // More markers than are read in place: left to the decoder.
+  const std::vector<uint8_t> many = Encoded(SomeMocapBody("chassis", 17, true));
+  EXPECT_FALSE(PeekMocapBody(many.data(), static_cast<int>(many.size()), "chassis", 4));
+  // A tracked q_wc that is not a unit quaternion is the same BadInput either way.
+  mocap_body_t bad = SomeMocapBody("chassis", 4, true);
+  bad.q_wc[0] = 2.0;
+  const std::vector<uint8_t> bad_bytes = Encoded(bad);
+  EXPECT_NE(BadInputReason([&] {
+              PeekMocapBody(bad_bytes.data(), static_cast<int>(bad_bytes.size()), "chassis", 4);
+            }).find("unit quaternion"),
+            std::string::npos);
+}
+
+// Damaged bytes: whatever an in-place read accepts, the wire guard, the decoder and FromLcm
+// accept too and give the same; and whatever they accept in the form read in place (the
+// channel's leg, the chassis body, up to 16 markers), it reads. Random changes of one to three
+// bytes, a byte cut or added, over each message.
+TEST(Messages, PeeksAcceptExactlyWhatTheDecoderAccepts) {
+  std::mt19937 rng(20261206);
+  auto damaged = [&rng](std::vector<uint8_t> b) {
+    std::uniform_int_distribution<int> how(0, 9), byte(0, 255);
+    const int kind = how(rng);
+    if (kind == 0) {
+      b.pop_back();
+    } else if (kind == 1) {
+      b.push_back(static_cast<uint8_t>(byte(rng)));
+    } else {
+      std::uniform_int_distribution<size_t> at(0, b.size() - 1);
+      for (int i = 0; i < 1 + kind % 3; ++i) {
+        // Small values half the time: lengths, booleans and counts near their valid ones.
+        b[at(rng)] = static_cast<uint8_t>(kind % 2 ? byte(rng) % 4 : byte(rng));
+      }
+    }
+    return b;
+  };
+  constexpr int kTries = 3000;
+  int ft_read = 0, servo_read = 0, mocap_read = 0;
+  for (int t = 0; t < kTries; ++t) {
+    const int leg = t % kNumLegs;
+    const std::vector<uint8_t> ft = damaged(Encoded(SomeFtSample(leg)));
+    const auto ft_peek = PeekFtSample(ft.data(), static_cast<int>(ft.size()), leg);
+    const std::optional<FtInput> ft_decoded = DecodedFt(ft, leg);
+    ASSERT_EQ(ft_peek.has_value(), ft_decoded.has_value()) << "try " << t;
+    if (ft_peek) {
+      ExpectSame(ft_peek->in, *ft_decoded);
+      ++ft_read;
+    }
+
+    const std::vector<uint8_t> servo = damaged(Encoded(SomeServoState()));
+    const auto servo_peek = PeekServoState(servo.data(), static_cast<int>(servo.size()));
+    const std::optional<ServoInput> servo_decoded = DecodedServo(servo);
+    ASSERT_EQ(servo_peek.has_value(), servo_decoded.has_value()) << "try " << t;
+    if (servo_peek) {
+      ExpectSame(*servo_peek, *servo_decoded);
+      ++servo_read;
+    }
+
+    const std::vector<uint8_t> mocap = damaged(Encoded(SomeMocapBody("chassis", 4, t % 2 == 0)));
+    std::optional<MocapInput> mocap_peek, mocap_decoded;
+    std::string peek_refused, decode_refused;
+    try {
+      mocap_peek = PeekMocapBody(mocap.data(), static_cast<int>(mocap.size()), "chassis", 4);
+    } catch (const BadInput& e) {
+      peek_refused = e.kind();
+    }
+    try {
+      mocap_decoded = DecodedMocap(mocap, 4);
+    } catch (const BadInput& e) {
+      decode_refused = e.kind();
+    }
+    ASSERT_EQ(peek_refused, decode_refused) << "try " << t;
+    ASSERT_EQ(mocap_peek.has_value(), mocap_decoded.has_value()) << "try " << t;
+    if (mocap_peek) {
+      ExpectSame(*mocap_peek, *mocap_decoded);
+      ++mocap_read;
+    }
+  }
+  // Not vacuous: most changes land in numbers, which both read the same.
+  EXPECT_GT(ft_read, kTries / 4);
+  EXPECT_GT(servo_read, kTries / 4);
+  EXPECT_GT(mocap_read, kTries / 4);
+  EXPECT_LT(ft_read, kTries);
+  EXPECT_LT(servo_read, kTries);
+  EXPECT_LT(mocap_read, kTries);
 }
 
 TEST(Messages, ServoStateRoundTripAndLegsByName) {
