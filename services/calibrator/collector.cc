@@ -309,8 +309,13 @@ void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* d
     // only counted. Checked as a decode would check it, so a damaged log is refused the same.
     const bool barrier = noting_.barrier;
     noting_.barrier = true;  // unless counted
-    CheckOrThrow<ft_sample_t>(info, data, size);
-    const std::optional<int64_t> sequence = PeekRdtSequence(data, size);
+    std::optional<int64_t> sequence;
+    if (const std::optional<FtPeek> peek = PeekFtSample(data, size, k)) {
+      sequence = peek->rdt_sequence;  // bytes the checks pass, read in place
+    } else {
+      CheckOrThrow<ft_sample_t>(info, data, size);
+      sequence = PeekRdtSequence(data, size);
+    }
     if (!sequence) {
       throw BadInput("undecodable ft_sample_t on " + info.channel + ": not an ft_sample_t",
                      "the wire guard's checks passed but rdt_sequence could not be read");
