@@ -354,12 +354,7 @@ void CalibrationCollector::OnServoRaw(const MessageInfo& info, const void* data,
     return;
   }
   noting_.barrier = true;  // into the aligner
-  if (const std::optional<ServoInput> peek = PeekServoState(data, size)) {
-    aligner_.AddServo(*peek);
-    return;
-  }
-  DecodeOrThrow(info, data, size, &servo_scratch_);
-  aligner_.AddServo(inputs_.FromServo(servo_scratch_));
+  aligner_.AddServo(inputs_.ServoOf(info, data, size, &servo_scratch_));
 }
 
 void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data, int size) {
@@ -373,12 +368,7 @@ void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data,
     return;
   }
   noting_.barrier = true;  // into the aligner
-  if (const std::optional<MocapInput> peek = inputs_.PeekMocap(data, size)) {
-    aligner_.AddMocap(*peek);
-    return;
-  }
-  DecodeOrThrow(info, data, size, &mocap_scratch_);
-  if (const auto in = inputs_.FromMocap(mocap_scratch_)) aligner_.AddMocap(*in);
+  if (const auto in = inputs_.MocapOf(info, data, size, &mocap_scratch_)) aligner_.AddMocap(*in);
 }
 
 // The deferred messages, in their order, through OnServoRaw/OnMocapRaw (no longer deferring:

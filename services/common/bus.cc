@@ -12,6 +12,7 @@
 #include <mutex>
 #include <thread>
 
+#include "common/big_endian.h"
 #include "common/shutdown.h"
 #include "common/user_errors.h"
 
@@ -42,11 +43,6 @@ int64_t PreadFully(int fd, uint8_t* into, int64_t len, int64_t offset) {
   }
   return got;
 }
-
-uint32_t Be32(const uint8_t* p) {
-  return uint32_t{p[0]} << 24 | uint32_t{p[1]} << 16 | uint32_t{p[2]} << 8 | uint32_t{p[3]};
-}
-uint64_t Be64(const uint8_t* p) { return uint64_t{Be32(p)} << 32 | Be32(p + 4); }
 
 }  // namespace
 

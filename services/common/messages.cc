@@ -1,13 +1,12 @@
 #include "common/messages.h"
 
-#include <endian.h>
-
 #include <cmath>
 #include <cstring>
 #include <limits>
 #include <memory>
 #include <stdexcept>
 
+#include "common/big_endian.h"
 #include "ftcal/config.h"
 #include "ftcal/hanging.h"
 
@@ -31,19 +30,11 @@ Mat3 RotationOf(const double q_wxyz[4]) {
 
 namespace {
 
-// LCM's big-endian scalars, read in place.
-int64_t Int64At(const uint8_t* p) {
-  uint64_t v;
-  std::memcpy(&v, p, sizeof v);
-  return static_cast<int64_t>(be64toh(v));
-}
-int32_t Int32At(const uint8_t* p) {
-  uint32_t v;
-  std::memcpy(&v, p, sizeof v);
-  return static_cast<int32_t>(be32toh(v));
-}
+// LCM's scalars, read in place.
+int64_t Int64At(const uint8_t* p) { return static_cast<int64_t>(Be64(p)); }
+int32_t Int32At(const uint8_t* p) { return static_cast<int32_t>(Be32(p)); }
 double DoubleAt(const uint8_t* p) {
-  const auto bits = static_cast<uint64_t>(Int64At(p));
+  const uint64_t bits = Be64(p);
   double d;
   std::memcpy(&d, &bits, sizeof d);
   return d;
@@ -534,26 +525,34 @@ void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
   }
   if (h.servo) {
     bus.SubscribeRaw(channels_.servo_state(),
-                     [f = h.servo, scratch = std::make_shared<servo_state_t>()](
+                     [this, f = h.servo, scratch = std::make_shared<servo_state_t>()](
                          const MessageInfo& info, const void* data, int size) {
-                       if (const std::optional<ServoInput> peek = PeekServoState(data, size)) {
-                         return f(*peek);
-                       }
-                       DecodeOrThrow(info, data, size, scratch.get());
-                       f(FromLcm(*scratch));
+                       f(ServoOf(info, data, size, scratch.get()));
                      });
   }
   if (h.mocap) {
     bus.SubscribeRaw(channels_.mocap_body(),
                      [this, f = h.mocap, scratch = std::make_shared<mocap_body_t>()](
                          const MessageInfo& info, const void* data, int size) {
-                       if (const std::optional<MocapInput> peek = PeekMocap(data, size)) {
-                         return f(*peek);
-                       }
-                       DecodeOrThrow(info, data, size, scratch.get());
-                       if (const auto in = FromMocap(*scratch)) f(*in);
+                       if (const auto in = MocapOf(info, data, size, scratch.get())) f(*in);
                      });
   }
+}
+
+ServoInput DeviceInputs::ServoOf(const MessageInfo& info, const void* data, int size,
+                                 servo_state_t* scratch) const {
+  if (std::optional<ServoInput> peek = PeekServoState(data, size)) return *peek;
+  DecodeOrThrow(info, data, size, scratch);
+  return FromLcm(*scratch);
+}
+
+std::optional<MocapInput> DeviceInputs::MocapOf(const MessageInfo& info, const void* data, int size,
+                                                mocap_body_t* scratch) const {
+  if (std::optional<MocapInput> peek = PeekMocapBody(data, size, body_name_, chassis_markers_)) {
+    return peek;
+  }
+  DecodeOrThrow(info, data, size, scratch);
+  return FromMocap(*scratch);
 }
 
 AlignerOptions AlignerOptionsFromConfig(const config::Config& config) {

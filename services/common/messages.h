@@ -170,13 +170,14 @@ class DeviceInputs {
   // FT_<LEG> channel name of leg k.
   const std::string& FtChannel(int k) const { return ft_channel_[k]; }
   FtInput FromFt(int leg, const ft_sample_t& msg) const { return FromLcm(msg, leg); }
-  ServoInput FromServo(const servo_state_t& msg) const { return FromLcm(msg); }
   // nullopt for another rigid body than the config's chassis body.
   std::optional<MocapInput> FromMocap(const mocap_body_t& msg) const;
-  // PeekMocapBody for the chassis body.
-  std::optional<MocapInput> PeekMocap(const void* data, int size) const {
-    return PeekMocapBody(data, size, body_name_, chassis_markers_);
-  }
+  // One message's input: read in place when it can be (Peek*), else decoded into *scratch as a
+  // typed subscription decodes (BadInput naming what is wrong). nullopt: another body's frame.
+  ServoInput ServoOf(const MessageInfo& info, const void* data, int size,
+                     servo_state_t* scratch) const;
+  std::optional<MocapInput> MocapOf(const MessageInfo& info, const void* data, int size,
+                                    mocap_body_t* scratch) const;
 
   // A null handler is not subscribed. Mocap frames of another body are not handed on.
   struct Handlers {
