@@ -712,14 +712,20 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
                   stats_.CountIn();
                   return true;
                 });
+  std::vector<bool> asked(servos_.size(), false);
   for (std::size_t k = 0; k < slots.size(); ++k) {
+    asked[slots[k]] = true;
     (*fresh)[slots[k]] = got[k] && !repeated[slots[k]];
   }
   for (std::size_t i = 0; i < servos_.size(); ++i) {
     ServoSlot& s = servos_[i];
     if ((*fresh)[i]) continue;
     ++stats_.Counter("stale");
-    if (s.lost) {
+    // Left out of this read because it was lost when the read was sent: a lost cycle, not a
+    // miss, even when a late answer to its PING found it again during the read (Transact drains
+    // and hands such answers to ProbeAnswered); counted as a miss it was a STALE that no reply
+    // accounted for, and a step towards losing a servo that had just come back.
+    if (!asked[i]) {
       ++stats_.Counter("lost_cycles");
       continue;
     }
