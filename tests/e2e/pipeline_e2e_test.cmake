@@ -15,4 +15,4 @@ target_compile_definitions(pipeline_e2e_test PRIVATE
   FTCAL_CORRECTOR="$<TARGET_FILE:ftcal-corrector>")
 add_dependencies(pipeline_e2e_test ftcal-sim ftcal-calibrator ftcal-corrector)
 add_test(NAME pipeline_e2e_test COMMAND pipeline_e2e_test)
-set_tests_properties(pipeline_e2e_test PROPERTIES LABELS e2e TIMEOUT 600)
+set_tests_properties(pipeline_e2e_test PROPERTIES LABELS e2e.main TIMEOUT 600)

@@ -13,7 +13,7 @@ if(TARGET ftcal-emulate-ati AND TARGET ftcal-ati-bridge)
   add_dependencies(ati_bridge_test ftcal-emulate-ati ftcal-ati-bridge)
   set_target_properties(ati_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(ati_bridge_test
-    PROPERTIES LABELS integration TIMEOUT 60
+  ftcal_gtest_discover(ati_bridge_test KIND integration
+    PROPERTIES TIMEOUT 60
     DISCOVERY_TIMEOUT 60)
 endif()

@@ -9,7 +9,7 @@ target_compile_definitions(crafted_messages_test PRIVATE
 add_dependencies(crafted_messages_test ftcal-pose-segmenter)
 set_target_properties(crafted_messages_test PROPERTIES
   CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-gtest_discover_tests(crafted_messages_test
-  PROPERTIES LABELS integration TIMEOUT 120
+ftcal_gtest_discover(crafted_messages_test KIND integration
+  PROPERTIES TIMEOUT 120
   DISCOVERY_TIMEOUT 60
   DISCOVERY_MODE PRE_TEST)

@@ -14,8 +14,8 @@ if(TARGET ftcal-emulate-dynamixel AND TARGET ftcal-dynamixel-bridge)
   add_dependencies(dynamixel_bridge_test ftcal-emulate-dynamixel ftcal-dynamixel-bridge)
   set_target_properties(dynamixel_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(dynamixel_bridge_test
-    PROPERTIES LABELS integration TIMEOUT 60
+  ftcal_gtest_discover(dynamixel_bridge_test KIND integration
+    PROPERTIES TIMEOUT 60
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

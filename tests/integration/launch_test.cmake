@@ -28,8 +28,8 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND LCM_LOGGER
   # RUN_SERIAL: each test runs a whole process group and measures its rates (six FT channels at
   # >= 95% of the twin's); two groups at once under AddressSanitizer on two cores paced the
   # twin at 90% (CI, 2026-12-04), a failure of the machine, not of the launcher.
-  gtest_discover_tests(launch_test
-    PROPERTIES LABELS integration TIMEOUT 90 RUN_SERIAL TRUE
+  ftcal_gtest_discover(launch_test KIND integration
+    PROPERTIES TIMEOUT 90 RUN_SERIAL TRUE
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

@@ -10,7 +10,7 @@ if(TARGET ftcal-mocap-bridge AND TARGET ftcal-emulate-qtm)
   add_dependencies(mocap_bridge_test ftcal-mocap-bridge ftcal-emulate-qtm)
   set_target_properties(mocap_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(mocap_bridge_test
-    PROPERTIES LABELS integration TIMEOUT 120
+  ftcal_gtest_discover(mocap_bridge_test KIND integration
+    PROPERTIES TIMEOUT 120
     DISCOVERY_TIMEOUT 60)
 endif()

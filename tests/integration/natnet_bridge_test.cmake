@@ -9,7 +9,7 @@ if(TARGET ftcal-natnet-bridge AND TARGET ftcal_natnet_emulator)
   add_dependencies(natnet_bridge_test ftcal-natnet-bridge)
   set_target_properties(natnet_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(natnet_bridge_test
-    PROPERTIES LABELS integration TIMEOUT 120
+  ftcal_gtest_discover(natnet_bridge_test KIND integration
+    PROPERTIES TIMEOUT 120
     DISCOVERY_TIMEOUT 60)
 endif()

@@ -19,8 +19,8 @@ if(TARGET ftcal-sim AND TARGET ftcal-natnet-bridge AND TARGET ftcal-mocap-bridge
     ftcal-mocap-bridge ftcal-natnet-bridge ftcal-pose-segmenter)
   set_target_properties(natnet_swap_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(natnet_swap_test
-    PROPERTIES LABELS integration TIMEOUT 240
+  ftcal_gtest_discover(natnet_swap_test KIND integration
+    PROPERTIES TIMEOUT 240
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

@@ -18,7 +18,7 @@ set_target_properties(pipeline_live_test PROPERTIES
   CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
 # RUN_SERIAL: the live chain keeps pace with lcm-logplayer only if the machine is its own; in
 # CI's sanitizer run, beside other tests on two cores, it failed (it passes alone).
-gtest_discover_tests(pipeline_live_test
-  PROPERTIES LABELS integration TIMEOUT 180 RUN_SERIAL TRUE
+ftcal_gtest_discover(pipeline_live_test KIND integration
+  PROPERTIES TIMEOUT 180 RUN_SERIAL TRUE
   DISCOVERY_TIMEOUT 60
   DISCOVERY_MODE PRE_TEST)

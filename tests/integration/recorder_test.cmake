@@ -9,8 +9,8 @@ if(TARGET ftcal-record)
   add_dependencies(recorder_test ftcal-record)
   set_target_properties(recorder_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(recorder_test
-    PROPERTIES LABELS integration TIMEOUT 60
+  ftcal_gtest_discover(recorder_test KIND integration
+    PROPERTIES TIMEOUT 60
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

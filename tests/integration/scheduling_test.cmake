@@ -3,6 +3,6 @@
 add_executable(scheduling_test "${CMAKE_CURRENT_LIST_DIR}/scheduling_test.cc")
 target_link_libraries(scheduling_test PRIVATE
   ftcal_common GTest::gtest GTest::gtest_main Threads::Threads)
-gtest_discover_tests(scheduling_test
-  PROPERTIES LABELS integration TIMEOUT 30
+ftcal_gtest_discover(scheduling_test KIND integration
+  PROPERTIES TIMEOUT 30
   DISCOVERY_TIMEOUT 60 DISCOVERY_MODE PRE_TEST)

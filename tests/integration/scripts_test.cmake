@@ -5,14 +5,14 @@
 add_test(NAME scripts_spy_without_a_display_names_the_reason
   COMMAND env -u DISPLAY -u WAYLAND_DISPLAY "${PROJECT_SOURCE_DIR}/scripts/spy")
 set_tests_properties(scripts_spy_without_a_display_names_the_reason PROPERTIES
-  LABELS integration TIMEOUT 30
+  LABELS integration.fast TIMEOUT 30
   PASS_REGULAR_EXPRESSION "spy: no display \\(DISPLAY and WAYLAND_DISPLAY are unset\\)")
 
 # The README's by-hand package list is scripts/setup's (they had drifted apart).
 add_test(NAME scripts_readme_package_list_matches_setup
   COMMAND bash "${CMAKE_CURRENT_LIST_DIR}/readme_packages_test.sh" "${PROJECT_SOURCE_DIR}")
-set_tests_properties(scripts_readme_package_list_matches_setup PROPERTIES LABELS integration TIMEOUT 30)
+set_tests_properties(scripts_readme_package_list_matches_setup PROPERTIES LABELS integration.fast TIMEOUT 30)
 
 # The C++ is formatted as .clang-format says (issue 15, house rules): scripts/format fixes it.
 add_test(NAME clang_format_check COMMAND "${PROJECT_SOURCE_DIR}/scripts/format" --check)
-set_tests_properties(clang_format_check PROPERTIES LABELS unit TIMEOUT 120)
+set_tests_properties(clang_format_check PROPERTIES LABELS unit.fast TIMEOUT 120)

@@ -25,8 +25,8 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
   # RUN_SERIAL: the twin follows real time and the segmenter needs each grid pose's dwell to be
   # steady; beside the other live tests on two cores, a clean-clone run found no steady window
   # for three of the poses (it passes alone and passed in the runs before).
-  gtest_discover_tests(sequencer_live_test
-    PROPERTIES LABELS integration TIMEOUT 240 RUN_SERIAL TRUE
+  ftcal_gtest_discover(sequencer_live_test KIND integration
+    PROPERTIES TIMEOUT 240 RUN_SERIAL TRUE
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

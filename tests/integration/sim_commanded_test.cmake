@@ -19,8 +19,8 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
   # RUN_SERIAL: the servo loop is real time (10 ms cycles, a servo lost after five replies
   # missed): beside another test under the sanitizers, with the machine also busy, the
   # emulator answered too late, the bridge lost every servo and refused the commands.
-  gtest_discover_tests(sim_commanded_test
-    PROPERTIES LABELS integration TIMEOUT 120 RUN_SERIAL TRUE
+  ftcal_gtest_discover(sim_commanded_test KIND integration
+    PROPERTIES TIMEOUT 120 RUN_SERIAL TRUE
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

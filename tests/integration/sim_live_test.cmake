@@ -18,8 +18,8 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
     ftcal-mocap-bridge)
   set_target_properties(sim_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(sim_live_test
-    PROPERTIES LABELS integration TIMEOUT 120
+  ftcal_gtest_discover(sim_live_test KIND integration
+    PROPERTIES TIMEOUT 120
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

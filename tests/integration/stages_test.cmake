@@ -13,7 +13,7 @@ target_compile_definitions(stages_test PRIVATE
 add_dependencies(stages_test ftcal-pose-segmenter ftcal-corrector)
 set_target_properties(stages_test PROPERTIES
   CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-gtest_discover_tests(stages_test
-  PROPERTIES LABELS integration TIMEOUT 180
+ftcal_gtest_discover(stages_test KIND integration
+  PROPERTIES TIMEOUT 180
   DISCOVERY_TIMEOUT 60
   DISCOVERY_MODE PRE_TEST)
