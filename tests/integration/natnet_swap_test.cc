@@ -190,6 +190,7 @@ double MaxAngleDiff(const steady_pose_t& a, const steady_pose_t& b) {
 }
 
 TEST(NatNetSwap, TheSegmenterKeepsTheSamePosesWhicheverMocapBridge) {
+  testing::AheadOfTheMachine();
   ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const Session qtm = RunSession(false);

@@ -108,6 +108,7 @@ class PipelineLiveTest : public ::testing::Test {
 
   void SetUp() override {
     ASSERT_TRUE(testing::InNetns());
+    testing::AheadOfTheMachine();
     ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
     ASSERT_STRNE(FTCAL_LCM_LOGPLAYER, "")
         << "lcm-logplayer (liblcm-bin) not found at configure time";

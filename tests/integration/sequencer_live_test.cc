@@ -121,6 +121,7 @@ bool WaitFor(const std::function<bool()>& pred, double timeout_s) {
 }
 
 TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) {
+  testing::AheadOfTheMachine();
   ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const std::string dir = testing::MakeTempDir();

@@ -155,6 +155,7 @@ struct ServoSample {
 };
 
 TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
+  testing::AheadOfTheMachine();
   ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const auto test_started = Clock::now();

@@ -228,6 +228,7 @@ std::unique_ptr<Child> StartWalkingTwin(const std::string& dir, const std::strin
 }
 
 TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
+  testing::AheadOfTheMachine();
   ASSERT_TRUE(testing::InNetns());
   ASSERT_STRNE(FTCAL_LCM_LOGGER, "") << "lcm-logger (liblcm-bin) not found at configure time";
   const std::string dir = testing::MakeTempDir();
