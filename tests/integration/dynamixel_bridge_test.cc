@@ -5,6 +5,7 @@
 //   - the real processes over real LCM inside a private network namespace (ctest runs this
 //     binary through scripts/netns-exec): what the bridge published (heard on LCM) and counted
 //     (its final heartbeat) against the emulator's truth CSV of every reply and its fate.
+#include <poll.h>
 #include <signal.h>
 #include <unistd.h>
 
@@ -36,9 +37,31 @@
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "protocol2.h"
+#include "test_helpers.h"
 
 namespace ftcal {
 namespace {
+
+// Serves the bridge's bytes until `stop`, then `each` (under `mu`) after every wait. It waits
+// for the bytes outside `mu`: the test's own looks at the emulator take `mu` too, and a server
+// that polled while holding it took it back at once (std::mutex is not fair), so on a loaded
+// machine the test's thread waited on the lock instead of running the bridge's cycles, the
+// servos' Bus Watchdog ran out and they stopped short of their goals.
+void Serve(sim::PtyBus& pty, std::mutex& mu, const std::atomic<bool>& stop,
+           const std::function<double()>& clock_s, const std::function<void()>& each = nullptr) {
+  while (!stop) {
+    int fd = -1;
+    {
+      std::lock_guard<std::mutex> lock(mu);
+      fd = pty.master_fd();
+    }
+    pollfd p{fd, POLLIN, 0};
+    const bool readable = ::poll(&p, 1, 1) > 0;
+    std::lock_guard<std::mutex> lock(mu);
+    if (readable) pty.ServeOnce(0, clock_s);
+    if (each) each();
+  }
+}
 
 using testing::Child;
 using Clock = std::chrono::steady_clock;
@@ -350,11 +373,8 @@ class DynamixelBridgePty : public ::testing::Test {
     pty_->Open();
     t0_ = Clock::now();
     server_ = std::thread([this] {
-      while (!stop_) {
-        std::lock_guard<std::mutex> lock(emu_mu_);
-        pty_->ServeOnce(
-            1, [this] { return std::chrono::duration<double>(Clock::now() - t0_).count(); });
-      }
+      Serve(*pty_, emu_mu_, stop_,
+            [this] { return std::chrono::duration<double>(Clock::now() - t0_).count(); });
     });
     std::string text = TestConfigText(link_, limit_rad, 0.03);
     if (!mode.empty()) {
@@ -738,6 +758,20 @@ class Listener {
     std::lock_guard<std::mutex> lock(mu_);
     return statuses;
   }
+  // Waits up to `timeout_s` for the bridge's final heartbeat (STOPPING, sent as it exits); true
+  // when it came. A bridge that has exited has sent it, but the listener's thread may not have
+  // taken it yet on a loaded machine.
+  bool WaitForFinalHeartbeat(double timeout_s = 5.0) {
+    const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
+    do {
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        if (!statuses.empty() && statuses.back().state == service_status_t::STOPPING) return true;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    } while (Clock::now() < end);
+    return false;
+  }
 
  private:
   lcm::LCM lcm_;
@@ -790,6 +824,8 @@ class DynamixelBridgeProcesses : public ::testing::Test {
     if (std::getenv("FTCAL_NETNS") == nullptr) {
       GTEST_SKIP() << "uses LCM multicast: run inside scripts/netns-exec (ctest does)";
     }
+    // The emulator stands in for servos with processors of their own: real-time replies.
+    testing::AheadOfTheMachine();
     dir_ = testing::MakeTempDir();
     link_ = dir_ + "/tty";
     config_path_ = dir_ + "/config.pbtxt";
@@ -842,7 +878,7 @@ TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEv
   ASSERT_FALSE(listener.States().empty()) << testing::ReadFile(dir_ + "/bridge.err");
   SleepS(3.0);
   Stop(*bridge, "bridge");
-  SleepS(0.3);  // the final heartbeat
+  EXPECT_TRUE(listener.WaitForFinalHeartbeat()) << "no STOPPING heartbeat from the bridge";
   Stop(*emu, "emulator");
   const auto truth = ReadTruth(dir_ + "/truth.csv");
   const auto heard = listener.States();
@@ -967,7 +1003,7 @@ TEST_F(DynamixelBridgeProcesses, OneSilentServoCostsTheOtherFiveLessThanFivePerc
   }
   SleepS(1.5);
   Stop(*bridge, "bridge");
-  SleepS(0.3);  // the final heartbeat
+  EXPECT_TRUE(listener.WaitForFinalHeartbeat()) << "no STOPPING heartbeat from the bridge";
   Stop(*emu, "emulator");
   const auto heard = listener.States();
   ASSERT_GT(heard.size(), 100u) << testing::ReadFile(dir_ + "/bridge.err");
@@ -1284,12 +1320,9 @@ class DynamixelBridgeOnEmulator : public ::testing::Test {
     pty_ = std::make_unique<sim::PtyBus>(*emu_, link_);
     pty_->Open();
     server_ = std::thread([this] {
-      while (!stop_) {
-        std::lock_guard<std::mutex> lock(emu_mu_);
-        pty_->ServeOnce(1, [this] { return Now(); });
-        // The servos move whether asked or not (as in the twin): between requests too.
-        emu_->Advance(Now());
-      }
+      // The servos move whether asked or not (as in the twin): between requests too.
+      Serve(
+          *pty_, emu_mu_, stop_, [this] { return Now(); }, [this] { emu_->Advance(Now()); });
     });
   }
   void TearDown() override {
