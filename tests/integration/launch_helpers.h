@@ -37,6 +37,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "ftcal/ft_sample_t.hpp"
 #include "ftcal/process_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "launcher/launch_plan.h"
@@ -145,6 +146,45 @@ class Ear {
     if (best) *best = best_slowest;
     return ok;
   }
+  // Waits up to `timeout_s` for a `window_s` in which each of `channels` FT channels matching
+  // `prefix` brought at least `fraction` of the records its box sent in that window, counted by
+  // the box's own rdt_sequence, and at least `min_hz` of them a second (the group runs at all).
+  // The bound is what the machine let the twin send, not a fixed rate: beside other work the
+  // twin's boxes send fewer records (a stalled NetBox skips, it does not burst), and a pipeline
+  // that keeps up still brings every one of them. `best` gets the best window's lowest fraction.
+  bool Delivered(const std::string& prefix, std::size_t channels, double fraction, double min_hz,
+                 double window_s, double timeout_s, double* best = nullptr) {
+    double best_lowest = 0;
+    const bool ok = PumpUntil(
+        [&] {
+          std::lock_guard<std::mutex> lock(mutex_);
+          const auto from = Clock::now() - std::chrono::duration_cast<Clock::duration>(
+                                               std::chrono::duration<double>(window_s));
+          std::size_t n_channels = 0;
+          double lowest = 1.0;
+          bool enough = true;
+          for (const auto& [ch, heard] : ft_heard_) {
+            if (ch.rfind(prefix, 0) != 0) continue;
+            ++n_channels;
+            int64_t n = 0, first = -1, last = -1;
+            for (const auto& [t, seq] : heard) {
+              if (t < from) continue;
+              if (first < 0 || seq < last) first = seq, n = 0;  // a box restart: count anew
+              last = seq;
+              ++n;
+            }
+            const double sent = first < 0 ? 0.0 : static_cast<double>(last - first + 1);
+            lowest = std::min(lowest, sent > 0 ? n / sent : 0.0);
+            enough = enough && n >= min_hz * window_s;
+          }
+          if (n_channels != channels) return false;
+          best_lowest = std::max(best_lowest, lowest);
+          return enough && lowest >= fraction;
+        },
+        timeout_s);
+    if (best) *best = best_lowest;
+    return ok;
+  }
   struct Beat {
     service_status_t status;
     Clock::time_point at;
@@ -176,13 +216,21 @@ class Ear {
   }
 
  private:
-  void OnAny(const lcm::ReceiveBuffer*, const std::string& channel) {
+  void OnAny(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     const auto now = Clock::now();
+    ft_sample_t ft;
+    const bool is_ft = channel.rfind("FT_", 0) == 0 && ft.decode(rbuf->data, 0, rbuf->data_size) ==
+                                                           static_cast<int>(rbuf->data_size);
     std::lock_guard<std::mutex> lock(mutex_);
     ++counts_[channel];
     auto& a = arrivals_[channel];
     a.push_back(now);
     while (!a.empty() && a.front() < now - std::chrono::seconds(10)) a.pop_front();
+    if (is_ft) {
+      auto& h = ft_heard_[channel];
+      h.emplace_back(now, ft.rdt_sequence);
+      while (!h.empty() && h.front().first < now - std::chrono::seconds(10)) h.pop_front();
+    }
   }
   void OnStatus(const lcm::ReceiveBuffer* rbuf, const std::string&) {
     service_status_t s;
@@ -199,6 +247,7 @@ class Ear {
   lcm::LCM lcm_;
   mutable std::mutex mutex_;
   std::map<std::string, std::deque<Clock::time_point>> arrivals_;
+  std::map<std::string, std::deque<std::pair<Clock::time_point, int64_t>>> ft_heard_;
   std::map<std::string, int64_t> counts_;
   std::vector<Beat> beats_;
   std::vector<process_state_t> states_;

