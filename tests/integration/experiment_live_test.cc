@@ -1,24 +1,29 @@
 // The calibration experiment run live end to end (issue 11), and the motion capture swapped
-// under it (issue 16): scripts/experiment twice at once, the same twin session (seed 3) each time,
-// once through the twin's QTM server and ftcal-mocap-bridge, once through its OptiTrack Motive
-// server (NatNet 4.1 multicast, a pivot frame away from the chassis) and ftcal-natnet-bridge.
-// Each run is the twin (ftcal-sim live --scenario commanded --control), the ATI, Dynamixel and
-// mocap bridges, ftcal-record, the segmenter, the live calibrator, the corrector and the sequencer
-// with config/sim.pbtxt's plan "experiment" (tare, four hanging series, 46 standing poses), all
-// real processes over real LCM, each run in a network namespace of its own (scripts/netns-exec
-// inside this test's), so the two do not hear each other.
+// under it (issue 16), through scripts/experiment: the twin (ftcal-sim live --scenario
+// commanded --control), the ATI, Dynamixel and mocap bridges, ftcal-record, the segmenter, the
+// live calibrator, the corrector and the sequencer, all real processes over real LCM, each run in
+// a network namespace of its own (scripts/netns-exec inside this test's).
+//
+// Main tier: the plan "quick" of config/sim.pbtxt (tare, four hanging series, 41 standing poses
+// in about three minutes) through QTM, alone; and a run whose ATI bridge is killed as the plan
+// starts ends at once, naming it.
+// Long tier: the plan "experiment" (46 poses, slower hanging series) twice at once, the same twin
+// session (seed 3) each time, once through the twin's QTM server and ftcal-mocap-bridge, once
+// through its OptiTrack Motive server (NatNet 4.1 multicast, a pivot frame away from the
+// chassis) and ftcal-natnet-bridge.
 //
 // Checked here, independently of the script's own verdict, for each run:
 //   - the live calibration recovers the twin's true parameters (truth.pbtxt, written by the
 //     twin at start) within bounds for this short experiment (p~' within its own sigma);
 //   - it equals the offline calibration of the recording: the two collect the same
 //     messages with the same collector code and solve the same problem.
-// And across the two (the swap changes nothing downstream):
+// And across the two runs of the long tier (the swap changes nothing downstream):
 //   - both kept enough standing poses to calibrate; which ones each kept is printed (a marker
 //     dropout at a steady window's edge falls in one run and not the other: scheduling);
 //   - the two calibrations agree, parameter by parameter, within the accuracy each run is held
 //     to against the truth, and p~' within four combined sigmas.
-// And a run whose ATI bridge is killed as the plan starts ends at once, naming it.
+// Neither reruns itself: a run that stops early (a bridge that reports itself DEGRADED stops the
+// sequencer, as it must) fails the test with the sequencer's log.
 #include <dirent.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -82,6 +87,7 @@ struct ExperimentRun {
   std::string mocap;  // FTCAL_EXPERIMENT_MOCAP
   std::string out;
   std::unique_ptr<Child> child;
+  std::string plan = "experiment";  // FTCAL_EXPERIMENT_PLAN
 };
 
 void Start(ExperimentRun& run, const std::string& dir) {
@@ -90,12 +96,16 @@ void Start(ExperimentRun& run, const std::string& dir) {
       std::vector<std::string>{std::string(FTCAL_SOURCE_DIR) + "/scripts/netns-exec",
                                "/usr/bin/env", std::string("FTCAL_BUILD_DIR=") + FTCAL_BUILD_DIR,
                                "FTCAL_EXPERIMENT_SEED=3", "FTCAL_EXPERIMENT_MOCAP=" + run.mocap,
+                               "FTCAL_EXPERIMENT_PLAN=" + run.plan,
                                std::string(FTCAL_SOURCE_DIR) + "/scripts/experiment", run.out},
       dir + "/" + run.name + ".out", dir + "/" + run.name + ".err");
 }
 
-// The run's own checks: against the truth, and live against offline.
-void CheckRun(const ExperimentRun& run) {
+// The run's own checks: against the truth (the whole experiment's recovery bounds times
+// `truth_scale`, p~' within four of its sigmas, each horizontal one within
+// `max_horizontal_sigma_m`), and live against offline.
+void CheckRun(const ExperimentRun& run, double truth_scale = 3,
+              double max_horizontal_sigma_m = 1e-3) {
   const std::string& out = run.out;
   const config::Config config = LoadConfigFile(out + "/config.pbtxt");
   const calibration::Calibration live_proto = ReadCalibrationFile(out + "/calibration.pbtxt");
@@ -112,8 +122,8 @@ void CheckRun(const ExperimentRun& run) {
   // feet move little in z), so each component within four of the sigma the calibration states.
   const Errors vs_truth = Compare(live, truth);
   Print((run.name + ": live vs truth").c_str(), vs_truth);
-  ExpectWithinBounds(vs_truth, 3, run.name + ": live vs truth");
-  ExpectPTildeWithinSigmas(live_proto, live, truth, 4);
+  ExpectWithinBounds(vs_truth, truth_scale, run.name + ": live vs truth");
+  ExpectPTildeWithinSigmas(live_proto, live, truth, 4, max_horizontal_sigma_m);
 
   // Against the offline calibration of the recording: the same poses, the same model. The two
   // run the same collector and solver, so with the same messages they agree to the solver's
@@ -217,6 +227,7 @@ std::vector<pid_t> ProcessesWithArg(const std::string& arg) {
 // seconds, says which process exited with the end of its log, and leaves no process behind.
 TEST(ExperimentLive, ABridgeThatDiesAsThePlanStartsEndsTheExperimentNamingIt) {
   ASSERT_TRUE(testing::InNetns());
+  testing::AheadOfTheMachine();
   const std::string dir = testing::MakeTempDir();
   ExperimentRun run{"bridge-dies", "qualisys", "", nullptr};
   Start(run, dir);
@@ -269,8 +280,38 @@ TEST(ExperimentLive, ABridgeThatDiesAsThePlanStartsEndsTheExperimentNamingIt) {
   for (pid_t pid : left) ::kill(pid, SIGKILL);  // not into the next test
 }
 
+// The main tier's live experiment: the plan "quick" (the same phases as "experiment" in about
+// three minutes) through QTM, alone on the machine. The long tier's test below runs the whole
+// plan through both motion captures at once; natnet_swap_test checks the swap in the main tier.
+TEST(ExperimentLive, TheQuickPlanCalibratesLiveAsTheTruth) {
+  ASSERT_TRUE(testing::InNetns());
+  testing::AheadOfTheMachine();
+  const std::string dir = testing::MakeTempDir();
+  ExperimentRun run{"quick", "qualisys", "", nullptr, "quick"};
+  Start(run, dir);
+  const std::optional<int> status = run.child->Wait(900);
+  std::cout << testing::ReadFile(dir + "/quick.out") << testing::ReadFile(dir + "/quick.err");
+  if (!status) {
+    run.child->Signal(SIGTERM);
+    run.child->Wait(30);
+    FAIL() << "scripts/experiment did not end in 900 s";
+  }
+  // 0: its own comparisons passed; 1: they did not (checked below regardless); anything else:
+  // the experiment did not run to its end.
+  ASSERT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) <= 1)
+      << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(run.out + "/logs/sequencer.err");
+  // 41 poses of 2.5 s instead of 46 of 3 s and 4 s hanging cycles instead of 6 s: the same
+  // bounds against the truth, p~' known to 1.5 mm horizontally instead of 1 (1.0-1.3 mm seen
+  // beside two busy loops; the two-host test allows the same for its lost poses).
+  CheckRun(run, 3, 1.5e-3);
+  EXPECT_GE(KeptPoses(run.out + "/session.lcmlog").size(), 30u);
+  if (!::testing::Test::HasFailure()) testing::RemoveTree(dir);
+}
+
 TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNatNetAlike) {
   ASSERT_TRUE(testing::InNetns());
+  testing::AheadOfTheMachine();
   const std::string dir = testing::MakeTempDir();
   // Both at once: each is mostly waiting (5 s dwells, slow hanging turns), and the two
   // sessions are the same twin seed, so the swap is the only difference between them.
@@ -278,25 +319,6 @@ TEST(ExperimentLive, TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNat
   for (ExperimentRun& r : runs) Start(r, dir);
   std::optional<int> statuses[2];
   for (int i = 0; i < 2; ++i) statuses[i] = runs[i].child->Wait(1100);
-  // Two process groups on two cores: a stall of the twin's boxes over 100 ms makes the ATI
-  // bridge report itself DEGRADED, and the sequencer then stops the motion, as it must (seen
-  // once in a clean-clone run). Such a run goes again once both have ended, alone; a bridge
-  // that degrades by itself stops it again, and the test fails as before.
-  const std::regex degraded(
-      "plan '[^']*' stopped at step [0-9]+: ftcal-[a-z-]+-bridge reports state 2 [^\n]*");
-  for (int i = 0; i < 2; ++i) {
-    ExperimentRun& r = runs[i];
-    const std::optional<int>& status = statuses[i];
-    if (!status || !WIFEXITED(*status) || WEXITSTATUS(*status) <= 1) continue;
-    const std::string sequencer = testing::ReadFile(r.out + "/logs/sequencer.err");
-    std::smatch why;
-    if (!std::regex_search(sequencer, why, degraded)) continue;
-    std::cout << "==== " << r.name << ": run again, alone; the first run ended with: " << why.str()
-              << "\n";
-    r.name += "-again";
-    Start(r, dir);
-    statuses[i] = r.child->Wait(1100);
-  }
   bool ran = true;
   for (int i = 0; i < 2; ++i) {
     ExperimentRun& r = runs[i];

@@ -1,9 +1,12 @@
-# scripts/experiment end to end, twice at once: the short plan "experiment" of config/sim.pbtxt
-# run live on the twin through the real processes, once with QTM and ftcal-mocap-bridge, once
-# with OptiTrack (NatNet) and ftcal-natnet-bridge; each live calibration against the twin's
-# truth and against the offline calibration of its recording, and the two against each other.
-# About six minutes of real time. Multicast: this test in its own network namespace
-# (scripts/netns-exec as the CROSSCOMPILING_EMULATOR), each run in one of its own inside it.
+# scripts/experiment end to end on the twin through the real processes. Main tier: the plan
+# "quick" of config/sim.pbtxt through QTM (about three minutes), and a bridge that dies as the
+# plan starts. Long tier: the plan "experiment" twice at once, once with QTM and
+# ftcal-mocap-bridge, once with OptiTrack (NatNet) and ftcal-natnet-bridge; each live
+# calibration against the twin's truth and against the offline calibration of its recording, and
+# the two against each other (about six minutes). Multicast: this test in its own network
+# namespace (scripts/netns-exec as the CROSSCOMPILING_EMULATOR), each run in one of its own
+# inside it. RUN_SERIAL: a whole process group on the twin in real time; two at once on two
+# cores stalled the twin's boxes past the bridges' limits.
 if(TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-sequencer-control AND
    TARGET ftcal-calibrator AND TARGET ftcal-natnet-bridge AND LCM_LOGGER)
   add_executable(experiment_live_test "${CMAKE_CURRENT_LIST_DIR}/experiment_live_test.cc")
@@ -17,8 +20,9 @@ if(TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-sequencer-contro
     ftcal-corrector ftcal-sequencer ftcal-sequencer-control)
   set_target_properties(experiment_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  gtest_discover_tests(experiment_live_test
-    PROPERTIES LABELS integration TIMEOUT 1200 RUN_SERIAL TRUE
+  ftcal_gtest_discover(experiment_live_test KIND integration
+    LONG "ExperimentLive.TheShortPlanCalibratesLiveAsTheTruthThroughQtmAndThroughNatNetAlike"
+    PROPERTIES TIMEOUT 1200 RUN_SERIAL TRUE
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

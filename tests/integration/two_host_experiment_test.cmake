@@ -35,8 +35,9 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftc
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   # RUN_SERIAL: timing-sensitive (restart bounds, a recording that must lose nothing outside the
   # outage) and it runs a dozen processes on its own.
-  gtest_discover_tests(two_host_experiment_test
-    PROPERTIES LABELS integration TIMEOUT 1200 RUN_SERIAL TRUE
+  ftcal_gtest_discover(two_host_experiment_test KIND integration
+    LONG "TwoHostExperiment.ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMidRun"
+    PROPERTIES TIMEOUT 1200 RUN_SERIAL TRUE
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

@@ -258,20 +258,20 @@ TEST(PlanConfig, BadPhasesAndLimitsAreRefusedWithTheFieldNamed) {
     }
     return "";
   };
-  // sim.pbtxt ships two plans (short, experiment): the one added here is plan[2].
+  // sim.pbtxt ships three plans (short, experiment, quick): the one added here is plan[3].
   std::string e = error_of("plan { name: \"x\" phase { kind: PHASE_HANG } }");
-  EXPECT_NE(e.find("plan[2].phase[0].orientation: a hanging phase needs"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[3].phase[0].orientation: a hanging phase needs"), std::string::npos) << e;
   e = error_of("plan { name: \"short\" phase { kind: PHASE_TARE } }");
-  EXPECT_NE(e.find("plan[2].name: duplicate plan name 'short'"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[3].name: duplicate plan name 'short'"), std::string::npos) << e;
   e = error_of(
       "plan { name: \"g\" phase { kind: PHASE_STANDING_GRID grid_angles_deg: [0, 120] } }");
-  EXPECT_NE(e.find("plan[2].phase[0].grid_angles_deg[1]: a standing angle must be within +-90 deg"),
+  EXPECT_NE(e.find("plan[3].phase[0].grid_angles_deg[1]: a standing angle must be within +-90 deg"),
             std::string::npos)
       << e;
   e = error_of("plan { name: \"w\" phase { kind: PHASE_TRIPOD_WALK duty: 1.5 } }");
-  EXPECT_NE(e.find("plan[2].phase[0].duty: must be in (0, 1), got 1.5"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[3].phase[0].duty: must be in (0, 1), got 1.5"), std::string::npos) << e;
   e = error_of("plan { name: \"empty\" }");
-  EXPECT_NE(e.find("plan[2]: a plan needs at least one phase"), std::string::npos) << e;
+  EXPECT_NE(e.find("plan[3]: a plan needs at least one phase"), std::string::npos) << e;
 }
 
 // ---- safety rules against the twin's own readings ----
