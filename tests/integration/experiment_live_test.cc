@@ -5,7 +5,7 @@
 // a network namespace of its own (scripts/netns-exec inside this test's).
 //
 // Main tier: the plan "quick" of config/sim.pbtxt (tare, four hanging series, 41 standing poses
-// in about three minutes) through QTM, alone; and a run whose ATI bridge is killed as the plan
+// in four minutes of motion) through QTM, alone; and a run whose ATI bridge is killed as the plan
 // starts ends at once, naming it.
 // Long tier: the plan "experiment" (46 poses, slower hanging series) twice at once, the same twin
 // session (seed 3) each time, once through the twin's QTM server and ftcal-mocap-bridge, once
@@ -281,8 +281,9 @@ TEST(ExperimentLive, ABridgeThatDiesAsThePlanStartsEndsTheExperimentNamingIt) {
 }
 
 // The main tier's live experiment: the plan "quick" (the same phases as "experiment" in about
-// three minutes) through QTM, alone on the machine. The long tier's test below runs the whole
-// plan through both motion captures at once; natnet_swap_test checks the swap in the main tier.
+// four minutes of motion) through QTM, alone on the machine. The long tier's test below runs the
+// whole plan through both motion captures at once; natnet_swap_test checks the swap in the main
+// tier.
 TEST(ExperimentLive, TheQuickPlanCalibratesLiveAsTheTruth) {
   ASSERT_TRUE(testing::InNetns());
   testing::AheadOfTheMachine();

@@ -1,5 +1,5 @@
 # scripts/experiment end to end on the twin through the real processes. Main tier: the plan
-# "quick" of config/sim.pbtxt through QTM (about three minutes), and a bridge that dies as the
+# "quick" of config/sim.pbtxt through QTM (four minutes of motion), and a bridge that dies as the
 # plan starts. Long tier: the plan "experiment" twice at once, once with QTM and
 # ftcal-mocap-bridge, once with OptiTrack (NatNet) and ftcal-natnet-bridge; each live
 # calibration against the twin's truth and against the offline calibration of its recording, and
