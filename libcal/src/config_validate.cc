@@ -8,6 +8,7 @@
 #include <cstring>
 #include <map>
 #include <set>
+#include <tuple>
 #include <string>
 #include <vector>
 
@@ -276,6 +277,15 @@ void ValidateAuth(const Node& node, const config::Auth& auth, const config::Chan
       !(auth.servo_cmd_window_s() > 0 && auth.servo_cmd_window_s() <= 10)) {
     node.Error("servo_cmd_window_s",
                "must be in (0, 10] s, got " + FormatNumber(auth.servo_cmd_window_s()));
+  }
+  for (const auto& [name, value, max] :
+       {std::tuple<const char*, double, double>{"control_window_s", auth.control_window_s(), 60},
+        {"experiment_window_s", auth.experiment_window_s(), 60},
+        {"calibration_window_s", auth.calibration_window_s(), 3600},
+        {"max_clock_ahead_s", auth.max_clock_ahead_s(), 60}}) {
+    if (node.Finite(name, value) && !(value > 0 && value <= max)) {
+      node.Error(name, "must be in (0, " + FormatNumber(max) + "] s, got " + FormatNumber(value));
+    }
   }
 }
 

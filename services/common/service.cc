@@ -97,6 +97,10 @@ ServiceApp::ServiceApp(ServiceSpec spec)
                       std::string(kDefaultConfigName) + " built in");
   cli_.add_option("--lcm-url", lcm_url_, "LCM URL; overrides the config's lcm_url");
   AddLogLevelOption(cli_, &log_level_);
+  cli_.add_option("--state-dir", state_dir_,
+                  "where a live process keeps what it accepted on signed channels, so that a "
+                  "restart refuses it again (default: $FTCAL_STATE_DIR, $STATE_DIRECTORY, "
+                  "$XDG_STATE_HOME/ftcal, ~/.local/state/ftcal)");
   if (spec_.replayable) {
     auto* in = cli_.add_option("--replay", replay_in_,
                                "run over this LCM log at full speed instead of live LCM");
@@ -166,6 +170,22 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
     log_->critical("{}", UserText(e, replay_in_.empty() ? "opening LCM" : "opening the replay"));
     return ExitCodeFor(e, kExitDeviceIo);
   }
+  if (!replaying()) {
+    if (state_dir_.empty()) state_dir_ = auth::SeenStore::DefaultDir();
+    if (state_dir_.empty()) {
+      log_->warn(
+          "no state directory (--state-dir, FTCAL_STATE_DIR, HOME unset): what this process "
+          "accepts on signed channels is forgotten when it restarts");
+    } else {
+      try {
+        bus_->SetSeenStore(
+            std::make_shared<auth::SeenStore>(state_dir_ + "/" + spec_.name + ".seen"));
+      } catch (const std::exception& e) {
+        log_->critical("{}", UserText(e, "reading the state file"));
+        return ExitCodeFor(e, kExitDeviceIo);
+      }
+    }
+  }
   log_->info("pid {} config {} {}", identity_.pid, config_path_,
              replaying() ? "replay " + replay_in_ + " -> " + replay_out_ : "lcm " + lcm_url_);
   return std::nullopt;
@@ -189,6 +209,10 @@ void ServiceApp::PublishStatus() {
 // Each task is guarded on its own so that one failing task does not starve the others.
 void ServiceApp::Tick() {
   const int64_t now = bus_->NowUtime();
+  if (const auto& store = bus_->seen_store()) {
+    const std::string error = store->TakeError();
+    if (!error.empty()) stats_->Error("state not saved", error);
+  }
   for (auto& task : periodic_) {
     if (task.next_utime == 0) task.next_utime = now + task.period_us;
     if (now < task.next_utime) continue;
@@ -301,6 +325,10 @@ int ServiceApp::Run() {
   bus_->Run([this] { Tick(); }, kLoopTickUs);
   state_ = service_status_t::STOPPING;
   if (!replaying()) sd_notify(0, "STOPPING=1");
+  if (const auto& store = bus_->seen_store()) {
+    const std::string error = store->Flush();
+    if (!error.empty()) log_->error("state not saved: {}", error);
+  }
 
   int rc = 0;
   if (auto* replay = dynamic_cast<LogReplayBus*>(bus_.get())) {

@@ -140,6 +140,7 @@ class ServiceApp {
   std::string log_level_;
   std::string replay_in_;
   std::string replay_out_;
+  std::string state_dir_;
   SchedulingOptions scheduling_;
   bool scheduling_offered_ = false;
 

@@ -1,5 +1,7 @@
 #include "sequencer/sequencer.h"
 
+#include <sodium.h>
+
 #include <algorithm>
 #include <cmath>
 #include <fstream>
@@ -227,9 +229,12 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
   device_inputs_.Subscribe(bus_, handlers);
   bus_.Subscribe<service_status_t>(
       ch.status(), [this](const MessageInfo& i, const service_status_t& m) { OnStatus(i, m); });
-  // No time window: a CONFIRM names the step it confirms, and the sequence must rise.
+  // The operator's word of the moment: seconds old at most, its sequence above any taken before
+  // (also before a restart: Bus::seen_store), and a CONFIRM must carry the nonce of the prompt it
+  // answers (Confirm).
   bus_.SubscribeSigned<sequencer_control_t>(
-      ch.sequencer_control(), &verifier_, /*window_us=*/0, config.auth().allow_unsigned(),
+      ch.sequencer_control(), &verifier_,
+      static_cast<int64_t>(config.auth().control_window_s() * 1e6), config.auth().allow_unsigned(),
       [this](const MessageInfo& i, const sequencer_control_t& m) { OnControl(i, m); });
   if (steps_.empty()) state_ = State::kDone;
 }
@@ -254,6 +259,18 @@ void Sequencer::OnControl(const MessageInfo&, const sequencer_control_t& msg) {
     Stop("operator STOP on " + config_.channels().sequencer_control() +
          (msg.note.empty() ? std::string() : " (" + msg.note + ")"));
   } else if (msg.action == sequencer_control_t::CONFIRM) {
+    // A signature says who confirmed, not what: a CONFIRM captured at one prompt must not answer
+    // another (a later step, a later run, a resumed sequencer). Each prompt draws a nonce.
+    if (state_ != State::kWaitingForOperator) {
+      throw BadInput("confirm with nothing waiting",
+                     "a CONFIRM (nonce " + std::to_string(msg.nonce) + ") while no step waits");
+    }
+    if (msg.nonce != confirm_nonce_) {
+      throw BadInput("confirm of another prompt",
+                     "a CONFIRM with nonce " + std::to_string(msg.nonce) +
+                         ", not the waiting prompt's (status counter confirm_nonce; "
+                         "ftcal-sequencer-control reads it)");
+    }
     Confirm(msg.step);
   } else {
     throw BadInput("unknown sequencer_control_t action", "action " + std::to_string(msg.action));
@@ -268,7 +285,18 @@ void Sequencer::Confirm(int step) {
     return;
   }
   confirmed_ = true;
+  ++bus_.stats().Counter("confirms");
   Tick();
+}
+
+void Sequencer::NewPrompt() {
+  // Positive and never 0 (0 is "no prompt"): drawn, not counted, so that no run or restart
+  // repeats one.
+  do {
+    randombytes_buf(&confirm_nonce_, sizeof confirm_nonce_);
+    confirm_nonce_ &= INT64_MAX;
+  } while (confirm_nonce_ == 0);
+  bus_.stats().Counter("confirm_nonce") = confirm_nonce_;
 }
 
 bool Sequencer::PhaseNeedsMocap(int phase) const {
@@ -432,6 +460,8 @@ void Sequencer::Begin(int index) {
   index_ = index;
   step_started_ = false;
   confirmed_ = false;
+  confirm_nonce_ = 0;
+  bus_.stats().Counter("confirm_nonce") = 0;
   waiting_reason_.clear();
   if (index < static_cast<int>(step_of_.size())) {
     bus_.stats().Counter("step") = std::max(0, step_of_[index]);
@@ -511,6 +541,7 @@ void Sequencer::TickSteps() {
         }
         if (state_ != State::kWaitingForOperator) {
           state_ = State::kWaitingForOperator;
+          NewPrompt();
           const std::string prompt =
               s.prompt + (waiting_reason_.empty() ? "" : " (" + waiting_reason_ + ")");
           bus_.stats().log().info("waiting for the operator: {}", prompt);

@@ -466,7 +466,14 @@ class ManualBus : public Bus {
     const std::vector<size_t> subs = HandlersFor(channel);
     for (size_t s : subs) Dispatch(s, channel, now_, bytes.data(), static_cast<int>(bytes.size()));
   }
-  int64_t now_ = 1'700'000'000'000'000;
+  // Every bus starts a day after the one before: the tests share TestSigner(), whose sequences
+  // follow its clock, and receivers refuse a sequence ahead of their time (issue 36).
+  static int64_t NextStart() {
+    static int64_t next = 1'700'000'000'000'000;
+    next += 86'400'000'000;
+    return next;
+  }
+  int64_t now_ = NextStart();
 };
 
 template <class Msg>
@@ -499,7 +506,8 @@ class Robot {
         driven_(twin_),
         bridge_stats_(QuietBridgeLog()),
         verifier_(auth::Verifier::FromConfig(config)),
-        gate_(config, bridge_stats_, -bridge_up_s) {}
+        gate_(config, bridge_stats_, -bridge_up_s),
+        t0_(bus.NowUtime()) {}
 
   // Runs `seconds` of robot time; `sequencer` ticks every 20 ms as the loop would.
   void Run(Sequencer& sequencer, double seconds, const std::function<void(double)>& each = {}) {
@@ -608,7 +616,7 @@ class Robot {
   int silent_leg_ = -1;
   bool cut_ = false;
   double t_ = 0.0;
-  const int64_t t0_ = 1'700'000'000'000'000;
+  const int64_t t0_;
 };
 
 std::shared_ptr<spdlog::logger> QuietLog() {
@@ -838,6 +846,7 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride:
   sequencer_control_t confirm{};
   confirm.action = sequencer_control_t::CONFIRM;
   confirm.step = 0;
+  confirm.nonce = seq.confirm_nonce();
   bus.Deliver("SEQUENCER_CONTROL", confirm);
   robot.Run(seq, 5.0);
   EXPECT_EQ(seq.state(), Sequencer::State::kRunning);
@@ -963,6 +972,103 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride:
   robot.Run(seq, 2.0);
   EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
   EXPECT_EQ(stats.kinds().count("unsigned on SEQUENCER_CONTROL"), 1u);
+}
+
+// ---- issue 36: a signature says who, not when nor for which prompt ----
+
+// The operator's key, trusted on SEQUENCER_CONTROL only.
+auth::Signer& OperatorSigner() {
+  static auth::Signer signer = [] {
+    std::array<uint8_t, auth::kSeedBytes> seed{};
+    randombytes_buf(seed.data(), seed.size());
+    return auth::Signer::FromSeed(seed);
+  }();
+  return signer;
+}
+
+config::Config SignedControlConfig() {
+  config::Config c = SimConfig(R"(
+plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride: 100 dwell_s: 1.5 } }
+)",
+                               /*allow_unsigned=*/false);
+  auto* key = c.mutable_auth()->add_trusted_key();
+  key->set_name("operator");
+  const auth::PublicKey& pk = OperatorSigner().public_key();
+  key->set_public_key_hex(auth::ToHex(pk.data(), pk.size()));
+  key->add_channel("SEQUENCER_CONTROL");
+  return c;
+}
+
+template <class Msg>
+void DeliverSigned(ManualBus& bus, const Msg& msg, int64_t signed_utime) {
+  bus.Deliver("SEQUENCER_CONTROL", OperatorSigner().Seal("SEQUENCER_CONTROL", msg, signed_utime));
+}
+
+TEST(SequencerControl, AConfirmMustCarryTheNonceOfThePromptItAnswers) {
+  const config::Config c = SignedControlConfig();
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", /*yes=*/false, "", "n1"});
+  robot.Run(seq, 2.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  const int64_t nonce = seq.confirm_nonce();
+  ASSERT_NE(nonce, 0);
+  EXPECT_EQ(stats.counters().at("confirm_nonce"), nonce);  // what ftcal-sequencer-control reads
+  sequencer_control_t confirm{};
+  confirm.action = sequencer_control_t::CONFIRM;
+  confirm.step = -1;
+  confirm.nonce = 0;  // as an old ftcal-sequencer-control, or a capture of another prompt, sends
+  DeliverSigned(bus, confirm, bus.NowUtime());
+  confirm.nonce = nonce + 1;
+  DeliverSigned(bus, confirm, bus.NowUtime());
+  robot.Run(seq, 1.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  EXPECT_EQ(stats.kinds().at("confirm of another prompt"), 2);
+  confirm.nonce = nonce;
+  DeliverSigned(bus, confirm, bus.NowUtime());
+  robot.Run(seq, 1.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kRunning);
+  EXPECT_EQ(stats.counters().at("confirms"), 1);
+  EXPECT_EQ(seq.confirm_nonce(), 0);
+  EXPECT_EQ(stats.counters().at("confirm_nonce"), 0);
+}
+
+TEST(SequencerControl, EachPromptDrawsAFreshNonce) {
+  // Two sequencers at the same prompt of the same plan (a run and its resume): different nonces,
+  // so a CONFIRM of the one cannot answer the other.
+  const config::Config c = SignedControlConfig();
+  std::set<int64_t> nonces;
+  for (int run = 0; run < 4; ++run) {
+    ServiceStats stats(QuietLog());
+    ManualBus bus(stats);
+    Robot robot(c, bus);
+    Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", false, "", "n2"});
+    robot.Run(seq, 1.0);
+    ASSERT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+    nonces.insert(seq.confirm_nonce());
+  }
+  EXPECT_EQ(nonces.size(), 4u);
+}
+
+TEST(SequencerControl, AStopSignedSecondsAgoIsRefused) {
+  const config::Config c = SignedControlConfig();
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", false, "", "n3"});
+  robot.Run(seq, 1.0);
+  sequencer_control_t stop{};
+  stop.action = sequencer_control_t::STOP;
+  stop.step = -1;
+  // Captured 20 s ago (the finding's replay), and one just outside auth.control_window_s.
+  DeliverSigned(bus, stop, bus.NowUtime() - 20'000'000);
+  DeliverSigned(bus, stop,
+                bus.NowUtime() - static_cast<int64_t>(c.auth().control_window_s() * 1e6) - 1000);
+  EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  EXPECT_EQ(stats.kinds().at("stale from operator on SEQUENCER_CONTROL"), 2);
+  DeliverSigned(bus, stop, bus.NowUtime() - 1'000'000);  // a second in transit: taken
+  EXPECT_EQ(seq.state(), Sequencer::State::kStopped);
 }
 
 }  // namespace

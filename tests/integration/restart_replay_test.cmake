@@ -1,0 +1,20 @@
+# Issue 36: the real sequencer, corrector and live calibrator are restarted and sent what they
+# took before (a replay after restart), over multicast in the binary's own network namespace.
+add_executable(restart_replay_test "${CMAKE_CURRENT_LIST_DIR}/restart_replay_test.cc")
+target_link_libraries(restart_replay_test PRIVATE
+  ftcal_twin ftcal_common ftcal_lcmtypes ftcal_child_process GTest::gtest GTest::gtest_main
+  Threads::Threads)
+target_compile_definitions(restart_replay_test PRIVATE
+  FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
+  FTCAL_SEQUENCER="$<TARGET_FILE:ftcal-sequencer>"
+  FTCAL_SEQUENCER_CONTROL="$<TARGET_FILE:ftcal-sequencer-control>"
+  FTCAL_CORRECTOR="$<TARGET_FILE:ftcal-corrector>"
+  FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>")
+add_dependencies(restart_replay_test ftcal-sequencer ftcal-sequencer-control ftcal-corrector
+  ftcal-calibrator)
+set_target_properties(restart_replay_test PROPERTIES
+  CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
+gtest_discover_tests(restart_replay_test
+  PROPERTIES LABELS integration TIMEOUT 120
+  DISCOVERY_TIMEOUT 60
+  DISCOVERY_MODE PRE_TEST)
