@@ -495,6 +495,20 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
                                          FormatNumber(config.sequencer().max_velocity_rad_s()));
   }
   ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
+  // The bridge remembers no SERVO_CMD across a restart; it ignores commands for start_quiet_s
+  // instead, and that is only enough while every command it took before the restart is stale by
+  // then, i.e. older than the window.
+  if (config.has_dynamixel() && std::isfinite(config.auth().servo_cmd_window_s()) &&
+      std::isfinite(config.dynamixel().start_quiet_s()) &&
+      !(config.auth().servo_cmd_window_s() < config.dynamixel().start_quiet_s())) {
+    root.Child("auth", config.auth())
+        .Error("servo_cmd_window_s",
+               "must be below dynamixel.start_quiet_s (" +
+                   FormatNumber(config.dynamixel().start_quiet_s()) +
+                   " s): a command taken before a bridge restart would still be fresh when the "
+                   "restarted bridge starts listening, got " +
+                   FormatNumber(config.auth().servo_cmd_window_s()));
+  }
   if (config.has_launch()) ValidateLaunch(root.Child("launch", config.launch()), config.launch());
   if (config.has_dynamixel() && config.has_robot() &&
       config.dynamixel().operating_mode() == config::EXTENDED_POSITION_MODE) {
