@@ -350,6 +350,7 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
   try {
     run.proto = ReadCalibrationFile(base_path);
     run.before = CalibrationFromProto(run.proto, config.robot());
+    CheckCalibrationPlausible(run.before, config);
   } catch (const std::exception& e) {
     throw CalibratorInputError("--reestimate-offsets '" + base_path + "': " + e.what());
   }

@@ -62,6 +62,7 @@ void CorrectorStage::UseCalibration(const calibration::Calibration& proto, int64
                                     const std::string& sha256) {
   if (!calibration_sha256_.empty() && sha256 == calibration_sha256_) return;  // a repeat
   const RobotCalibration cal = CalibrationFromProto(proto, config_.robot());
+  CheckCalibrationPlausible(cal, config_);
   corrector_.SetCalibration(cal, version);
   calibration_sha256_ = sha256;
   ++calibrations_;

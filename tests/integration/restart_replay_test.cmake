@@ -1,6 +1,8 @@
 # Issue 36: the real sequencer, corrector and live calibrator are restarted and sent what they
-# took before (a replay after restart), over multicast in the binary's own network namespace.
-add_executable(restart_replay_test "${CMAKE_CURRENT_LIST_DIR}/restart_replay_test.cc")
+# took before (a replay after restart), and the corrector is given absurd calibrations; over
+# multicast in the binary's own network namespace.
+add_executable(restart_replay_test "${CMAKE_CURRENT_LIST_DIR}/restart_replay_test.cc"
+  "${CMAKE_CURRENT_LIST_DIR}/absurd_calibration_test.cc")
 target_link_libraries(restart_replay_test PRIVATE
   ftcal_twin ftcal_common ftcal_lcmtypes ftcal_child_process GTest::gtest GTest::gtest_main
   Threads::Threads)
