@@ -152,7 +152,8 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
       options_(std::move(options)),
       device_inputs_(config),
       safety_(config),
-      schedule_(Expand(config, options_.plan_name)) {
+      schedule_(Expand(config, options_.plan_name)),
+      watched_status_(WatchedStatusNames(config)) {
   if (options_.progress_file.empty()) options_.progress_file = config.sequencer().progress_file();
   if (!options_.progress_file.empty())
     saver_ = std::make_unique<ProgressSaver>(options_.progress_file);
@@ -241,7 +242,17 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
 
 void Sequencer::OnStatus(const MessageInfo&, const service_status_t& msg) {
   // Only the bridges gate the motion: the sequencer cannot move safely without their data.
-  if (msg.name.find("bridge") == std::string::npos) return;
+  // FTCAL_STATUS is unsigned (docs/architecture.md): a name the sequencer does not watch is
+  // counted and ignored, so an invented process cannot stop a run, and the names logged are
+  // bounded.
+  if (watched_status_.count(msg.name) == 0) {
+    ++bus_.stats().Counter("status_ignored");
+    if (ignored_names_.size() < kIgnoredNamesLogged && ignored_names_.insert(msg.name).second) {
+      bus_.stats().log().info("FTCAL_STATUS from '{}' ignored: not a bridge this sequencer watches",
+                              msg.name);
+    }
+    return;
+  }
   StatusReading st{msg.utime, msg.state, msg.last_error};
   for (int i = 0; i < msg.num_counters && i < static_cast<int>(msg.counter_name.size()); ++i) {
     if (msg.counter_name[i] == "mode") st.mode = static_cast<int>(msg.counter_value[i]);

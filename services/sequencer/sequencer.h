@@ -29,6 +29,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <optional>
 #include <string>
 #include <thread>
@@ -189,6 +190,10 @@ class Sequencer {
   int64_t confirm_nonce_ = 0;  // of the waiting prompt; 0 while none waits
   std::function<void(const std::string&)> on_prompt_;
   std::array<int32_t, kNumLegs> servo_ids_{};
+  // The heartbeat names that gate the motion (WatchedStatusNames), and the other names heard.
+  static constexpr size_t kIgnoredNamesLogged = 16;
+  std::set<std::string> watched_status_;
+  std::set<std::string> ignored_names_;
 };
 
 }  // namespace ftcal::sequencer

@@ -374,6 +374,15 @@ TEST_F(SafetyTest, StaleOverRangeSaturatedAndFailedBridgeAreNamed) {
   ASSERT_TRUE(failed.has_value());
   EXPECT_NE(failed->find("ftcal-ati-bridge reports state 2 (box 3 refuses)"), std::string::npos)
       << *failed;
+  // Issue 36, finding 7: an entry never heard again expires after kStatusExpiryS (its data's age
+  // says whether the process is gone).
+  for (const int64_t after_us : {-1000, 1000}) {
+    const int64_t now = 10'000'000 + static_cast<int64_t>(kStatusExpiryS * 1e6) + after_us;
+    Inputs later = FromFrame(driven.Frame(0.0, Angles{}), now);
+    later.status = in.status;
+    const auto verdict = safety.Stale(later, now, false);
+    EXPECT_EQ(verdict.has_value(), after_us < 0) << verdict.value_or("");
+  }
 }
 
 TEST_F(SafetyTest, TheSequencersOwnStallDoesNotAgeItsInputsButAStallOnlyTakesOutItsSpan) {
@@ -1069,6 +1078,66 @@ TEST(SequencerControl, AStopSignedSecondsAgoIsRefused) {
   EXPECT_EQ(stats.kinds().at("stale from operator on SEQUENCER_CONTROL"), 2);
   DeliverSigned(bus, stop, bus.NowUtime() - 1'000'000);  // a second in transit: taken
   EXPECT_EQ(seq.state(), Sequencer::State::kStopped);
+}
+
+// Issue 36, finding 7: one unsigned FTCAL_STATUS from an invented process name containing
+// "bridge", state DEGRADED, stopped a moving run.
+TEST(SequencerStatusWatch, AStatusFromAnInventedBridgeDoesNotStopARun) {
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "w1"});
+  bool forged = false;
+  robot.Run(seq, 120.0, [&](double) {
+    if (forged || seq.ProgressLine().find("STANDING_GRID 3/") == std::string::npos) return;
+    forged = true;
+    service_status_t st{};
+    st.utime = bus.NowUtime();
+    st.name = "ftcal-evil-bridge";
+    st.state = service_status_t::DEGRADED;
+    st.last_error = "forged";
+    bus.Deliver("FTCAL_STATUS", st);
+  });
+  ASSERT_TRUE(forged);
+  EXPECT_EQ(seq.state(), Sequencer::State::kDone) << seq.stop_reason();
+  EXPECT_GE(stats.counters().at("status_ignored"), 1);
+}
+
+TEST(SequencerStatusWatch, AWatchedBridgeThatIsDegradedStopsTheRunUntilItsEntryExpires) {
+  const config::Config c = SimConfig(kGridPlan);
+  EXPECT_EQ(
+      WatchedStatusNames(c),
+      (std::set<std::string>{"ftcal-ati-bridge", "ftcal-dynamixel-bridge", "ftcal-mocap-bridge"}));
+  // A config whose launch group runs the sequencer: its bridges, by their heartbeat names.
+  const config::Config lab = LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/bigant.pbtxt");
+  const std::set<std::string> watched = WatchedStatusNames(lab);
+  EXPECT_EQ(watched.count("ftcal-dynamixel-bridge"), 1u);
+  EXPECT_EQ(watched.count("ftcal-corrector"), 0u);
+  for (const std::string& n : watched) EXPECT_NE(n.find("-bridge"), std::string::npos) << n;
+
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "w2"});
+  bool sent = false;
+  robot.Run(seq, 120.0, [&](double) {
+    if (sent || seq.ProgressLine().find("STANDING_GRID 3/") == std::string::npos) return;
+    sent = true;
+    service_status_t st{};
+    st.utime = bus.NowUtime() - static_cast<int64_t>((kStatusExpiryS + 0.5) * 1e6);
+    st.name = "ftcal-ati-bridge";
+    st.state = service_status_t::DEGRADED;
+    bus.Deliver("FTCAL_STATUS", st);  // long expired when it comes: nothing
+    st.utime = bus.NowUtime();
+    st.last_error = "box 3 refuses";
+    bus.Deliver("FTCAL_STATUS", st);
+  });
+  ASSERT_TRUE(sent);
+  ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("ftcal-ati-bridge reports state 2 (box 3 refuses)"),
+            std::string::npos)
+      << seq.stop_reason();
 }
 
 }  // namespace
