@@ -1,12 +1,17 @@
 // What ftcal-launch writes for supervisord and systemd, from the shipped configs.
 #include "launcher/launch_plan.h"
 
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <gtest/gtest.h>
 
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 
 #include "ftcal/config.h"
+#include "launcher/supervisor.h"
 
 namespace ftcal::launch {
 namespace {
@@ -118,6 +123,94 @@ TEST(LaunchPlan, WavesStartTogetherWhatWaitsForNothingInEachOther) {
                        {"ati-bridge", "dynamixel-bridge", "mocap-bridge"},
                        {"segmenter"},
                        {"calibrator", "corrector"}}));
+}
+
+}  // namespace
+}  // namespace ftcal::launch
+
+// ---- issue 36, finding 3: the run dir ----
+
+namespace ftcal::launch {
+namespace {
+
+class RunDirTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    char tmpl[] = "/tmp/ftcal_rundir_test.XXXXXX";
+    ASSERT_NE(::mkdtemp(tmpl), nullptr);
+    base_ = tmpl;
+  }
+  void TearDown() override { std::filesystem::remove_all(base_); }
+  // What HostSupervisor::run_dir() says of `spec` on this host (sh -c): the directory, or the
+  // refusal.
+  std::string RunDir(const std::string& spec, bool* refused) {
+    HostSupervisor hs("local", {}, spec);
+    try {
+      *refused = false;
+      return hs.run_dir();
+    } catch (const LaunchError& e) {
+      *refused = true;
+      return e.what();
+    }
+  }
+  std::string base_;
+};
+
+TEST_F(RunDirTest, ItIsMadeWithMode0700) {
+  bool refused = true;
+  const std::string dir = RunDir(base_ + "/a/run", &refused);
+  ASSERT_FALSE(refused) << dir;
+  EXPECT_EQ(dir, base_ + "/a/run");
+  struct stat st {};
+  ASSERT_EQ(::stat(dir.c_str(), &st), 0);
+  EXPECT_EQ(st.st_mode & 07777, 0700u);
+  EXPECT_EQ(st.st_uid, ::geteuid());
+  // Made before by this user in the same way: used again.
+  EXPECT_EQ(RunDir(base_ + "/a/run", &refused), dir);
+  EXPECT_FALSE(refused);
+}
+
+TEST_F(RunDirTest, OneOpenToOthersIsRefusedNamingPathOwnerAndMode) {
+  const std::string dir = base_ + "/open";
+  ASSERT_EQ(::mkdir(dir.c_str(), 0700), 0);
+  ASSERT_EQ(::chmod(dir.c_str(), 0755), 0);
+  bool refused = false;
+  const std::string what = RunDir(dir, &refused);
+  ASSERT_TRUE(refused) << what;
+  EXPECT_NE(what.find("run dir '" + dir + "' is owned by uid " + std::to_string(::geteuid())),
+            std::string::npos)
+      << what;
+  EXPECT_NE(what.find("with mode 755"), std::string::npos) << what;
+}
+
+TEST_F(RunDirTest, OneOfAnotherUserIsRefusedNamingTheOwner) {
+  // The fallback /tmp/ftcal-launch-UID made first by someone else. As root, a directory given to
+  // nobody; otherwise one that root owns.
+  std::string dir = "/";
+  uid_t owner = 0;
+  if (::geteuid() == 0) {
+    dir = base_ + "/theirs";
+    owner = 65534;
+    ASSERT_EQ(::mkdir(dir.c_str(), 0700), 0);
+    ASSERT_EQ(::chown(dir.c_str(), owner, owner), 0);
+  }
+  bool refused = false;
+  const std::string what = RunDir(dir, &refused);
+  ASSERT_TRUE(refused) << what;
+  EXPECT_NE(what.find("run dir '" + dir + "' is owned by uid " + std::to_string(owner)),
+            std::string::npos)
+      << what;
+  EXPECT_NE(what.find("with mode "), std::string::npos) << what;
+}
+
+TEST_F(RunDirTest, ASymbolicLinkIsRefused) {
+  const std::string dir = base_ + "/real";
+  ASSERT_EQ(::mkdir(dir.c_str(), 0700), 0);
+  ASSERT_EQ(::symlink(dir.c_str(), (base_ + "/link").c_str()), 0);
+  bool refused = false;
+  const std::string what = RunDir(base_ + "/link", &refused);
+  ASSERT_TRUE(refused) << what;
+  EXPECT_NE(what.find("is not a directory of its own"), std::string::npos) << what;
 }
 
 }  // namespace
