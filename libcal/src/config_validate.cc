@@ -495,6 +495,17 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
                                          FormatNumber(config.sequencer().max_velocity_rad_s()));
   }
   ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
+  {
+    const Node health = root.Child("health", config.health());
+    const double share = config.health().max_drop_share();
+    if (health.Finite("max_drop_share", share) && !(share > 0.0 && share <= 1.0)) {
+      health.Error("max_drop_share", "must be in (0, 1], got " + FormatNumber(share));
+    }
+    if (config.health().min_inputs() < 1) {
+      health.Error("min_inputs",
+                   "must be >= 1, got " + std::to_string(config.health().min_inputs()));
+    }
+  }
   // The bridge remembers no SERVO_CMD across a restart; it ignores commands for start_quiet_s
   // instead, and that is only enough while every command it took before the restart is stale by
   // then, i.e. older than the window.

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <climits>
+#include <cstdio>
 #include <fstream>
 #include <iostream>
 #include <optional>
@@ -199,7 +200,53 @@ void ServiceApp::AddPeriodic(double period_s, std::function<void()> fn) {
 service_status_t ServiceApp::Status() const {
   const double uptime_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - started_).count();
-  return MakeServiceStatus(identity_, state_, uptime_s, *stats_, bus_->NowUtime());
+  service_status_t st = MakeServiceStatus(identity_, state_, uptime_s, *stats_, bus_->NowUtime());
+  if (!flood_.empty() && state_ == service_status_t::RUNNING) {
+    st.state = service_status_t::DEGRADED;
+    st.last_error = flood_;
+  }
+  return st;
+}
+
+void ServiceApp::WatchDrops() {
+  const int64_t in = stats_->msgs_in() - watched_in_;
+  const int64_t dropped = stats_->drops() - watched_drops_;
+  const config::Health& health = config_.health();
+  std::string top_kind;
+  int64_t top = 0;
+  for (const auto& [kind, n] : stats_->kinds()) {
+    const auto before = watched_kinds_.find(kind);
+    const int64_t since = n - (before == watched_kinds_.end() ? 0 : before->second);
+    if (since > top) {
+      top = since;
+      top_kind = kind;
+    }
+  }
+  watched_in_ = stats_->msgs_in();
+  watched_drops_ = stats_->drops();
+  watched_kinds_ = stats_->kinds();
+  if (in < static_cast<int64_t>(health.min_inputs())) {
+    if (!flood_.empty()) log_->info("input back within health.max_drop_share (a quiet period)");
+    flood_.clear();
+    return;
+  }
+  const double share = static_cast<double>(dropped) / static_cast<double>(in);
+  if (share <= health.max_drop_share()) {
+    if (!flood_.empty()) {
+      log_->info("input back within health.max_drop_share: {} of {} dropped", dropped, in);
+    }
+    flood_.clear();
+    return;
+  }
+  char text[128];
+  std::snprintf(text, sizeof text,
+                "dropping %lld of %lld inputs (%.0f%%, above health.max_drop_share %g)",
+                static_cast<long long>(dropped), static_cast<long long>(in), 100.0 * share,
+                health.max_drop_share());
+  std::string reason = text;
+  if (!top_kind.empty()) reason += "; most: " + top_kind + " (" + std::to_string(top) + ")";
+  if (flood_.empty()) log_->warn("{}", reason);
+  flood_ = std::move(reason);
 }
 
 void ServiceApp::PublishStatus() {
@@ -238,6 +285,7 @@ void ServiceApp::NotifyReady() {
 }
 
 void ServiceApp::PublishHeartbeat() {
+  WatchDrops();
   PublishStatus();
   if (watchdog_) sd_notify(0, "WATCHDOG=1");
 }

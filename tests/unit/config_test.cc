@@ -320,6 +320,9 @@ TEST(Config, RangeChecks) {
        "\n}\nauth { servo_cmd_window_s: 1 }\ndynamixel { device: \"/dev/x\" start_quiet_s: 1 "
        "}\n",
        "auth.servo_cmd_window_s: must be below dynamixel.start_quiet_s (1 s)"},
+      {"\n}\n", "\n}\nhealth { max_drop_share: 0 }\n",
+       "health.max_drop_share: must be in (0, 1], got 0"},
+      {"\n}\n", "\n}\nhealth { min_inputs: 0 }\n", "health.min_inputs: must be >= 1, got 0"},
       {"\n}\n", "\n}\nauth { control_window_s: 0 }\n",
        "auth.control_window_s: must be in (0, 60] s"},
       {"\n}\n", "\n}\nauth { calibration_window_s: 1e9 }\n",
