@@ -107,6 +107,28 @@ TEST(LaunchPlan, SystemdUnitCarriesRestartWatchdogAndMemory) {
   EXPECT_NE(seq.find("Restart=no\n"), std::string::npos) << seq;
 }
 
+// Issue 36, finding 10: the exported units ran as root, and /run/ftcal was 0755.
+TEST(LaunchPlan, SystemdUnitRunsAsADedicatedUserWithPrivateDirectories) {
+  const auto config = Shipped("bigant.pbtxt");
+  const auto& g = FindGroup(config.launch(), "lab");
+  Placeholders v{"/etc/ftcal/lab.pbtxt", "%t/ftcal", config.lcm_url()};
+  for (const auto& p : g.process()) {
+    const std::string unit = SystemdUnit(config, g, p, v);
+    for (const char* line : {"\nUser=ftcal\n", "\nGroup=ftcal\n", "\nRuntimeDirectory=ftcal\n",
+                             "\nRuntimeDirectoryMode=0700\n", "\nStateDirectory=ftcal\n",
+                             "\nStateDirectoryMode=0700\n"}) {
+      EXPECT_NE(unit.find(line), std::string::npos) << p.name() << ": " << line << " in\n" << unit;
+    }
+    EXPECT_EQ(unit.find("User=root"), std::string::npos) << unit;
+  }
+  const auto& p = *FindProcess(g, "corrector");
+  EXPECT_NE(SystemdUnit(config, g, p, v, "ftcal-lab").find("\nUser=ftcal-lab\n"),
+            std::string::npos);
+  for (const char* bad : {"root", "", "Ftcal", "a b", "x;rm"}) {
+    EXPECT_THROW(SystemdUnit(config, g, p, v, bad), LaunchError) << bad;
+  }
+}
+
 }  // namespace
 }  // namespace ftcal::launch
 
