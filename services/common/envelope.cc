@@ -5,7 +5,9 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <cstdint>
 #include <cstring>
 #include <stdexcept>
 
@@ -246,18 +248,22 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
             (store_ ? ", the last accepted here (also before a restart: " + store_->path() + ")"
                     : std::string(", the last accepted here")));
   }
+  // Differences of wire values in 128 bits: a signer may put any int64 there.
+  const __int128 utime_ahead = static_cast<__int128>(e.utime) - recv_utime;
+  const __int128 sequence_ahead = static_cast<__int128>(e.sequence) - recv_utime;
   // Not adopted: a sequence far ahead would refuse every honest envelope of its signer after it.
-  if (e.utime - recv_utime > max_ahead_us_ || e.sequence - recv_utime > max_ahead_us_) {
-    const int64_t ahead = std::max(e.utime, e.sequence) - recv_utime;
+  if (utime_ahead > max_ahead_us_ || sequence_ahead > max_ahead_us_) {
+    const __int128 ahead = std::max(utime_ahead, sequence_ahead);
     return refuse("ahead of time from " + name,
-                  (e.sequence - recv_utime > max_ahead_us_ ? "sequence " : "signing time ") +
-                      std::to_string(ahead / 1000) + " ms ahead of the receive time (limit " +
+                  (sequence_ahead > max_ahead_us_ ? "sequence " : "signing time ") +
+                      std::to_string(static_cast<long double>(ahead) / 1e6L) +
+                      " s ahead of the receive time (limit " +
                       std::to_string(max_ahead_us_ / 1000) +
-                      " ms, auth.max_clock_ahead_s): a clock set wrong, or a forgery of the "
-                      "future");
+                      " ms, auth.max_clock_ahead_s): is its signer's clock set ahead?");
   }
-  if (window_us > 0 && (recv_utime - e.utime > window_us || e.utime - recv_utime > window_us)) {
-    const int64_t age_ms = (recv_utime - e.utime) / 1000;
+  if (window_us > 0 && (-utime_ahead > window_us || utime_ahead > window_us)) {
+    const int64_t age_ms = static_cast<int64_t>(
+        std::max<__int128>(std::min<__int128>(-utime_ahead / 1000, INT64_MAX), INT64_MIN));
     return refuse("stale from " + name,
                   "signed " + std::to_string(age_ms) + " ms before it was received (window " +
                       std::to_string(window_us / 1000) + " ms)" +

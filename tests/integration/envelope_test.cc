@@ -220,6 +220,19 @@ TEST_F(SignedChannelTest, AFarFutureSequenceIsRefusedNotAdopted) {
   EXPECT_EQ(Kind("replayed from operator on SERVO_CMD"), 0);
 }
 
+// Times at the ends of int64 (a key holder may sign anything): refused, and judged without
+// overflow (UBSan runs this suite).
+TEST_F(SignedChannelTest, ExtremeTimesAreRefusedWithoutOverflow) {
+  Listen(250'000);
+  Send("SERVO_CMD", Encode(MakeSigner(1).Seal("SERVO_CMD", Command(0.5), INT64_MIN)));
+  Send("SERVO_CMD", Encode(MakeSigner(1).Seal("SERVO_CMD", Command(0.5), INT64_MAX)));
+  EXPECT_TRUE(got_.empty());
+  EXPECT_EQ(Kind("ahead of time from operator on SERVO_CMD"), 1);
+  // INT64_MIN signs a sequence of max(1, INT64_MIN) = 1: not above nothing seen, so the window
+  // judges it.
+  EXPECT_EQ(Kind("stale from operator on SERVO_CMD"), 1);
+}
+
 // Issue 36, findings 1 and 2: a receiver forgot on restart what it had accepted. With a store
 // (what ServiceApp gives every live process), a new verifier on the same file refuses it.
 TEST_F(SignedChannelTest, WhatWasAcceptedIsRefusedAfterARestart) {
