@@ -1,4 +1,4 @@
-// Issue 36, findings 1 and 2: a signature says who wrote a message, not when or for which run,
+// Issue 36, findings 1, 2 and 8: a signature says who wrote a message, not when or for which run,
 // and the receivers forgot what they had seen when they restarted. Here the real processes
 // (ftcal-sequencer, ftcal-corrector, ftcal-calibrator live) take a signed message, are
 // restarted as `ftcal-launch restart` would (same config, same files, same state directory),
@@ -340,6 +340,47 @@ TEST_F(RestartReplayTest, ALiveCalibratorRestartedRefusesMarkersItTookBeforeAndO
   Send("EXPERIMENT", marker("this-session", NowUs()));
   EXPECT_TRUE(watch.AwaitCounter(cal->pid(), "markers", 1)) << Log("calibrator", 2);
   Stop(cal);
+}
+
+// Finding 8: one accepted envelope with a far-future sequence locked its key out at that
+// receiver until restart. The real corrector refuses it, and still takes its signer's next one.
+TEST_F(RestartReplayTest, ACorrectorRefusesAFarFutureSequenceAndStillHearsItsSigner) {
+  const std::string pub = testing::WriteKeyFile(Path("calibrator.key"));
+  const std::string config = WriteConfig("", {{"calibrator", pub, {"CALIBRATION"}}});
+  const config::Config parsed = LoadConfigFile(config);
+  calibration::Calibration truth = BigAntTwin(parsed, TwinOptions{}).TruthProto();
+  truth.set_version(1);
+  WriteCalibrationFile(truth, Path("start.pbtxt"));
+  auto message = [&](auth::Signer& signer, int64_t version) {
+    calibration::Calibration c = truth;
+    c.set_version(static_cast<uint64_t>(version));
+    std::string bytes;
+    c.SerializeToString(&bytes);
+    calibration_t msg{};
+    msg.utime = NowUs();
+    msg.version = version;
+    msg.content_sha256 = Sha256Hex(bytes);
+    msg.data.assign(bytes.begin(), bytes.end());
+    msg.size = static_cast<int32_t>(msg.data.size());
+    return Encode(signer.Seal("CALIBRATION", msg, NowUs()));
+  };
+  StatusWatch watch(lcm_);
+  auto corrector = Start("corrector", {FTCAL_CORRECTOR, "--config", config, "--lcm-url", kUrl,
+                                       "--calibration", Path("start.pbtxt")});
+  ASSERT_TRUE(watch.AwaitCounter(corrector->pid(), "calibration_version", 1))
+      << Log("corrector", 1);
+  // The key's holder with its clock a year ahead once: its sequence counts on from there.
+  auth::Signer ahead = auth::Signer::FromSeedFile(Path("calibrator.key"));
+  ahead.Seal("CALIBRATION", calibration_t{}, NowUs() + 365LL * 86'400'000'000);
+  Send("CALIBRATION", message(ahead, 2));
+  EXPECT_TRUE(AwaitLog("corrector", "ahead of time from calibrator on CALIBRATION"))
+      << Log("corrector", 1);
+  // The same key from a process with a right clock: heard, not locked out.
+  auth::Signer honest = auth::Signer::FromSeedFile(Path("calibrator.key"));
+  Send("CALIBRATION", message(honest, 3));
+  EXPECT_TRUE(watch.AwaitCounter(corrector->pid(), "calibration_version", 3))
+      << Log("corrector", 1);
+  Stop(corrector);
 }
 
 }  // namespace
