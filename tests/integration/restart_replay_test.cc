@@ -383,5 +383,25 @@ TEST_F(RestartReplayTest, ACorrectorRefusesAFarFutureSequenceAndStillHearsItsSig
   Stop(corrector);
 }
 
+// Finding 5: the Dynamixel bridge keeps no SERVO_CMD mark across a restart and relies on
+// ignoring commands for dynamixel.start_quiet_s; a window as long would let a command taken
+// before the restart act after it. The real bridge refuses such a config at start.
+TEST_F(RestartReplayTest, TheDynamixelBridgeRefusesAWindowThatOutlastsItsStartQuiet) {
+  std::string text = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+  const std::string from = "\n  allow_unsigned: true";
+  ASSERT_NE(text.find(from), std::string::npos);
+  text.replace(text.find(from), from.size(), from + "\n  servo_cmd_window_s: 1.5");
+  std::ofstream(Path("long_window.pbtxt")) << text;
+  Child bridge({FTCAL_DYNAMIXEL_BRIDGE, "--config", Path("long_window.pbtxt"), "--lcm-url", kUrl},
+               Path("dxl.out"), Path("dxl.err"));
+  const auto rc = bridge.Wait(30);
+  ASSERT_TRUE(rc) << "it started";
+  EXPECT_EQ(testing::DescribeWaitStatus(*rc), "exit 3");
+  const std::string log = testing::ReadFile(Path("dxl.out")) + testing::ReadFile(Path("dxl.err"));
+  EXPECT_NE(log.find("auth.servo_cmd_window_s: must be below dynamixel.start_quiet_s (1 s)"),
+            std::string::npos)
+      << log;
+}
+
 }  // namespace
 }  // namespace ftcal

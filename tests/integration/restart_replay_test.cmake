@@ -11,9 +11,10 @@ target_compile_definitions(restart_replay_test PRIVATE
   FTCAL_SEQUENCER="$<TARGET_FILE:ftcal-sequencer>"
   FTCAL_SEQUENCER_CONTROL="$<TARGET_FILE:ftcal-sequencer-control>"
   FTCAL_CORRECTOR="$<TARGET_FILE:ftcal-corrector>"
-  FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>")
+  FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>"
+  FTCAL_DYNAMIXEL_BRIDGE="$<TARGET_FILE:ftcal-dynamixel-bridge>")
 add_dependencies(restart_replay_test ftcal-sequencer ftcal-sequencer-control ftcal-corrector
-  ftcal-calibrator)
+  ftcal-calibrator ftcal-dynamixel-bridge)
 set_target_properties(restart_replay_test PROPERTIES
   CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
 gtest_discover_tests(restart_replay_test
