@@ -76,11 +76,10 @@ std::set<std::string> WatchedStatusNames(const config::Config& config) {
       if (is_bridge(status_name(p))) names.insert(status_name(p));
     }
   }
-  if (names.empty()) {
-    names = {"ftcal-ati-bridge", "ftcal-dynamixel-bridge",
-             config.mocap().system() == config::OPTITRACK ? "ftcal-natnet-bridge"
-                                                          : "ftcal-mocap-bridge"};
-  }
+  // The bridges whose data the sequencer reads, launched by a group or not.
+  names.insert({"ftcal-ati-bridge", "ftcal-dynamixel-bridge",
+                config.mocap().system() == config::OPTITRACK ? "ftcal-natnet-bridge"
+                                                             : "ftcal-mocap-bridge"});
   return names;
 }
 

@@ -54,10 +54,10 @@ struct Inputs {
 // entry heard once, forged or from a process gone since, must not hold a verdict forever).
 constexpr double kStatusExpiryS = 2.5;
 
-// The heartbeat names whose state gates the motion: the bridges (status name ending in
-// "-bridge") of the config's launch group that runs ftcal-sequencer; without one, the bridges
-// this config needs (ftcal-ati-bridge, ftcal-dynamixel-bridge, and ftcal-mocap-bridge or
-// ftcal-natnet-bridge by mocap.system). Any other name is not the sequencer's business.
+// The heartbeat names whose state gates the motion: the bridges this config needs
+// (ftcal-ati-bridge, ftcal-dynamixel-bridge, and ftcal-mocap-bridge or ftcal-natnet-bridge by
+// mocap.system) and the other bridges (status name ending in "-bridge") of the config's launch
+// group that runs ftcal-sequencer. Any other name is not the sequencer's business.
 std::set<std::string> WatchedStatusNames(const config::Config& config);
 
 // The spans in which the sequencer itself did not run (a write blocked in fsync, the scheduler

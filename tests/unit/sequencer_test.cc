@@ -1115,6 +1115,17 @@ TEST(SequencerStatusWatch, AWatchedBridgeThatIsDegradedStopsTheRunUntilItsEntryE
   EXPECT_EQ(watched.count("ftcal-dynamixel-bridge"), 1u);
   EXPECT_EQ(watched.count("ftcal-corrector"), 0u);
   for (const std::string& n : watched) EXPECT_NE(n.find("-bridge"), std::string::npos) << n;
+  // Another bridge the sequencer's group launches is watched too; the mocap bridge follows
+  // mocap.system.
+  config::Config more = lab;
+  ASSERT_EQ(more.launch().group(0).name(), "lab");
+  auto* plate = more.mutable_launch()->mutable_group(0)->add_process();
+  plate->set_name("plate");
+  plate->set_command("/opt/lab/ftcal-plate-bridge");
+  more.mutable_mocap()->set_system(config::OPTITRACK);
+  const std::set<std::string> more_watched = WatchedStatusNames(more);
+  EXPECT_EQ(more_watched.count("ftcal-plate-bridge"), 1u);
+  EXPECT_EQ(more_watched.count("ftcal-natnet-bridge"), 1u);
 
   ServiceStats stats(QuietLog());
   ManualBus bus(stats);
