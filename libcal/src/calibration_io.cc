@@ -210,6 +210,77 @@ RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
   return cal;
 }
 
+void CheckCalibrationPlausible(const RobotCalibration& cal, const config::Config& config) {
+  const config::Robot& robot = config.robot();
+  auto refuse = [](const std::string& parameter, double value, const std::string& limit) {
+    throw std::runtime_error("implausible calibration: " + parameter + " = " + Num(value) +
+                             ", outside " + limit);
+  };
+  const double tolerance_kg = config.calibrator().mass_tolerance_kg();
+  if (!(std::abs(cal.total_mass_kg - robot.total_mass_kg()) <= tolerance_kg)) {
+    refuse("total_mass_kg", cal.total_mass_kg,
+           "the config's robot.total_mass_kg " + Num(robot.total_mass_kg()) + " +- " +
+               Num(tolerance_kg) + " kg (calibrator.mass_tolerance_kg)");
+  }
+  if (!(std::abs(cal.g0 - robot.g0_m_s2()) <= kG0ToleranceMs2)) {
+    refuse("g0_m_s2", cal.g0,
+           "the config's robot.g0_m_s2 " + Num(robot.g0_m_s2()) + " +- " + Num(kG0ToleranceMs2) +
+               " m/s^2");
+  }
+  double size_m = 0.0;
+  for (const Pose3& X : NominalTransducerPoses(robot)) size_m = std::max(size_m, X.p.norm());
+  size_m = std::max(2.0 * size_m, kMinRobotSizeM);
+  const std::string size_limit =
+      "+-" + Num(size_m) +
+      " m (the robot's size: twice its farthest transducer from the body "
+      "origin)";
+  const double robot_weight_n = robot.total_mass_kg() * robot.g0_m_s2();
+  double legs_n = 0.0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const LegCalibration& l = cal.leg[k];
+    const std::string leg = "leg[" + std::to_string(k) + "] (" + robot.leg(k).name() + ")";
+    if (!(l.weight_n > 0.0 && l.weight_n < robot_weight_n)) {
+      refuse(leg + ".leg_weight_n", l.weight_n,
+             "(0, " + Num(robot_weight_n) + ") N (the robot's weight, robot.total_mass_kg g0)");
+    }
+    legs_n += l.weight_n;
+    const config::AtiTransducer& ati = robot.leg(k).ati();
+    if (ati.rated_range_size() == 6) {
+      static const char* const kAxes[] = {"force_offset_n.x",   "force_offset_n.y",
+                                          "force_offset_n.z",   "torque_offset_nm.x",
+                                          "torque_offset_nm.y", "torque_offset_nm.z"};
+      for (int i = 0; i < 6; ++i) {
+        if (!(std::abs(l.offset[i]) <= ati.rated_range(i))) {
+          refuse(leg + "." + kAxes[i], l.offset[i],
+                 "the transducer's rated range +-" + Num(ati.rated_range(i)) + " (robot.leg[" +
+                     std::to_string(k) + "].ati.rated_range[" + std::to_string(i) + "])");
+        }
+      }
+    }
+    for (int i = 0; i < 3; ++i) {
+      if (!(std::abs(l.p_tilde_prime[i]) <= size_m)) {
+        refuse(leg + ".mounting.p_tilde_prime_m[" + std::to_string(i) + "]", l.p_tilde_prime[i],
+               size_limit);
+      }
+    }
+    // The CoM curve a sin(2 pi phi + c) + d reaches |a| + |d|.
+    const double com_x = std::abs(l.com.x.a) + std::abs(l.com.x.d);
+    const double com_z = std::abs(l.com.z.a) + std::abs(l.com.z.d);
+    if (!(com_x <= size_m)) refuse(leg + ".com.x (largest |r_x|)", com_x, size_limit);
+    if (!(std::abs(l.com.y) <= size_m)) refuse(leg + ".com.y_m", l.com.y, size_limit);
+    if (!(com_z <= size_m)) refuse(leg + ".com.z (largest |r_z|)", com_z, size_limit);
+  }
+  if (!(legs_n < robot_weight_n)) {
+    refuse("the sum of the leg weights (N)", legs_n,
+           "(0, " + Num(robot_weight_n) + ") N (the legs are part of the robot's weight)");
+  }
+  for (int i = 0; i < 3; ++i) {
+    if (!(std::abs(cal.p_C_B[i]) <= size_m)) {
+      refuse("p_c_b_m[" + std::to_string(i) + "]", cal.p_C_B[i], size_limit);
+    }
+  }
+}
+
 calibration::Calibration ReadCalibrationFile(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {

@@ -8,6 +8,7 @@
 #include <cstring>
 #include <map>
 #include <set>
+#include <tuple>
 #include <string>
 #include <vector>
 
@@ -277,6 +278,15 @@ void ValidateAuth(const Node& node, const config::Auth& auth, const config::Chan
     node.Error("servo_cmd_window_s",
                "must be in (0, 10] s, got " + FormatNumber(auth.servo_cmd_window_s()));
   }
+  for (const auto& [name, value, max] :
+       {std::tuple<const char*, double, double>{"control_window_s", auth.control_window_s(), 60},
+        {"experiment_window_s", auth.experiment_window_s(), 60},
+        {"calibration_window_s", auth.calibration_window_s(), 3600},
+        {"max_clock_ahead_s", auth.max_clock_ahead_s(), 60}}) {
+    if (node.Finite(name, value) && !(value > 0 && value <= max)) {
+      node.Error(name, "must be in (0, " + FormatNumber(max) + "] s, got " + FormatNumber(value));
+    }
+  }
 }
 
 // ---- Launch groups ----
@@ -485,6 +495,31 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
                                          FormatNumber(config.sequencer().max_velocity_rad_s()));
   }
   ValidateAuth(root.Child("auth", config.auth()), config.auth(), config.channels());
+  {
+    const Node health = root.Child("health", config.health());
+    const double share = config.health().max_drop_share();
+    if (health.Finite("max_drop_share", share) && !(share > 0.0 && share <= 1.0)) {
+      health.Error("max_drop_share", "must be in (0, 1], got " + FormatNumber(share));
+    }
+    if (config.health().min_inputs() < 1) {
+      health.Error("min_inputs",
+                   "must be >= 1, got " + std::to_string(config.health().min_inputs()));
+    }
+  }
+  // The bridge remembers no SERVO_CMD across a restart; it ignores commands for start_quiet_s
+  // instead, and that is only enough while every command it took before the restart is stale by
+  // then, i.e. older than the window.
+  if (config.has_dynamixel() && std::isfinite(config.auth().servo_cmd_window_s()) &&
+      std::isfinite(config.dynamixel().start_quiet_s()) &&
+      !(config.auth().servo_cmd_window_s() < config.dynamixel().start_quiet_s())) {
+    root.Child("auth", config.auth())
+        .Error("servo_cmd_window_s",
+               "must be below dynamixel.start_quiet_s (" +
+                   FormatNumber(config.dynamixel().start_quiet_s()) +
+                   " s): a command taken before a bridge restart would still be fresh when the "
+                   "restarted bridge starts listening, got " +
+                   FormatNumber(config.auth().servo_cmd_window_s()));
+  }
   if (config.has_launch()) ValidateLaunch(root.Child("launch", config.launch()), config.launch());
   if (config.has_dynamixel() && config.has_robot() &&
       config.dynamixel().operating_mode() == config::EXTENDED_POSITION_MODE) {

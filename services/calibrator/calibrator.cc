@@ -59,6 +59,19 @@ LiveCalibrator::LiveCalibrator(const config::Config& config, Bus& bus, std::stri
       options_(std::move(options)),
       on_calibrated_(std::move(on_calibrated)),
       collector_(config) {
+  // A restarted calibrator continues above the version it wrote last, which the correctors have
+  // used and now refuse to go back to. (An unreadable file is overwritten by the next
+  // calibration, as before; its version is then unknown and the count starts at 1.)
+  std::error_code ec;
+  if (std::filesystem::exists(out_path_, ec)) {
+    try {
+      version_ = static_cast<int64_t>(ReadCalibrationFile(out_path_).version());
+      spdlog::info("{} holds calibration version {}: the next one is {}", out_path_, version_,
+                   version_ + 1);
+    } catch (const std::exception& e) {
+      spdlog::warn("{}: {}; versions start at 1", out_path_, e.what());
+    }
+  }
   collector_.Attach(bus);
   collector_.SetOnStandingStop([this] { OnStandingStop(); });
   collector_.SetOnSteadyPose([this] {
@@ -107,6 +120,7 @@ void LiveCalibrator::CalibrateNow() {
   run.proto.set_version(static_cast<uint64_t>(version_ + 1));
   WriteCalibrationOutputs(run, out_path_);  // the file first: a published version exists on disk
   ++version_;
+  ++made_;
   const calibration_t msg = ToLcm(run.proto, version_, bus_.NowUtime());
   if (signer_ != nullptr) {
     bus_.PublishSigned(config_.channels().calibration(), msg, *signer_);
@@ -336,6 +350,7 @@ OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collecto
   try {
     run.proto = ReadCalibrationFile(base_path);
     run.before = CalibrationFromProto(run.proto, config.robot());
+    CheckCalibrationPlausible(run.before, config);
   } catch (const std::exception& e) {
     throw CalibratorInputError("--reestimate-offsets '" + base_path + "': " + e.what());
   }

@@ -87,9 +87,9 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
 
 // Live mode: collects on `bus`; when a STANDING phase stops, calibrates from everything
 // collected so far, writes the calibration (and its residuals CSV) atomically, publishes
-// CALIBRATION (calibration_t: version counting up from 1, SHA-256 of the bytes, the binary
-// proto) and calls on_calibrated. A refused calibration is logged and counted; the collector
-// keeps listening (a later STANDING phase may complete it).
+// CALIBRATION (calibration_t: version counting up from the out file's, or 1, SHA-256 of the bytes,
+// the binary proto) and calls on_calibrated. A refused calibration is logged and counted; the
+// collector keeps listening (a later STANDING phase may complete it).
 //
 // The segmenter publishes the pose in progress when it hears the same stop marker, so its last
 // STEADY_POSE arrives after the stop. When STEADY_POSE events are being used and fewer have come
@@ -106,6 +106,10 @@ class LiveCalibrator {
   // Publish CALIBRATION signed by `signer` (outlives this); unsigned without one.
   void SetSigner(auth::Signer* signer) { signer_ = signer; }
   int64_t version() const { return version_; }
+  // Calibrations made by this process.
+  int64_t made() const { return made_; }
+  // EXPERIMENT markers taken (verified and fresh).
+  int64_t markers() const { return collector_.counters().markers; }
   int64_t refused() const { return refused_; }
   const std::string& last_refusal() const { return last_refusal_; }
 
@@ -119,7 +123,10 @@ class LiveCalibrator {
   CalibratorOptions options_;
   Callback on_calibrated_;
   CalibrationCollector collector_;
+  // The last version published: at start, the one in the out file (versions rise across
+  // restarts: a corrector refuses a version it has passed).
   int64_t version_ = 0;
+  int64_t made_ = 0;
   int64_t refused_ = 0;
   std::string last_refusal_;
   int64_t waiting_since_utime_ = -1;  // STANDING stopped, the segmenter's last poses not all in

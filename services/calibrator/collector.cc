@@ -98,10 +98,12 @@ void CalibrationCollector::Attach(Bus& bus) {
   bus.SubscribeRaw(ch.mocap_body(), [this](const MessageInfo& info, const void* data, int size) {
     OnMocapRaw(info, data, size);
   });
-  // No time window: markers replayed from a recording (lcm-logplayer) are old by design; the
-  // signature and the rising sequence still hold.
+  // Markers repeat once a second while a phase runs: a live stage takes only fresh ones, so an
+  // old session's start marker cannot open a phase here (offline, the window holds against the
+  // recording's receive times; markers played to live stages from a recording are refused).
   bus.SubscribeSigned<experiment_marker_t>(
-      ch.experiment(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
+      ch.experiment(), &verifier_, static_cast<int64_t>(config_.auth().experiment_window_s() * 1e6),
+      config_.auth().allow_unsigned(),
       [this](const MessageInfo&, const experiment_marker_t& m) { OnExperiment(m); });
   bus.Subscribe<steady_pose_t>(
       ch.steady_pose(), [this](const MessageInfo&, const steady_pose_t& m) { OnSteadyPose(m); });

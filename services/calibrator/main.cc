@@ -322,6 +322,20 @@ int Live(const ftcal::config::Config& config, const Args& args) {
   ftcal::ServiceStats stats(spdlog::default_logger());
   const std::string url = args.lcm_url.empty() ? config.lcm_url() : args.lcm_url;
   ftcal::LcmBus bus(url, stats);
+  // What it accepted on EXPERIMENT, kept across restarts (common/seen_store.h): a restarted
+  // calibrator refuses the markers it took before.
+  if (const std::string dir = ftcal::auth::SeenStore::DefaultDir(); !dir.empty()) {
+    try {
+      bus.SetSeenStore(std::make_shared<ftcal::auth::SeenStore>(dir + "/ftcal-calibrator.seen"));
+    } catch (const std::exception& e) {
+      spdlog::critical("{}", ftcal::UserText(e, "reading the state file"));
+      return ftcal::kExitDeviceIo;
+    }
+  } else {
+    spdlog::warn(
+        "no state directory (FTCAL_STATE_DIR, HOME unset): what this process accepts "
+        "on EXPERIMENT is forgotten when it restarts");
+  }
   ftcal::CalibratorOptions options = OptionsOf(args);
   int rc = 0;
   ftcal::LiveCalibrator live(config, bus, args.out, options,
@@ -353,7 +367,9 @@ int Live(const ftcal::config::Config& config, const Args& args) {
       refusals_reported = live.refused();
       stats.Error("calibration refused", live.last_refusal());
     }
-    stats.Counter("calibrations") = live.version();
+    stats.Counter("calibrations") = live.made();
+    stats.Counter("version") = live.version();
+    stats.Counter("markers") = live.markers();
     stats.Counter("refused") = live.refused();
     const double uptime_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
@@ -371,6 +387,10 @@ int Live(const ftcal::config::Config& config, const Args& args) {
       },
       100'000);
   publish_status(ftcal::service_status_t::STOPPING);
+  if (const auto& store = bus.seen_store()) {
+    const std::string error = store->Flush();
+    if (!error.empty()) spdlog::error("state not saved: {}", error);
+  }
   return rc;
 }
 

@@ -135,6 +135,12 @@ class Bus {
 
   ServiceStats& stats() { return stats_; }
 
+  // A live process's marks of what it accepted on signed channels (common/seen_store.h), set by
+  // ServiceApp; SubscribeSigned hands it to each verifier that persists. Null on replay and in
+  // tests that make their own bus: an offline reader judges a recording afresh each time.
+  void SetSeenStore(std::shared_ptr<auth::SeenStore> store) { seen_store_ = std::move(store); }
+  const std::shared_ptr<auth::SeenStore>& seen_store() const { return seen_store_; }
+
  protected:
   // The transports call this for every message a subscription receives.
   void Dispatch(size_t subscription, const std::string& channel, int64_t recv_utime,
@@ -162,6 +168,7 @@ class Bus {
   // True (and the message counted as shed) when a live message waited too long (ShedLate).
   bool ShedIfLate(size_t subscription, int64_t recv_utime, int64_t now_utime);
   std::vector<Subscription> subscriptions_;
+  std::shared_ptr<auth::SeenStore> seen_store_;
   ServiceStats& stats_;
 
  private:
@@ -342,6 +349,7 @@ void Bus::Subscribe(const std::string& channel, Handler<Msg> handler) {
 template <class Msg>
 void Bus::SubscribeSigned(const std::string& channel, auth::Verifier* verifier, int64_t window_us,
                           bool allow_unsigned, Handler<Msg> handler) {
+  if (seen_store_ && verifier->persist() && !verifier->store()) verifier->Persist(seen_store_);
   SubscribeRaw(channel, [this, verifier, window_us, allow_unsigned, handler = std::move(handler)](
                             const MessageInfo& info, const void* data, int size) {
     const auto fingerprint = static_cast<uint64_t>(Msg::getHash());

@@ -5,7 +5,9 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <cstdint>
 #include <cstring>
 #include <stdexcept>
 
@@ -162,7 +164,12 @@ signed_envelope_t Signer::Seal(const std::string& channel, const uint8_t* inner,
 
 // ---- Verifier ----
 
-Verifier::Verifier(std::vector<TrustedKey> keys) : keys_(std::move(keys)) { InitSodium(); }
+Verifier::Verifier(std::vector<TrustedKey> keys) : keys_(std::move(keys)) {
+  InitSodium();
+  for (const TrustedKey& k : keys_) key_hex_.push_back(ToHex(k.key.data(), k.key.size()));
+}
+
+void Verifier::Persist(std::shared_ptr<SeenStore> store) { store_ = std::move(store); }
 
 Verifier Verifier::FromConfig(const config::Config& config) {
   std::vector<TrustedKey> keys;
@@ -171,7 +178,9 @@ Verifier Verifier::FromConfig(const config::Config& config) {
                     PublicKeyFromHex(k.public_key_hex(), "auth.trusted_key " + k.name()),
                     {k.channel().begin(), k.channel().end()}});
   }
-  return Verifier(std::move(keys));
+  Verifier v(std::move(keys));
+  v.set_max_ahead_us(static_cast<int64_t>(config.auth().max_clock_ahead_s() * 1e6));
+  return v;
 }
 
 bool Verifier::Trusts(const std::string& channel) const {
@@ -231,16 +240,40 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
     return refuse("wrong inner type from " + name, "payload fingerprint differs");
   }
   int64_t& last = last_sequence_[{key, channel}];
+  if (store_) last = std::max(last, store_->Sequence(channel, key_hex_[key]));
   if (e.sequence <= last) {
-    return refuse("replayed from " + name,
-                  "sequence " + std::to_string(e.sequence) + " not above " + std::to_string(last));
+    return refuse(
+        "replayed from " + name,
+        "sequence " + std::to_string(e.sequence) + " not above " + std::to_string(last) +
+            (store_ ? ", the last accepted here (also before a restart: " + store_->path() + ")"
+                    : std::string(", the last accepted here")));
   }
-  if (window_us > 0 && (recv_utime - e.utime > window_us || e.utime - recv_utime > window_us)) {
-    return refuse("stale from " + name, "signed " + std::to_string((recv_utime - e.utime) / 1000) +
-                                            " ms before it was received (window " +
-                                            std::to_string(window_us / 1000) + " ms)");
+  // Differences of wire values in 128 bits: a signer may put any int64 there.
+  const __int128 utime_ahead = static_cast<__int128>(e.utime) - recv_utime;
+  const __int128 sequence_ahead = static_cast<__int128>(e.sequence) - recv_utime;
+  // Not adopted: a sequence far ahead would refuse every honest envelope of its signer after it.
+  if (utime_ahead > max_ahead_us_ || sequence_ahead > max_ahead_us_) {
+    const __int128 ahead = std::max(utime_ahead, sequence_ahead);
+    return refuse("ahead of time from " + name,
+                  (sequence_ahead > max_ahead_us_ ? "sequence " : "signing time ") +
+                      std::to_string(static_cast<long double>(ahead) / 1e6L) +
+                      " s ahead of the receive time (limit " +
+                      std::to_string(max_ahead_us_ / 1000) +
+                      " ms, auth.max_clock_ahead_s): is its signer's clock set ahead?");
+  }
+  if (window_us > 0 && (-utime_ahead > window_us || utime_ahead > window_us)) {
+    const int64_t age_ms = static_cast<int64_t>(
+        std::max<__int128>(std::min<__int128>(-utime_ahead / 1000, INT64_MAX), INT64_MIN));
+    return refuse("stale from " + name,
+                  "signed " + std::to_string(age_ms) + " ms before it was received (window " +
+                      std::to_string(window_us / 1000) + " ms)" +
+                      (age_ms > 10 * window_us / 1000
+                           ? ": a live process takes only fresh envelopes (a recording played to "
+                             "live processes? read it offline with --log or --replay)"
+                           : ""));
   }
   last = e.sequence;
+  if (store_) store_->RaiseSequence(channel, key_hex_[key], e.sequence);
   return {Opened{e.payload.data(), static_cast<int>(e.payload.size()), &name, e.sequence, e.utime},
           std::nullopt};
 }

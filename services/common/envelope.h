@@ -1,4 +1,5 @@
-// Signed channels: SERVO_CMD, EXPERIMENT and CALIBRATION travel in a signed_envelope_t.
+// Signed channels: SERVO_CMD, EXPERIMENT, CALIBRATION and SEQUENCER_CONTROL travel in a
+// signed_envelope_t.
 //
 // Ed25519 (libsodium's crypto_sign_*), so a receiver holds public keys only and can verify but
 // never forge; the config says which key may sign which channel, so reading a channel never
@@ -7,9 +8,12 @@
 // fingerprint and the inner bytes. A receiver checks, in this order and before the inner
 // message is decoded: the envelope's shape (wire guard), that the signer is trusted on this
 // channel, the inner type, the signature, that the sequence rises (per signer and channel: a
-// replayed envelope is refused however recent), and, where the channel has one, the time window
-// against the receive time. Only a good envelope advances the sequence, so a forgery cannot
-// block its signer.
+// replayed envelope is refused however recent), that neither the signing time nor the sequence
+// is ahead of the receive time by more than auth.max_clock_ahead_s (adopting a far-future
+// sequence would lock its signer out until the clock caught up), and, where the channel has one,
+// the time window against the receive time. Only a good envelope advances the sequence, so a
+// forgery cannot block its signer. A live process keeps the sequences it accepted on disk
+// (Persist, common/seen_store.h), so a restart does not forget them.
 //
 // Sequence numbers rise across restarts without state on disk: a signer starts at its clock in
 // us and counts up from max(last + 1, now), so a restarted signer continues above what it sent
@@ -19,12 +23,14 @@
 #include <array>
 #include <cstdint>
 #include <map>
+#include <memory>
 #include <optional>
 #include <set>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include "common/seen_store.h"
 #include "common/wire_guard.h"
 #include "ftcal/signed_envelope_t.hpp"
 #include "proto/config.pb.h"
@@ -110,8 +116,25 @@ class Verifier {
   // True when some trusted key may sign `channel`.
   bool Trusts(const std::string& channel) const;
 
+  // Refuses envelopes signed or numbered more than `us` ahead of the receive time (FromConfig:
+  // auth.max_clock_ahead_s).
+  void set_max_ahead_us(int64_t us) { max_ahead_us_ = us; }
+  // Keeps the accepted sequences in `store` too, and refuses what it holds: a restarted process
+  // refuses what it accepted before. Bus::SubscribeSigned attaches the live process's store
+  // unless set_persist(false) came first (the Dynamixel bridge: config validation keeps
+  // auth.servo_cmd_window_s below dynamixel.start_quiet_s, so whatever it accepted before a
+  // restart is stale once it listens again, and SERVO_CMD at 50 Hz is not worth a write each).
+  void Persist(std::shared_ptr<SeenStore> store);
+  void set_persist(bool persist) { persist_ = persist; }
+  bool persist() const { return persist_; }
+  const std::shared_ptr<SeenStore>& store() const { return store_; }
+
  private:
   std::vector<TrustedKey> keys_;
+  std::vector<std::string> key_hex_;
+  int64_t max_ahead_us_ = 2'000'000;
+  bool persist_ = true;
+  std::shared_ptr<SeenStore> store_;
   signed_envelope_t envelope_;  // reused: decoding allocates the payload
   std::map<std::pair<size_t, std::string>, int64_t> last_sequence_;  // (key, channel)
 };

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <climits>
+#include <cstdio>
 #include <fstream>
 #include <iostream>
 #include <optional>
@@ -97,6 +98,10 @@ ServiceApp::ServiceApp(ServiceSpec spec)
                       std::string(kDefaultConfigName) + " built in");
   cli_.add_option("--lcm-url", lcm_url_, "LCM URL; overrides the config's lcm_url");
   AddLogLevelOption(cli_, &log_level_);
+  cli_.add_option("--state-dir", state_dir_,
+                  "where a live process keeps what it accepted on signed channels, so that a "
+                  "restart refuses it again (default: $FTCAL_STATE_DIR, $STATE_DIRECTORY, "
+                  "$XDG_STATE_HOME/ftcal, ~/.local/state/ftcal)");
   if (spec_.replayable) {
     auto* in = cli_.add_option("--replay", replay_in_,
                                "run over this LCM log at full speed instead of live LCM");
@@ -166,6 +171,22 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
     log_->critical("{}", UserText(e, replay_in_.empty() ? "opening LCM" : "opening the replay"));
     return ExitCodeFor(e, kExitDeviceIo);
   }
+  if (!replaying()) {
+    if (state_dir_.empty()) state_dir_ = auth::SeenStore::DefaultDir();
+    if (state_dir_.empty()) {
+      log_->warn(
+          "no state directory (--state-dir, FTCAL_STATE_DIR, HOME unset): what this process "
+          "accepts on signed channels is forgotten when it restarts");
+    } else {
+      try {
+        bus_->SetSeenStore(
+            std::make_shared<auth::SeenStore>(state_dir_ + "/" + spec_.name + ".seen"));
+      } catch (const std::exception& e) {
+        log_->critical("{}", UserText(e, "reading the state file"));
+        return ExitCodeFor(e, kExitDeviceIo);
+      }
+    }
+  }
   log_->info("pid {} config {} {}", identity_.pid, config_path_,
              replaying() ? "replay " + replay_in_ + " -> " + replay_out_ : "lcm " + lcm_url_);
   return std::nullopt;
@@ -179,7 +200,53 @@ void ServiceApp::AddPeriodic(double period_s, std::function<void()> fn) {
 service_status_t ServiceApp::Status() const {
   const double uptime_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - started_).count();
-  return MakeServiceStatus(identity_, state_, uptime_s, *stats_, bus_->NowUtime());
+  service_status_t st = MakeServiceStatus(identity_, state_, uptime_s, *stats_, bus_->NowUtime());
+  if (!flood_.empty() && state_ == service_status_t::RUNNING) {
+    st.state = service_status_t::DEGRADED;
+    st.last_error = flood_;
+  }
+  return st;
+}
+
+void ServiceApp::WatchDrops() {
+  const int64_t in = stats_->msgs_in() - watched_in_;
+  const int64_t dropped = stats_->drops() - watched_drops_;
+  const config::Health& health = config_.health();
+  std::string top_kind;
+  int64_t top = 0;
+  for (const auto& [kind, n] : stats_->kinds()) {
+    const auto before = watched_kinds_.find(kind);
+    const int64_t since = n - (before == watched_kinds_.end() ? 0 : before->second);
+    if (since > top) {
+      top = since;
+      top_kind = kind;
+    }
+  }
+  watched_in_ = stats_->msgs_in();
+  watched_drops_ = stats_->drops();
+  watched_kinds_ = stats_->kinds();
+  if (in < static_cast<int64_t>(health.min_inputs())) {
+    if (!flood_.empty()) log_->info("input back within health.max_drop_share (a quiet period)");
+    flood_.clear();
+    return;
+  }
+  const double share = static_cast<double>(dropped) / static_cast<double>(in);
+  if (share <= health.max_drop_share()) {
+    if (!flood_.empty()) {
+      log_->info("input back within health.max_drop_share: {} of {} dropped", dropped, in);
+    }
+    flood_.clear();
+    return;
+  }
+  char text[128];
+  std::snprintf(text, sizeof text,
+                "dropping %lld of %lld inputs (%.0f%%, above health.max_drop_share %g)",
+                static_cast<long long>(dropped), static_cast<long long>(in), 100.0 * share,
+                health.max_drop_share());
+  std::string reason = text;
+  if (!top_kind.empty()) reason += "; most: " + top_kind + " (" + std::to_string(top) + ")";
+  if (flood_.empty()) log_->warn("{}", reason);
+  flood_ = std::move(reason);
 }
 
 void ServiceApp::PublishStatus() {
@@ -189,6 +256,10 @@ void ServiceApp::PublishStatus() {
 // Each task is guarded on its own so that one failing task does not starve the others.
 void ServiceApp::Tick() {
   const int64_t now = bus_->NowUtime();
+  if (const auto& store = bus_->seen_store()) {
+    const std::string error = store->TakeError();
+    if (!error.empty()) stats_->Error("state not saved", error);
+  }
   for (auto& task : periodic_) {
     if (task.next_utime == 0) task.next_utime = now + task.period_us;
     if (now < task.next_utime) continue;
@@ -214,6 +285,7 @@ void ServiceApp::NotifyReady() {
 }
 
 void ServiceApp::PublishHeartbeat() {
+  WatchDrops();
   PublishStatus();
   if (watchdog_) sd_notify(0, "WATCHDOG=1");
 }
@@ -301,6 +373,10 @@ int ServiceApp::Run() {
   bus_->Run([this] { Tick(); }, kLoopTickUs);
   state_ = service_status_t::STOPPING;
   if (!replaying()) sd_notify(0, "STOPPING=1");
+  if (const auto& store = bus_->seen_store()) {
+    const std::string error = store->Flush();
+    if (!error.empty()) log_->error("state not saved: {}", error);
+  }
 
   int rc = 0;
   if (auto* replay = dynamic_cast<LogReplayBus*>(bus_.get())) {

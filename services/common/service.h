@@ -18,6 +18,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -81,6 +82,9 @@ class ServiceApp {
 
   // The state the heartbeat reports (service_status_t::RUNNING, DEGRADED, ...). Run() moves
   // STARTING to RUNNING; a process sets DEGRADED/FAILED when an input or device is missing.
+  // Live, a RUNNING process that dropped more than the config's health.max_drop_share of its
+  // input over the last heartbeat period reports DEGRADED instead, the drops' commonest kind in
+  // its last error (a flood of garbage must show), until a period below the share.
   void SetState(int8_t state) { state_ = state; }
   int8_t state() const { return state_; }
 
@@ -129,6 +133,8 @@ class ServiceApp {
   void DeviceLoopStopped();
   void NotifyReady();
   void ApplySchedulingFlags();
+  // Judges the inputs and drops since the last heartbeat (health.max_drop_share).
+  void WatchDrops();
   // Stores the replay output's digest, taken as it was written, in the digest cache.
   void HandOverOutputDigest(const LogReplayBus& replay);
   bool watchdog_ = false;  // systemd asked for WATCHDOG=1 (WatchdogSec=)
@@ -140,6 +146,7 @@ class ServiceApp {
   std::string log_level_;
   std::string replay_in_;
   std::string replay_out_;
+  std::string state_dir_;
   SchedulingOptions scheduling_;
   bool scheduling_offered_ = false;
 
@@ -152,6 +159,11 @@ class ServiceApp {
   std::unique_ptr<WrittenDigest> output_digest_;  // spec_.digest_replay_output, when replaying
   int8_t state_;
   std::vector<Periodic> periodic_;
+  // WatchDrops: the counts at the last heartbeat, and why the input is judged flooded ("" when
+  // it is not).
+  int64_t watched_in_ = 0, watched_drops_ = 0;
+  std::map<std::string, int64_t> watched_kinds_;
+  std::string flood_;
 };
 
 }  // namespace ftcal

@@ -25,7 +25,7 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
   counters_ = {&st.Counter("corrected"),         &st.Counter("before_calibration"),
                &st.Counter("calibrations"),      &st.Counter("calibrations_refused"),
                &st.Counter("drop_out_of_order"), &st.Counter("drop_non_finite"),
-               &st.Counter("stale_outputs")};
+               &st.Counter("stale_outputs"),     &st.Counter("calibration_version")};
   const auto& ch = config.channels();
   inputs_.Subscribe(
       bus, {[this](const FtInput& in) { OnFt(in); }, [this](const ServoInput& in) { OnServo(in); },
@@ -39,10 +39,13 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
     const auto max_queue_us = static_cast<int64_t>(1e6 * config.corrector().max_ft_age_s());
     for (int k = 0; k < kNumLegs; ++k) bus.ShedLate(inputs_.FtChannel(k), max_queue_us);
   }
-  // Signed; no time window, so a calibration replayed from a recording still applies.
+  // Signed, fresh (a calibration is published once, when it is made) and of a version above
+  // the last one this corrector used from its signer (OnCalibration).
   bus.SubscribeSigned<calibration_t>(
-      ch.calibration(), &verifier_, /*window_us=*/0, config_.auth().allow_unsigned(),
-      [this](const MessageInfo&, const calibration_t& m) { OnCalibration(m); });
+      ch.calibration(), &verifier_,
+      static_cast<int64_t>(config_.auth().calibration_window_s() * 1e6),
+      config_.auth().allow_unsigned(),
+      [this](const MessageInfo& i, const calibration_t& m) { OnCalibration(i, m); });
   set_state_(service_status_t::DEGRADED);
   UpdateCounters();
 }
@@ -59,6 +62,7 @@ void CorrectorStage::UseCalibration(const calibration::Calibration& proto, int64
                                     const std::string& sha256) {
   if (!calibration_sha256_.empty() && sha256 == calibration_sha256_) return;  // a repeat
   const RobotCalibration cal = CalibrationFromProto(proto, config_.robot());
+  CheckCalibrationPlausible(cal, config_);
   corrector_.SetCalibration(cal, version);
   calibration_sha256_ = sha256;
   ++calibrations_;
@@ -67,10 +71,30 @@ void CorrectorStage::UseCalibration(const calibration::Calibration& proto, int64
   UpdateCounters();
 }
 
-void CorrectorStage::OnCalibration(const calibration_t& msg) {
+void CorrectorStage::OnCalibration(const MessageInfo& info, const calibration_t& msg) {
+  const std::string& channel = config_.channels().calibration();
+  // An unsigned calibration (auth.allow_unsigned, the loopback twin) is anyone's: its version
+  // binds nothing, and none is kept.
+  const bool keep = info.signer != nullptr;
+  const std::string signer = keep ? *info.signer : std::string("unsigned");
   try {
+    int64_t unsigned_last = 0;
+    int64_t& last = keep ? last_version_[signer] : unsigned_last;
+    if (const auto& store = bus_.seen_store(); store && keep) {
+      last = std::max(last, store->Version(channel, signer));
+    }
+    if (msg.version <= last) {
+      throw std::runtime_error("version " + std::to_string(msg.version) + " from " + signer +
+                               " is not above " + std::to_string(last) +
+                               ", the last this corrector used from it (an old calibration "
+                               "sent again?)");
+    }
     const CalibrationMessage cal = FromLcm(msg);
     UseCalibration(cal.proto, cal.version, cal.sha256);
+    last = msg.version;
+    if (const auto& store = bus_.seen_store(); store && keep) {
+      store->RaiseVersion(channel, signer, msg.version);
+    }
   } catch (const std::exception& e) {
     ++refused_;
     UpdateCounters();
@@ -153,6 +177,7 @@ void CorrectorStage::UpdateCounters() {
   *counters_.drop_out_of_order = c.out_of_order;
   *counters_.drop_non_finite = c.non_finite;
   *counters_.stale = stale_;
+  *counters_.version = corrector_.has_calibration() ? corrector_.calibration_version() : 0;
 }
 
 }  // namespace ftcal

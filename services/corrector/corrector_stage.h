@@ -7,12 +7,15 @@
 // without a restart. A message is checked (its SHA-256, the protobuf, CalibrationFromProto
 // against the config, the corrector's own checks); a bad one is refused with its reason
 // logged and kept as last_error, and the calibration in use stays. A message with the hash of
-// the calibration in use is a repeat and changes nothing. Until a calibration is in use
-// nothing is published and the state is DEGRADED with last_error saying why.
+// the calibration in use is a repeat and changes nothing. A message is taken only fresh
+// (auth.calibration_window_s) and with a version above the last one this corrector used from
+// the same signer, remembered across restarts: a captured old calibration cannot come back. Until a
+// calibration is in use nothing is published and the state is DEGRADED with last_error saying why.
 #pragma once
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <string>
 
 #include "common/bus.h"
@@ -51,7 +54,7 @@ class CorrectorStage {
   void OnFt(const FtInput& in);
   void OnServo(const ServoInput& in);
   void OnMocap(const MocapInput& in);
-  void OnCalibration(const calibration_t& msg);
+  void OnCalibration(const MessageInfo& info, const calibration_t& msg);
   void UpdateCounters();
   // Encodes into buffer_ (Bus::Publish's buffer is per thread; this one is per stage) and
   // publishes: the hot path allocates nothing.
@@ -66,11 +69,14 @@ class CorrectorStage {
   DeviceInputs inputs_;
   Corrector corrector_;
   std::string calibration_sha256_;
+  // Per signer (the trusted key's name), the last calibration version put in use; also on disk
+  // in a live process (Bus::seen_store), so a restart refuses what it used before.
+  std::map<std::string, int64_t> last_version_;
   ContactWrenches out_;
   std::vector<uint8_t> buffer_;
   struct Counters {
     int64_t *corrected, *no_calibration, *calibrations, *calibrations_refused, *drop_out_of_order,
-        *drop_non_finite, *stale;
+        *drop_non_finite, *stale, *version;
   } counters_{};
   int64_t calibrations_ = 0, refused_ = 0, stale_ = 0, leg_samples_ = 0, sums_ = 0;
 };

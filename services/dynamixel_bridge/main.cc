@@ -74,6 +74,9 @@ int main(int argc, char** argv) {
   try {
     ftcal::CommandGate gate(config, app.stats(), SteadyS());
     ftcal::auth::Verifier verifier = ftcal::auth::Verifier::FromConfig(config);
+    // Not kept on disk: config validation keeps auth.servo_cmd_window_s below
+    // dynamixel.start_quiet_s, so a command taken before a restart is stale when the gate listens.
+    verifier.set_persist(false);
     if (!verifier.Trusts(config.channels().servo_cmd())) {
       app.log().warn("no key in the config's auth is trusted on {}: every command is refused",
                      config.channels().servo_cmd());

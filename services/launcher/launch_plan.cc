@@ -1,6 +1,7 @@
 #include "launcher/launch_plan.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <map>
 #include <set>
@@ -345,7 +346,17 @@ std::string SystemdUnitName(const config::LaunchGroup& group,
 }
 
 std::string SystemdUnit(const config::Config& /*config*/, const config::LaunchGroup& group,
-                        const config::LaunchProcess& p, const Placeholders& values) {
+                        const config::LaunchProcess& p, const Placeholders& values,
+                        const std::string& user) {
+  // useradd's default rule for names, and never root: a unit is one process's account.
+  const bool name_ok =
+      !user.empty() && user.size() <= 32 &&
+      (std::islower(static_cast<unsigned char>(user[0])) || user[0] == '_') &&
+      user.find_first_not_of("abcdefghijklmnopqrstuvwxyz0123456789_-") == std::string::npos;
+  if (!name_ok || user == "root") {
+    throw LaunchError("export-systemd --user '" + user +
+                      "': the name of a dedicated account ([a-z_][a-z0-9_-]*), not root");
+  }
   const std::string where = "launch.group[" + group.name() + "].process[" + p.name() + "]";
   const auto& r = p.restart();
   std::ostringstream s;
@@ -370,7 +381,11 @@ std::string SystemdUnit(const config::Config& /*config*/, const config::LaunchGr
     s << "Environment=\"" << kv.substr(0, eq) << "="
       << Expand(kv.substr(eq + 1), values, where + ".env[" + std::to_string(e) + "]") << "\"\n";
   }
-  s << "RuntimeDirectory=ftcal\nRuntimeDirectoryPreserve=yes\n";
+  // Not root, and the directories closed to others: the run dir holds the config the processes
+  // read, the state dir what they accepted on signed channels.
+  s << "User=" << user << "\nGroup=" << user << "\n";
+  s << "RuntimeDirectory=ftcal\nRuntimeDirectoryMode=0700\nRuntimeDirectoryPreserve=yes\n";
+  s << "StateDirectory=ftcal\nStateDirectoryMode=0700\n";
   s << "Restart=" << SystemdRestart(r.autorestart()) << "\nRestartSec=0.2\n";
   if (p.sd_notify() && r.watchdog_s() > 0) s << "WatchdogSec=" << Number(r.watchdog_s()) << "\n";
   if (r.memory_max_mb() > 0) s << "MemoryMax=" << r.memory_max_mb() << "M\n";

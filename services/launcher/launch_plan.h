@@ -65,9 +65,13 @@ std::string GroupConf(const config::Config& config, const config::LaunchGroup& g
                       const std::string& host, const Placeholders& values,
                       const std::vector<std::string>& listener_command);
 
-// A systemd unit for one process (export-systemd).
+// A systemd unit for one process (export-systemd), run as `user` (and its group): a dedicated
+// account, never root, with its runtime and state directories (RuntimeDirectory=ftcal,
+// StateDirectory=ftcal, both 0700) made by systemd and owned by it. The state directory keeps
+// what the process accepted on signed channels ($STATE_DIRECTORY, common/seen_store.h).
 std::string SystemdUnit(const config::Config& config, const config::LaunchGroup& group,
-                        const config::LaunchProcess& process, const Placeholders& values);
+                        const config::LaunchProcess& process, const Placeholders& values,
+                        const std::string& user = "ftcal");
 // The unit's file name: "ftcal-<group>-<process>.service".
 std::string SystemdUnitName(const config::LaunchGroup& group, const config::LaunchProcess& process);
 

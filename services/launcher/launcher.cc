@@ -438,7 +438,7 @@ int Launcher::ExportSystemd() {
     for (const auto& p : group.process()) {
       if (p.host() != host.name()) continue;
       const std::string path = o_.out_dir + "/" + SystemdUnitName(group, p);
-      WriteLocalAtomically(path, SystemdUnit(config_, group, p, values));
+      WriteLocalAtomically(path, SystemdUnit(config_, group, p, values, o_.systemd_user));
       std::cout << path << "\n";
       ++n;
     }

@@ -26,6 +26,7 @@ struct Options {
   std::string process;
   std::string host;
   std::string out_dir;
+  std::string systemd_user = "ftcal";  // export-systemd: the account the units run as
   // status: listens until every running process has been heard, at most this long (two and a
   // half heartbeat periods: one lost datagram does not make a process SILENT).
   double listen_s = 2.5;

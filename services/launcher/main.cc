@@ -61,6 +61,11 @@ int main(int argc, char** argv) {
   systemd->add_option("group", o.group, "launch group name")->required();
   systemd->add_option("--host", o.host, "the host whose processes to export")->required();
   systemd->add_option("--out", o.out_dir, "directory to write the units into")->required();
+  systemd
+      ->add_option("--user", o.systemd_user,
+                   "the dedicated account the units run as (User=, Group=; never root): make it "
+                   "with `useradd --system ftcal` and give it the devices' groups (dialout)")
+      ->capture_default_str();
   cli.footer(ftcal::ExitCodeTable());
   if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
   if (!log_level.empty()) o.log_level = log_level;

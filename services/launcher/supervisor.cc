@@ -157,9 +157,27 @@ HostSupervisor::HostSupervisor(std::string host, std::vector<std::string> shell,
 const std::string& HostSupervisor::run_dir() {
   if (!run_dir_.empty()) return run_dir_;
   const std::string q = "\"" + DoubleQuoteBody(run_dir_spec_) + "\"";
-  const auto r = RunShell(
-      shell_, "umask 077 && mkdir -p " + q + "/groups " + q + "/logs && cd " + q + " && pwd -P");
+  // The run dir holds supervisord's control socket and the config the processes read: made here
+  // with mode 0700, and one that exists is used only when it is this user's, closed to group and
+  // others, and not a symbolic link (the fallback under /tmp is anyone's to create first).
+  const std::string script =
+      "umask 077; d=" + q +
+      "; [ -e \"$d\" ] || [ -L \"$d\" ] || mkdir -p -m 0700 \"$d\" || exit 1; "
+      "if [ -L \"$d\" ] || [ ! -d \"$d\" ]; then "
+      "echo \"run dir '$d' is not a directory of its own (a symbolic link or a file)\"; exit 3; "
+      "fi; "
+      "u=$(stat -c %u \"$d\") && m=$(stat -c %a \"$d\") || exit 1; "
+      "if [ \"$u\" != \"$(id -u)\" ] || [ $((0$m & 077)) -ne 0 ]; then "
+      "echo \"run dir '$d' is owned by uid $u ($(stat -c %U \"$d\")) with mode $m; ftcal-launch "
+      "uses only a directory of its own user (uid $(id -u)) with mode 0700: remove it, or choose "
+      "another (--run-dir, launch.host.run_dir)\"; exit 3; fi; "
+      "mkdir -p \"$d/groups\" \"$d/logs\" && cd \"$d\" && pwd -P";
+  const auto r = RunShell(shell_, script);
   const std::string dir = Trim(r.output);
+  if (r.exit_code == 3) {
+    throw LaunchError("host '" + host_ + "': refused the run dir '" + run_dir_spec_ +
+                      "': " + Trim(r.output));
+  }
   if (r.exit_code != 0 || dir.empty() || dir[0] != '/' || dir.find('\n') != std::string::npos) {
     throw std::runtime_error("host '" + host_ + "': cannot make the run dir '" + run_dir_spec_ +
                              "': " + Trim(r.output));

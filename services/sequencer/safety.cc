@@ -55,6 +55,34 @@ Safety::Safety(const config::Config& config) : config_(config), seq_(config.sequ
   weight_n_ = config.robot().total_mass_kg() * config.robot().g0_m_s2();
 }
 
+std::set<std::string> WatchedStatusNames(const config::Config& config) {
+  auto status_name = [](const config::LaunchProcess& p) -> std::string {
+    if (p.status_name() == "-") return "";
+    if (!p.status_name().empty()) return p.status_name();
+    const auto slash = p.command().rfind('/');
+    return slash == std::string::npos ? p.command() : p.command().substr(slash + 1);
+  };
+  auto is_bridge = [](const std::string& name) {
+    static const std::string kSuffix = "-bridge";
+    return name.size() > kSuffix.size() &&
+           name.compare(name.size() - kSuffix.size(), kSuffix.size(), kSuffix) == 0;
+  };
+  std::set<std::string> names;
+  for (const config::LaunchGroup& g : config.launch().group()) {
+    bool ours = false;
+    for (const auto& p : g.process()) ours = ours || status_name(p) == "ftcal-sequencer";
+    if (!ours) continue;
+    for (const auto& p : g.process()) {
+      if (is_bridge(status_name(p))) names.insert(status_name(p));
+    }
+  }
+  // The bridges whose data the sequencer reads, launched by a group or not.
+  names.insert({"ftcal-ati-bridge", "ftcal-dynamixel-bridge",
+                config.mocap().system() == config::OPTITRACK ? "ftcal-natnet-bridge"
+                                                             : "ftcal-mocap-bridge"});
+  return names;
+}
+
 std::optional<std::string> Safety::Stale(const Inputs& in, int64_t now_utime, bool need_mocap,
                                          const OwnStalls& own) const {
   const double limit = seq_.max_input_age_s();
@@ -81,6 +109,7 @@ std::optional<std::string> Safety::Stale(const Inputs& in, int64_t now_utime, bo
     if (auto e = old("MOCAP_BODY", in.mocap->utime)) return e;
   }
   for (const auto& [name, st] : in.status) {
+    if ((now_utime - st.utime) * 1e-6 > kStatusExpiryS) continue;
     if (st.state != service_status_t::RUNNING && st.state != service_status_t::STARTING) {
       return name + " reports state " + std::to_string(st.state) +
              (st.last_error.empty() ? std::string() : " (" + st.last_error + ")") +

@@ -19,6 +19,7 @@
 #include <cstdint>
 #include <deque>
 #include <map>
+#include <set>
 #include <optional>
 #include <string>
 
@@ -43,10 +44,21 @@ struct Inputs {
   std::array<std::optional<FtInput>, kNumLegs> ft;
   std::optional<ServoInput> servo;
   std::optional<MocapInput> mocap;
-  // Bridges' heartbeats by process name (ftcal-ati-bridge, ...): every one heard must be
-  // RUNNING; a bridge that has gone quiet is caught by its data's age.
+  // Bridges' heartbeats by process name (ftcal-ati-bridge, ...; only the names the sequencer
+  // watches, WatchedStatusNames): every one heard in the last kStatusExpiryS must be RUNNING; a
+  // bridge that has gone quiet is caught by its data's age.
   std::map<std::string, StatusReading> status;
 };
+
+// A heartbeat comes once a second: one older than this says nothing about the process now (an
+// entry heard once, forged or from a process gone since, must not hold a verdict forever).
+constexpr double kStatusExpiryS = 2.5;
+
+// The heartbeat names whose state gates the motion: the bridges this config needs
+// (ftcal-ati-bridge, ftcal-dynamixel-bridge, and ftcal-mocap-bridge or ftcal-natnet-bridge by
+// mocap.system) and the other bridges (status name ending in "-bridge") of the config's launch
+// group that runs ftcal-sequencer. Any other name is not the sequencer's business.
+std::set<std::string> WatchedStatusNames(const config::Config& config);
 
 // The spans in which the sequencer itself did not run (a write blocked in fsync, the scheduler
 // gave its core away). An input's age counts only the time the sequencer was listening: after

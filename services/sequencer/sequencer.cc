@@ -1,5 +1,7 @@
 #include "sequencer/sequencer.h"
 
+#include <sodium.h>
+
 #include <algorithm>
 #include <cmath>
 #include <fstream>
@@ -150,7 +152,8 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
       options_(std::move(options)),
       device_inputs_(config),
       safety_(config),
-      schedule_(Expand(config, options_.plan_name)) {
+      schedule_(Expand(config, options_.plan_name)),
+      watched_status_(WatchedStatusNames(config)) {
   if (options_.progress_file.empty()) options_.progress_file = config.sequencer().progress_file();
   if (!options_.progress_file.empty())
     saver_ = std::make_unique<ProgressSaver>(options_.progress_file);
@@ -227,16 +230,29 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
   device_inputs_.Subscribe(bus_, handlers);
   bus_.Subscribe<service_status_t>(
       ch.status(), [this](const MessageInfo& i, const service_status_t& m) { OnStatus(i, m); });
-  // No time window: a CONFIRM names the step it confirms, and the sequence must rise.
+  // The operator's word of the moment: seconds old at most, its sequence above any taken before
+  // (also before a restart: Bus::seen_store), and a CONFIRM must carry the nonce of the prompt it
+  // answers (Confirm).
   bus_.SubscribeSigned<sequencer_control_t>(
-      ch.sequencer_control(), &verifier_, /*window_us=*/0, config.auth().allow_unsigned(),
+      ch.sequencer_control(), &verifier_,
+      static_cast<int64_t>(config.auth().control_window_s() * 1e6), config.auth().allow_unsigned(),
       [this](const MessageInfo& i, const sequencer_control_t& m) { OnControl(i, m); });
   if (steps_.empty()) state_ = State::kDone;
 }
 
 void Sequencer::OnStatus(const MessageInfo&, const service_status_t& msg) {
   // Only the bridges gate the motion: the sequencer cannot move safely without their data.
-  if (msg.name.find("bridge") == std::string::npos) return;
+  // FTCAL_STATUS is unsigned (docs/architecture.md): a name the sequencer does not watch is
+  // counted and ignored, so an invented process cannot stop a run, and the names logged are
+  // bounded.
+  if (watched_status_.count(msg.name) == 0) {
+    ++bus_.stats().Counter("status_ignored");
+    if (ignored_names_.size() < kIgnoredNamesLogged && ignored_names_.insert(msg.name).second) {
+      bus_.stats().log().info("FTCAL_STATUS from '{}' ignored: not a bridge this sequencer watches",
+                              msg.name);
+    }
+    return;
+  }
   StatusReading st{msg.utime, msg.state, msg.last_error};
   for (int i = 0; i < msg.num_counters && i < static_cast<int>(msg.counter_name.size()); ++i) {
     if (msg.counter_name[i] == "mode") st.mode = static_cast<int>(msg.counter_value[i]);
@@ -254,6 +270,18 @@ void Sequencer::OnControl(const MessageInfo&, const sequencer_control_t& msg) {
     Stop("operator STOP on " + config_.channels().sequencer_control() +
          (msg.note.empty() ? std::string() : " (" + msg.note + ")"));
   } else if (msg.action == sequencer_control_t::CONFIRM) {
+    // A signature says who confirmed, not what: a CONFIRM captured at one prompt must not answer
+    // another (a later step, a later run, a resumed sequencer). Each prompt draws a nonce.
+    if (state_ != State::kWaitingForOperator) {
+      throw BadInput("confirm with nothing waiting",
+                     "a CONFIRM (nonce " + std::to_string(msg.nonce) + ") while no step waits");
+    }
+    if (msg.nonce != confirm_nonce_) {
+      throw BadInput("confirm of another prompt",
+                     "a CONFIRM with nonce " + std::to_string(msg.nonce) +
+                         ", not the waiting prompt's (status counter confirm_nonce; "
+                         "ftcal-sequencer-control reads it)");
+    }
     Confirm(msg.step);
   } else {
     throw BadInput("unknown sequencer_control_t action", "action " + std::to_string(msg.action));
@@ -268,7 +296,18 @@ void Sequencer::Confirm(int step) {
     return;
   }
   confirmed_ = true;
+  ++bus_.stats().Counter("confirms");
   Tick();
+}
+
+void Sequencer::NewPrompt() {
+  // Positive and never 0 (0 is "no prompt"): drawn, not counted, so that no run or restart
+  // repeats one.
+  do {
+    randombytes_buf(&confirm_nonce_, sizeof confirm_nonce_);
+    confirm_nonce_ &= INT64_MAX;
+  } while (confirm_nonce_ == 0);
+  bus_.stats().Counter("confirm_nonce") = confirm_nonce_;
 }
 
 bool Sequencer::PhaseNeedsMocap(int phase) const {
@@ -432,6 +471,8 @@ void Sequencer::Begin(int index) {
   index_ = index;
   step_started_ = false;
   confirmed_ = false;
+  confirm_nonce_ = 0;
+  bus_.stats().Counter("confirm_nonce") = 0;
   waiting_reason_.clear();
   if (index < static_cast<int>(step_of_.size())) {
     bus_.stats().Counter("step") = std::max(0, step_of_[index]);
@@ -511,6 +552,7 @@ void Sequencer::TickSteps() {
         }
         if (state_ != State::kWaitingForOperator) {
           state_ = State::kWaitingForOperator;
+          NewPrompt();
           const std::string prompt =
               s.prompt + (waiting_reason_.empty() ? "" : " (" + waiting_reason_ + ")");
           bus_.stats().log().info("waiting for the operator: {}", prompt);

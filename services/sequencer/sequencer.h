@@ -14,11 +14,14 @@
 // a stage restarted inside the phase picks it up.
 //
 // SERVO_CMD, EXPERIMENT (and the operator's SEQUENCER_CONTROL) are signed channels
-// (common/envelope.h). The Dynamixel bridge moves the legs only for one armed commander that
-// keeps talking (README, "The servo side"): before the first motion the sequencer sends ARM
-// and waits until the bridge's FTCAL_STATUS says it is armed; while armed it sends a command
-// at least every 1/command_rate_hz (the bridge's dead-man); a bridge that leaves armed mode
-// (hold, fault) stops the run; at the end, or stopping, it holds and sends DISARM.
+// (common/envelope.h). A SEQUENCER_CONTROL is taken only seconds fresh (auth.control_window_s),
+// with a sequence above every one taken before, also before a restart; a CONFIRM must carry the
+// nonce the sequencer drew for the prompt it answers (status counter confirm_nonce). The Dynamixel
+// bridge moves the legs only for one armed commander that keeps talking (README, "The servo side"):
+// before the first motion the sequencer sends ARM and waits until the bridge's FTCAL_STATUS says it
+// is armed; while armed it sends a command at least every 1/command_rate_hz (the bridge's
+// dead-man); a bridge that leaves armed mode (hold, fault) stops the run; at the end, or stopping,
+// it holds and sends DISARM.
 #pragma once
 
 #include <condition_variable>
@@ -26,6 +29,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <optional>
 #include <string>
 #include <thread>
@@ -103,6 +107,9 @@ class Sequencer {
   void Tick();
   // The operator said yes (terminal line); -1: whatever step is waiting.
   void Confirm(int step = -1);
+  // The waiting prompt's nonce, which a CONFIRM on SEQUENCER_CONTROL must carry (status counter
+  // confirm_nonce); 0 while nothing waits.
+  int64_t confirm_nonce() const { return confirm_nonce_; }
   // Stops the motion with `reason` (SIGINT/SIGTERM, STOP): hold, safe action, marker, progress.
   void Stop(const std::string& reason);
 
@@ -118,6 +125,8 @@ class Sequencer {
  private:
   void OnStatus(const MessageInfo& info, const service_status_t& msg);
   void OnControl(const MessageInfo& info, const sequencer_control_t& msg);
+  // Draws the waiting prompt's nonce (status counter confirm_nonce).
+  void NewPrompt();
 
   void Begin(int index);
   void Advance();
@@ -178,8 +187,13 @@ class Sequencer {
   std::string stop_reason_;
   std::string waiting_reason_;
   bool confirmed_ = false;
+  int64_t confirm_nonce_ = 0;  // of the waiting prompt; 0 while none waits
   std::function<void(const std::string&)> on_prompt_;
   std::array<int32_t, kNumLegs> servo_ids_{};
+  // The heartbeat names that gate the motion (WatchedStatusNames), and the other names heard.
+  static constexpr size_t kIgnoredNamesLogged = 16;
+  std::set<std::string> watched_status_;
+  std::set<std::string> ignored_names_;
 };
 
 }  // namespace ftcal::sequencer

@@ -186,10 +186,120 @@ TEST_F(SignedChannelTest, AStaleOrFutureEnvelopeIsRefusedOutsideTheWindow) {
   EXPECT_TRUE(got_.empty());
   EXPECT_EQ(Kind("stale from operator on SERVO_CMD"), 2);
   Send("SERVO_CMD", Encode(op_.Seal("SERVO_CMD", Command(0.5), NowUs() + 10'000'000)));
+  EXPECT_EQ(Kind("ahead of time from operator on SERVO_CMD"), 1);
   Send("SERVO_CMD", Encode(op_.Seal("SERVO_CMD", Command(0.5), NowUs() - 100'000)));
-  // Inside the window, signed after the future one: its sequence is still higher (the signer
-  // counts from max(last + 1, now)).
+  // Inside the window, but signed after the future one by the same signer, which counts from
+  // max(last + 1, now): its sequence is 10 s ahead too, and refused as well.
+  EXPECT_EQ(Kind("ahead of time from operator on SERVO_CMD"), 2);
+  EXPECT_TRUE(got_.empty());
+  // The receiver adopted neither: the signer restarted with a right clock is heard at once.
+  Signer restarted = MakeSigner(1);
+  Send("SERVO_CMD", Encode(restarted.Seal("SERVO_CMD", Command(0.5), NowUs() - 100'000)));
   EXPECT_EQ(got_.size(), 1u);
+}
+
+// Issue 36, finding 8: on a channel without a window (EXPERIMENT's and CALIBRATION's were), one
+// envelope numbered far in the future was adopted, and every honest envelope of its signer was
+// then refused as a replay until the receiver restarted.
+TEST_F(SignedChannelTest, AFarFutureSequenceIsRefusedNotAdopted) {
+  Listen(/*window_us=*/0);
+  signed_envelope_t ahead = op_.Seal("SERVO_CMD", Command(0.5), NowUs());
+  Signer future = MakeSigner(1);  // the operator's key, its clock a day ahead
+  Send("SERVO_CMD", Encode(future.Seal("SERVO_CMD", Command(0.9), NowUs() + 86'400'000'000)));
+  EXPECT_EQ(Kind("ahead of time from operator on SERVO_CMD"), 1);
+  // Signed now, numbered a day ahead (sequence is signed; only the key holder can do this).
+  Signer counted = MakeSigner(1);
+  counted.Seal("SERVO_CMD", Command(0.1), NowUs() + 86'400'000'000);  // its counter jumps
+  Send("SERVO_CMD", Encode(counted.Seal("SERVO_CMD", Command(0.9), NowUs())));
+  EXPECT_EQ(Kind("ahead of time from operator on SERVO_CMD"), 2);
+  EXPECT_TRUE(got_.empty());
+  // The honest envelope signed before both is still taken: nothing was adopted.
+  Send("SERVO_CMD", Encode(ahead));
+  ASSERT_EQ(got_.size(), 1u);
+  EXPECT_EQ(got_[0].goal_angle_rad[0], 0.5);
+  EXPECT_EQ(Kind("replayed from operator on SERVO_CMD"), 0);
+}
+
+// Times at the ends of int64 (a key holder may sign anything): refused, and judged without
+// overflow (UBSan runs this suite).
+TEST_F(SignedChannelTest, ExtremeTimesAreRefusedWithoutOverflow) {
+  Listen(250'000);
+  Send("SERVO_CMD", Encode(MakeSigner(1).Seal("SERVO_CMD", Command(0.5), INT64_MIN)));
+  Send("SERVO_CMD", Encode(MakeSigner(1).Seal("SERVO_CMD", Command(0.5), INT64_MAX)));
+  EXPECT_TRUE(got_.empty());
+  EXPECT_EQ(Kind("ahead of time from operator on SERVO_CMD"), 1);
+  // INT64_MIN signs a sequence of max(1, INT64_MIN) = 1: not above nothing seen, so the window
+  // judges it.
+  EXPECT_EQ(Kind("stale from operator on SERVO_CMD"), 1);
+}
+
+// Issue 36, findings 1 and 2: a receiver forgot on restart what it had accepted. With a store
+// (what ServiceApp gives every live process), a new verifier on the same file refuses it.
+TEST_F(SignedChannelTest, WhatWasAcceptedIsRefusedAfterARestart) {
+  const std::string dir = testing::MakeTempDir();
+  const std::string path = dir + "/ftcal-test.seen";
+  const auto first = Encode(op_.Seal("EXPERIMENT", experiment_marker_t{}, NowUs()));
+  const auto later = Encode(op_.Seal("EXPERIMENT", experiment_marker_t{}, NowUs()));
+  auto open = [&](Verifier& v, const std::vector<uint8_t>& b) {
+    return v.Open("EXPERIMENT", b.data(), static_cast<int>(b.size()),
+                  static_cast<uint64_t>(experiment_marker_t::getHash()), NowUs(), 5'000'000);
+  };
+  {
+    Verifier before({TrustedKey{"operator", op_.public_key(), {"EXPERIMENT"}}});
+    auto store = std::make_shared<auth::SeenStore>(path);
+    before.Persist(store);
+    EXPECT_FALSE(open(before, first).second);
+    EXPECT_EQ(store->Flush(), "");
+  }
+  // The file says what was taken: the signer's key and its sequence, nothing else.
+  const auto marks = auth::SeenStore::Read(path);
+  ASSERT_EQ(marks.size(), 1u);
+  EXPECT_EQ(std::get<1>(marks.begin()->first), "EXPERIMENT");
+  EXPECT_EQ(std::get<2>(marks.begin()->first),
+            auth::ToHex(op_.public_key().data(), op_.public_key().size()));
+
+  Verifier forgetful({TrustedKey{"operator", op_.public_key(), {"EXPERIMENT"}}});
+  EXPECT_FALSE(open(forgetful, first).second) << "without the store a restart takes it again";
+
+  Verifier after({TrustedKey{"operator", op_.public_key(), {"EXPERIMENT"}}});
+  after.Persist(std::make_shared<auth::SeenStore>(path));
+  const auto refused = open(after, first).second;
+  ASSERT_TRUE(refused);
+  EXPECT_EQ(refused->kind, "replayed from operator");
+  EXPECT_NE(refused->detail.find(path), std::string::npos) << refused->detail;
+  EXPECT_FALSE(open(after, later).second) << "a newer envelope is still taken";
+  testing::RemoveTree(dir);
+}
+
+TEST(SeenStoreTest, AFileItCannotReadIsRefusedNamingTheLine) {
+  const std::string dir = testing::MakeTempDir();
+  std::ofstream(dir + "/x.seen")
+      << "sequence EXPERIMENT abcd 12\nsequence EXPERIMENT abcd twelve\n";
+  try {
+    auth::SeenStore store(dir + "/x.seen");
+    ADD_FAILURE() << "read";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("x.seen' line 2"), std::string::npos) << e.what();
+  }
+  testing::RemoveTree(dir);
+}
+
+// A recording played to a live process: refused as stale, with a reason that says so.
+TEST_F(SignedChannelTest, ARecordingPlayedToALiveReceiverIsRefusedSayingWhy) {
+  const auto old = Encode(op_.Seal("EXPERIMENT", experiment_marker_t{}, NowUs() - 3'600'000'000));
+  const auto [opened, refused] =
+      verifier_.Open("EXPERIMENT", old.data(), static_cast<int>(old.size()),
+                     static_cast<uint64_t>(experiment_marker_t::getHash()), NowUs(), 5'000'000);
+  ASSERT_TRUE(refused);
+  EXPECT_EQ(refused->kind, "stale from operator");
+  EXPECT_NE(refused->detail.find("--log or --replay"), std::string::npos) << refused->detail;
+  // Offline, the same envelope judged against the recording's receive time verifies.
+  Verifier offline({TrustedKey{"operator", op_.public_key(), {"EXPERIMENT"}}});
+  EXPECT_FALSE(offline
+                   .Open("EXPERIMENT", old.data(), static_cast<int>(old.size()),
+                         static_cast<uint64_t>(experiment_marker_t::getHash()),
+                         NowUs() - 3'600'000'000 + 20'000, 5'000'000)
+                   .second);
 }
 
 TEST_F(SignedChannelTest, SequencesRiseAcrossASignersRestart) {

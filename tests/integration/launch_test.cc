@@ -221,6 +221,32 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
   EXPECT_GT(ft_events, 0);
 }
 
+// Issue 36, finding 3: with XDG_RUNTIME_DIR unset the run dir falls back to
+// /tmp/ftcal-launch-UID, which anyone can make first; it was used whoever owned it.
+TEST_F(LaunchTest, ARunDirOfAnotherOwnerIsRefusedAndNothingStarts) {
+  const std::string run = dir_ + "/run";
+  const std::string config = dir_ + "/sim.pbtxt";
+  WriteText(config, SimConfig(run));
+  ASSERT_EQ(::mkdir(run.c_str(), 0700), 0);
+  // Root (CI) hands it to nobody; anyone else opens it to others, which is refused the same way.
+  const bool root = ::geteuid() == 0;
+  if (root) {
+    ASSERT_EQ(::chown(run.c_str(), 65534, 65534), 0);
+  } else {
+    ASSERT_EQ(::chmod(run.c_str(), 0755), 0);
+  }
+  const Ran up = Launch({"--config", config, "up", "sim"});
+  EXPECT_EQ(up.rc, 3) << up.out;
+  EXPECT_NE(up.out.find("run dir '" + run + "' is owned by uid " +
+                        std::to_string(root ? 65534 : ::geteuid())),
+            std::string::npos)
+      << up.out;
+  EXPECT_NE(up.out.find(root ? "with mode 700" : "with mode 755"), std::string::npos) << up.out;
+  EXPECT_FALSE(std::filesystem::exists(run + "/supervisord.conf")) << "written into it";
+  EXPECT_FALSE(std::filesystem::exists(run + "/supervisor.sock")) << "supervisord started";
+  if (root) ::chown(run.c_str(), 0, 0);  // the fixture's clean-up
+}
+
 TEST_F(LaunchTest, ProcessThatKeepsDyingEndsFatalNotRestartedForever) {
   const std::string run = dir_ + "/run";
   const std::string config = dir_ + "/dying.pbtxt";

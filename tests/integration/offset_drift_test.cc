@@ -182,6 +182,25 @@ TEST_F(OffsetDriftTest, StandingPosesAloneAreRefusedNamingWhatTheyLeaveUndetermi
   EXPECT_FALSE(std::filesystem::exists(OutPath("stand")));
 }
 
+// Issue 36, finding 6: the calibration the calibrator loads to re-estimate is held against the
+// config like any other; an absurd one is refused before anything is estimated from it.
+TEST_F(OffsetDriftTest, AnImplausibleBaseCalibrationIsRefusedNamingTheParameter) {
+  const std::string log = DriftSession("absurd", "stand", 1);
+  calibration::Calibration base = ReadCalibrationFile(BasePath("absurd"));
+  base.mutable_leg(0)->mutable_leg_weight_n()->set_value(-1e6);
+  const std::string absurd = *dir_ + "/absurd_base.pbtxt";
+  WriteCalibrationFile(base, absurd);
+  const Result r = Run({FTCAL_CALIBRATOR, "--config", kConfig, "--reestimate-offsets", absurd,
+                        "--log", log, "--out", OutPath("absurd")},
+                       "absurd_cal");
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_NE(
+      r.err.find("implausible calibration: leg[0] (HL).leg_weight_n = -1000000, outside (0, "),
+      std::string::npos)
+      << r.err;
+  EXPECT_FALSE(std::filesystem::exists(OutPath("absurd")));
+}
+
 TEST_F(OffsetDriftTest, OneLiftedTripodDeterminesItsLegsAndPartialKeepsTheOthers) {
   // One stance lifts HL, FL and MR (the twin's first tripod). The standing poses add only the
   // sum over legs, which leaves the other three legs' 18 components open.

@@ -32,6 +32,7 @@
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/signed_envelope_t.hpp"
 #include "ftcal/servo_command_t.hpp"
+#include "ftcal/service_status_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
 #include "sequencer/plan.h"
@@ -169,6 +170,28 @@ TEST(SequencerLive, StandingGridThroughTheBridgesStopsOnAStaleBridgeAndResumes) 
       "--session",     "live1",    "--signing-key", key_path};
   // ---- first run: killed bridge mid-grid ----
   Child seq1(seq_argv, path("seq1.out"), path("seq1.err"));
+  // Issue 36, finding 7: one unsigned heartbeat from an invented "bridge", DEGRADED, stopped a
+  // moving run. Forged in the second pose, it must change nothing.
+  ASSERT_TRUE(WaitFor(
+      [&] { return Contains(path("seq1.err"), "STANDING_GRID 2/8") || seq1.Wait(0).has_value(); },
+      90))
+      << testing::ReadFile(path("seq1.err"));
+  {
+    lcm::LCM forger(kUrl);
+    service_status_t forged{};
+    forged.utime = std::chrono::duration_cast<std::chrono::microseconds>(
+                       std::chrono::system_clock::now().time_since_epoch())
+                       .count();
+    forged.name = "ftcal-evil-bridge";
+    forged.pid = 1;
+    forged.state = service_status_t::DEGRADED;
+    forged.last_error = "forged";
+    forger.publish("FTCAL_STATUS", &forged);
+  }
+  EXPECT_TRUE(WaitFor(
+      [&] { return Contains(path("seq1.err"), "FTCAL_STATUS from 'ftcal-evil-bridge' ignored"); },
+      5.0))
+      << testing::ReadFile(path("seq1.err"));
   ASSERT_TRUE(WaitFor(
       [&] { return Contains(path("seq1.err"), "STANDING_GRID 4/8") || seq1.Wait(0).has_value(); },
       90))

@@ -99,9 +99,10 @@ std::string ExperimentConfig(const std::string& public_key) {
   std::string text = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
   text = Replaced(text, std::regex("max_input_age_s: [0-9.]+"), "max_input_age_s: 1.0",
                   "max_input_age_s");
-  text =
-      Replaced(text, std::regex("reply_timeout_s: [0-9.]+"),
-               "reply_timeout_s: 0.1\n  deadman_s: 1.0\n  bus_watchdog_s: 1.0", "reply_timeout_s");
+  text = Replaced(
+      text, std::regex("reply_timeout_s: [0-9.]+"),
+      "reply_timeout_s: 0.1\n  deadman_s: 1.0\n  bus_watchdog_s: 1.0\n  start_quiet_s: 1.5",
+      "reply_timeout_s");
   text = Replaced(text, std::regex("\n  allow_unsigned: true"),
                   "\n  allow_unsigned: false\n  servo_cmd_window_s: 1.0\n"
                   "  trusted_key { name: \"experiment\" public_key_hex: \"" +

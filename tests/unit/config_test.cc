@@ -310,6 +310,25 @@ TEST(Config, RangeChecks) {
        "auth.trusted_key[1].name: duplicate trusted key name 'a'"},
       {"\n}\n", "\n}\nauth { servo_cmd_window_s: 0 }\n",
        "auth.servo_cmd_window_s: must be in (0, 10] s"},
+      // Issue 36, finding 5: the bridge forgets its commands on restart and ignores new ones for
+      // start_quiet_s, which is safe only while that outlasts the window.
+      {"\n}\n",
+       "\n}\nauth { servo_cmd_window_s: 1.5 }\ndynamixel { device: \"/dev/x\" start_quiet_s: 1 "
+       "}\n",
+       "auth.servo_cmd_window_s: must be below dynamixel.start_quiet_s (1 s)"},
+      {"\n}\n",
+       "\n}\nauth { servo_cmd_window_s: 1 }\ndynamixel { device: \"/dev/x\" start_quiet_s: 1 "
+       "}\n",
+       "auth.servo_cmd_window_s: must be below dynamixel.start_quiet_s (1 s)"},
+      {"\n}\n", "\n}\nhealth { max_drop_share: 0 }\n",
+       "health.max_drop_share: must be in (0, 1], got 0"},
+      {"\n}\n", "\n}\nhealth { min_inputs: 0 }\n", "health.min_inputs: must be >= 1, got 0"},
+      {"\n}\n", "\n}\nauth { control_window_s: 0 }\n",
+       "auth.control_window_s: must be in (0, 60] s"},
+      {"\n}\n", "\n}\nauth { calibration_window_s: 1e9 }\n",
+       "auth.calibration_window_s: must be in (0, 3600] s"},
+      {"\n}\n", "\n}\nauth { max_clock_ahead_s: -1 }\n",
+       "auth.max_clock_ahead_s: must be in (0, 60] s"},
       {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" deadman_s: 0 }\n",
        "dynamixel.deadman_s: must be > 0"},
       {"\n}\n", "\n}\ndynamixel { device: \"/dev/x\" max_velocity_rad_s: 0.02 }\n",

@@ -1,12 +1,17 @@
 // What ftcal-launch writes for supervisord and systemd, from the shipped configs.
 #include "launcher/launch_plan.h"
 
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <gtest/gtest.h>
 
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 
 #include "ftcal/config.h"
+#include "launcher/supervisor.h"
 
 namespace ftcal::launch {
 namespace {
@@ -102,6 +107,28 @@ TEST(LaunchPlan, SystemdUnitCarriesRestartWatchdogAndMemory) {
   EXPECT_NE(seq.find("Restart=no\n"), std::string::npos) << seq;
 }
 
+// Issue 36, finding 10: the exported units ran as root, and /run/ftcal was 0755.
+TEST(LaunchPlan, SystemdUnitRunsAsADedicatedUserWithPrivateDirectories) {
+  const auto config = Shipped("bigant.pbtxt");
+  const auto& g = FindGroup(config.launch(), "lab");
+  Placeholders v{"/etc/ftcal/lab.pbtxt", "%t/ftcal", config.lcm_url()};
+  for (const auto& p : g.process()) {
+    const std::string unit = SystemdUnit(config, g, p, v);
+    for (const char* line : {"\nUser=ftcal\n", "\nGroup=ftcal\n", "\nRuntimeDirectory=ftcal\n",
+                             "\nRuntimeDirectoryMode=0700\n", "\nStateDirectory=ftcal\n",
+                             "\nStateDirectoryMode=0700\n"}) {
+      EXPECT_NE(unit.find(line), std::string::npos) << p.name() << ": " << line << " in\n" << unit;
+    }
+    EXPECT_EQ(unit.find("User=root"), std::string::npos) << unit;
+  }
+  const auto& p = *FindProcess(g, "corrector");
+  EXPECT_NE(SystemdUnit(config, g, p, v, "ftcal-lab").find("\nUser=ftcal-lab\n"),
+            std::string::npos);
+  for (const char* bad : {"root", "", "Ftcal", "a b", "x;rm"}) {
+    EXPECT_THROW(SystemdUnit(config, g, p, v, bad), LaunchError) << bad;
+  }
+}
+
 }  // namespace
 }  // namespace ftcal::launch
 
@@ -118,6 +145,94 @@ TEST(LaunchPlan, WavesStartTogetherWhatWaitsForNothingInEachOther) {
                        {"ati-bridge", "dynamixel-bridge", "mocap-bridge"},
                        {"segmenter"},
                        {"calibrator", "corrector"}}));
+}
+
+}  // namespace
+}  // namespace ftcal::launch
+
+// ---- issue 36, finding 3: the run dir ----
+
+namespace ftcal::launch {
+namespace {
+
+class RunDirTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    char tmpl[] = "/tmp/ftcal_rundir_test.XXXXXX";
+    ASSERT_NE(::mkdtemp(tmpl), nullptr);
+    base_ = tmpl;
+  }
+  void TearDown() override { std::filesystem::remove_all(base_); }
+  // What HostSupervisor::run_dir() says of `spec` on this host (sh -c): the directory, or the
+  // refusal.
+  std::string RunDir(const std::string& spec, bool* refused) {
+    HostSupervisor hs("local", {}, spec);
+    try {
+      *refused = false;
+      return hs.run_dir();
+    } catch (const LaunchError& e) {
+      *refused = true;
+      return e.what();
+    }
+  }
+  std::string base_;
+};
+
+TEST_F(RunDirTest, ItIsMadeWithMode0700) {
+  bool refused = true;
+  const std::string dir = RunDir(base_ + "/a/run", &refused);
+  ASSERT_FALSE(refused) << dir;
+  EXPECT_EQ(dir, base_ + "/a/run");
+  struct stat st {};
+  ASSERT_EQ(::stat(dir.c_str(), &st), 0);
+  EXPECT_EQ(st.st_mode & 07777, 0700u);
+  EXPECT_EQ(st.st_uid, ::geteuid());
+  // Made before by this user in the same way: used again.
+  EXPECT_EQ(RunDir(base_ + "/a/run", &refused), dir);
+  EXPECT_FALSE(refused);
+}
+
+TEST_F(RunDirTest, OneOpenToOthersIsRefusedNamingPathOwnerAndMode) {
+  const std::string dir = base_ + "/open";
+  ASSERT_EQ(::mkdir(dir.c_str(), 0700), 0);
+  ASSERT_EQ(::chmod(dir.c_str(), 0755), 0);
+  bool refused = false;
+  const std::string what = RunDir(dir, &refused);
+  ASSERT_TRUE(refused) << what;
+  EXPECT_NE(what.find("run dir '" + dir + "' is owned by uid " + std::to_string(::geteuid())),
+            std::string::npos)
+      << what;
+  EXPECT_NE(what.find("with mode 755"), std::string::npos) << what;
+}
+
+TEST_F(RunDirTest, OneOfAnotherUserIsRefusedNamingTheOwner) {
+  // The fallback /tmp/ftcal-launch-UID made first by someone else. As root, a directory given to
+  // nobody; otherwise one that root owns.
+  std::string dir = "/";
+  uid_t owner = 0;
+  if (::geteuid() == 0) {
+    dir = base_ + "/theirs";
+    owner = 65534;
+    ASSERT_EQ(::mkdir(dir.c_str(), 0700), 0);
+    ASSERT_EQ(::chown(dir.c_str(), owner, owner), 0);
+  }
+  bool refused = false;
+  const std::string what = RunDir(dir, &refused);
+  ASSERT_TRUE(refused) << what;
+  EXPECT_NE(what.find("run dir '" + dir + "' is owned by uid " + std::to_string(owner)),
+            std::string::npos)
+      << what;
+  EXPECT_NE(what.find("with mode "), std::string::npos) << what;
+}
+
+TEST_F(RunDirTest, ASymbolicLinkIsRefused) {
+  const std::string dir = base_ + "/real";
+  ASSERT_EQ(::mkdir(dir.c_str(), 0700), 0);
+  ASSERT_EQ(::symlink(dir.c_str(), (base_ + "/link").c_str()), 0);
+  bool refused = false;
+  const std::string what = RunDir(base_ + "/link", &refused);
+  ASSERT_TRUE(refused) << what;
+  EXPECT_NE(what.find("is not a directory of its own"), std::string::npos) << what;
 }
 
 }  // namespace

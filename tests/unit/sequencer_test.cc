@@ -374,6 +374,15 @@ TEST_F(SafetyTest, StaleOverRangeSaturatedAndFailedBridgeAreNamed) {
   ASSERT_TRUE(failed.has_value());
   EXPECT_NE(failed->find("ftcal-ati-bridge reports state 2 (box 3 refuses)"), std::string::npos)
       << *failed;
+  // Issue 36, finding 7: an entry never heard again expires after kStatusExpiryS (its data's age
+  // says whether the process is gone).
+  for (const int64_t after_us : {-1000, 1000}) {
+    const int64_t now = 10'000'000 + static_cast<int64_t>(kStatusExpiryS * 1e6) + after_us;
+    Inputs later = FromFrame(driven.Frame(0.0, Angles{}), now);
+    later.status = in.status;
+    const auto verdict = safety.Stale(later, now, false);
+    EXPECT_EQ(verdict.has_value(), after_us < 0) << verdict.value_or("");
+  }
 }
 
 TEST_F(SafetyTest, TheSequencersOwnStallDoesNotAgeItsInputsButAStallOnlyTakesOutItsSpan) {
@@ -466,7 +475,14 @@ class ManualBus : public Bus {
     const std::vector<size_t> subs = HandlersFor(channel);
     for (size_t s : subs) Dispatch(s, channel, now_, bytes.data(), static_cast<int>(bytes.size()));
   }
-  int64_t now_ = 1'700'000'000'000'000;
+  // Every bus starts a day after the one before: the tests share TestSigner(), whose sequences
+  // follow its clock, and receivers refuse a sequence ahead of their time (issue 36).
+  static int64_t NextStart() {
+    static int64_t next = 1'700'000'000'000'000;
+    next += 86'400'000'000;
+    return next;
+  }
+  int64_t now_ = NextStart();
 };
 
 template <class Msg>
@@ -499,7 +515,8 @@ class Robot {
         driven_(twin_),
         bridge_stats_(QuietBridgeLog()),
         verifier_(auth::Verifier::FromConfig(config)),
-        gate_(config, bridge_stats_, -bridge_up_s) {}
+        gate_(config, bridge_stats_, -bridge_up_s),
+        t0_(bus.NowUtime()) {}
 
   // Runs `seconds` of robot time; `sequencer` ticks every 20 ms as the loop would.
   void Run(Sequencer& sequencer, double seconds, const std::function<void(double)>& each = {}) {
@@ -608,7 +625,7 @@ class Robot {
   int silent_leg_ = -1;
   bool cut_ = false;
   double t_ = 0.0;
-  const int64_t t0_ = 1'700'000'000'000'000;
+  const int64_t t0_;
 };
 
 std::shared_ptr<spdlog::logger> QuietLog() {
@@ -838,6 +855,7 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride:
   sequencer_control_t confirm{};
   confirm.action = sequencer_control_t::CONFIRM;
   confirm.step = 0;
+  confirm.nonce = seq.confirm_nonce();
   bus.Deliver("SEQUENCER_CONTROL", confirm);
   robot.Run(seq, 5.0);
   EXPECT_EQ(seq.state(), Sequencer::State::kRunning);
@@ -963,6 +981,174 @@ plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride:
   robot.Run(seq, 2.0);
   EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
   EXPECT_EQ(stats.kinds().count("unsigned on SEQUENCER_CONTROL"), 1u);
+}
+
+// ---- issue 36: a signature says who, not when nor for which prompt ----
+
+// The operator's key, trusted on SEQUENCER_CONTROL only.
+auth::Signer& OperatorSigner() {
+  static auth::Signer signer = [] {
+    std::array<uint8_t, auth::kSeedBytes> seed{};
+    randombytes_buf(seed.data(), seed.size());
+    return auth::Signer::FromSeed(seed);
+  }();
+  return signer;
+}
+
+config::Config SignedControlConfig() {
+  config::Config c = SimConfig(R"(
+plan { name: "grid" phase { kind: PHASE_STANDING_GRID confirm: true pose_stride: 100 dwell_s: 1.5 } }
+)",
+                               /*allow_unsigned=*/false);
+  auto* key = c.mutable_auth()->add_trusted_key();
+  key->set_name("operator");
+  const auth::PublicKey& pk = OperatorSigner().public_key();
+  key->set_public_key_hex(auth::ToHex(pk.data(), pk.size()));
+  key->add_channel("SEQUENCER_CONTROL");
+  return c;
+}
+
+template <class Msg>
+void DeliverSigned(ManualBus& bus, const Msg& msg, int64_t signed_utime) {
+  bus.Deliver("SEQUENCER_CONTROL", OperatorSigner().Seal("SEQUENCER_CONTROL", msg, signed_utime));
+}
+
+TEST(SequencerControl, AConfirmMustCarryTheNonceOfThePromptItAnswers) {
+  const config::Config c = SignedControlConfig();
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", /*yes=*/false, "", "n1"});
+  robot.Run(seq, 2.0);
+  ASSERT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  const int64_t nonce = seq.confirm_nonce();
+  ASSERT_NE(nonce, 0);
+  EXPECT_EQ(stats.counters().at("confirm_nonce"), nonce);  // what ftcal-sequencer-control reads
+  sequencer_control_t confirm{};
+  confirm.action = sequencer_control_t::CONFIRM;
+  confirm.step = -1;
+  confirm.nonce = 0;  // as an old ftcal-sequencer-control, or a capture of another prompt, sends
+  DeliverSigned(bus, confirm, bus.NowUtime());
+  confirm.nonce = nonce + 1;
+  DeliverSigned(bus, confirm, bus.NowUtime());
+  robot.Run(seq, 1.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  EXPECT_EQ(stats.kinds().at("confirm of another prompt"), 2);
+  confirm.nonce = nonce;
+  DeliverSigned(bus, confirm, bus.NowUtime());
+  robot.Run(seq, 1.0);
+  EXPECT_EQ(seq.state(), Sequencer::State::kRunning);
+  EXPECT_EQ(stats.counters().at("confirms"), 1);
+  EXPECT_EQ(seq.confirm_nonce(), 0);
+  EXPECT_EQ(stats.counters().at("confirm_nonce"), 0);
+}
+
+TEST(SequencerControl, EachPromptDrawsAFreshNonce) {
+  // Two sequencers at the same prompt of the same plan (a run and its resume): different nonces,
+  // so a CONFIRM of the one cannot answer the other.
+  const config::Config c = SignedControlConfig();
+  std::set<int64_t> nonces;
+  for (int run = 0; run < 4; ++run) {
+    ServiceStats stats(QuietLog());
+    ManualBus bus(stats);
+    Robot robot(c, bus);
+    Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", false, "", "n2"});
+    robot.Run(seq, 1.0);
+    ASSERT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+    nonces.insert(seq.confirm_nonce());
+  }
+  EXPECT_EQ(nonces.size(), 4u);
+}
+
+TEST(SequencerControl, AStopSignedSecondsAgoIsRefused) {
+  const config::Config c = SignedControlConfig();
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", false, "", "n3"});
+  robot.Run(seq, 1.0);
+  sequencer_control_t stop{};
+  stop.action = sequencer_control_t::STOP;
+  stop.step = -1;
+  // Captured 20 s ago (the finding's replay), and one just outside auth.control_window_s.
+  DeliverSigned(bus, stop, bus.NowUtime() - 20'000'000);
+  DeliverSigned(bus, stop,
+                bus.NowUtime() - static_cast<int64_t>(c.auth().control_window_s() * 1e6) - 1000);
+  EXPECT_EQ(seq.state(), Sequencer::State::kWaitingForOperator);
+  EXPECT_EQ(stats.kinds().at("stale from operator on SEQUENCER_CONTROL"), 2);
+  DeliverSigned(bus, stop, bus.NowUtime() - 1'000'000);  // a second in transit: taken
+  EXPECT_EQ(seq.state(), Sequencer::State::kStopped);
+}
+
+// Issue 36, finding 7: one unsigned FTCAL_STATUS from an invented process name containing
+// "bridge", state DEGRADED, stopped a moving run.
+TEST(SequencerStatusWatch, AStatusFromAnInventedBridgeDoesNotStopARun) {
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "w1"});
+  bool forged = false;
+  robot.Run(seq, 120.0, [&](double) {
+    if (forged || seq.ProgressLine().find("STANDING_GRID 3/") == std::string::npos) return;
+    forged = true;
+    service_status_t st{};
+    st.utime = bus.NowUtime();
+    st.name = "ftcal-evil-bridge";
+    st.state = service_status_t::DEGRADED;
+    st.last_error = "forged";
+    bus.Deliver("FTCAL_STATUS", st);
+  });
+  ASSERT_TRUE(forged);
+  EXPECT_EQ(seq.state(), Sequencer::State::kDone) << seq.stop_reason();
+  EXPECT_GE(stats.counters().at("status_ignored"), 1);
+}
+
+TEST(SequencerStatusWatch, AWatchedBridgeThatIsDegradedStopsTheRunUntilItsEntryExpires) {
+  const config::Config c = SimConfig(kGridPlan);
+  EXPECT_EQ(
+      WatchedStatusNames(c),
+      (std::set<std::string>{"ftcal-ati-bridge", "ftcal-dynamixel-bridge", "ftcal-mocap-bridge"}));
+  // A config whose launch group runs the sequencer: its bridges, by their heartbeat names.
+  const config::Config lab = LoadConfigFile(std::string(FTCAL_SOURCE_DIR) + "/config/bigant.pbtxt");
+  const std::set<std::string> watched = WatchedStatusNames(lab);
+  EXPECT_EQ(watched.count("ftcal-dynamixel-bridge"), 1u);
+  EXPECT_EQ(watched.count("ftcal-corrector"), 0u);
+  for (const std::string& n : watched) EXPECT_NE(n.find("-bridge"), std::string::npos) << n;
+  // Another bridge the sequencer's group launches is watched too; the mocap bridge follows
+  // mocap.system.
+  config::Config more = lab;
+  ASSERT_EQ(more.launch().group(0).name(), "lab");
+  auto* plate = more.mutable_launch()->mutable_group(0)->add_process();
+  plate->set_name("plate");
+  plate->set_command("/opt/lab/ftcal-plate-bridge");
+  more.mutable_mocap()->set_system(config::OPTITRACK);
+  const std::set<std::string> more_watched = WatchedStatusNames(more);
+  EXPECT_EQ(more_watched.count("ftcal-plate-bridge"), 1u);
+  EXPECT_EQ(more_watched.count("ftcal-natnet-bridge"), 1u);
+
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "w2"});
+  bool sent = false;
+  robot.Run(seq, 120.0, [&](double) {
+    if (sent || seq.ProgressLine().find("STANDING_GRID 3/") == std::string::npos) return;
+    sent = true;
+    service_status_t st{};
+    st.utime = bus.NowUtime() - static_cast<int64_t>((kStatusExpiryS + 0.5) * 1e6);
+    st.name = "ftcal-ati-bridge";
+    st.state = service_status_t::DEGRADED;
+    bus.Deliver("FTCAL_STATUS", st);  // long expired when it comes: nothing
+    st.utime = bus.NowUtime();
+    st.last_error = "box 3 refuses";
+    bus.Deliver("FTCAL_STATUS", st);
+  });
+  ASSERT_TRUE(sent);
+  ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("ftcal-ati-bridge reports state 2 (box 3 refuses)"),
+            std::string::npos)
+      << seq.stop_reason();
 }
 
 }  // namespace

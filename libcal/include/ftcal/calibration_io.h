@@ -19,6 +19,18 @@ void FillCalibrationValues(const RobotCalibration& cal, calibration::Calibration
 RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
                                       const config::Robot& robot);
 
+// A calibration that verified and parsed can still be absurd (a signature says who made it,
+// not that it is sane): throws std::runtime_error naming the parameter, its value and the limit
+// unless it fits the config's robot. Its total mass is the configured one within
+// calibrator.mass_tolerance_kg; g0 within kG0ToleranceMs2 of the configured; each leg weight
+// positive and the six together below the robot's weight (the legs are part of it); each offset
+// component within the transducer's rated range (ati.rated_range, where given); p~', p^C_B and
+// every leg CoM r_k(phi) within the robot's size (twice the farthest transducer from the body
+// origin, at least kMinRobotSizeM).
+constexpr double kG0ToleranceMs2 = 0.1;
+constexpr double kMinRobotSizeM = 0.1;
+void CheckCalibrationPlausible(const RobotCalibration& cal, const config::Config& config);
+
 // Text format. Writing is atomic: a temporary file beside the target, fsync, rename.
 calibration::Calibration ReadCalibrationFile(const std::string& path);
 void WriteCalibrationFile(const calibration::Calibration& cal, const std::string& path);
