@@ -14,6 +14,8 @@ if(TARGET ftcal-emulate-ati AND TARGET ftcal-ati-bridge)
   set_target_properties(ati_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   ftcal_gtest_discover(ati_bridge_test KIND integration
+    # the in-process ones (no network): fast
+    FAST "AtiEmulatorInProcess.*:AtiBridgeInProcess.*"
     PROPERTIES TIMEOUT 60
     DISCOVERY_TIMEOUT 60)
 endif()

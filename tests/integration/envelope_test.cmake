@@ -1,6 +1,6 @@
 # Signed channels (services/common/envelope) on memq://, ftcal-keygen and ftcal-envelopes
 # (no network).
-ftcal_add_gtest(envelope_test integration TIMEOUT 60
+ftcal_add_gtest(envelope_test integration TIMEOUT 60 TIER fast
   SOURCES "${CMAKE_CURRENT_LIST_DIR}/envelope_test.cc"
   LIBS ftcal_common ftcal_child_process)
 target_compile_definitions(envelope_test PRIVATE FTCAL_KEYGEN="$<TARGET_FILE:ftcal-keygen>"

@@ -11,6 +11,8 @@ if(TARGET ftcal-mocap-bridge AND TARGET ftcal-emulate-qtm)
   set_target_properties(mocap_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   ftcal_gtest_discover(mocap_bridge_test KIND integration
+    # the emulator alone: fast
+    FAST "QtmEmulatorTest.*"
     PROPERTIES TIMEOUT 120
     DISCOVERY_TIMEOUT 60)
 endif()

@@ -9,7 +9,7 @@ add_custom_command(
   COMMENT "lcm-gen: wire_guard_test's crafted_t"
   VERBATIM)
 ftcal_wire_schemas(CraftedSchemas "${_crafted_dir}/crafted_schemas.cc" "${_crafted_lcm}")
-ftcal_add_gtest(wire_guard_test integration TIMEOUT 60
+ftcal_add_gtest(wire_guard_test integration TIMEOUT 60 TIER fast
   SOURCES "${CMAKE_CURRENT_LIST_DIR}/wire_guard_test.cc"
           "${_crafted_dir}/ftcal_test/crafted_t.hpp"
           "${_crafted_dir}/crafted_schemas.cc"
