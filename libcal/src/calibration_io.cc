@@ -239,9 +239,11 @@ void CheckCalibrationPlausible(const RobotCalibration& cal, const config::Config
   for (int k = 0; k < kNumLegs; ++k) {
     const LegCalibration& l = cal.leg[k];
     const std::string leg = "leg[" + std::to_string(k) + "] (" + robot.leg(k).name() + ")";
-    if (!(l.weight_n > 0.0 && l.weight_n < robot_weight_n)) {
+    // 0 is a tare-only calibration (no leg gravity model): the naive-tare baseline the report
+    // and pipeline_e2e_test compare against. Below it, no leg weighs that.
+    if (!(l.weight_n >= 0.0 && l.weight_n < robot_weight_n)) {
       refuse(leg + ".leg_weight_n", l.weight_n,
-             "(0, " + Num(robot_weight_n) + ") N (the robot's weight, robot.total_mass_kg g0)");
+             "[0, " + Num(robot_weight_n) + ") N (the robot's weight, robot.total_mass_kg g0)");
     }
     legs_n += l.weight_n;
     const config::AtiTransducer& ati = robot.leg(k).ati();

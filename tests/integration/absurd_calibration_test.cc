@@ -49,7 +49,7 @@ std::vector<Absurd> AbsurdCalibrations() {
        [](calibration::Calibration* c) {
          c->mutable_leg(0)->mutable_leg_weight_n()->set_value(-1e6);
        },
-       "leg[0] (HL).leg_weight_n = -1000000, outside (0, "},
+       "leg[0] (HL).leg_weight_n = -1000000, outside [0, "},
       {"total mass 1e9 kg", [](calibration::Calibration* c) { c->set_total_mass_kg(1e9); },
        "total_mass_kg = 1000000000, outside the config's robot.total_mass_kg"},
       {"p~' 1000 km",
