@@ -195,7 +195,7 @@ TEST_F(OffsetDriftTest, AnImplausibleBaseCalibrationIsRefusedNamingTheParameter)
                        "absurd_cal");
   EXPECT_EQ(r.exit_code, 2) << r.err;
   EXPECT_NE(
-      r.err.find("implausible calibration: leg[0] (HL).leg_weight_n = -1000000, outside (0, "),
+      r.err.find("implausible calibration: leg[0] (HL).leg_weight_n = -1000000, outside [0, "),
       std::string::npos)
       << r.err;
   EXPECT_FALSE(std::filesystem::exists(OutPath("absurd")));
