@@ -41,6 +41,7 @@ namespace {
 using testing::Child;
 using testing::Encode;
 using testing::NowUs;
+using testing::StatusCounter;
 using Clock = std::chrono::steady_clock;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
@@ -54,12 +55,6 @@ class StatusWatch {
   }
   ~StatusWatch() { lcm_.unsubscribe(sub_); }
 
-  static int64_t Counter(const service_status_t& s, const std::string& name) {
-    for (int i = 0; i < s.num_counters; ++i) {
-      if (s.counter_name[i] == name) return s.counter_value[i];
-    }
-    return -1;
-  }
   // Waits for a heartbeat of `pid` received after this call for which `pred` holds.
   std::optional<service_status_t> Await(pid_t pid,
                                         const std::function<bool(const service_status_t&)>& pred,
@@ -74,7 +69,7 @@ class StatusWatch {
     return std::nullopt;
   }
   std::optional<service_status_t> AwaitCounter(pid_t pid, const std::string& name, int64_t value) {
-    return Await(pid, [&](const service_status_t& s) { return Counter(s, name) == value; });
+    return Await(pid, [&](const service_status_t& s) { return StatusCounter(s, name) == value; });
   }
 
  private:
@@ -180,32 +175,30 @@ TEST_F(RestartReplayTest, ASequencerRestartedOnItsProgressRefusesACapturedConfir
                                          Path("sequencer.key")};
 
   auto seq = Start("sequencer", argv);
-  auto prompt = watch.Await(seq->pid(), [](const service_status_t& s) {
-    return StatusWatch::Counter(s, "confirm_nonce") > 0;
-  });
+  auto prompt = watch.Await(
+      seq->pid(), [](const service_status_t& s) { return StatusCounter(s, "confirm_nonce") > 0; });
   ASSERT_TRUE(prompt) << Log("sequencer", 1);
   sequencer_control_t confirm{};
   confirm.utime = NowUs();
   confirm.action = sequencer_control_t::CONFIRM;
   confirm.step = -1;
-  confirm.nonce = StatusWatch::Counter(*prompt, "confirm_nonce");
+  confirm.nonce = StatusCounter(*prompt, "confirm_nonce");
   const std::vector<uint8_t> captured = Encode(op.Seal("SEQUENCER_CONTROL", confirm, NowUs()));
   Send("SEQUENCER_CONTROL", captured);
   ASSERT_TRUE(watch.AwaitCounter(seq->pid(), "confirms", 1)) << Log("sequencer", 1);
   // No robot here: the standing pre-check fails once its inputs stay missing, and the operator
   // is asked again, with a new nonce. Stopped there, the plan resumes at that prompt.
   ASSERT_TRUE(watch.Await(seq->pid(), [&](const service_status_t& s) {
-    const int64_t n = StatusWatch::Counter(s, "confirm_nonce");
+    const int64_t n = StatusCounter(s, "confirm_nonce");
     return n > 0 && n != confirm.nonce;
   })) << Log("sequencer", 1);
   Stop(seq);
 
   seq = Start("sequencer", argv);
-  auto resumed = watch.Await(seq->pid(), [](const service_status_t& s) {
-    return StatusWatch::Counter(s, "confirm_nonce") > 0;
-  });
+  auto resumed = watch.Await(
+      seq->pid(), [](const service_status_t& s) { return StatusCounter(s, "confirm_nonce") > 0; });
   ASSERT_TRUE(resumed) << Log("sequencer", 2);
-  EXPECT_NE(StatusWatch::Counter(*resumed, "confirm_nonce"), confirm.nonce);
+  EXPECT_NE(StatusCounter(*resumed, "confirm_nonce"), confirm.nonce);
 
   Send("SEQUENCER_CONTROL", captured);  // the capture, seconds later
   EXPECT_TRUE(AwaitLog("sequencer", "replayed from operator on SEQUENCER_CONTROL"))
@@ -225,8 +218,8 @@ TEST_F(RestartReplayTest, ASequencerRestartedOnItsProgressRefusesACapturedConfir
   auto after = watch.Await(seq->pid(), [](const service_status_t&) { return true; });
   ASSERT_TRUE(after);
   // No confirmation and no stop taken (a counter appears with its first count).
-  EXPECT_LE(StatusWatch::Counter(*after, "confirms"), 0) << Log("sequencer", 2);
-  EXPECT_LE(StatusWatch::Counter(*after, "stops"), 0) << Log("sequencer", 2);
+  EXPECT_LE(StatusCounter(*after, "confirms"), 0) << Log("sequencer", 2);
+  EXPECT_LE(StatusCounter(*after, "stops"), 0) << Log("sequencer", 2);
   EXPECT_TRUE(seq->running());
 
   // The operator's tool reads the prompt's nonce and its CONFIRM is taken.
@@ -294,7 +287,7 @@ TEST_F(RestartReplayTest, ACorrectorRestartedRefusesACalibrationItUsedBeforeAndO
   EXPECT_TRUE(AwaitLog("corrector", "stale from calibrator on CALIBRATION")) << Log("corrector", 2);
   auto status = watch.Await(corrector->pid(), [](const service_status_t&) { return true; });
   ASSERT_TRUE(status);
-  EXPECT_EQ(StatusWatch::Counter(*status, "calibration_version"), 1) << Log("corrector", 2);
+  EXPECT_EQ(StatusCounter(*status, "calibration_version"), 1) << Log("corrector", 2);
   // A new one is taken.
   Send("CALIBRATION", message(4, NowUs()));
   EXPECT_TRUE(watch.AwaitCounter(corrector->pid(), "calibration_version", 4))
@@ -336,7 +329,7 @@ TEST_F(RestartReplayTest, ALiveCalibratorRestartedRefusesMarkersItTookBeforeAndO
   EXPECT_TRUE(AwaitLog("calibrator", "stale from sequencer on EXPERIMENT")) << Log("calibrator", 2);
   auto status = watch.Await(cal->pid(), [](const service_status_t&) { return true; });
   ASSERT_TRUE(status);
-  EXPECT_EQ(StatusWatch::Counter(*status, "markers"), 0) << Log("calibrator", 2);
+  EXPECT_EQ(StatusCounter(*status, "markers"), 0) << Log("calibrator", 2);
   Send("EXPERIMENT", marker("this-session", NowUs()));
   EXPECT_TRUE(watch.AwaitCounter(cal->pid(), "markers", 1)) << Log("calibrator", 2);
   Stop(cal);

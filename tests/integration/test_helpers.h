@@ -131,6 +131,14 @@ inline std::map<pid_t, service_status_t> AwaitHeartbeats(
   return ear.heard;
 }
 
+// The heartbeat's counter `name`, or -1 when it carries none.
+inline int64_t StatusCounter(const service_status_t& s, const std::string& name) {
+  for (int i = 0; i < s.num_counters; ++i) {
+    if (s.counter_name[i] == name) return s.counter_value[i];
+  }
+  return -1;
+}
+
 // Runs this test and everything it starts from here on (children inherit it) ahead of whatever
 // else the machine runs: builds, other tests, CI's busy neighbours. The twin stands in for
 // devices that have processors of their own, and a lab runs its group with priority (the
