@@ -37,6 +37,11 @@ bool GetSchedAttr(SchedAttr& a) {
 
 }  // namespace
 
+bool LockMemory() {
+  // Two calls: MCL_ONFAULT applies to MCL_CURRENT too, so the first populates what is mapped now.
+  return ::mlockall(MCL_CURRENT) == 0 && ::mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) == 0;
+}
+
 SchedulingGranted ApplyScheduling(const SchedulingOptions& options, spdlog::logger& log) {
   if (options.realtime && (options.realtime_priority < 1 || options.realtime_priority > 99)) {
     throw std::invalid_argument("realtime priority " + std::to_string(options.realtime_priority) +
@@ -49,7 +54,7 @@ SchedulingGranted ApplyScheduling(const SchedulingOptions& options, spdlog::logg
   SchedulingGranted granted;
   if (options.realtime) {
     // Locked first: a page fault on the receive path would cost more than the whole publish.
-    if (::mlockall(MCL_CURRENT | MCL_FUTURE) == 0) {
+    if (LockMemory()) {
       granted.locked = true;
     } else {
       log.warn("--realtime: mlockall refused ({}): pages may fault on the receive path",

@@ -35,4 +35,11 @@ struct SchedulingGranted {
 // or over 100 ms).
 SchedulingGranted ApplyScheduling(const SchedulingOptions& options, spdlog::logger& log);
 
+// mlockall for a process that receives from the network: the pages mapped now are populated and
+// locked, pages mapped later are locked as they are first touched (MCL_ONFAULT), not populated
+// at mmap. Without MCL_ONFAULT, MCL_FUTURE made LCM's reassembly buffer for a fragmented message
+// resident whole at its first fragment: one unauthenticated datagram announcing 256 MiB cost a
+// locked process 256 MiB (issue 36, finding 4). False (errno set) when refused.
+bool LockMemory();
+
 }  // namespace ftcal

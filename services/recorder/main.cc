@@ -8,7 +8,6 @@
 // kernel counted no drop). This recorder is LCM's own pieces: the subscription through
 // services/common's bus (a queue of kSubscriptionQueueCapacity), the events written with
 // lcm::LogFile; the file is the same format.
-#include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -20,6 +19,7 @@
 
 #include "common/atomic_log.h"
 #include "common/exit_codes.h"
+#include "common/scheduling.h"
 #include "common/service.h"
 #include "common/shutdown.h"
 #include "common/written_digest.h"
@@ -76,7 +76,7 @@ int main(int argc, char** argv) {
     app.log().critical("cannot open {} for writing", path);
     return ftcal::kExitDeviceIo;
   }
-  if (lock_memory && ::mlockall(MCL_CURRENT | MCL_FUTURE) != 0) {
+  if (lock_memory && !ftcal::LockMemory()) {
     app.log().warn(
         "--lock-memory: mlockall refused (needs CAP_IPC_LOCK or root); recording anyway");
   }
