@@ -87,11 +87,12 @@ class RawSender {
       Put32(datagram, offset);
       Put16(datagram, static_cast<uint16_t>(no));
       Put16(datagram, static_cast<uint16_t>(total));
-      if (no == 0) datagram.insert(datagram.end(), channel.c_str(), channel.c_str() + channel.size() + 1);
+      if (no == 0)
+        datagram.insert(datagram.end(), channel.c_str(), channel.c_str() + channel.size() + 1);
       datagram.resize(datagram.size() + n, static_cast<uint8_t>(0xA5 ^ no));
       if (::sendto(fd_, datagram.data(), datagram.size(), 0,
-                   reinterpret_cast<const sockaddr*>(&to_), sizeof to_) !=
-          static_cast<ssize_t>(datagram.size())) {
+                   reinterpret_cast<const sockaddr*>(&to_),
+                   sizeof to_) != static_cast<ssize_t>(datagram.size())) {
         return false;
       }
       std::this_thread::sleep_for(between);
@@ -225,16 +226,16 @@ TEST_F(BigMessageTest, A250MBCommandCostsTheLockedBridgeItsSizeOnlyAndFitsItsShi
   ASSERT_TRUE(attacker.good() && marker.good());
   // A lone first fragment, then a small garbage message from another sender: once that one is
   // refused, the fragment before it has been taken.
-  ASSERT_TRUE(attacker.SendFragments("SERVO_CMD", 1, kBigBytes, 60000, 1,
-                                     std::chrono::microseconds(0)));
+  ASSERT_TRUE(
+      attacker.SendFragments("SERVO_CMD", 1, kBigBytes, 60000, 1, std::chrono::microseconds(0)));
   ASSERT_TRUE(marker.SendFragments("SERVO_CMD", 1, 3000, 1400, 3, std::chrono::microseconds(0)));
   auto after_first = heartbeats.Await(
       pid, [&](const service_status_t& s) { return RefusedOnServoCmd(s, running->drops); }, 15);
   ASSERT_TRUE(after_first) << "the small message after the lone fragment was not refused\n"
                            << BridgeLog();
   const double rss_first = ProcStatusMiB(pid, "VmHWM");
-  std::cout << "Dynamixel bridge (" << (locked ? "memory locked" : "memory NOT locked")
-            << "): RSS " << rss0 << " MiB at start, high-water " << rss_first
+  std::cout << "Dynamixel bridge (" << (locked ? "memory locked" : "memory NOT locked") << "): RSS "
+            << rss0 << " MiB at start, high-water " << rss_first
             << " MiB after a lone fragment announcing 250 MB\n";
   EXPECT_LT(rss_first - rss0, 16) << "a lone fragment made the announced size resident";
 
@@ -243,8 +244,7 @@ TEST_F(BigMessageTest, A250MBCommandCostsTheLockedBridgeItsSizeOnlyAndFitsItsShi
   ASSERT_TRUE(whole.SendFragments("SERVO_CMD", 7, kBigBytes, 60000, 0xffff,
                                   std::chrono::microseconds(150)));
   auto after_whole = heartbeats.Await(
-      pid, [&](const service_status_t& s) { return RefusedOnServoCmd(s, after_first->drops); },
-      30);
+      pid, [&](const service_status_t& s) { return RefusedOnServoCmd(s, after_first->drops); }, 30);
   ASSERT_TRUE(after_whole) << "the 250 MB message was not refused (fragments lost?)\n"
                            << BridgeLog();
   const double hwm = ProcStatusMiB(pid, "VmHWM");
