@@ -9,9 +9,12 @@ namespace ftcal {
 
 namespace {
 
-// How often (device seconds) the map is refitted when no sample falls below it: the hull changes
-// with every sample, the line it gives only slowly.
-constexpr double kRefitEveryS = 0.05;
+// How often (device seconds) the map is refitted: the hull changes with every sample, the line
+// it gives only slowly (a sample below it in between is mapped to its receipt). More often while
+// the map is young and each second of data moves it.
+constexpr double kRefitEveryS = 0.5;
+constexpr double kYoungRefitEveryS = 0.05;
+constexpr double kYoungS = 10.0;
 constexpr size_t kSlicesPerEpoch = 4;
 
 // > 0 when o -> a -> b turns counter-clockwise (b above the line through o and a).
@@ -26,8 +29,10 @@ DeviceClock::DeviceClock(const DeviceClockOptions& options) : options_(options) 
     throw std::invalid_argument("device clock: nominal rate " + std::to_string(options.nominal_hz) +
                                 " Hz is not positive");
   }
-  if (!(options.epoch_s > 0) || !(options.min_span_s >= 0) || !(options.step_s > 0)) {
-    throw std::invalid_argument("device clock: epoch, minimum span and step must be positive");
+  if (!(options.epoch_s > 0) || !(options.min_span_s >= 0) || !(options.step_s > 0) ||
+      !(options.step_persist_s > 0)) {
+    throw std::invalid_argument(
+        "device clock: epoch, minimum span, step and step persistence must be positive");
   }
 }
 
@@ -56,6 +61,7 @@ void DeviceClock::Restart(int64_t ticks, int64_t receipt_us) {
   intercept_ = 0;
   rate_ = 1.0;
   next_refit_x_ = 0;
+  late_since_x_ = -1;
 }
 
 int64_t DeviceClock::fit_samples() const {
@@ -146,6 +152,17 @@ int64_t DeviceClock::Observe(int64_t ticks, int64_t receipt_us) {
     Restart(ticks, receipt_us);
     return receipt_us;
   }
+  if (p.y - LineAt(p.x) > options_.step_s) {
+    if (late_since_x_ < 0) {
+      late_since_x_ = p.x;
+    } else if (p.x - late_since_x_ >= options_.step_persist_s) {
+      ++restarts_;
+      Restart(ticks, receipt_us);
+      return receipt_us;
+    }
+  } else {
+    late_since_x_ = -1;
+  }
   last_ticks_ = ticks;
   const double slice_s = options_.epoch_s / kSlicesPerEpoch;
   if (p.x - slices_.back().first_x >= slice_s) {
@@ -159,9 +176,9 @@ int64_t DeviceClock::Observe(int64_t ticks, int64_t receipt_us) {
   slice.sum_x += p.x;
   ++slice.n;
   slice.last_x = p.x;
-  if (p.y < LineAt(p.x) || p.x >= next_refit_x_) {
+  if (p.x >= next_refit_x_) {
     Refit();
-    next_refit_x_ = p.x + kRefitEveryS;
+    next_refit_x_ = p.x + (fit_span_s() < kYoungS ? kYoungRefitEveryS : kRefitEveryS);
   }
   const double mapped = std::min(LineAt(p.x), p.y);
   return origin_us_ + std::llround(mapped * 1e6);

@@ -17,13 +17,15 @@ enum ExitCode : int {
   kExitConfig = 3,    // the config file cannot be read or fails its checks
   kExitDeviceIo = 4,  // a device, the bus or a file cannot be opened, read or written
   kExitInternal = 5,  // an unexpected failure inside the program (a bug: please report it)
+  kExitWarnings = 6,  // done, with warnings the caller should read (ftcal-doctor's verdict)
 };
 
 inline const char* ExitCodeTable() {
   return "Exit codes: 0 done; 1 usage (a bad flag or argument); 2 input refused (a log, "
          "message or result that fails its checks); 3 config (unreadable or fails its "
          "checks); 4 device or I/O (a device, the bus or a file cannot be opened, read or "
-         "written); 5 internal error (a bug: please report it).";
+         "written); 5 internal error (a bug: please report it); 6 done with warnings "
+         "(ftcal-doctor: calibratable, but read them first).";
 }
 
 // The levels spdlog knows: anything else would silently turn logging off.

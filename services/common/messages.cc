@@ -77,6 +77,8 @@ std::optional<FtPeek> PeekFtSample(const void* data, int size, int leg) {
   for (int i = 0; i < 6; ++i) out.in.wrench[i] = DoubleAt(after + kWrench + 8 * i);
   out.in.flags = Int32At(after + kFlags);
   out.rdt_sequence = Int64At(after);
+  out.ft_sequence = Int64At(after + 8);
+  out.status = Int64At(after + 16);
   return out;
 }
 

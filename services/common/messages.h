@@ -86,6 +86,8 @@ std::optional<int64_t> PeekRdtSequence(const void* data, int size);
 struct FtPeek {
   FtInput in;
   int64_t rdt_sequence = 0;
+  int64_t ft_sequence = 0;  // the device's internal sample counter (ftcal-doctor's clock)
+  int64_t status = 0;
 };
 std::optional<FtPeek> PeekFtSample(const void* data, int size, int leg);
 

@@ -54,9 +54,9 @@ struct Session {
 };
 
 struct Errors {
-  double max_time_error_s = 0;  // |mapped - (sample time + least delay)|, after the first 10 s
+  double max_time_error_s = 0;    // |mapped - (sample time + least delay)|, after the first 10 s
   double max_skew_error_ppm = 0;  // |skew - truth|, once the fit spans its window (100 s)
-  double late_mapped = 0;       // mapped later than received (must never happen)
+  double late_mapped = 0;         // mapped later than received (must never happen)
   int64_t samples = 0;
 };
 
@@ -67,7 +67,7 @@ Errors RunSession(const Session& s, DeviceClock& clock) {
   Errors e;
   const int64_t n = static_cast<int64_t>(s.minutes * 60 * s.nominal_hz);
   const int64_t tick0 = 4'000'000'000;  // far from 0: the map must not depend on the origin
-  double host_s = 0;  // the sample's true host time since the start
+  double host_s = 0;                    // the sample's true host time since the start
   double next_stall_s = s.stall_every_s * unit(rng);
   for (int64_t i = 0; i < n; ++i) {
     const double frac = static_cast<double>(i) / static_cast<double>(n);
@@ -166,6 +166,25 @@ TEST(DeviceClock, ACounterThatFallsOrAHostClockThatStepsBackStartsAfresh) {
   EXPECT_EQ(clock.Observe(3 + 5000, stepped), stepped);
   EXPECT_EQ(clock.restarts(), 2);
   EXPECT_EQ(clock.Observe(3 + 5001, stepped + 1000), stepped + 1000);
+}
+
+TEST(DeviceClock, ACounterThatStandsStillWhileTimeGoesOnStartsAfreshAfterASecond) {
+  // ftcal-sim's log between two scenarios: the devices fall silent for 2 s and resume where
+  // their counters stopped. Every later sample is 2 s late by the old map: not a stall that
+  // drains.
+  DeviceClockOptions o;
+  o.nominal_hz = 100;
+  DeviceClock clock(o);
+  const int64_t us = kHostStartUs;
+  for (int i = 0; i < 1000; ++i) clock.Observe(i, us + i * 10'000);
+  int64_t late = 0;
+  for (int i = 1000; i < 2000; ++i) {
+    const int64_t receipt = us + 2'000'000 + i * 10'000;
+    late += clock.Observe(i, receipt) < receipt - 1'000'000;
+  }
+  EXPECT_EQ(clock.restarts(), 1);
+  EXPECT_EQ(late, 100);  // the second of them before the map gave up on its line
+  EXPECT_EQ(clock.Map(1999), us + 2'000'000 + 1999 * 10'000);
 }
 
 TEST(DeviceClock, RefusesANominalRateThatIsNotPositive) {

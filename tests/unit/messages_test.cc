@@ -205,6 +205,8 @@ TEST(Messages, PeekFtSampleGivesWhatTheDecoderGives) {
     ASSERT_TRUE(peek.has_value()) << kLegNames[static_cast<size_t>(leg)];
     ExpectSame(peek->in, *DecodedFt(b, leg));
     EXPECT_EQ(peek->rdt_sequence, 4'294'967'295);
+    EXPECT_EQ(peek->ft_sequence, -3);
+    EXPECT_EQ(peek->status, 0x20000);
     EXPECT_EQ(peek->in.flags, -2);
     // On another leg's channel, cut short, one byte too many, another fingerprint: not read
     // here (the decoder then says what is wrong).

@@ -45,6 +45,11 @@ struct DeviceClockOptions {
   // A sample that arrives this much earlier than the line says it can is not a queuing effect:
   // the host's clock stepped back or the device restarted its counter. The map starts afresh.
   double step_s = 0.05;
+  // Samples later than the line by more than step_s for this long of device time: not a stall
+  // that drains, the device's counter stood still while time went on (a device paused, a
+  // recording with its devices silent between scenarios) or the host's clock stepped forward.
+  // The map starts afresh.
+  double step_persist_s = 1.0;
 };
 
 class DeviceClock {
@@ -62,7 +67,8 @@ class DeviceClock {
   bool started() const { return started_; }
   // The device's rate relative to the host's, in parts per million (b - 1), by the current map.
   double skew_ppm() const { return (rate_ - 1.0) * 1e6; }
-  // How often the map started afresh (a counter that fell, a host clock that stepped back).
+  // How often the map started afresh (a counter that fell or stood still, a host clock that
+  // stepped).
   int64_t restarts() const { return restarts_; }
   // Samples in the current fit, and the device time they span (s).
   int64_t fit_samples() const;
@@ -86,10 +92,11 @@ class DeviceClock {
   DeviceClockOptions options_;
   bool started_ = false;
   int64_t origin_ticks_ = 0, origin_us_ = 0, last_ticks_ = 0;
-  std::deque<Slice> slices_;   // oldest first; the last one takes the new samples
-  std::vector<Point> merged_;  // scratch: the hull of the window
+  std::deque<Slice> slices_;           // oldest first; the last one takes the new samples
+  std::vector<Point> merged_;          // scratch: the hull of the window
   double intercept_ = 0, rate_ = 1.0;  // the map: y = intercept_ + rate_ * x
   double next_refit_x_ = 0;
+  double late_since_x_ = -1;  // device time of the first of a run of samples over step_s late
   int64_t restarts_ = 0;
 };
 

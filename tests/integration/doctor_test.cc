@@ -1,0 +1,218 @@
+// ftcal-doctor (services/doctor) on recordings of the twin whose faults the test put there and
+// so knows: a transducer that lost a quarter second of records inside STANDING, one whose
+// records all came a third of a second late, a missing hanging series, and a transducer whose
+// sample counter runs 300 ppm slow against the host. The real program, its text and its exit
+// code (docs/exit-codes.md: 0 calibratable, 6 with warnings, 2 not calibratable). No network.
+#include <sys/wait.h>
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <memory>
+#include <regex>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "child_process.h"
+#include "twin_log.h"
+
+namespace ftcal {
+namespace {
+
+using testing::Child;
+using testing::ReadFile;
+using namespace twin_log;
+
+const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
+constexpr char kSession[] = "doctor";
+
+struct Fixture {
+  std::string dir;
+  config::Config config;
+  std::vector<Event> events;  // a healthy session
+  double standing_start_s = 0;
+};
+Fixture* fx = nullptr;
+
+class DoctorTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    fx = new Fixture;
+    fx->dir = testing::MakeTempDir();
+    fx->config = LoadConfigFile(kConfig);
+    TwinOptions opt;
+    opt.seed = 43;
+    opt.marker_dropout_rate_hz = 0.0;
+    opt.hang_cycles = 3;
+    opt.hang_cycle_s = 4.0;
+    opt.pose_dwell_s = 3.0;
+    opt.settle_cutoff_s = 1.0;
+    BigAntTwin twin(fx->config, opt);
+    AppendSession(twin, fx->config, kSession, 32, 0.0, &fx->events);
+    for (const Event& e : fx->events) {
+      experiment_marker_t m;
+      if (e.channel == fx->config.channels().experiment() &&
+          m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 &&
+          m.phase == experiment_marker_t::STANDING && m.start) {
+        fx->standing_start_s = 1e-6 * static_cast<double>(e.utime - kT0);
+      }
+    }
+    ASSERT_GT(fx->standing_start_s, 0);
+  }
+  static void TearDownTestSuite() {
+    testing::RemoveTree(fx->dir);
+    delete fx;
+    fx = nullptr;
+  }
+
+  struct Result {
+    int exit_code = -1;
+    std::string out;
+  };
+  // Writes `events` as a log and runs the doctor on it.
+  static Result Doctor(const std::string& tag, std::vector<Event> events) {
+    std::stable_sort(events.begin(), events.end(),
+                     [](const Event& a, const Event& b) { return a.utime < b.utime; });
+    const std::string log = fx->dir + "/" + tag + ".lcmlog";
+    WriteLog(log, events);
+    Child child({FTCAL_DOCTOR, "--config", kConfig, log}, fx->dir + "/" + tag + ".out",
+                fx->dir + "/" + tag + ".err");
+    const auto status = child.Wait(60);
+    Result r;
+    EXPECT_TRUE(status.has_value()) << tag << ": the doctor did not finish";
+    if (status && WIFEXITED(*status)) r.exit_code = WEXITSTATUS(*status);
+    r.out = ReadFile(fx->dir + "/" + tag + ".out") + ReadFile(fx->dir + "/" + tag + ".err");
+    return r;
+  }
+  // The FT messages of `leg` changed by `edit` (false: dropped).
+  static std::vector<Event> EditFt(const std::string& leg,
+                                   const std::function<bool(Event&, ft_sample_t&)>& edit) {
+    std::vector<Event> out;
+    const std::string channel = fx->config.channels().ft_prefix() + leg;
+    for (Event e : fx->events) {
+      if (e.channel == channel) {
+        ft_sample_t m;
+        EXPECT_GT(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())), 0);
+        if (!edit(e, m)) continue;
+        e = Encode(e.utime, channel, m);
+      }
+      out.push_back(e);
+    }
+    return out;
+  }
+  static double T(int64_t utime) { return 1e-6 * static_cast<double>(utime - kT0); }
+};
+
+// "<what> at <t> s for <length> s": the numbers of the first stretch after `prefix`.
+bool FirstStretch(const std::string& out, const std::string& prefix, double* t_s, double* len_s) {
+  const size_t at = out.find(prefix);
+  if (at == std::string::npos) return false;
+  std::smatch m;
+  const std::string rest = out.substr(at);
+  if (!std::regex_search(rest, m, std::regex("at ([0-9.]+) s for ([0-9.]+) s"))) return false;
+  *t_s = std::stod(m[1]);
+  *len_s = std::stod(m[2]);
+  return true;
+}
+
+TEST_F(DoctorTest, AHealthySessionIsCalibratable) {
+  const Result r = Doctor("healthy", fx->events);
+  EXPECT_EQ(r.exit_code, 0) << r.out;
+  EXPECT_NE(r.out.find("verdict: calibratable\n"), std::string::npos) << r.out;
+  // The four hanging series and the standing poses, completed.
+  for (const char* phase : {"HANG_X_POS", "HANG_X_NEG", "HANG_Z_POS", "HANG_Z_NEG", "STANDING"}) {
+    EXPECT_TRUE(std::regex_search(r.out, std::regex(std::string("\n  ") + phase +
+                                                    " +[0-9.]+ \\.\\. +[0-9.]+ s +[0-9.]+ s  "
+                                                    "completed")))
+        << phase << "\n"
+        << r.out;
+  }
+}
+
+TEST_F(DoctorTest, AGapInsideStandingIsFoundWithItsTimeAndLength) {
+  // 25 records of FT_HL (0.25 s at 100 Hz), two seconds into STANDING.
+  const double from_s = fx->standing_start_s + 2.0;
+  double first_lost_s = -1;
+  const Result r = Doctor("gap", EditFt("HL", [&](Event& e, ft_sample_t&) {
+    const double t = T(e.utime);
+    if (t < from_s || t >= from_s + 0.25 - 1e-6) return true;
+    if (first_lost_s < 0) first_lost_s = t;
+    return false;
+  }));
+  EXPECT_EQ(r.exit_code, 6) << r.out;
+  EXPECT_NE(r.out.find("warning: FT_HL: 1 gaps in STANDING, 25 samples lost"), std::string::npos)
+      << r.out;
+  double t = 0, len = 0;
+  ASSERT_TRUE(FirstStretch(r.out, "warning: FT_HL: 1 gaps", &t, &len)) << r.out;
+  EXPECT_NEAR(t, first_lost_s, 0.002) << r.out;
+  EXPECT_NEAR(len, 0.25, 0.002) << r.out;
+  // The others lost nothing there.
+  EXPECT_EQ(r.out.find("warning: FT_ML"), std::string::npos) << r.out;
+}
+
+TEST_F(DoctorTest, AStallIsFoundWithItsTimeAndLengthAndNothingCountedLost) {
+  // FT_ML's records of 0.3 s inside STANDING all arrive at its end, at once: nothing lost.
+  const double from_s = fx->standing_start_s + 5.0;
+  double last_before_s = -1, released_s = -1;
+  const Result r = Doctor("stall", EditFt("ML", [&](Event& e, ft_sample_t& m) {
+    const double t = T(e.utime);
+    if (t < from_s) last_before_s = t;
+    if (t >= from_s + 0.3 && released_s < 0) released_s = t;
+    if (t >= from_s && t < from_s + 0.3) {
+      e.utime = kT0 + std::llround((from_s + 0.3) * 1e6);
+      m.utime = e.utime;
+    }
+    return true;
+  }));
+  EXPECT_EQ(r.exit_code, 6) << r.out;
+  EXPECT_NE(r.out.find("warning: FT_ML: 1 stalls (nothing received, nothing lost) in STANDING"),
+            std::string::npos)
+      << r.out;
+  double t = 0, len = 0;
+  ASSERT_TRUE(FirstStretch(r.out, "warning: FT_ML: 1 stalls", &t, &len)) << r.out;
+  EXPECT_NEAR(t, last_before_s, 0.002) << r.out;
+  EXPECT_NEAR(len, from_s + 0.3 - last_before_s, 0.002) << r.out;
+  EXPECT_EQ(r.out.find("warning: FT_ML: 1 gaps"), std::string::npos) << r.out;
+}
+
+TEST_F(DoctorTest, AMissingHangingSeriesIsNotCalibratableAndNamed) {
+  std::vector<Event> events;
+  for (const Event& e : fx->events) {
+    experiment_marker_t m;
+    if (e.channel == fx->config.channels().experiment() &&
+        m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 &&
+        m.phase == experiment_marker_t::HANG_Z_NEG) {
+      continue;
+    }
+    events.push_back(e);
+  }
+  const Result r = Doctor("missing", events);
+  EXPECT_EQ(r.exit_code, 2) << r.out;
+  EXPECT_NE(r.out.find("verdict: NOT calibratable"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("problem: hanging series missing (no completed start..stop): HANG_Z_NEG:"),
+            std::string::npos)
+      << r.out;
+}
+
+TEST_F(DoctorTest, ASkewedTransducerClockIsMeasured) {
+  // FT_FR's 7 kHz sample counter 300 ppm slow: 1.0003 host seconds per counted second.
+  constexpr double kSkewPpm = 300;
+  const Result r = Doctor("skew", EditFt("FR", [&](Event& e, ft_sample_t& m) {
+    m.ft_sequence = std::llround(T(e.utime) / (1 + kSkewPpm * 1e-6) * 7000.0) + 123456;
+    return true;
+  }));
+  std::smatch row;
+  ASSERT_TRUE(std::regex_search(r.out, row, std::regex("\nFT_FR .* ([-+][0-9.]+) ppm"))) << r.out;
+  EXPECT_NEAR(std::stod(row[1]), kSkewPpm, 2.0) << r.out;
+  ASSERT_TRUE(std::regex_search(r.out, row, std::regex("\nFT_HR .* ([-+][0-9.]+) ppm"))) << r.out;
+  EXPECT_NEAR(std::stod(row[1]), 0.0, 2.0) << r.out;
+  EXPECT_EQ(r.exit_code, 6) << r.out;
+  EXPECT_NE(r.out.find("warning: FT_FR: its clock runs +300 ppm against the host's"),
+            std::string::npos)
+      << r.out;
+}
+
+}  // namespace
+}  // namespace ftcal
