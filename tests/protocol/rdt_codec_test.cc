@@ -20,6 +20,7 @@ Bytes ToVec(const std::array<std::uint8_t, N>& a) {
 
 TEST(RdtRequest, DocumentedExampleDatagramsByteExact) {
   EXPECT_EQ(ToVec(EncodeRequest(Command::kRealtime)), (Bytes{0x12, 0x34, 0x00, 0x02, 0, 0, 0, 0}));
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kBuffered)), (Bytes{0x12, 0x34, 0x00, 0x03, 0, 0, 0, 0}));
   EXPECT_EQ(ToVec(EncodeRequest(Command::kStop)), (Bytes{0x12, 0x34, 0x00, 0x00, 0, 0, 0, 0}));
   EXPECT_EQ(ToVec(EncodeRequest(Command::kBias)), (Bytes{0x12, 0x34, 0x00, 0x42, 0, 0, 0, 0}));
 }
