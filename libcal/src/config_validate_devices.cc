@@ -95,6 +95,13 @@ void ValidateAti(const Node& node, const config::AtiTransducer& ati) {
   }
   if (ati.has_counts_per_force()) node.Positive("counts_per_force", ati.counts_per_force());
   if (ati.has_counts_per_torque()) node.Positive("counts_per_torque", ati.counts_per_torque());
+  // The Net F/T's RDT buffer size (comrdtbsiz) ranges over 1..40 (docs/device-protocols.md §1.3).
+  if (ati.has_records_per_datagram() &&
+      (ati.records_per_datagram() < 1 || ati.records_per_datagram() > 40)) {
+    node.Error("records_per_datagram",
+               "must be in 1..40 (1: real-time mode; else the box's RDT buffer size), got " +
+                   std::to_string(ati.records_per_datagram()));
+  }
   if (ati.rated_range_size() != 0 && ati.rated_range_size() != 6) {
     node.Error("rated_range", "needs 0 or 6 entries [Fx Fy Fz Tx Ty Tz], got " +
                                   std::to_string(ati.rated_range_size()));

@@ -80,6 +80,11 @@ long long ParseInt(std::string_view text, std::string_view source, std::string_v
 
 }  // namespace
 
+int DefaultRecordsPerDatagram(int rdt_rate_hz) {
+  const long long k = std::llround(rdt_rate_hz / 1000.0);
+  return static_cast<int>(std::clamp<long long>(k, 1, kMaxRecordsPerDatagram));
+}
+
 std::array<std::uint8_t, kRequestBytes> EncodeRequest(Command command, std::uint32_t sample_count) {
   std::array<std::uint8_t, kRequestBytes> out{};
   PutU16Be(kRequestHeader, out.data());
@@ -149,6 +154,8 @@ std::vector<std::uint8_t> EncodeDatagram(const std::vector<Record>& records) {
 
 SequenceTracker::Result SequenceTracker::Begin(Verdict verdict, std::uint32_t rdt_sequence,
                                                std::uint32_t ft_sequence) {
+  seen_.reset();
+  seen_.set(0);
   started_ = true;
   last_ = rdt_sequence;
   last_ft_ = ft_sequence;
@@ -177,6 +184,13 @@ SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence,
       ++restarts_;
       return Begin(Verdict::kRestart, rdt_sequence, ft_sequence);
     }
+    // Within the window the tracker knows whether it took this sequence already (a duplicated
+    // datagram) or counted it lost (a reordered one, arriving late).
+    const auto behind = static_cast<std::uint32_t>(-static_cast<std::int64_t>(delta));
+    if (behind < kDuplicateWindow && seen_.test(behind)) {
+      ++duplicates_;
+      return {Verdict::kDuplicate, 0};
+    }
     ++late_;
     return {Verdict::kLate, 0};
   }
@@ -188,6 +202,12 @@ SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence,
   }
   last_ = rdt_sequence;
   last_ft_ = ft_sequence;
+  if (static_cast<std::uint32_t>(delta) < kDuplicateWindow) {
+    seen_ <<= static_cast<std::size_t>(delta);
+  } else {
+    seen_.reset();
+  }
+  seen_.set(0);
   ++accepted_;
   if (delta == 1) return {Verdict::kNext, 0};
   const auto missing = static_cast<std::uint32_t>(delta - 1);
@@ -196,6 +216,7 @@ SequenceTracker::Result SequenceTracker::Update(std::uint32_t rdt_sequence,
 }
 
 void SequenceTracker::Reset() {
+  seen_.reset();
   started_ = false;
   last_ = 0;
   last_ft_ = 0;

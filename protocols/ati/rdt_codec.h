@@ -9,6 +9,7 @@
 #include <Eigen/Core>
 
 #include <array>
+#include <bitset>
 #include <cstddef>
 #include <cstdint>
 #include <optional>
@@ -31,6 +32,14 @@ constexpr std::uint16_t kUdpPort = 49152;
 constexpr std::uint16_t kRequestHeader = 0x1234;
 constexpr std::size_t kRequestBytes = 8;
 constexpr std::size_t kRecordBytes = 36;
+// Buffered mode (§1.3): a datagram carries k records, k being the box's RDT buffer size
+// (comrdtbsiz), 1..40 on the Net F/T.
+constexpr int kMaxRecordsPerDatagram = 40;
+constexpr std::size_t kMaxDatagramBytes = kMaxRecordsPerDatagram * kRecordBytes;
+
+// The records per datagram a box at `rdt_rate_hz` records/s should send when the config does not
+// say: about one datagram per millisecond, rate / 1000 rounded, at least 1 (1: real-time mode).
+int DefaultRecordsPerDatagram(int rdt_rate_hz);
 
 // RDT commands (§1.2, the manual's table). 0x0001 of ATI's old Java sample is deliberately
 // absent: the manual does not list it.
@@ -92,9 +101,15 @@ std::vector<std::uint8_t> EncodeDatagram(const std::vector<Record>& records);
 // ft_sequence is newer than the newest accepted record's; otherwise it is late and never
 // accepted after a newer one. For the same reason a record ahead by sequence but behind by
 // ft_sequence (a straggler of the previous stream after a restart) is late.
+//
+// Any other backward record is a duplicate when the tracker accepted its sequence before (within
+// the last kDuplicateWindow sequences) and late when it did not (it was counted lost). In
+// buffered mode a duplicated datagram of k records arrives k-1 records behind the newest: each of
+// its records is a duplicate, as a duplicated real-time record is.
 class SequenceTracker {
  public:
   static constexpr std::uint32_t kStartWindow = 1024;
+  static constexpr std::uint32_t kDuplicateWindow = 256;  // > 2 datagrams of 40 records
 
   enum class Verdict {
     kStart,      // first record of the stream: accept
@@ -129,7 +144,8 @@ class SequenceTracker {
 
  private:
   Result Begin(Verdict verdict, std::uint32_t rdt_sequence, std::uint32_t ft_sequence);
-
+  // Bit d set: sequence last_ - d was accepted in this stream (cleared on every new stream).
+  std::bitset<kDuplicateWindow> seen_;
   bool started_ = false;
   std::uint32_t last_ = 0;
   std::uint32_t last_ft_ = 0;  // ft_sequence of the newest accepted record

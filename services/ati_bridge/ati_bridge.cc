@@ -31,7 +31,8 @@ using Clock = std::chrono::steady_clock;
 constexpr int kBatch = 64;             // datagrams per recvmmsg
 constexpr int kMaxBatchesPerCall = 4;  // per socket, before the others get their turn
 constexpr std::size_t kSlotBytes =
-    1536;  // an Ethernet frame: the largest buffered datagram we take
+    1536;  // an Ethernet frame: the largest buffered datagram we take (40 records: 1440 bytes)
+static_assert(kSlotBytes > rdt::kMaxDatagramBytes, "a slot must hold the largest datagram");
 constexpr auto kCalibrationRetry = std::chrono::seconds(1);
 constexpr auto kCalibrationRetryMax = std::chrono::seconds(16);
 constexpr auto kStateLogPeriod = std::chrono::seconds(30);
@@ -86,6 +87,14 @@ struct AtiBridge::Transducer {
 
   bool counts_from_config = false;
   bool range_from_config = false;
+  // Records per datagram: the config's (k_from_config), else resolved from the page's rate at
+  // the first read (0 until then). 1: real-time mode, else buffered.
+  bool k_from_config = false;
+  int records_per_datagram = 0;
+  int rdt_rate_hz = 0;  // comrdtrate, once a page was read
+  // The page is read at start (and again after a reboot) when it supplies something: counts per
+  // unit, rated range, the default k, or the buffer size a buffered stream must match.
+  bool page_needed = true;
   bool calibrated = false;
   double counts_per_force = 0;
   double counts_per_torque = 0;
@@ -230,6 +239,17 @@ AtiBridge::AtiBridge(const config::Config& config, const std::vector<std::string
       throw AtiBridgeError("leg " + name + ": rated_range needs 6 values, has " +
                            std::to_string(ati.rated_range_size()));
     }
+    if (ati.has_records_per_datagram()) {
+      const auto k = ati.records_per_datagram();
+      if (k < 1 || k > static_cast<unsigned>(rdt::kMaxRecordsPerDatagram)) {
+        throw AtiBridgeError("leg " + name + ": records_per_datagram " + std::to_string(k) +
+                             " outside 1.." + std::to_string(rdt::kMaxRecordsPerDatagram));
+      }
+      t->k_from_config = true;
+      t->records_per_datagram = static_cast<int>(k);
+    }
+    t->page_needed = !t->counts_from_config || !t->range_from_config || !t->k_from_config ||
+                     t->records_per_datagram > 1;
     if (t->counts_from_config && !t->range_from_config) {
       // Counts from the config but no range: the page still supplies cfgmr.
       t->calibrated = false;
@@ -264,6 +284,9 @@ AtiBridge::~AtiBridge() {
 std::size_t AtiBridge::size() const { return transducers_.size(); }
 const std::string& AtiBridge::leg(std::size_t i) const { return transducers_.at(i)->leg; }
 bool AtiBridge::up(std::size_t i) const { return transducers_.at(i)->up; }
+int AtiBridge::records_per_datagram(std::size_t i) const {
+  return transducers_.at(i)->records_per_datagram;
+}
 const AtiTransducerCounters& AtiBridge::counters(std::size_t i) const {
   return transducers_.at(i)->c;
 }
@@ -347,6 +370,7 @@ void AtiBridge::ReadCalibration(Transducer& t) {
   } catch (const rdt::RdtError& e) {
     throw AtiBridgeError(e.what());
   }
+  CheckRdtSettings(t, page);
   if (!t.counts_from_config) {
     t.counts_per_force = page.counts_per_force;
     t.counts_per_torque = page.counts_per_torque;
@@ -355,16 +379,63 @@ void AtiBridge::ReadCalibration(Transducer& t) {
   t.calibrated = true;
   t.calibration_backoff = kCalibrationRetry;
   ++t.c.calibration_reads;
-  log_->info("{}: {} counts/N, {} counts/Nm, rated range {} N / {} N*m, RDT {} Hz (from {})", t.leg,
-             t.counts_per_force, t.counts_per_torque, t.rated_range[2], t.rated_range[5],
-             page.rdt_rate_hz, t.url);
+  log_->info("{}: {} counts/N, {} counts/Nm, rated range {} N / {} N*m, RDT {} Hz, {} (from {})",
+             t.leg, t.counts_per_force, t.counts_per_torque, t.rated_range[2], t.rated_range[5],
+             page.rdt_rate_hz,
+             t.records_per_datagram == 1
+                 ? std::string("real-time, 1 record per datagram")
+                 : fmt::format("buffered, {} records per datagram", t.records_per_datagram),
+             t.url);
+}
+
+void AtiBridge::CheckRdtSettings(Transducer& t, const rdt::NetFtConfig& page) {
+  t.rdt_rate_hz = page.rdt_rate_hz;
+  std::string why = "the config's records_per_datagram";
+  if (!t.k_from_config) {
+    why = fmt::format("records_per_datagram by default (comrdtrate {} / 1000, rounded)",
+                      page.rdt_rate_hz);
+    // Resolved once: the start command's mode depends on it.
+    if (t.records_per_datagram == 0) {
+      t.records_per_datagram = rdt::DefaultRecordsPerDatagram(page.rdt_rate_hz);
+    }
+  }
+  const int k = t.records_per_datagram;
+  // Real-time mode sends one record per datagram whatever the buffer size (§1.2): only buffered
+  // mode depends on the box's setting.
+  if (k == 1) return;
+  const std::string box = fmt::format("leg {}: the box at {} ({})", t.leg, t.address, t.url);
+  if (!page.rdt_buffer_size) {
+    throw AtiBoxMismatchError(fmt::format(
+        "{} does not give its RDT buffer size (comrdtbsiz), and {} is {} (buffered mode): "
+        "cannot check it; set records_per_datagram: 1 for real-time mode",
+        box, why, k));
+  }
+  if (*page.rdt_buffer_size != k) {
+    throw AtiBoxMismatchError(fmt::format(
+        "{} has RDT buffer size (comrdtbsiz) {}, but {} is {}: set the box's buffer size to {} or "
+        "the config's records_per_datagram to {} (1: real-time mode)",
+        box, *page.rdt_buffer_size, why, k, k, *page.rdt_buffer_size));
+  }
+}
+
+rdt::Command AtiBridge::StartCommand(const Transducer& t) {
+  return t.records_per_datagram > 1 ? rdt::Command::kBuffered : rdt::Command::kRealtime;
+}
+
+double AtiBridge::SilenceTimeoutS(const Transducer& t) const {
+  // A buffered box at a low rate sends a datagram only every k / rate s: never call that silence.
+  if (t.records_per_datagram > 1 && t.rdt_rate_hz > 0) {
+    return std::max(options_.silence_timeout_s, 3.0 * t.records_per_datagram / t.rdt_rate_hz);
+  }
+  return options_.silence_timeout_s;
 }
 
 void AtiBridge::Start() {
   if (started_) return;
   for (auto& tp : transducers_) {
     Transducer& t = *tp;
-    if (!t.calibrated) ReadCalibration(t);  // throws: no streaming without counts per unit
+    // Throws: no streaming without counts per unit, nor against a box set up otherwise.
+    if (!t.calibrated || t.page_needed) ReadCalibration(t);
 
     t.fd = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
     if (t.fd < 0) throw AtiBridgeError("leg " + t.leg + ": socket: " + std::strerror(errno));
@@ -395,10 +466,10 @@ void AtiBridge::Start() {
     }
 
     const auto now = Clock::now();
-    SendRequest(t, rdt::Command::kRealtime);
+    SendRequest(t, StartCommand(t));
     t.last_record = now;
-    t.next_request = now + Seconds(options_.silence_timeout_s);
-    t.backoff_s = options_.silence_timeout_s;
+    t.next_request = now + Seconds(SilenceTimeoutS(t));
+    t.backoff_s = SilenceTimeoutS(t);
     t.up = true;  // until it stays silent
   }
   started_ = true;
@@ -408,7 +479,7 @@ void AtiBridge::SendRequest(Transducer& t, rdt::Command command) {
   const auto bytes = rdt::EncodeRequest(command, 0);
   const ssize_t sent = ::sendto(t.fd, bytes.data(), bytes.size(), MSG_DONTWAIT,
                                 reinterpret_cast<const sockaddr*>(&t.device), sizeof t.device);
-  if (command == rdt::Command::kRealtime) {
+  if (command == rdt::Command::kRealtime || command == rdt::Command::kBuffered) {
     ++t.c.start_requests;
     t.last_request = Clock::now();
     // The box restarts rdt_sequence at 1 (§1.5).
@@ -461,8 +532,7 @@ void AtiBridge::OnPolled(const pollfd* fds, std::size_t n) {
 Clock::time_point AtiBridge::NextDeadline() const {
   auto wake = Clock::time_point::max();
   for (const auto& t : transducers_) {
-    wake = std::min(
-        wake, std::max(t->last_record + Seconds(options_.silence_timeout_s), t->next_request));
+    wake = std::min(wake, std::max(t->last_record + Seconds(SilenceTimeoutS(*t)), t->next_request));
     if (!t->calibrated) wake = std::min(wake, t->next_calibration_try);
   }
   return wake;
@@ -557,13 +627,16 @@ void AtiBridge::HandleSocket(Transducer& t) {
       // A socket queue is first in, first out: a datagram stamped before the last look that
       // emptied the queue was not in it then.
       const bool held = kernel_ns < t.drained_at_ns;
+      // Each record of a (buffered) datagram is its own sample, stamped with the datagram's
+      // receipt: the box's own time of each sample comes with the batched FT message (issue 37,
+      // item 2), from ft_sequence.
       for (std::size_t off = 0; off < len; off += rdt::kRecordBytes) {
         HandleRecord(t, data + off, kernel_ns, user_ns, kernel_ns / 1000, held);
       }
     }
     if (t.tracker.accepted() != accepted_before) {
       t.last_record = batch_time;
-      t.backoff_s = options_.silence_timeout_s;
+      t.backoff_s = SilenceTimeoutS(t);
       t.unanswered = 0;
       if (!t.up || t.silent) LogState(t, "streaming", spdlog::level::info, "streaming again");
       t.silent = false;
@@ -629,7 +702,7 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
         "{}: ft_sequence went back from {} to {}: the box restarted; reading its "
         "calibration page again",
         t.leg, t.last_ft, rec.ft_sequence);
-    if (!t.counts_from_config || !t.range_from_config) {
+    if (t.page_needed) {
       try {
         ReadCalibration(t);
       } catch (const AtiBridgeError& e) {
@@ -735,14 +808,12 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
       LogState(t, "calibration", spdlog::level::err, t.problem);
     }
   }
-  const auto deadline =
-      std::max(t.last_record + Seconds(options_.silence_timeout_s), t.next_request);
+  const auto deadline = std::max(t.last_record + Seconds(SilenceTimeoutS(t)), t.next_request);
   if (now < deadline) return;
   // Records may have arrived since poll() looked (a process descheduled between poll() and
   // here would otherwise take its own lateness for the box's silence).
   HandleSocket(t);
-  if (Clock::now() <
-      std::max(t.last_record + Seconds(options_.silence_timeout_s), t.next_request)) {
+  if (Clock::now() < std::max(t.last_record + Seconds(SilenceTimeoutS(t)), t.next_request)) {
     return;
   }
   if (!t.silent) {
@@ -752,7 +823,7 @@ void AtiBridge::Service(Transducer& t, Clock::time_point now) {
                             std::chrono::duration<double, std::milli>(now - t.last_record).count());
     LogState(t, "silent", spdlog::level::warn, t.problem);
   }
-  SendRequest(t, rdt::Command::kRealtime);
+  SendRequest(t, StartCommand(t));
   ++t.unanswered;
   if (t.up && t.unanswered >= options_.down_after_requests) {
     t.up = false;

@@ -1,10 +1,14 @@
 // ftcal-ati-bridge's work: ATI Net F/T transducers over RDT (docs/device-protocols.md §1) in,
 // ft_sample_t on FT_<LEG> out.
 //
-// Per transducer: a UDP socket bound to an ephemeral port, from which the start command
-// (0x0002, count 0) is sent, so the box streams back to it (§1.2). Counts per unit come from the
-// config or else from the box's calibration page (GET /netftapi2.xml); without them the bridge
-// refuses to start. Every record is checked (length, sequence) before it is published: lost,
+// Per transducer: a UDP socket bound to an ephemeral port, from which the start command is
+// sent, so the box streams back to it (§1.2): real-time (0x0002, one record per datagram) when
+// the config's records_per_datagram k is 1, buffered (0x0003, k records per datagram) when it is
+// 2..40, count 0 either way. Counts per unit come from the config or else from the box's
+// calibration page (GET /netftapi2.xml); without them the bridge refuses to start. In buffered
+// mode the page's RDT buffer size (comrdtbsiz) must equal k, and k defaults to the page's output
+// rate (comrdtrate) / 1000, rounded, at least 1. Every record of a datagram is published as its
+// own ft_sample_t. Every record is checked (length, sequence) before it is published: lost,
 // duplicated, late (reordered), stale and wrong-length records are counted and never
 // published; a published sample is always a record as the device sent it, converted. After
 // ~100 ms of silence the start is re-sent with a bounded back-off and the transducer is reported
@@ -41,6 +45,13 @@ namespace ftcal {
 class AtiBridgeError : public std::runtime_error {
  public:
   using std::runtime_error::runtime_error;
+};
+
+// The box is set up otherwise than the config says (its RDT buffer size is not the config's
+// records_per_datagram): a config error (exit 3), the message names the box and both values.
+class AtiBoxMismatchError : public AtiBridgeError {
+ public:
+  using AtiBridgeError::AtiBridgeError;
 };
 
 struct AtiBridgeOptions {
@@ -111,9 +122,11 @@ class AtiBridge : public Device {
   AtiBridge(const AtiBridge&) = delete;
   AtiBridge& operator=(const AtiBridge&) = delete;
 
-  // Opens the sockets, reads each calibration page the config does not replace, and sends the
-  // start commands. Throws AtiBridgeError naming the transducer and URL when a page cannot be
-  // read or parsed: the bridge refuses to stream with guessed counts per unit.
+  // Opens the sockets, reads each calibration page the config does not replace (counts per
+  // unit, rated range, or the RDT settings of a buffered or defaulted records_per_datagram), and
+  // sends the start commands. Throws AtiBridgeError naming the transducer and URL when a page
+  // cannot be read or parsed: the bridge refuses to stream with guessed counts per unit; and
+  // AtiBoxMismatchError when the box's RDT buffer size is not the config's.
   void Start();
   // Waits up to `timeout_ms` for datagrams, handles all that are there, and re-sends starts
   // that are due (one Device::Step). Returns the number of samples published.
@@ -139,6 +152,9 @@ class AtiBridge : public Device {
   std::size_t size() const;
   const std::string& leg(std::size_t i) const;
   bool up(std::size_t i) const;
+  // Records per datagram of transducer i: the config's, or once Start() read the page, the
+  // default from the box's rate (0 before that).
+  int records_per_datagram(std::size_t i) const;
   const AtiTransducerCounters& counters(std::size_t i) const;
   // Receipt -> published, from the kernel's receive timestamp and from recvmmsg's return.
   const LatencyHistogram& kernel_latency() const { return kernel_latency_; }
@@ -156,6 +172,11 @@ class AtiBridge : public Device {
                     std::int64_t user_ns, std::int64_t utime, bool held);
   void SendRequest(Transducer& t, rdt::Command command);
   void ReadCalibration(Transducer& t);
+  // Resolves the default records per datagram from the page's rate and checks a buffered
+  // stream's k against the box's buffer size. Throws AtiBoxMismatchError.
+  void CheckRdtSettings(Transducer& t, const rdt::NetFtConfig& page);
+  static rdt::Command StartCommand(const Transducer& t);
+  double SilenceTimeoutS(const Transducer& t) const;
   void Service(Transducer& t, std::chrono::steady_clock::time_point now);
   // Logs a state change of kind `kind`: at once, or (a box flapping or refusing) folded into
   // the next line of that kind at most once per 30 s, which gives the count in between.

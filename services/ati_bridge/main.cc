@@ -16,11 +16,12 @@ int main(int argc, char** argv) {
   ftcal::ServiceApp app(
       {"ftcal-ati-bridge",
        "Streams the legs' ATI Net F/T transducers over RDT (UDP; a start command from an "
-       "ephemeral port of this host, stop on exit) and publishes every valid record as "
-       "ft_sample_t on FT_<LEG>: counts, wrench [N; N*m] (counts per unit from the config or "
-       "the sensor's /netftapi2.xml, the config's sign applied), sequence numbers, status, gap "
-       "and flags. Lost, duplicated, reordered and malformed records are counted, never "
-       "published. Heartbeat counters per leg; DEGRADED while a transducer is silent.",
+       "ephemeral port of this host, stop on exit; real-time, or buffered with the config's "
+       "records_per_datagram, which must match the box's comrdtbsiz) and publishes every valid "
+       "record as ft_sample_t on FT_<LEG>: counts, wrench [N; N*m] (counts per unit from the "
+       "config or the sensor's /netftapi2.xml, the config's sign applied), sequence numbers, "
+       "status, gap and flags. Lost, duplicated, reordered and malformed records are counted, "
+       "never published. Heartbeat counters per leg; DEGRADED while a transducer is silent.",
        /*replayable=*/false});
   std::vector<std::string> legs;
   ftcal::AtiBridgeOptions options;
@@ -53,6 +54,10 @@ int main(int argc, char** argv) {
     log->critical("{}", text);
     app.SetState(ftcal::service_status_t::FAILED);
     app.stats().Error("start", text);
+    // A box set up otherwise than the config says (its RDT buffer size): a config error.
+    if (dynamic_cast<const ftcal::AtiBoxMismatchError*>(&e) != nullptr) {
+      failure = ftcal::kExitConfig;
+    }
     if (ftcal::IsInternalError(e)) failure = ftcal::kExitInternal;
     try {
       bus.Publish(app.config().channels().status(), app.Status(), /*count=*/false);

@@ -120,15 +120,15 @@ NatNetPose NatNetPoseFromFrame(const TwinFrame& f, double residual_m) {
 std::string AtiTruthCsv(const std::vector<AtiTruthRow>& rows) {
   std::string text =
       "leg,stream,t_s,rdt_sequence,ft_sequence,status,fx_counts,fy_counts,fz_counts,"
-      "tx_counts,ty_counts,tz_counts,fault\n";
+      "tx_counts,ty_counts,tz_counts,fault,datagram\n";
   text.reserve(text.size() + rows.size() * 90);
   char line[256];
   for (const AtiTruthRow& r : rows) {
     const auto& c = r.e.record.counts;
-    std::snprintf(line, sizeof line, "%s,%u,%.6f,%u,%u,%u,%d,%d,%d,%d,%d,%d,%s\n",
+    std::snprintf(line, sizeof line, "%s,%u,%.6f,%u,%u,%u,%d,%d,%d,%d,%d,%d,%s,%u\n",
                   std::string(kLegNames.at(r.leg)).c_str(), r.e.stream, r.e.t_s,
                   r.e.record.rdt_sequence, r.e.record.ft_sequence, r.e.record.status, c[0], c[1],
-                  c[2], c[3], c[4], c[5], AtiFaultName(r.e.fault));
+                  c[2], c[3], c[4], c[5], AtiFaultName(r.e.fault), r.e.datagram);
     text += line;
   }
   return text;
@@ -253,6 +253,9 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
       for (int i = 0; i < 6; ++i) o.rated_range[i] = leg.ati().rated_range(i);
     }
     o.rdt_rate_hz = options_.ati_rate_hz;
+    // The box's RDT buffer size as the config names it, else the default of its rate: what
+    // the bridge, reading the same config, expects.
+    o.rdt_buffer_size = static_cast<int>(leg.ati().records_per_datagram());
     o.faults = options_.ati_faults[k];
     if (o.faults.seed == 0) o.faults.seed = options_.seed * 1000 + static_cast<std::uint64_t>(k);
     AtiStateSource source;

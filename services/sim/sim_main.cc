@@ -118,15 +118,16 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
                    "calibration page port of every box (default: the config's)")
       ->check(CLI::Range(1, 65535));
   live->add_flag("--ati-no-http", f->no_http, "serve no calibration page");
-  live->add_option("--ati-drop", f->ati_drop, "probability a record is not sent")
+  live->add_option("--ati-drop", f->ati_drop,
+                   "probability a datagram (a record in real-time mode) is not sent")
       ->check(CLI::Range(0.0, 1.0));
-  live->add_option("--ati-duplicate", f->ati_duplicate, "probability a record is sent twice")
+  live->add_option("--ati-duplicate", f->ati_duplicate, "probability a datagram is sent twice")
       ->check(CLI::Range(0.0, 1.0));
   live->add_option("--ati-reorder", f->ati_reorder,
-                   "probability a record is sent after the next one")
+                   "probability a datagram is sent after the next one")
       ->check(CLI::Range(0.0, 1.0));
   live->add_option("--ati-corrupt", f->ati_corrupt,
-                   "probability a record is sent with a wrong length")
+                   "probability a datagram is sent with a wrong length")
       ->check(CLI::Range(0.0, 1.0));
   live->add_option("--ati-silence", f->ati_silence,
                    "LEG:AT_S:DURATION_S  LEG's network down a while (repeatable)");

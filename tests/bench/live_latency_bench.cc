@@ -912,11 +912,12 @@ int main(int argc, char** argv) {
       const std::regex re("^  ati [A-Z]+: records ([0-9]+) datagrams ([0-9]+)");
       for (std::string line; std::getline(in, line);) {
         std::smatch m;
-        if (std::regex_search(line, m, re)) twin_records += std::stoll(m[2]);
+        // Records, not datagrams: a buffered box sends k records per datagram.
+        if (std::regex_search(line, m, re)) twin_records += std::stoll(m[1]);
       }
     }
     std::printf(
-        "loss over the whole run: twin sent %lld datagrams, FT_<LEG> heard %lld, "
+        "loss over the whole run: twin sent %lld records, FT_<LEG> heard %lld, "
         "CONTACT_WRENCH heard %lld, undecodable %lld\n",
         twin_records, run_ft, run_cw, (long long)listener->undecodable);
     // The stages' own accounts, from their exit summaries: where the samples went.

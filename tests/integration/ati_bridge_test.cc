@@ -23,6 +23,7 @@
 #include <sys/resource.h>
 #include <sys/socket.h>
 
+#include <google/protobuf/text_format.h>
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
 #include <spdlog/sinks/null_sink.h>
@@ -87,8 +88,10 @@ class Collector {
  public:
   Collector() : lcm_(kListenUrl) {
     EXPECT_TRUE(lcm_.good());
-    lcm_.subscribe("FT_.*", &Collector::OnSample, this);
-    lcm_.subscribe("FTCAL_STATUS", &Collector::OnStatus, this);
+    // LCM's default queue of 30 messages per subscription drops the tail of a buffered box's
+    // burst (35 samples from one datagram, published back to back) while this thread is busy.
+    lcm_.subscribe("FT_.*", &Collector::OnSample, this)->setQueueCapacity(100000);
+    lcm_.subscribe("FTCAL_STATUS", &Collector::OnStatus, this)->setQueueCapacity(10000);
     thread_ = std::thread([this] {
       while (!stop_) lcm_.handleTimeout(50);
     });
@@ -144,6 +147,49 @@ std::int64_t Counter(const service_status_t& s, const std::string& name) {
   }
   ADD_FAILURE() << "no counter " << name << " in the heartbeat of " << s.name;
   return -1;
+}
+
+int CountOccurrences(const std::string& text, const std::string& part) {
+  int n = 0;
+  for (auto at = text.find(part); at != std::string::npos; at = text.find(part, at + 1)) ++n;
+  return n;
+}
+
+// Waits until a heartbeat of process `pid` satisfies `done`; false at the deadline.
+bool WaitForHeartbeat(Collector& c, pid_t pid,
+                      const std::function<bool(const service_status_t&)>& done, double timeout_s) {
+  const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                           std::chrono::duration<double>(timeout_s));
+  while (Clock::now() < deadline) {
+    for (const auto& [s, when] : c.Statuses()) {
+      if (s.pid == pid && done(s)) return true;
+    }
+    SleepS(0.05);
+  }
+  return false;
+}
+
+// The counter of a heartbeat, or -1 when it has none of that name (no test failure: a heartbeat
+// being waited for may come from before the counter's first value).
+std::int64_t CounterOr(const service_status_t& s, const std::string& name) {
+  for (int i = 0; i < s.num_counters; ++i) {
+    if (s.counter_name[i] == name) return s.counter_value[i];
+  }
+  return -1;
+}
+
+config::Config SimConfig();
+
+// config/sim.pbtxt with `k` records per datagram on every leg, written to `path`.
+std::string WriteConfigWithRecordsPerDatagram(const std::string& path, int k) {
+  config::Config cfg = SimConfig();
+  for (auto& leg : *cfg.mutable_robot()->mutable_leg()) {
+    leg.mutable_ati()->set_records_per_datagram(static_cast<std::uint32_t>(k));
+  }
+  std::string text;
+  EXPECT_TRUE(google::protobuf::TextFormat::PrintToString(cfg, &text));
+  std::ofstream(path) << text;
+  return path;
 }
 
 class AtiBridgeTest : public testing::NetnsDirTest {
@@ -235,6 +281,45 @@ std::map<std::string, std::vector<ft_sample_t>> ByLeg(const std::vector<Heard>& 
   return out;
 }
 
+// One leg's samples as heard on LCM: in order, each record once, with the gap of the records that
+// went missing before each. The listener itself may miss a message on a loaded machine (LCM over
+// UDP), so the gap is checked where the truth says nothing publishable was between two samples
+// heard. Returns the number of gaps checked.
+int ExpectInOrderWithGaps(const std::vector<ft_sample_t>& samples,
+                          const std::vector<TruthRow>& truth, const std::string& leg) {
+  std::set<std::int64_t> publishable;
+  for (const TruthRow& r : truth) {
+    if (r.leg == leg && (r.fault == "none" || r.fault == "duplicate")) {
+      publishable.insert(r.rdt_sequence);
+    }
+  }
+  {
+    std::set<std::int64_t> missing = publishable;
+    for (const auto& m : samples) missing.erase(m.rdt_sequence);
+    std::ostringstream os;
+    for (auto v : missing) os << v << " ";
+    if (!missing.empty()) std::cerr << leg << " not heard on LCM: " << os.str() << "\n";
+  }
+  std::int64_t prev = 0;
+  int gaps_checked = 0;
+  for (std::size_t i = 0; i < samples.size(); ++i) {
+    const ft_sample_t& m = samples[i];
+    EXPECT_GT(m.rdt_sequence, prev) << leg << ": published twice or out of order";
+    if (m.rdt_sequence <= prev) return gaps_checked;
+    const auto between =
+        std::distance(publishable.upper_bound(prev), publishable.lower_bound(m.rdt_sequence));
+    if (between == 0) {
+      EXPECT_EQ(m.gap, m.rdt_sequence - prev - 1) << "rdt " << m.rdt_sequence;
+      EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.rdt_sequence - prev > 1);
+      if (m.gap > 0) ++gaps_checked;
+    }
+    // Only the stream's first publishable record carries the restart flag.
+    EXPECT_EQ((m.flags & ft_sample_t::FLAG_RESTARTED) != 0, m.rdt_sequence == *publishable.begin());
+    prev = m.rdt_sequence;
+  }
+  return gaps_checked;
+}
+
 TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePublished) {
   auto emulator =
       StartEmulator({"--rate", "500", "--duration", "4", "--seed", "7", "--drop", "0.02",
@@ -286,44 +371,12 @@ TEST_F(AtiBridgeTest, InjectedFaultsAreCountedExactlyAndOnlyIntactRecordsArePubl
     EXPECT_EQ(Counter(last, p + "restarts"), 1);
     EXPECT_EQ(Counter(last, p + "calibration_reads"), 1);
 
-    // Heard on LCM: in order, with the gap of the records that went missing before each. The
-    // listener itself may miss a message on a loaded machine (LCM over UDP), so the gap is
-    // checked where the truth says nothing publishable was between two samples heard.
+    // Heard on LCM: in order, with the gap of the records that went missing before each.
     const auto& samples = by_leg.at(leg);
     const std::int64_t expected = faults["none"] + faults["duplicate"];
     EXPECT_GE(static_cast<std::int64_t>(samples.size()), expected * 9 / 10);
     EXPECT_LE(static_cast<std::int64_t>(samples.size()), expected);
-    std::set<std::int64_t> publishable;
-    for (const TruthRow& r : truth) {
-      if (r.leg == leg && (r.fault == "none" || r.fault == "duplicate")) {
-        publishable.insert(r.rdt_sequence);
-      }
-    }
-    {
-      std::set<std::int64_t> missing = publishable;
-      for (const auto& m : samples) missing.erase(m.rdt_sequence);
-      std::ostringstream os;
-      for (auto v : missing) os << v << " ";
-      if (!missing.empty()) std::cerr << leg << " not heard on LCM: " << os.str() << "\n";
-    }
-    std::int64_t prev = 0;
-    int gaps_checked = 0;
-    for (std::size_t i = 0; i < samples.size(); ++i) {
-      const ft_sample_t& m = samples[i];
-      ASSERT_GT(m.rdt_sequence, prev);
-      const auto between =
-          std::distance(publishable.upper_bound(prev), publishable.lower_bound(m.rdt_sequence));
-      if (between == 0) {
-        EXPECT_EQ(m.gap, m.rdt_sequence - prev - 1) << "rdt " << m.rdt_sequence;
-        EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.rdt_sequence - prev > 1);
-        if (m.gap > 0) ++gaps_checked;
-      }
-      // Only the stream's first publishable record carries the restart flag.
-      EXPECT_EQ((m.flags & ft_sample_t::FLAG_RESTARTED) != 0,
-                m.rdt_sequence == *publishable.begin());
-      prev = m.rdt_sequence;
-    }
-    EXPECT_GT(gaps_checked, 5);
+    EXPECT_GT(ExpectInOrderWithGaps(samples, truth, leg), 5);
   }
 }
 
@@ -460,6 +513,151 @@ TEST_F(AtiBridgeTest, RefusesToStreamWithoutTheCalibrationPage) {
       << ReadFile(Path("emulator.err"));
 }
 
+// A buffered run of the emulator's `legs` at `k` records per datagram, against its truth: the
+// bridge counted every fault of the truth as what it is, published every intact record once, and
+// every sample heard is a record the box sent, stamped with its datagram's receipt.
+void ExpectBufferedRunMatchesTruth(const std::vector<TruthRow>& truth,
+                                   const std::vector<Heard>& heard, const service_status_t& last,
+                                   const std::vector<std::string>& legs, int k) {
+  EXPECT_EQ(ExpectSamplesMatchTruth(heard, truth), static_cast<int>(heard.size()));
+  const auto by_leg = ByLeg(heard);
+  for (const std::string& leg : legs) {
+    SCOPED_TRACE(leg);
+    testing::AtiLegTally tally = testing::TallyLeg(truth, leg);
+    auto& faults = tally.faults;
+    ASSERT_EQ(tally.streams.size(), 1u)
+        << "the bridge restarted the stream: counts are not comparable";
+    // The box sent k records per datagram (a part-filled last one at the end of the data).
+    std::map<std::uint32_t, int> sizes;
+    std::map<std::uint32_t, std::uint32_t> datagram_of;  // rdt_sequence -> datagram
+    for (const TruthRow& r : truth) {
+      if (r.leg != leg) continue;
+      ++sizes[r.datagram];
+      datagram_of[r.rdt_sequence] = r.datagram;
+    }
+    ASSERT_GT(sizes.size(), 100u);
+    for (auto it = sizes.begin(); it != std::prev(sizes.end()); ++it) {
+      ASSERT_EQ(it->second, k) << "datagram " << it->first;
+    }
+    EXPECT_LE(sizes.rbegin()->second, k);
+
+    const std::string p = leg + ".";
+    testing::ExpectFaultsCounted(tally,
+                                 [&](const std::string& name) { return Counter(last, p + name); });
+    const std::int64_t publishable = faults["none"] + faults["duplicate"];
+    EXPECT_EQ(Counter(last, p + "published"), publishable);
+    EXPECT_EQ(Counter(last, p + "restarts"), 1);
+    // Datagrams as the box sent them (a duplicate twice), less the dropped ones.
+    std::int64_t sent = 0;
+    for (const auto& [fault, ids] : tally.datagrams) {
+      if (fault == "none" || fault == "reorder" || fault == "corrupt") sent += ids.size();
+      if (fault == "duplicate") sent += 2 * static_cast<std::int64_t>(ids.size());
+    }
+    EXPECT_EQ(Counter(last, p + "datagrams"), sent);
+
+    const auto& samples = by_leg.at(leg);
+    // LCM over UDP may lose a few on a loaded machine; the counters above are the exact account.
+    EXPECT_GE(static_cast<std::int64_t>(samples.size()), publishable * 8 / 10);
+    EXPECT_GT(ExpectInOrderWithGaps(samples, truth, leg), 5);
+    // A lost datagram is k records lost: the gap of the sample after a dropped datagram (with
+    // nothing else missing around it) is k.
+    int gaps_of_k = 0;
+    std::map<std::uint32_t, std::int64_t> utime_of;  // datagram -> receipt stamp
+    for (std::size_t i = 0; i < samples.size(); ++i) {
+      const ft_sample_t& m = samples[i];
+      if (i > 0 && m.gap == k && m.rdt_sequence - samples[i - 1].rdt_sequence == k + 1) {
+        ++gaps_of_k;
+      }
+      const auto [it, fresh] =
+          utime_of.emplace(datagram_of.at(static_cast<std::uint32_t>(m.rdt_sequence)), m.utime);
+      if (!fresh) {
+        EXPECT_EQ(m.utime, it->second) << "rdt " << m.rdt_sequence << ": one datagram, one stamp";
+      }
+    }
+    EXPECT_GT(gaps_of_k, 0);
+  }
+}
+
+// The twin's boxes at 7000 records/s with no records_per_datagram in the config: the box and the
+// bridge both take 7 (rate / 1000), and the box streams buffered.
+TEST_F(AtiBridgeTest, TwinBoxesAt7000StreamBufferedAndEveryFaultIsCounted) {
+  auto emulator = StartEmulator({"--legs", "HL,ML", "--rate", "7000", "--duration", "3", "--seed",
+                                 "11", "--drop", "0.01", "--duplicate", "0.01", "--reorder", "0.01",
+                                 "--corrupt", "0.01"});
+  ASSERT_FALSE(HasFailure());
+  Collector collector;
+  SleepS(0.2);
+  auto bridge = StartBridge("bridge", {"--legs", "HL,ML", "--silence-timeout", "1.0"});
+  // The end of the data: once the bridge calls each box silent it has read all they sent.
+  EXPECT_TRUE(WaitForHeartbeat(
+      collector, bridge->pid(),
+      [](const service_status_t& s) {
+        return CounterOr(s, "HL.silences") >= 1 && CounterOr(s, "ML.silences") >= 1;
+      },
+      30))
+      << ReadFile(Path("bridge.err"));
+  Terminate(*bridge, "bridge");
+  Terminate(*emulator, "emulator");
+  const std::string err = ReadFile(Path("emulator.err"));
+  EXPECT_NE(err.find("RDT buffer size 7"), std::string::npos) << err;
+  for (const char* leg : {"HL", "ML"}) {
+    EXPECT_NE(err.find(std::string(leg) + " records"), std::string::npos);
+  }
+  EXPECT_EQ(CountOccurrences(err, "buffered_starts 1\n"), 2) << err;
+  ExpectBufferedRunMatchesTruth(ReadTruth(Path("truth.csv")), collector.Samples(),
+                                LastStatus(collector, bridge->pid()), {"HL", "ML"}, 7);
+}
+
+// A box that streams 35 records per datagram at 7000 records/s (200 datagrams/s), named so in the
+// config: every record published once with the box's values, every fault counted.
+TEST_F(AtiBridgeTest, ABoxOf35RecordsPerDatagramAt7000IsPublishedRecordForRecord) {
+  const std::string config = WriteConfigWithRecordsPerDatagram(Path("k35.pbtxt"), 35);
+  auto emulator = StartEmulator({"--config", config, "--legs", "HL", "--rate", "7000", "--duration",
+                                 "4", "--seed", "5", "--drop", "0.03", "--duplicate", "0.03",
+                                 "--reorder", "0.03", "--corrupt", "0.03"});
+  ASSERT_FALSE(HasFailure());
+  Collector collector;
+  SleepS(0.2);
+  auto bridge =
+      StartBridge("bridge", {"--config", config, "--legs", "HL", "--silence-timeout", "1.0"});
+  EXPECT_TRUE(WaitForHeartbeat(
+      collector, bridge->pid(),
+      [](const service_status_t& s) { return CounterOr(s, "HL.silences") >= 1; }, 30))
+      << ReadFile(Path("bridge.err"));
+  Terminate(*bridge, "bridge");
+  Terminate(*emulator, "emulator");
+  const std::string err = ReadFile(Path("emulator.err"));
+  EXPECT_NE(err.find("RDT buffer size 35"), std::string::npos) << err;
+  EXPECT_NE(err.find("buffered_starts 1\n"), std::string::npos) << err;
+  EXPECT_NE(ReadFile(Path("bridge.err")).find("buffered, 35 records per datagram"),
+            std::string::npos);
+  ExpectBufferedRunMatchesTruth(ReadTruth(Path("truth.csv")), collector.Samples(),
+                                LastStatus(collector, bridge->pid()), {"HL"}, 35);
+}
+
+// The box's RDT buffer size is not what the config implies (35 against 7 for 7000 records/s): the
+// bridge refuses to start, naming the box and both values, with the config's exit code.
+TEST_F(AtiBridgeTest, RefusesABoxWhoseBufferSizeIsNotTheConfigs) {
+  auto emulator = StartEmulator({"--legs", "HL", "--rate", "7000", "--records-per-datagram", "35"});
+  ASSERT_FALSE(HasFailure());
+  auto bridge = StartBridge("bridge", {"--legs", "HL"});
+  const auto status = bridge->Wait(10);
+  ASSERT_TRUE(status.has_value()) << "the bridge streamed from a box set up otherwise";
+  // docs/exit-codes.md: 3, config.
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 3) << DescribeWaitStatus(*status);
+  const std::string err = ReadFile(Path("bridge.err"));
+  for (const char* part : {"leg HL", "127.0.1.1", "http://127.0.1.1:8080/netftapi2.xml",
+                           "RDT buffer size (comrdtbsiz) 35",
+                           "records_per_datagram by default (comrdtrate 7000 / 1000, rounded) "
+                           "is 7"}) {
+    EXPECT_NE(err.find(part), std::string::npos) << part << " not in: " << err;
+  }
+  Terminate(*emulator, "emulator");
+  EXPECT_NE(ReadFile(Path("emulator.err")).find("HL records 0 datagrams 0 starts 0"),
+            std::string::npos)
+      << ReadFile(Path("emulator.err"));
+}
+
 // ---- In process: the emulator and the bridge class driven by one loop, no LCM ----
 
 // A fixed device state: the counts of internal sample n are kBase + n on Fx (so every record
@@ -491,8 +689,10 @@ class RdtClient {
     const auto bytes = rdt::EncodeRequest(c, count);
     ::sendto(fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to), sizeof to);
   }
-  // Steps the emulator for `seconds`, collecting every record that arrives.
-  std::vector<rdt::Record> Run(sim::AtiEmulator& box, double seconds) {
+  // Steps the emulator for `seconds`, collecting every record that arrives (and, when asked,
+  // the records per datagram).
+  std::vector<rdt::Record> Run(sim::AtiEmulator& box, double seconds,
+                               std::vector<std::size_t>* sizes = nullptr) {
     std::vector<rdt::Record> out;
     const auto end = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                         std::chrono::duration<double>(seconds));
@@ -500,10 +700,14 @@ class RdtClient {
       box.Step(Clock::now());
       pollfd p{fd_, POLLIN, 0};
       ::poll(&p, 1, 1);
-      std::uint8_t buf[128];
+      std::uint8_t buf[2048];
       ssize_t n;
       while ((n = ::recv(fd_, buf, sizeof buf, MSG_DONTWAIT)) >= 0) {
-        if (n == static_cast<ssize_t>(rdt::kRecordBytes)) out.push_back(rdt::DecodeRecord(buf));
+        if (n == 0 || n % rdt::kRecordBytes != 0) continue;
+        for (const auto& r : rdt::DecodeDatagram(buf, static_cast<std::size_t>(n))) {
+          out.push_back(r);
+        }
+        if (sizes) sizes->push_back(static_cast<std::size_t>(n) / rdt::kRecordBytes);
       }
     }
     return out;
@@ -557,13 +761,65 @@ TEST(AtiEmulatorInProcess, CountedStartBiasAndStopBehaveAsTheManualSays) {
   EXPECT_EQ(c.stops, 1u);
 }
 
+// Buffered (0x0003): datagrams of the buffer size the page states, each record numbered on; a
+// counted stream ends with the part-filled datagram its count leaves. Real-time (0x0002) from the
+// same box: one record per datagram whatever the buffer size.
+TEST(AtiEmulatorInProcess, BufferedStartSendsDatagramsOfTheBufferSizeThePageStates) {
+  sim::AtiEmulatorOptions o;
+  o.name = "HL";
+  o.address = "127.0.1.1";
+  o.http_port = 0;
+  o.rdt_rate_hz = 7000;
+  o.rdt_buffer_size = 35;
+  const std::array<std::int32_t, 6> base{1000, 2000, 3000, 4000, 5000, 6000};
+  sim::AtiEmulator box(o, [&](std::uint64_t n, double) { return FixedState(n, base); });
+  EXPECT_NE(box.NetFtXml().find("<comrdtbsiz>35</comrdtbsiz>"), std::string::npos);
+  EXPECT_NE(box.NetFtXml().find("<comrdtrate>7000</comrdtrate>"), std::string::npos);
+  RdtClient client;
+
+  client.Send(rdt::Command::kBuffered, 100, o.address);
+  std::vector<std::size_t> sizes;
+  auto got = client.Run(box, 0.1, &sizes);
+  ASSERT_EQ(got.size(), 100u);
+  EXPECT_EQ(sizes, (std::vector<std::size_t>{35, 35, 30}));
+  for (std::size_t i = 0; i < got.size(); ++i) {
+    EXPECT_EQ(got[i].rdt_sequence, i + 1);
+    if (i > 0) {
+      EXPECT_EQ(got[i].ft_sequence - got[i - 1].ft_sequence, 1u);  // 7000 of 7000 Hz
+    }
+    EXPECT_EQ(got[i].counts, FixedState(got[i].ft_sequence, base).counts);
+  }
+  EXPECT_FALSE(box.streaming());
+
+  sizes.clear();
+  client.Send(rdt::Command::kRealtime, 50, o.address);
+  got = client.Run(box, 0.05, &sizes);
+  ASSERT_EQ(got.size(), 50u);
+  EXPECT_EQ(sizes, std::vector<std::size_t>(50, 1));
+  EXPECT_EQ(got.front().rdt_sequence, 1u);
+  const auto c = box.counters();
+  EXPECT_EQ(c.starts, 2u);
+  EXPECT_EQ(c.buffered_starts, 1u);
+  EXPECT_EQ(c.datagrams, 3u + 50u);
+
+  // Left to itself, the box's buffer size follows its rate as ftcal's config default does.
+  o.rdt_buffer_size = 0;
+  o.address = "127.0.1.2";
+  sim::AtiEmulator seven(o, [&](std::uint64_t n, double) { return FixedState(n, base); });
+  EXPECT_EQ(seven.options().rdt_buffer_size, 7);
+}
+
 struct Published {
   std::string channel;
   ft_sample_t msg;
 };
 
-// The bridge class against one emulated box, driven in one loop; returns what it published.
-std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& box, double seconds) {
+// The bridge class against one emulated box, driven in one loop for `seconds`, then the box's
+// data ends and the bridge reads what is still on its way; returns what it published (and its
+// counters).
+std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& box, double seconds,
+                                 AtiTransducerCounters* counters = nullptr,
+                                 AtiBridgeOptions options = {}) {
   std::vector<Published> out;
   auto log =
       std::make_shared<spdlog::logger>("ati-test", std::make_shared<spdlog::sinks::null_sink_mt>());
@@ -574,7 +830,7 @@ std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& bo
         EXPECT_EQ(p.msg.decode(data, 0, size), size);
         out.push_back(p);
       },
-      log);
+      log, options);
   bridge.Start();
   const auto end = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                       std::chrono::duration<double>(seconds));
@@ -582,7 +838,13 @@ std::vector<Published> RunBridge(const config::Config& cfg, sim::AtiEmulator& bo
     box.Step(Clock::now());
     bridge.Poll(1);
   }
+  box.Step(Clock::now());
+  box.EndOfData();
+  // Loopback delivers at once; the socket is empty when a poll finds nothing for 20 ms.
+  while (bridge.Poll(20) > 0) {
+  }
   bridge.Stop();
+  if (counters) *counters = bridge.counters(0);
   return out;
 }
 
@@ -604,6 +866,7 @@ TEST(AtiBridgeInProcess, ConfigSignAndCountsPerUnitOverrideThePage) {
   ati->set_sign(-1);
   ati->set_counts_per_force(2e6);  // ... the config says 2e6 counts/N and 4000 counts/Nm
   ati->set_counts_per_torque(4000);
+  ati->set_records_per_datagram(1);  // real-time mode: nothing else to read from the page
   const auto out = RunBridge(cfg, box, 0.2);
   ASSERT_GT(out.size(), 100u);
   for (const auto& p : out) {
@@ -615,8 +878,125 @@ TEST(AtiBridgeInProcess, ConfigSignAndCountsPerUnitOverrideThePage) {
     EXPECT_EQ(p.msg.flags & ~ft_sample_t::FLAG_RESTARTED, 0);
   }
   EXPECT_EQ(out.front().msg.flags, ft_sample_t::FLAG_RESTARTED);
-  // Counts per unit and rated range both come from the config: the page is never read.
+  // Counts per unit, rated range and real-time mode all come from the config: the page is never
+  // read.
   EXPECT_EQ(box.counters().http_requests, 0u);
+}
+
+// The exact account of a box that streams 35 records per datagram at 7000 records/s, with whole
+// datagrams dropped, duplicated, overtaken and corrupted: every record the box sent intact is
+// published once, in order, with the box's values, stamped with its datagram's receipt; every
+// fault counted as what it is.
+TEST(AtiBridgeInProcess, ABoxOf35RecordsPerDatagramIsPublishedOnceRecordForRecord) {
+  constexpr int k = 35;
+  sim::AtiEmulatorOptions o;
+  o.address = "127.0.1.1";
+  o.http_port = 8080;
+  o.rdt_rate_hz = 7000;
+  o.rdt_buffer_size = k;
+  o.faults.seed = 3;
+  o.faults.drop = o.faults.duplicate = o.faults.reorder = o.faults.corrupt = 0.03;
+  const std::array<std::int32_t, 6> base{2000000, -4000000, 6000000, 8000, -10000, 12000};
+  std::vector<testing::AtiTruthRow> truth;
+  sim::AtiEmulator box(
+      o,
+      [&](std::uint64_t n, double) { return FixedState(n, base, n % 97 == 0 ? 0x80020000u : 0); },
+      [&truth](const sim::AtiEmitted& e) {
+        testing::AtiTruthRow r;
+        r.leg = "HL";
+        r.stream = static_cast<int>(e.stream);
+        r.t_s = e.t_s;
+        r.rdt_sequence = e.record.rdt_sequence;
+        r.ft_sequence = e.record.ft_sequence;
+        r.status = e.record.status;
+        r.counts = e.record.counts;
+        r.fault = sim::AtiFaultName(e.fault);
+        r.datagram = e.datagram;
+        truth.push_back(r);
+      });
+  config::Config cfg = SimConfig();
+  cfg.mutable_robot()->mutable_leg(0)->mutable_ati()->set_records_per_datagram(k);
+  AtiTransducerCounters c;
+  AtiBridgeOptions options;
+  options.silence_timeout_s = 1.0;  // a loaded machine must not restart the stream
+  const auto out = RunBridge(cfg, box, 3.0, &c, options);
+
+  // What the box sent intact, in the order of its sequence, once each.
+  std::map<std::uint32_t, const testing::AtiTruthRow*> intact;
+  std::map<std::uint32_t, std::uint32_t> datagram_of;
+  for (const auto& r : truth) {
+    datagram_of[r.rdt_sequence] = r.datagram;
+    if (r.fault == "none" || r.fault == "duplicate") intact[r.rdt_sequence] = &r;
+  }
+  ASSERT_GT(intact.size(), 15000u);
+  ASSERT_EQ(out.size(), intact.size());
+  auto it = intact.begin();
+  std::uint32_t prev = 0;
+  std::map<std::uint32_t, std::int64_t> utime_of;
+  int gaps_of_k = 0, saturated = 0;
+  for (const Published& p : out) {
+    const ft_sample_t& m = p.msg;
+    const testing::AtiTruthRow& r = *it->second;
+    ASSERT_EQ(static_cast<std::uint32_t>(m.rdt_sequence), r.rdt_sequence);
+    EXPECT_EQ(static_cast<std::uint32_t>(m.ft_sequence), r.ft_sequence);
+    EXPECT_EQ(static_cast<std::uint32_t>(m.status), r.status);
+    for (int i = 0; i < 6; ++i) {
+      EXPECT_EQ(m.counts[i], r.counts[i]);
+      EXPECT_DOUBLE_EQ(m.wrench[i], r.counts[i] / kCountsPerUnit);
+    }
+    // The gap is what the truth says went missing since the previous intact record.
+    EXPECT_EQ(m.gap, static_cast<std::int64_t>(r.rdt_sequence - prev - 1)) << r.rdt_sequence;
+    if (m.gap == k) ++gaps_of_k;
+    EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.gap > 0);
+    EXPECT_EQ((m.flags & ft_sample_t::FLAG_STATUS_ERROR) != 0, r.status != 0);
+    if (m.flags & ft_sample_t::FLAG_SATURATED) ++saturated;
+    EXPECT_EQ((m.flags & ft_sample_t::FLAG_RESTARTED) != 0, prev == 0);
+    const auto [stamp, fresh] = utime_of.emplace(datagram_of.at(r.rdt_sequence), m.utime);
+    if (!fresh) {
+      EXPECT_EQ(m.utime, stamp->second) << "one datagram, one receipt stamp";
+    }
+    prev = r.rdt_sequence;
+    ++it;
+  }
+  EXPECT_GT(gaps_of_k, 5);  // a dropped or corrupt datagram alone: k records missing
+  EXPECT_GT(utime_of.size(), 400u);
+
+  testing::AtiLegTally tally = testing::TallyLeg(truth, "HL");
+  ASSERT_EQ(tally.streams.size(), 1u);
+  const std::map<std::string, std::int64_t> counters = {{"duplicates", c.duplicates},
+                                                        {"late", c.late},
+                                                        {"wrong_length", c.wrong_length},
+                                                        {"lost", c.lost},
+                                                        {"received", c.received}};
+  testing::ExpectFaultsCounted(tally, [&](const std::string& n) { return counters.at(n); });
+  EXPECT_EQ(c.published, out.size());
+  EXPECT_EQ(c.status_nonzero, static_cast<std::uint64_t>(saturated));  // bit 17 set in each
+  EXPECT_GT(saturated, 100);
+  EXPECT_EQ(c.saturated, static_cast<std::uint64_t>(saturated));
+  EXPECT_EQ(c.restarts, 1u);
+  EXPECT_EQ(c.stale, 0u);
+  EXPECT_EQ(box.counters().buffered_starts, 1u);
+}
+
+// k = 1 is the real-time mode whatever the box's buffer size: the bridge sends 0x0002 and the box
+// sends one record per datagram.
+TEST(AtiBridgeInProcess, OneRecordPerDatagramIsRealTimeModeWhateverTheBoxsBufferSize) {
+  sim::AtiEmulatorOptions o;
+  o.address = "127.0.1.1";
+  o.http_port = 8080;
+  o.rdt_rate_hz = 7000;  // its buffer size: 7
+  const std::array<std::int32_t, 6> base{0, 0, 1000000, 0, 0, 0};
+  sim::AtiEmulator box(o, [&](std::uint64_t n, double) { return FixedState(n, base); });
+  config::Config cfg = SimConfig();
+  cfg.mutable_robot()->mutable_leg(0)->mutable_ati()->set_records_per_datagram(1);
+  AtiTransducerCounters c;
+  const auto out = RunBridge(cfg, box, 0.3, &c);
+  ASSERT_GT(out.size(), 1000u);
+  EXPECT_EQ(c.published, out.size());
+  EXPECT_EQ(c.datagrams, c.received);
+  EXPECT_EQ(c.lost, 0u);
+  EXPECT_EQ(box.counters().buffered_starts, 0u);
+  EXPECT_EQ(box.counters().starts, 1u);
 }
 
 TEST(AtiBridgeInProcess, SaturationFromStatusBitOrRatedRangeAndStatusErrorAreFlagged) {

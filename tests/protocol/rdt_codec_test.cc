@@ -20,6 +20,7 @@ Bytes ToVec(const std::array<std::uint8_t, N>& a) {
 
 TEST(RdtRequest, DocumentedExampleDatagramsByteExact) {
   EXPECT_EQ(ToVec(EncodeRequest(Command::kRealtime)), (Bytes{0x12, 0x34, 0x00, 0x02, 0, 0, 0, 0}));
+  EXPECT_EQ(ToVec(EncodeRequest(Command::kBuffered)), (Bytes{0x12, 0x34, 0x00, 0x03, 0, 0, 0, 0}));
   EXPECT_EQ(ToVec(EncodeRequest(Command::kStop)), (Bytes{0x12, 0x34, 0x00, 0x00, 0, 0, 0, 0}));
   EXPECT_EQ(ToVec(EncodeRequest(Command::kBias)), (Bytes{0x12, 0x34, 0x00, 0x42, 0, 0, 0, 0}));
 }
@@ -179,7 +180,9 @@ TEST(RdtSequence, WrapAround) {
   const auto r = t.Update(3u, Ft(3u));  // 1 and 2 lost across the wrap
   EXPECT_EQ(r.verdict, V::kGap);
   EXPECT_EQ(r.lost, 2u);
-  EXPECT_EQ(t.Update(0xFFFFFFFFu, Ft(0xFFFFFFFFu)).verdict, V::kLate);
+  // Taken 4 records ago, across the wrap: a duplicate. 1 was never taken: late.
+  EXPECT_EQ(t.Update(0xFFFFFFFFu, Ft(0xFFFFFFFFu)).verdict, V::kDuplicate);
+  EXPECT_EQ(t.Update(1u, Ft(1u)).verdict, V::kLate);
 }
 
 TEST(RdtSequence, ResetOnStartIgnoresPreviousStreamLeftovers) {
@@ -269,6 +272,63 @@ TEST(RdtSequence, DuplicatesAndReorderingAcrossTheWrap) {
   EXPECT_EQ(t.late(), 2u);
   EXPECT_EQ(t.restarts(), 0u);
   EXPECT_EQ(t.last_sequence(), 2u);
+}
+
+// Buffered mode: whole datagrams of k records duplicated or overtaken. A duplicated datagram's
+// records are duplicates (each was accepted), not late, though all but its last arrive behind the
+// newest; an overtaken datagram's records are first lost, then late.
+TEST(RdtSequence, BufferedDatagramsDuplicatedAndReordered) {
+  constexpr std::uint32_t k = 7;
+  SequenceTracker t;
+  auto datagram = [&](std::uint32_t first) {
+    std::vector<V> out;
+    for (std::uint32_t s = first; s < first + k; ++s) out.push_back(t.Update(s, Ft(s)).verdict);
+    return out;
+  };
+  const std::vector<V> next(k, V::kNext), dup(k, V::kDuplicate), late(k, V::kLate);
+  std::vector<V> start = next;
+  start[0] = V::kStart;
+  EXPECT_EQ(datagram(1), start);
+  EXPECT_EQ(datagram(1 + k), next);
+  EXPECT_EQ(datagram(1 + k), dup);  // sent twice
+  EXPECT_EQ(t.duplicates(), k);
+  EXPECT_EQ(t.late(), 0u);
+  // 1 + 2k overtaken by 1 + 3k: a gap of k records, then k late ones.
+  std::vector<V> gap = next;
+  gap[0] = V::kGap;
+  EXPECT_EQ(datagram(1 + 3 * k), gap);
+  EXPECT_EQ(t.lost(), k);
+  EXPECT_EQ(datagram(1 + 2 * k), late);
+  EXPECT_EQ(t.late(), k);
+  // A dropped datagram: the next one's first record says k records are missing before it.
+  const auto r = t.Update(1 + 5 * k, Ft(1 + 5 * k));
+  EXPECT_EQ(r.verdict, V::kGap);
+  EXPECT_EQ(r.lost, k);
+  EXPECT_EQ(t.lost(), 2 * k);
+  // A duplicate of a datagram older than the window is no longer known: late.
+  for (std::uint32_t s = 2 + 5 * k; s < 1000; ++s) t.Update(s, Ft(s));
+  EXPECT_EQ(t.Update(1 + k, Ft(1 + k)).verdict, V::kLate);
+}
+
+TEST(RdtSequence, AStartForgetsThePreviousStreamsSequences) {
+  SequenceTracker t;
+  for (std::uint32_t s = 1; s <= 20; ++s) t.Update(s, Ft(s));
+  t.Reset();
+  EXPECT_EQ(t.Update(5, Ft(100)).verdict, V::kStart);  // 1..4 lost
+  // 3 was accepted in the old stream, not in this one: late, not a duplicate.
+  EXPECT_EQ(t.Update(3, Ft(98)).verdict, V::kLate);
+  EXPECT_EQ(t.duplicates(), 0u);
+}
+
+TEST(RdtBuffered, DefaultRecordsPerDatagramIsAboutOnePerMillisecond) {
+  EXPECT_EQ(DefaultRecordsPerDatagram(7000), 7);
+  EXPECT_EQ(DefaultRecordsPerDatagram(1000), 1);
+  EXPECT_EQ(DefaultRecordsPerDatagram(1499), 1);
+  EXPECT_EQ(DefaultRecordsPerDatagram(1500), 2);
+  EXPECT_EQ(DefaultRecordsPerDatagram(500), 1);  // 0.5 rounds up; at least 1 anyway
+  EXPECT_EQ(DefaultRecordsPerDatagram(100), 1);
+  EXPECT_EQ(DefaultRecordsPerDatagram(1), 1);
+  EXPECT_EQ(DefaultRecordsPerDatagram(100000), kMaxRecordsPerDatagram);
 }
 
 TEST(RdtConversion, CountsToNewtonsAndSign) {

@@ -232,6 +232,11 @@ TEST(Config, RangeChecks) {
        "robot.leg[5].ati.rated_range[5]: must be > 0"},
       {"\"127.0.1.6\" }", "\"127.0.1.6\" counts_per_force: 0 }",
        "robot.leg[5].ati.counts_per_force: must be > 0"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" records_per_datagram: 0 }",
+       "robot.leg[5].ati.records_per_datagram: must be in 1..40 (1: real-time mode; else the "
+       "box's RDT buffer size), got 0"},
+      {"\"127.0.1.6\" }", "\"127.0.1.6\" records_per_datagram: 41 }",
+       "robot.leg[5].ati.records_per_datagram: must be in 1..40"},
       {"\"127.0.1.6\"", "\"127.0.1\"", "robot.leg[5].ati.address: not an IPv4 address"},
       {"total_mass_kg: 8.18", "total_mass_kg: nan", "robot.total_mass_kg: must be a finite number"},
       {"total_mass_kg: 8.18", "total_mass_kg: 8.18 g0_m_s2: 1.62",

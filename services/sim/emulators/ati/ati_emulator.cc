@@ -67,6 +67,15 @@ AtiEmulator::AtiEmulator(AtiEmulatorOptions options, AtiStateSource source, AtiE
     throw AtiEmulatorError(options_.name + ": rdt_rate_hz " + std::to_string(options_.rdt_rate_hz) +
                            " outside 1..7000");
   }
+  if (options_.rdt_buffer_size == 0) {
+    options_.rdt_buffer_size = rdt::DefaultRecordsPerDatagram(options_.rdt_rate_hz);
+  }
+  if (options_.rdt_buffer_size < 1 || options_.rdt_buffer_size > rdt::kMaxRecordsPerDatagram) {
+    throw AtiEmulatorError(options_.name + ": rdt_buffer_size " +
+                           std::to_string(options_.rdt_buffer_size) + " outside 1..40");
+  }
+  pending_.reserve(rdt::kMaxRecordsPerDatagram);
+  held_.reserve(rdt::kMaxRecordsPerDatagram);
   for (double p : {f.drop, f.duplicate, f.reorder, f.corrupt}) {
     if (!(p >= 0 && p <= 1))
       throw AtiEmulatorError(options_.name + ": fault probability outside [0, 1]");
@@ -149,7 +158,7 @@ std::string AtiEmulator::NetFtXml() const {
      << "<scfgfu>N</scfgfu>\n<scfgtu>Nm</scfgtu>\n"
      << "<comrdte>true</comrdte>\n"
      << "<comrdtrate>" << options_.rdt_rate_hz << "</comrdtrate>\n"
-     << "<comrdtbsiz>1</comrdtbsiz>\n"
+     << "<comrdtbsiz>" << options_.rdt_buffer_size << "</comrdtbsiz>\n"
      << "</netft>\n";
   return os.str();
 }
@@ -177,7 +186,7 @@ void AtiEmulator::Step(Clock::time_point now) {
     const auto down = created_ + std::chrono::duration_cast<Clock::duration>(
                                      std::chrono::duration<double>(e.at_s));
     EmitDue(down);
-    FlushHeld();
+    Flush();
     streaming_ = false;
     booting_until_ = down + std::chrono::duration_cast<Clock::duration>(
                                 std::chrono::duration<double>(options_.faults.boot_time_s));
@@ -190,7 +199,7 @@ void AtiEmulator::Step(Clock::time_point now) {
 }
 
 void AtiEmulator::EndOfData() {
-  FlushHeld();
+  Flush();
   streaming_ = false;
   ended_ = true;
 }
@@ -217,13 +226,15 @@ void AtiEmulator::HandleCommands(Clock::time_point now) {
     ++counters_.commands;
     switch (req.command) {
       case rdt::Command::kRealtime:
-      case rdt::Command::kBuffered:  // comrdtbsiz is 1: one record per datagram either way
+      case rdt::Command::kBuffered:
         EmitDue(now);  // the old stream's records up to now still go to the old client
-        FlushHeld();
+        Flush();
         client_ = from;
         streaming_ = true;
         ++stream_;
         ++counters_.starts;
+        stream_k_ = req.command == rdt::Command::kBuffered ? options_.rdt_buffer_size : 1;
+        if (req.command == rdt::Command::kBuffered) ++counters_.buffered_starts;
         rdt_sequence_ = 0;
         stream_start_ = now;
         stream_records_ = 0;
@@ -233,7 +244,7 @@ void AtiEmulator::HandleCommands(Clock::time_point now) {
         break;
       case rdt::Command::kStop:
         EmitDue(now);
-        FlushHeld();
+        Flush();
         streaming_ = false;
         ++counters_.stops;
         break;
@@ -256,8 +267,6 @@ void AtiEmulator::EmitDue(Clock::time_point now) {
     next_record_ = now;
   }
   const double period_ns = 1e9 / options_.rdt_rate_hz;
-  const AtiFaultOptions& f = options_.faults;
-  std::uniform_real_distribution<double> uniform(0.0, 1.0);
   while (streaming_ && next_record_ <= now) {
     const Clock::time_point t = next_record_;
     ++stream_records_;
@@ -277,89 +286,105 @@ void AtiEmulator::EmitDue(Clock::time_point now) {
     e.record.status = s.status;
     for (int i = 0; i < 6; ++i) e.record.counts[i] = SaturatingSub(s.counts[i], bias_[i]);
     ++counters_.records;
-
-    if (SilentAt(e.t_s)) {
-      e.fault = AtiFault::kSilent;
-    } else if (!have_held_) {  // the record after a held one goes out as it is
-      const double u = uniform(rng_);
-      double edge = f.drop;
-      if (u < edge) {
-        e.fault = AtiFault::kDrop;
-      } else if (u < (edge += f.duplicate)) {
-        e.fault = AtiFault::kDuplicate;
-      } else if (u < (edge += f.reorder)) {
-        e.fault = AtiFault::kReorder;
-      } else if (u < (edge += f.corrupt)) {
-        e.fault = AtiFault::kCorrupt;
-      }
-    }
-
-    switch (e.fault) {
-      case AtiFault::kNone:
-        Emit(e, rdt::kRecordBytes);
-        if (have_held_) {
-          have_held_ = false;
-          Emit(held_, rdt::kRecordBytes);
-        }
-        break;
-      case AtiFault::kReorder:
-        held_ = e;
-        have_held_ = true;
-        break;
-      case AtiFault::kCorrupt: {
-        // 1..71 bytes, never 36: truncated or padded.
-        std::uint32_t length = 1 + static_cast<std::uint32_t>(rng_() % 70);
-        if (length >= rdt::kRecordBytes) ++length;
-        Emit(e, length);
-        break;
-      }
-      case AtiFault::kDrop:
-      case AtiFault::kDuplicate:
-      case AtiFault::kSilent:
-        Emit(e, rdt::kRecordBytes);
-        break;
-    }
+    pending_.push_back(e);
+    if (static_cast<int>(pending_.size()) == stream_k_) SendPending(/*draw=*/true);
     if (limited_ && --remaining_ == 0) {
-      FlushHeld();
+      Flush();
       streaming_ = false;
     }
   }
 }
 
-// A record held back for reordering when its stream ends: nothing overtook it, so it goes out
+void AtiEmulator::SendPending(bool draw) {
+  if (pending_.empty()) return;
+  const AtiFaultOptions& f = options_.faults;
+  AtiFault fault = AtiFault::kNone;
+  // The datagram leaves with its last record: the network's state then decides.
+  if (SilentAt(pending_.back().t_s)) {
+    fault = AtiFault::kSilent;
+  } else if (draw && !have_held_) {  // the datagram after a held one goes out as it is
+    std::uniform_real_distribution<double> uniform(0.0, 1.0);
+    const double u = uniform(rng_);
+    double edge = f.drop;
+    if (u < edge) {
+      fault = AtiFault::kDrop;
+    } else if (u < (edge += f.duplicate)) {
+      fault = AtiFault::kDuplicate;
+    } else if (u < (edge += f.reorder)) {
+      fault = AtiFault::kReorder;
+    } else if (u < (edge += f.corrupt)) {
+      fault = AtiFault::kCorrupt;
+    }
+  }
+  ++datagram_;
+  for (AtiEmitted& e : pending_) {
+    e.fault = fault;
+    e.datagram = datagram_;
+  }
+  if (fault == AtiFault::kReorder) {
+    held_.swap(pending_);
+    have_held_ = true;
+  } else {
+    Emit(pending_);
+    if (fault == AtiFault::kNone && have_held_) {
+      have_held_ = false;
+      Emit(held_);
+      held_.clear();
+    }
+  }
+  pending_.clear();
+}
+
+void AtiEmulator::Flush() {
+  SendPending(/*draw=*/false);
+  FlushHeld();
+}
+
+// A datagram held back for reordering when its stream ends: nothing overtook it, so it goes out
 // in order and the truth says so.
 void AtiEmulator::FlushHeld() {
   if (!have_held_) return;
   have_held_ = false;
-  held_.fault = AtiFault::kNone;
-  Emit(held_, rdt::kRecordBytes);
+  for (AtiEmitted& e : held_) e.fault = AtiFault::kNone;
+  Emit(held_);
+  held_.clear();
 }
 
-// Sends one record as its fault says (`length` bytes for a corrupt one) and reports it.
-void AtiEmulator::Emit(const AtiEmitted& e, std::uint32_t length) {
-  std::uint8_t buf[2 * rdt::kRecordBytes];
-  rdt::EncodeRecord(e.record, buf);
-  for (std::size_t i = rdt::kRecordBytes; i < sizeof buf; ++i) {
-    buf[i] = static_cast<std::uint8_t>(rng_());
+// Sends one datagram's records as their fault says (a corrupt one 1..35 bytes short or long)
+// and reports them.
+void AtiEmulator::Emit(std::vector<AtiEmitted>& records) {
+  std::uint8_t buf[rdt::kMaxDatagramBytes + rdt::kRecordBytes];
+  const std::size_t bytes = records.size() * rdt::kRecordBytes;
+  for (std::size_t i = 0; i < records.size(); ++i) {
+    rdt::EncodeRecord(records[i].record, buf + i * rdt::kRecordBytes);
   }
-  ++counters_.faults[static_cast<int>(e.fault)];
-  switch (e.fault) {
+  const AtiFault fault = records.front().fault;
+  counters_.faults[static_cast<int>(fault)] += records.size();
+  switch (fault) {
     case AtiFault::kDrop:
     case AtiFault::kSilent:
       break;
     case AtiFault::kDuplicate:
-      Send(buf, rdt::kRecordBytes);
-      Send(buf, rdt::kRecordBytes);
+      Send(buf, bytes);
+      Send(buf, bytes);
       break;
-    case AtiFault::kCorrupt:
-      Send(buf, length);
+    case AtiFault::kCorrupt: {
+      const auto by = 1 + static_cast<std::size_t>(rng_() % (rdt::kRecordBytes - 1));
+      const bool longer = (rng_() & 1u) != 0;
+      if (longer) {
+        for (std::size_t i = bytes; i < bytes + by; ++i) buf[i] = static_cast<std::uint8_t>(rng_());
+      }
+      Send(buf, longer ? bytes + by : bytes - by);
       break;
+    }
     case AtiFault::kNone:
     case AtiFault::kReorder:
-      Send(buf, rdt::kRecordBytes);
+      Send(buf, bytes);
       break;
   }
-  if (sink_) sink_(e);
+  if (sink_) {
+    for (const AtiEmitted& e : records) sink_(e);
+  }
 }
 
 void AtiEmulator::Send(const std::uint8_t* data, std::size_t size) {

@@ -8,18 +8,23 @@
 // one directly. The HTTP page is served by cpp-httplib on its own thread.
 //
 // Device model. The internal sample counter ft_sequence runs at 7000 Hz from "power-up" (the
-// emulator's construction or the end of a reboot). A start command (0x0002, count N) makes the
-// box stream to the address and port the command came from, at rdt_rate_hz, rdt_sequence 1 for
-// the first record; a later start (from anyone) replaces it; stop (0x0000) ends it; bias
-// (0x0042) tares the present counts. The state of each internal sample (counts, status word)
-// comes from a callback, so the twin, a test or a replayed series can feed it.
+// emulator's construction or the end of a reboot). A start command (0x0002 real-time or 0x0003
+// buffered, count N records) makes the box stream to the address and port the command came
+// from, at rdt_rate_hz, rdt_sequence 1 for the first record; real-time sends each record in a
+// datagram of its own, buffered sends a datagram once rdt_buffer_size records are due (the page's
+// comrdtbsiz). A later start (from anyone) replaces it; stop (0x0000) ends it; bias (0x0042)
+// tares the present counts. A datagram part-filled when its stream ends (stop, a new start, the
+// count reached, a reboot, the end of the data) is sent as it is [U: the manual does not say].
+// The state of each internal sample (counts, status word) comes from a callback, so the twin, a
+// test or a replayed series can feed it.
 //
-// Faults (deterministic for a seed): per record, with the given probabilities and mutually
-// exclusive, drop / duplicate / reorder (sent after the next one) / corrupt (wrong length);
-// scheduled in emulator time, silence (the network is down both ways for a while: records are
-// generated and lost, commands unanswered) and reboot (streaming ends, the box is deaf for
-// boot_time_s, then ft_sequence restarts at 0 and nothing streams until a new start). Every
-// record generated is reported to a sink with what was done to it: the truth series.
+// Faults (deterministic for a seed): per datagram (a record in real-time mode), with the given
+// probabilities and mutually exclusive, drop / duplicate / reorder (sent after the next one) /
+// corrupt (wrong length); scheduled in emulator time, silence (the network is down both ways for
+// a while: records are generated and lost, commands unanswered) and reboot (streaming ends, the
+// box is deaf for boot_time_s, then ft_sequence restarts at 0 and nothing streams until a new
+// start). Every record generated is reported to a sink with what was done to its datagram: the
+// truth series.
 #pragma once
 
 #include <netinet/in.h>
@@ -72,7 +77,7 @@ struct AtiScheduledEvent {
 
 struct AtiFaultOptions {
   std::uint64_t seed = 1;
-  // Probability per record of each fault (exclusive; their sum must be <= 1).
+  // Probability per datagram of each fault (exclusive; their sum must be <= 1).
   double drop = 0, duplicate = 0, reorder = 0, corrupt = 0;
   std::vector<AtiScheduledEvent> events;
   double boot_time_s = 0.3;
@@ -87,6 +92,9 @@ struct AtiEmulatorOptions {
   double counts_per_torque = 1e6;
   std::array<double, 6> rated_range{130, 130, 400, 10, 10, 10};
   int rdt_rate_hz = 7000;  // comrdtrate, 1..7000
+  // comrdtbsiz, records per datagram in buffered mode, 1..40; 0: rdt::DefaultRecordsPerDatagram
+  // of the rate (what ftcal's config assumes when it does not say).
+  int rdt_buffer_size = 0;
   int send_buffer_bytes = 1 << 20;
   AtiFaultOptions faults;
 };
@@ -96,7 +104,8 @@ struct AtiEmitted {
   double t_s = 0;            // emulator time of the record's internal sample
   std::uint32_t stream = 0;  // 1 for the first start command answered, +1 per start
   rdt::Record record;
-  AtiFault fault = AtiFault::kNone;
+  AtiFault fault = AtiFault::kNone;  // what was done to its datagram
+  std::uint32_t datagram = 0;        // 1 for the box's first datagram, +1 per datagram
 };
 using AtiEmitSink = std::function<void(const AtiEmitted&)>;
 
@@ -106,11 +115,12 @@ struct AtiEmulatorCounters {
   std::uint64_t ignored_commands = 0;  // received while silent or booting
   std::uint64_t starts = 0;
   std::uint64_t stops = 0;
-  std::uint64_t records = 0;    // generated while streaming
-  std::uint64_t datagrams = 0;  // sent (a duplicate counts twice)
+  std::uint64_t records = 0;          // generated while streaming
+  std::uint64_t datagrams = 0;        // sent (a duplicate counts twice)
+  std::uint64_t buffered_starts = 0;  // starts in buffered mode (0x0003)
   std::uint64_t send_errors = 0;
   std::uint64_t http_requests = 0;        // pages served
-  std::array<std::uint64_t, 6> faults{};  // by AtiFault
+  std::array<std::uint64_t, 6> faults{};  // records, by AtiFault of their datagram
   std::uint64_t reboots = 0;
 };
 
@@ -147,10 +157,14 @@ class AtiEmulator {
   double Seconds(Clock::time_point t) const;
   void HandleCommands(Clock::time_point now);
   void EmitDue(Clock::time_point now);
+  // Sends the datagram being filled (a fault drawn when `draw`), or a part-filled one as it is.
+  void SendPending(bool draw);
+  // Sends what the stream left: the part-filled datagram, then a held (reordered) one.
+  void Flush();
   void FlushHeld();
-  void Emit(const AtiEmitted& e, std::uint32_t length);
+  // Sends the records of one datagram as their (shared) fault says and reports them.
+  void Emit(std::vector<AtiEmitted>& records);
   void Send(const std::uint8_t* data, std::size_t size);
-  void Report(const AtiEmitted& e);
   bool SilentAt(double t_s) const;
 
   AtiEmulatorOptions options_;
@@ -175,8 +189,11 @@ class AtiEmulator {
   Clock::time_point next_record_;
   std::array<std::int32_t, 6> bias_{};
   std::array<std::int32_t, 6> last_counts_{};  // before the bias, for the next bias command
+  int stream_k_ = 1;                           // records per datagram of this stream
+  std::vector<AtiEmitted> pending_;            // the datagram being filled
   bool have_held_ = false;
-  AtiEmitted held_;
+  std::vector<AtiEmitted> held_;  // a datagram held back to be sent after the next one
+  std::uint32_t datagram_ = 0;
   std::size_t next_event_ = 0;
   std::mt19937_64 rng_;
   AtiEmulatorCounters counters_;

@@ -82,6 +82,7 @@ int main(int argc, char** argv) {
   std::string scenario = "walk";
   double duration_s = 0;
   int rate_hz = 7000;
+  int records_per_datagram = 0;
   std::uint64_t seed = 1;
   double drop = 0, duplicate = 0, reorder = 0, corrupt = 0;
   std::vector<std::string> silences, reboots;
@@ -101,13 +102,18 @@ int main(int argc, char** argv) {
   cli.add_option("--rate", rate_hz, "RDT output rate, records/s (comrdtrate)")
       ->check(CLI::Range(1, 7000))
       ->capture_default_str();
+  cli.add_option("--records-per-datagram", records_per_datagram,
+                 "RDT buffer size of every box (comrdtbsiz), 1..40: records per datagram in "
+                 "buffered mode (default: the config's records_per_datagram, else --rate / 1000, "
+                 "rounded, at least 1)")
+      ->check(CLI::Range(1, 40));
   cli.add_option("--seed", seed, "seed of the twin and the faults")->capture_default_str();
-  cli.add_option("--drop", drop, "probability a record is not sent")->check(CLI::Range(0.0, 1.0));
-  cli.add_option("--duplicate", duplicate, "probability a record is sent twice")
+  cli.add_option("--drop", drop, "probability a datagram is not sent")->check(CLI::Range(0.0, 1.0));
+  cli.add_option("--duplicate", duplicate, "probability a datagram is sent twice")
       ->check(CLI::Range(0.0, 1.0));
-  cli.add_option("--reorder", reorder, "probability a record is sent after the next one")
+  cli.add_option("--reorder", reorder, "probability a datagram is sent after the next one")
       ->check(CLI::Range(0.0, 1.0));
-  cli.add_option("--corrupt", corrupt, "probability a record is sent with a wrong length")
+  cli.add_option("--corrupt", corrupt, "probability a datagram is sent with a wrong length")
       ->check(CLI::Range(0.0, 1.0));
   cli.add_option("--silence", silences, "LEG:AT_S:DURATION_S, the network of LEG down a while");
   cli.add_option("--reboot", reboots, "LEG:AT_S, LEG's box reboots (ft_sequence restarts)");
@@ -186,6 +192,9 @@ int main(int argc, char** argv) {
         for (int i = 0; i < 6; ++i) o.rated_range[i] = leg.ati().rated_range(i);
       }
       o.rdt_rate_hz = rate_hz;
+      o.rdt_buffer_size = records_per_datagram > 0
+                              ? records_per_datagram
+                              : static_cast<int>(leg.ati().records_per_datagram());
       o.faults = faults[k];
       auto source = [series, k](std::uint64_t, double t_s) {
         ftcal::sim::AtiDeviceSample s;
@@ -202,7 +211,9 @@ int main(int argc, char** argv) {
     ::sigaction(SIGINT, &sa, nullptr);
     ::sigaction(SIGTERM, &sa, nullptr);
     if (!ready_path.empty()) WriteAtomically(ready_path, "ready\n");
-    std::fprintf(stderr, "ftcal-emulate-ati: %zu boxes up, %d records/s\n", boxes.size(), rate_hz);
+    std::fprintf(stderr, "ftcal-emulate-ati: %zu boxes up, %d records/s, RDT buffer size %d\n",
+                 boxes.size(), rate_hz,
+                 boxes.empty() ? 0 : boxes.front()->options().rdt_buffer_size);
 
     std::vector<pollfd> fds;
     for (const auto& b : boxes) fds.push_back({b->fd(), POLLIN, 0});
@@ -230,14 +241,14 @@ int main(int argc, char** argv) {
       std::fprintf(stderr,
                    "ftcal-emulate-ati: %s records %llu datagrams %llu starts %llu stops %llu "
                    "drop %llu duplicate %llu reorder %llu corrupt %llu silent %llu reboots %llu "
-                   "send_errors %llu http %llu\n",
+                   "send_errors %llu http %llu buffered_starts %llu\n",
                    b->options().name.c_str(), (unsigned long long)c.records,
                    (unsigned long long)c.datagrams, (unsigned long long)c.starts,
                    (unsigned long long)c.stops, (unsigned long long)c.faults[1],
                    (unsigned long long)c.faults[2], (unsigned long long)c.faults[3],
                    (unsigned long long)c.faults[4], (unsigned long long)c.faults[5],
                    (unsigned long long)c.reboots, (unsigned long long)c.send_errors,
-                   (unsigned long long)c.http_requests);
+                   (unsigned long long)c.http_requests, (unsigned long long)c.buffered_starts);
     }
     boxes.clear();  // no more sink calls after this
     if (!truth_path.empty()) WriteAtomically(truth_path, ftcal::sim::AtiTruthCsv(truth));
