@@ -36,6 +36,11 @@ static_assert(kSlotBytes > rdt::kMaxDatagramBytes, "a slot must hold the largest
 constexpr auto kCalibrationRetry = std::chrono::seconds(1);
 constexpr auto kCalibrationRetryMax = std::chrono::seconds(16);
 constexpr auto kStateLogPeriod = std::chrono::seconds(30);
+// The Net F/T's internal sample counter (ft_sequence) runs at 7000 Hz whatever the RDT rate
+// (docs/device-protocols.md §1.3). Records of one datagram lie at most 40 RDT periods apart; a
+// larger distance is a damaged counter, not time.
+constexpr std::int64_t kFtCounterHz = 7000;
+constexpr std::uint32_t kMaxStampBackTicks = 7000;
 
 std::int64_t RealtimeNs() {
   timespec ts;
@@ -105,6 +110,7 @@ struct AtiBridge::Transducer {
   rdt::SequenceTracker tracker;
   bool have_ft = false;
   std::uint32_t last_ft = 0;
+  std::int64_t last_utime = 0;   // the stamp of the last record handed on (they only rise)
   std::int64_t pending_gap = 0;  // accepted but unpublished (no calibration) since the last sample
   bool restart_pending = false;  // the next published sample carries FLAG_RESTARTED
   // A time at which the socket was known empty: just before a recvmmsg that drained it (took
@@ -627,11 +633,23 @@ void AtiBridge::HandleSocket(Transducer& t) {
       // A socket queue is first in, first out: a datagram stamped before the last look that
       // emptied the queue was not in it then.
       const bool held = kernel_ns < t.drained_at_ns;
-      // Each record of a (buffered) datagram is its own sample, stamped with the datagram's
-      // receipt: the box's own time of each sample comes with the batched FT message (issue 37,
-      // item 2), from ft_sequence.
+      // Each record of a (buffered) datagram is its own sample. The last was taken just before
+      // the box sent the datagram; the others before it by their distance on the box's 7 kHz
+      // sample counter, so a reader that orders samples by time (the corrector, the aligner)
+      // does not see k samples at one instant. Never before the previous sample's stamp, so
+      // that the stream's times only rise. The device's clock mapped onto the host's comes
+      // with the batched FT message (issue 37, item 2; issue 38).
+      const std::uint32_t last_ft = rdt::DecodeRecord(data + len - rdt::kRecordBytes).ft_sequence;
+      const std::int64_t receipt_us = kernel_ns / 1000;
       for (std::size_t off = 0; off < len; off += rdt::kRecordBytes) {
-        HandleRecord(t, data + off, kernel_ns, user_ns, kernel_ns / 1000, held);
+        const std::uint32_t before = last_ft - rdt::DecodeRecord(data + off).ft_sequence;
+        const std::int64_t back_us =
+            before <= kMaxStampBackTicks
+                ? static_cast<std::int64_t>(before) * 1'000'000 / kFtCounterHz
+                : 0;
+        const std::int64_t utime = std::max(receipt_us - back_us, t.last_utime + 1);
+        t.last_utime = utime;
+        HandleRecord(t, data + off, kernel_ns, user_ns, utime, held);
       }
     }
     if (t.tracker.accepted() != accepted_before) {

@@ -42,9 +42,7 @@ std::string Stretches(const std::vector<Stretch>& v, bool lost) {
   return out;
 }
 
-bool IsFt(const StreamHealth& s, const std::string& prefix) {
-  return s.name.rfind(prefix, 0) == 0;
-}
+bool IsFt(const StreamHealth& s, const std::string& prefix) { return s.name.rfind(prefix, 0) == 0; }
 
 }  // namespace
 
@@ -53,8 +51,7 @@ void LogExaminer::Judge(HealthReport& r) const {
   for (const StreamHealth& s : r.streams) {
     if (s.samples == 0) {
       r.problems.push_back(s.name + ": no messages in the recording (the calibrator needs " +
-                           (IsFt(s, ch.ft_prefix()) ? "every configured leg's transducer"
-                                                    : "it") +
+                           (IsFt(s, ch.ft_prefix()) ? "every configured leg's transducer" : "it") +
                            ")");
       continue;
     }
@@ -81,8 +78,8 @@ void LogExaminer::Judge(HealthReport& r) const {
       if (!out.empty()) {
         double total_s = 0;
         for (const Stretch& x : out) total_s += x.length_s;
-        r.notes.push_back(s.name + ": " + std::to_string(out.size()) + what +
-                          " between phases, " + Format("%.1f s", total_s) + " in all");
+        r.notes.push_back(s.name + ": " + std::to_string(out.size()) + what + " between phases, " +
+                          Format("%.1f s", total_s) + " in all");
       }
     }
     if (s.duplicates > 0) {
@@ -103,13 +100,14 @@ void LogExaminer::Judge(HealthReport& r) const {
                         " times (its counter fell or stood still while the host's time went on)");
     }
     for (const auto& [what, n] : s.flagged) {
-      const std::string line = s.name + ": " + std::to_string(n) + " samples " + what +
-                               Format(" (%.1f %%)", 100.0 * static_cast<double>(n) /
-                                                        static_cast<double>(s.samples));
+      const std::string line =
+          s.name + ": " + std::to_string(n) + " samples " + what +
+          Format(" (%.1f %%)", 100.0 * static_cast<double>(n) / static_cast<double>(s.samples));
       // A marker out of view now and then is the motion capture's everyday life: the frames
       // without every marker are left out of the poses (segmenter.require_all_markers).
-      const bool everyday = (what == "untracked" || what == "markers missing") &&
-                            static_cast<double>(n) <= kMocapWarnShare * static_cast<double>(s.samples);
+      const bool everyday =
+          (what == "untracked" || what == "markers missing") &&
+          static_cast<double>(n) <= kMocapWarnShare * static_cast<double>(s.samples);
       (everyday ? r.notes : r.warnings).push_back(line);
     }
   }
@@ -139,10 +137,9 @@ void LogExaminer::Judge(HealthReport& r) const {
       r.problems.push_back("hanging series missing (no completed start..stop): " + missing +
                            ": step 1 needs all four");
     }
-    const bool standing =
-        std::any_of(r.phases.begin(), r.phases.end(), [](const PhaseHealth& p) {
-          return p.code == experiment_marker_t::STANDING && p.completed;
-        });
+    const bool standing = std::any_of(r.phases.begin(), r.phases.end(), [](const PhaseHealth& p) {
+      return p.code == experiment_marker_t::STANDING && p.completed;
+    });
     if (!standing) {
       r.problems.push_back("no completed STANDING phase: step 2 has no poses");
     } else if (r.steady_poses > 0 &&
@@ -154,8 +151,8 @@ void LogExaminer::Judge(HealthReport& r) const {
       r.notes.push_back("no STEADY_POSE events recorded: the calibrator segments the poses itself");
     }
     std::string optional;
-    for (int code : {experiment_marker_t::TARE, experiment_marker_t::TRIPOD,
-                     experiment_marker_t::WALKING}) {
+    for (int code :
+         {experiment_marker_t::TARE, experiment_marker_t::TRIPOD, experiment_marker_t::WALKING}) {
       if (std::none_of(r.phases.begin(), r.phases.end(),
                        [&](const PhaseHealth& p) { return p.code == code; })) {
         optional += (optional.empty() ? "" : ", ") + PhaseName(code);
@@ -199,12 +196,11 @@ std::string Render(const HealthReport& r) {
   out += line;
   for (const StreamHealth& s : r.streams) {
     const std::string skew = s.has_clock ? Format("%+.1f ppm", s.skew_ppm) : "-";
-    const std::string queuing =
-        s.queuing.count() > 0
-            ? Format("%.2f/", 1e3 * s.queuing.Quantile(0.5)) +
-                  Format("%.2f/", 1e3 * s.queuing.Quantile(0.99)) +
-                  Format("%.1f ms", 1e3 * s.queuing.max_s())
-            : "-";
+    const std::string queuing = s.queuing.count() > 0
+                                    ? Format("%.2f/", 1e3 * s.queuing.Quantile(0.5)) +
+                                          Format("%.2f/", 1e3 * s.queuing.Quantile(0.99)) +
+                                          Format("%.1f ms", 1e3 * s.queuing.max_s())
+                                    : "-";
     std::snprintf(line, sizeof line, "%-13s %7.1f Hz %9lld %7lld %7zu %7zu %11s %22s\n",
                   s.name.c_str(), s.rate_hz, static_cast<long long>(s.samples),
                   static_cast<long long>(s.lost), s.gaps.size(), s.stalls.size(), skew.c_str(),
@@ -229,9 +225,9 @@ std::string Render(const HealthReport& r) {
   if (r.phases.empty()) out += "  none\n";
   const int code = ExitCodeOf(r);
   out += std::string("\nverdict: ") +
-         (code == kExitDone       ? "calibratable"
-          : code == kExitRefused  ? "NOT calibratable"
-                                  : "calibratable, with warnings") +
+         (code == kExitDone      ? "calibratable"
+          : code == kExitRefused ? "NOT calibratable"
+                                 : "calibratable, with warnings") +
          "\n";
   for (const std::string& p : r.problems) out += "  problem: " + p + "\n";
   for (const std::string& w : r.warnings) out += "  warning: " + w + "\n";
@@ -239,8 +235,8 @@ std::string Render(const HealthReport& r) {
   std::vector<std::pair<std::string, std::string>> notes;  // (streams, what)
   for (const std::string& n : r.notes) {
     const size_t colon = n.find(": ");
-    const bool of_stream =
-        colon != std::string::npos && n.find(' ') > colon && n.substr(0, colon).find(',') == std::string::npos;
+    const bool of_stream = colon != std::string::npos && n.find(' ') > colon &&
+                           n.substr(0, colon).find(',') == std::string::npos;
     const std::string who = of_stream ? n.substr(0, colon) : "";
     const std::string what = of_stream ? n.substr(colon + 2) : n;
     auto same = std::find_if(notes.begin(), notes.end(), [&](const auto& x) {

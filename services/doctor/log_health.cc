@@ -113,7 +113,8 @@ LogExaminer::LogExaminer(const config::Config& config)
   servo_ = std::make_unique<ServoState>();
   servo_->h.name = config.channels().servo_state();
   servo_->h.device = "servo Realtime Tick, 1 ms";
-  for (auto& c : servo_->clocks) c = std::make_unique<DeviceClock>(DeviceClockOptions{kServoTickHz});
+  for (auto& c : servo_->clocks)
+    c = std::make_unique<DeviceClock>(DeviceClockOptions{kServoTickHz});
   mocap_ = std::make_unique<MocapState>();
   mocap_->h.name = config.channels().mocap_body();
   mocap_->h.device = "motion capture frame time, 1 us";
@@ -271,8 +272,8 @@ void LogExaminer::OnServo(const MessageInfo& /*info*/, const void* data, int siz
     if (m.flags[k] & servo_state_t::FLAG_STALE) continue;
     if (s.h.samples > 1 && lost < 0 && m.device_tick_ms[k] > s.last_tick[i]) {
       lost = std::max<int64_t>(
-          0, std::llround(static_cast<double>(m.device_tick_ms[k] - s.last_tick[i]) / period_ms) -
-                 1);
+          0,
+          std::llround(static_cast<double>(m.device_tick_ms[k] - s.last_tick[i]) / period_ms) - 1);
     }
     s.last_tick[i] = m.device_tick_ms[k];
     const int64_t mapped = s.clocks[i]->Observe(m.device_tick_ms[k], m.utime);
@@ -359,9 +360,8 @@ HealthReport LogExaminer::Finish() {
   }
   StreamHealth servo = servo_->h;
   const double servo_span_s = 1e-6 * static_cast<double>(servo_->last_utime - servo_->first_utime);
-  servo.rate_hz = servo_span_s > 0 ? static_cast<double>(servo.samples + servo.lost - 1) /
-                                         servo_span_s
-                                   : 0;
+  servo.rate_hz =
+      servo_span_s > 0 ? static_cast<double>(servo.samples + servo.lost - 1) / servo_span_s : 0;
   // The servos' clocks: the one furthest from the host's (each servo counts its own ticks).
   for (const auto& c : servo_->clocks) {
     if (!c->started()) continue;

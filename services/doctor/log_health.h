@@ -55,12 +55,12 @@ struct StreamHealth {
   std::string device;  // what the counter is, e.g. "Net F/T sample counter, 7000 Hz"
   int64_t samples = 0;
   int64_t first_utime = -1, last_utime = -1;
-  double rate_hz = 0;            // from the device's counter over the stream's span
-  int64_t lost = 0;              // samples the device counted that never arrived
-  std::vector<Stretch> gaps;     // where they were lost
-  std::vector<Stretch> stalls;   // silences of the host's receipt with nothing lost
-  int64_t duplicates = 0;        // a counter seen twice
-  int64_t counter_restarts = 0;  // a counter that fell (the device restarted)
+  double rate_hz = 0;                      // from the device's counter over the stream's span
+  int64_t lost = 0;                        // samples the device counted that never arrived
+  std::vector<Stretch> gaps;               // where they were lost
+  std::vector<Stretch> stalls;             // silences of the host's receipt with nothing lost
+  int64_t duplicates = 0;                  // a counter seen twice
+  int64_t counter_restarts = 0;            // a counter that fell (the device restarted)
   std::map<std::string, int64_t> flagged;  // "saturated", "stale HL", "untracked", ...
   bool has_clock = false;
   double skew_ppm = 0;

@@ -7,8 +7,11 @@
 //
 // 1. End-to-end latency, over the samples whose ft_sample_t.utime falls in the --duration s
 //    window after --warmup s. ft_sample_t.utime is the kernel's receive timestamp of the RDT
-//    datagram in the bridge's socket (SO_TIMESTAMPNS, CLOCK_REALTIME; services/ati_bridge), and
-//    contact_wrench_t.utime is that sample's utime, so every interval below is on one clock:
+//    datagram in the bridge's socket (SO_TIMESTAMPNS, CLOCK_REALTIME; services/ati_bridge) for
+//    a datagram's last record, and before it by the record's distance on the box's 7 kHz counter
+//    for the others of a buffered datagram (k > 1): there the figures include the time a record
+//    waited in the box for its datagram to fill, up to (k - 1) / rate. contact_wrench_t.utime
+//    is that sample's utime, so every interval below is on one clock:
 //      - FT_<LEG>:        utime -> this program's handler for the FT message (bridge + LCM hop);
 //      - CONTACT_WRENCH:  utime -> this program's handler for the CONTACT_WRENCH (+ corrector).
 //    Each also to LCM's ReceiveBuffer::recv_utime, liblcm's stamp of the datagram as it read it,

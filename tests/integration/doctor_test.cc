@@ -136,11 +136,11 @@ TEST_F(DoctorTest, AGapInsideStandingIsFoundWithItsTimeAndLength) {
   const double from_s = fx->standing_start_s + 2.0;
   double first_lost_s = -1;
   const Result r = Doctor("gap", EditFt("HL", [&](Event& e, ft_sample_t&) {
-    const double t = T(e.utime);
-    if (t < from_s || t >= from_s + 0.25 - 1e-6) return true;
-    if (first_lost_s < 0) first_lost_s = t;
-    return false;
-  }));
+                            const double t = T(e.utime);
+                            if (t < from_s || t >= from_s + 0.25 - 1e-6) return true;
+                            if (first_lost_s < 0) first_lost_s = t;
+                            return false;
+                          }));
   EXPECT_EQ(r.exit_code, 6) << r.out;
   EXPECT_NE(r.out.find("warning: FT_HL: 1 gaps in STANDING, 25 samples lost"), std::string::npos)
       << r.out;
@@ -157,15 +157,15 @@ TEST_F(DoctorTest, AStallIsFoundWithItsTimeAndLengthAndNothingCountedLost) {
   const double from_s = fx->standing_start_s + 5.0;
   double last_before_s = -1, released_s = -1;
   const Result r = Doctor("stall", EditFt("ML", [&](Event& e, ft_sample_t& m) {
-    const double t = T(e.utime);
-    if (t < from_s) last_before_s = t;
-    if (t >= from_s + 0.3 && released_s < 0) released_s = t;
-    if (t >= from_s && t < from_s + 0.3) {
-      e.utime = kT0 + std::llround((from_s + 0.3) * 1e6);
-      m.utime = e.utime;
-    }
-    return true;
-  }));
+                            const double t = T(e.utime);
+                            if (t < from_s) last_before_s = t;
+                            if (t >= from_s + 0.3 && released_s < 0) released_s = t;
+                            if (t >= from_s && t < from_s + 0.3) {
+                              e.utime = kT0 + std::llround((from_s + 0.3) * 1e6);
+                              m.utime = e.utime;
+                            }
+                            return true;
+                          }));
   EXPECT_EQ(r.exit_code, 6) << r.out;
   EXPECT_NE(r.out.find("warning: FT_ML: 1 stalls (nothing received, nothing lost) in STANDING"),
             std::string::npos)
@@ -200,9 +200,10 @@ TEST_F(DoctorTest, ASkewedTransducerClockIsMeasured) {
   // FT_FR's 7 kHz sample counter 300 ppm slow: 1.0003 host seconds per counted second.
   constexpr double kSkewPpm = 300;
   const Result r = Doctor("skew", EditFt("FR", [&](Event& e, ft_sample_t& m) {
-    m.ft_sequence = std::llround(T(e.utime) / (1 + kSkewPpm * 1e-6) * 7000.0) + 123456;
-    return true;
-  }));
+                            m.ft_sequence =
+                                std::llround(T(e.utime) / (1 + kSkewPpm * 1e-6) * 7000.0) + 123456;
+                            return true;
+                          }));
   std::smatch row;
   ASSERT_TRUE(std::regex_search(r.out, row, std::regex("\nFT_FR .* ([-+][0-9.]+) ppm"))) << r.out;
   EXPECT_NEAR(std::stod(row[1]), kSkewPpm, 2.0) << r.out;
