@@ -416,6 +416,7 @@ def main():
     p.add_argument("outdir")
     p.add_argument("--truth")
     p.add_argument("--walking", help="the calibrator's <cal>.walking.csv (Fig. 9)")
+    p.add_argument("--health", help="ftcal-doctor's text of the recording")
     a = p.parse_args()
     try:
         cal = read_calibration(a.calibration)
@@ -548,6 +549,10 @@ def main():
                   + ("Consistent." if m.consistent else "<b>MISMATCH (accepted).</b>") + "</p>",
                   table(["transducer"] + [f"shaft {leg.name}" for leg in cal.leg]
                         + ["best other / own"], leg_map_rows(cal))]
+    if a.health:
+        with open(a.health, encoding="utf-8") as f:
+            parts += ["<h2>Recording health (ftcal-doctor, before the calibration)</h2>",
+                      "<pre>" + html.escape(f.read()) + "</pre>"]
     if cal.recording_gaps:
         parts.append("<h2>Recording</h2>")
         lossy = [g for g in cal.recording_gaps if g.lost or g.restarts]

@@ -196,6 +196,44 @@ TEST_F(DoctorTest, AMissingHangingSeriesIsNotCalibratableAndNamed) {
       << r.out;
 }
 
+TEST_F(DoctorTest, ScriptsCalibrateStopsOnANotCalibratableRecordingUnlessForced) {
+  std::vector<Event> events;
+  for (const Event& e : fx->events) {
+    experiment_marker_t m;
+    if (e.channel == fx->config.channels().experiment() &&
+        m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 &&
+        m.phase == experiment_marker_t::HANG_X_NEG) {
+      continue;
+    }
+    events.push_back(e);
+  }
+  std::stable_sort(events.begin(), events.end(),
+                   [](const Event& a, const Event& b) { return a.utime < b.utime; });
+  const std::string log = fx->dir + "/no-x-neg.lcmlog";
+  WriteLog(log, events);
+  testing::ScopedEnv build("FTCAL_BUILD_DIR", FTCAL_BUILD_DIR);
+  for (const bool force : {false, true}) {
+    const std::string out = fx->dir + (force ? "/forced" : "/stopped");
+    std::vector<std::string> argv = {std::string(FTCAL_SOURCE_DIR) + "/scripts/calibrate",
+                                     "--config", kConfig, log, out};
+    if (force) argv.insert(argv.begin() + 1, "--force");
+    Child child(argv, out + ".out", out + ".err");
+    const auto status = child.Wait(120);
+    ASSERT_TRUE(status.has_value());
+    const std::string said = ReadFile(out + ".out") + ReadFile(out + ".err");
+    EXPECT_EQ(testing::DescribeWaitStatus(*status), "exit 2") << said;
+    EXPECT_NE(ReadFile(out + "/doctor.txt").find("HANG_X_NEG"), std::string::npos) << said;
+    if (!force) {
+      EXPECT_NE(said.find("ftcal-doctor finds " + log + " not calibratable"), std::string::npos)
+          << said;
+      EXPECT_EQ(said.find("ftcal-calibrator"), std::string::npos) << "the calibrator ran\n" << said;
+    } else {
+      // The calibrator's own refusal: the doctor foretold it.
+      EXPECT_NE(said.find("missing hanging series: HANG_X_NEG"), std::string::npos) << said;
+    }
+  }
+}
+
 TEST_F(DoctorTest, ASkewedTransducerClockIsMeasured) {
   // FT_FR's 7 kHz sample counter 300 ppm slow: 1.0003 host seconds per counted second.
   constexpr double kSkewPpm = 300;

@@ -5,5 +5,6 @@ ftcal_add_gtest(doctor_test integration TIMEOUT 120
   LIBS ftcal_twin ftcal_messages ftcal_lcmtypes ftcal_child_process)
 target_compile_definitions(doctor_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
+  FTCAL_BUILD_DIR="${PROJECT_BINARY_DIR}"
   FTCAL_DOCTOR="$<TARGET_FILE:ftcal-doctor>")
-add_dependencies(doctor_test ftcal-doctor)
+add_dependencies(doctor_test ftcal-doctor ftcal-calibrator)
