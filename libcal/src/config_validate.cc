@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <map>
+#include <regex>
 #include <set>
 #include <tuple>
 #include <string>
@@ -195,6 +196,43 @@ void ValidatePlanPhase(const Node& node, const config::PlanPhase& p) {
       node.Error("kind",
                  "must be PHASE_TARE, PHASE_HANG, PHASE_STANDING_GRID, "
                  "PHASE_TRIPOD_STANCES or PHASE_TRIPOD_WALK");
+  }
+}
+
+// The port of a udpm URL ("udpm://GROUP:PORT?opts"), or -1.
+int UdpmPort(const std::string& url) {
+  const std::regex udpm("udpm://[^:/?]+:([0-9]+)([?].*)?");
+  std::smatch m;
+  return std::regex_match(url, m, udpm) ? std::stoi(m[1]) : -1;
+}
+
+void ValidateRoutes(const Node& root, const config::Config& config) {
+  std::set<int> ports;
+  const int main_port = UdpmPort(config.lcm_url());
+  if (main_port >= 0) ports.insert(main_port);
+  for (int i = 0; i < config.lcm_route_size(); ++i) {
+    const config::LcmRoute& r = config.lcm_route(i);
+    const Node node = root.Child("lcm_route", i, r);
+    if (r.channels().empty()) {
+      node.Error("channels", "must name the channels the route carries (a regular expression)");
+    } else {
+      try {
+        std::regex check(r.channels());
+      } catch (const std::regex_error& e) {
+        node.Error("channels", "'" + r.channels() + "' is not a regular expression: " + e.what());
+      }
+    }
+    const int port = UdpmPort(r.url());
+    if (port < 0 || main_port < 0) {
+      node.Error("url", "'" + r.url() + "' with lcm_url '" + config.lcm_url() +
+                            "': routes need udpm:// URLs of the form udpm://GROUP:PORT[?...]");
+    } else if (!ports.insert(port).second) {
+      // Linux delivers a multicast datagram to every socket bound to its port that joined any
+      // group (IP_MULTICAST_ALL): a port shared is a route that filters nothing.
+      node.Error("url", "'" + r.url() + "' uses port " + std::to_string(port) +
+                            ", as lcm_url or another route does: each route needs a port of its "
+                            "own, or the kernel delivers both to every reader");
+    }
   }
 }
 
@@ -483,6 +521,7 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
   ValidateCorrector(root.Child("corrector", config.corrector()), config.corrector());
   ValidateChannels(root.Child("channels", config.channels()), config.channels());
   if (config.lcm_url().empty()) root.Error("lcm_url", "must not be empty");
+  ValidateRoutes(root, config);
   ValidatePlans(root, config);
   ValidateSequencer(root.Child("sequencer", config.sequencer()), config.sequencer());
   if (config.has_dynamixel() &&

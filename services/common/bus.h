@@ -34,6 +34,7 @@
 #include "common/envelope.h"
 #include "common/service_stats.h"
 #include "common/wire_guard.h"
+#include "proto/config.pb.h"
 
 namespace ftcal {
 
@@ -117,12 +118,13 @@ class Bus {
   // every `tick_us` of bus time (live: also when the bus is quiet).
   virtual void Run(const std::function<void()>& tick, int64_t tick_us) = 0;
   virtual bool IsReplay() const = 0;
-  // For a process that runs its own loop (a bridge paced by its device): the descriptor that
-  // is readable when a message waits (-1 on replay), and HandleOnce() to handle one.
-  virtual int Fileno() { return -1; }
+  // For a process that runs its own loop (a bridge paced by its device): the descriptors that
+  // are readable when a message waits (none on replay; one per transport route subscribed to),
+  // and HandleOnce() to handle what waits.
+  virtual std::vector<int> Filenos() { return {}; }
   bool HasSubscriptions() const { return !subscriptions_.empty(); }
-  // Handles at most one message, waiting up to `timeout_ms`; returns LCM's result (>0 handled,
-  // 0 timeout, <0 error, or -1 on replay).
+  // Handles at most one message per route, waiting up to `timeout_ms` for the first; returns
+  // >0 handled, 0 timeout, <0 error (-1 on replay).
   virtual int HandleOnce(int /*timeout_ms*/) { return -1; }
   // Replay: when reading reaches the event at input offset `from` (MessageInfo::log_offset),
   // calls `at_from` and, when it returns true, reads on at offset `to` (> from), the events
@@ -183,13 +185,22 @@ class LcmBus : public Bus {
   // Messages LCM may hold per subscription before it drops (bus.cc says why not LCM's 30).
   static constexpr int kSubscriptionQueueCapacity = 10000;
 
-  // Throws std::runtime_error naming the URL when LCM cannot open it.
-  LcmBus(const std::string& url, ServiceStats& stats);
+  // A channel route (config lcm_route): the channels a pattern matches whole go by `url`.
+  struct Route {
+    std::string channels;
+    std::string url;
+  };
+  // Throws std::runtime_error naming the URL when LCM cannot open it, or a route's pattern
+  // when it is not a regular expression.
+  LcmBus(const std::string& url, ServiceStats& stats, const std::vector<Route>& routes = {});
+  ~LcmBus() override;
   int64_t NowUtime() const override;
   void Run(const std::function<void()>& tick, int64_t tick_us) override;
   bool IsReplay() const override { return false; }
-  int Fileno() override { return lcm_.getFileno(); }
+  std::vector<int> Filenos() override;
   int HandleOnce(int timeout_ms) override;
+  // The URL a channel is published on.
+  const std::string& UrlOf(const std::string& channel);
 
  protected:
   void TransportSubscribe(size_t subscription, const std::string& channel) override;
@@ -202,9 +213,17 @@ class LcmBus : public Bus {
     size_t subscription;
     void OnMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
   };
-  lcm::LCM lcm_;
+  // One LCM instance per URL: [0] is lcm_url's, then the routes' in config order. An instance
+  // opens its receive socket (joins its group and port) only when subscribed to.
+  struct Transport;
+  size_t TransportOf(const std::string& channel);
+  std::vector<std::unique_ptr<Transport>> transports_;
+  std::unordered_map<std::string, size_t> transport_of_;  // channel -> index, as published
   std::vector<std::unique_ptr<Trampoline>> trampolines_;
 };
+
+// The config's channel routes (lcm_route), for LcmBus.
+std::vector<LcmBus::Route> RoutesOf(const config::Config& config);
 
 // The channels of the first events of the LCM log at `path` (at most `max_events`, read from
 // its first `max_bytes`), in order; empty when the file cannot be read. Reading stops at the

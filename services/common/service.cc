@@ -164,7 +164,7 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
       }
       bus_ = std::move(replay);
     } else {
-      bus_ = std::make_unique<LcmBus>(lcm_url_, *stats_);
+      bus_ = std::make_unique<LcmBus>(lcm_url_, *stats_, RoutesOf(config_));
     }
     InstallShutdownHandlers();
   } catch (const std::exception& e) {
@@ -347,13 +347,17 @@ void ServiceApp::RunDevice(Device& device) {
     // socket until then, and asking for its descriptor would join the group and take in every
     // message on it.
     fds.clear();
-    const bool with_bus = bus_->HasSubscriptions() && bus_->Fileno() >= 0;
-    if (with_bus) fds.push_back({bus_->Fileno(), POLLIN, 0});
+    const std::vector<int> bus_fds =
+        bus_->HasSubscriptions() ? bus_->Filenos() : std::vector<int>{};
+    for (int fd : bus_fds) fds.push_back({fd, POLLIN, 0});
     const std::size_t first = fds.size();
     device.AddPollFds(&fds);
     const auto wake = std::min({device.NextDeadline(), next_heartbeat, now + max_wait});
     WaitFds(fds, wake);
-    if (with_bus && (fds[0].revents & POLLIN)) bus_->HandleOnce(0);
+    if (std::any_of(fds.begin(), fds.begin() + static_cast<std::ptrdiff_t>(first),
+                    [](const pollfd& p) { return (p.revents & POLLIN) != 0; })) {
+      bus_->HandleOnce(0);
+    }
     device.OnPolled(fds.data() + first, fds.size() - first);
     now = Clock::now();
     if (now >= device.NextDeadline()) device.OnDeadline(now);

@@ -34,9 +34,10 @@ std::shared_ptr<spdlog::logger> Logger() {
 
 }  // namespace
 
-GateWatcher::GateWatcher(const std::string& lcm_url, const std::string& status_channel)
+GateWatcher::GateWatcher(const std::string& lcm_url, const std::string& status_channel,
+                         const std::vector<LcmBus::Route>& routes)
     : stats_(std::make_unique<ServiceStats>(Logger())),
-      bus_(std::make_unique<LcmBus>(lcm_url, *stats_)) {
+      bus_(std::make_unique<LcmBus>(lcm_url, *stats_, routes)) {
   bus_->SubscribeRaw(".*", [this](const MessageInfo& info, const void*, int) {
     auto& a = channels_[info.channel].utimes;
     a.push_back(info.recv_utime);

@@ -25,7 +25,8 @@ struct GateVerdict {
 
 class GateWatcher {
  public:
-  GateWatcher(const std::string& lcm_url, const std::string& status_channel);
+  GateWatcher(const std::string& lcm_url, const std::string& status_channel,
+              const std::vector<LcmBus::Route>& routes = {});
 
   // Handles messages for `seconds`, or until `done` (checked after each message and every
   // 50 ms) says so.

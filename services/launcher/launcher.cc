@@ -143,7 +143,9 @@ Placeholders Launcher::ValuesFor(const std::string& host) {
 }
 
 GateWatcher& Launcher::Watcher() {
-  if (!watcher_) watcher_ = std::make_unique<GateWatcher>(o_.lcm_url, config_.channels().status());
+  if (!watcher_)
+    watcher_ =
+        std::make_unique<GateWatcher>(o_.lcm_url, config_.channels().status(), RoutesOf(config_));
   return *watcher_;
 }
 

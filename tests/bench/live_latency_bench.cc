@@ -181,9 +181,19 @@ class Listener {
     std::int64_t handled;       // this program's clock in the handler
     std::int64_t rdt_sequence;  // FT only
   };
-  Listener(const std::string& url, bool realtime) : lcm_(ListenUrl(url)) {
-    lcm_.subscribe("FT_.*", &Listener::OnFt, this);
-    lcm_.subscribe("CONTACT_WRENCH", &Listener::OnContact, this);
+  // `ft_url` and `cw_url`: where FT_<LEG> and CONTACT_WRENCH travel (the config's lcm_route),
+  // when not on `url`.
+  Listener(const std::string& url, bool realtime, const std::string& ft_url = "",
+           const std::string& cw_url = "")
+      : lcm_(ListenUrl(url)) {
+    lcm::LCM* ft = &lcm_;
+    lcm::LCM* cw = &lcm_;
+    if (!ft_url.empty())
+      ft = routed_.emplace_back(std::make_unique<lcm::LCM>(ListenUrl(ft_url))).get();
+    if (!cw_url.empty())
+      cw = routed_.emplace_back(std::make_unique<lcm::LCM>(ListenUrl(cw_url))).get();
+    ft->subscribe("FT_.*", &Listener::OnFt, this);
+    cw->subscribe("CONTACT_WRENCH", &Listener::OnContact, this);
     lcm_.subscribe("FTCAL_STATUS", &Listener::OnStatus, this);
     for (auto& v : ft_) v.reserve(200'000);
     for (auto& v : cw_) v.reserve(200'000);
@@ -193,7 +203,16 @@ class Listener {
         p.sched_priority = 30;
         realtime_ = ::sched_setscheduler(0, SCHED_FIFO, &p) == 0;
       }
-      while (!stop_) lcm_.handleTimeout(50);
+      std::vector<lcm::LCM*> all = {&lcm_};
+      for (auto& r : routed_) all.push_back(r.get());
+      std::vector<pollfd> fds;
+      for (lcm::LCM* l : all) fds.push_back({l->getFileno(), POLLIN, 0});
+      while (!stop_) {
+        if (::poll(fds.data(), fds.size(), 50) <= 0) continue;
+        for (std::size_t i = 0; i < fds.size(); ++i) {
+          if (fds[i].revents & POLLIN) all[i]->handleTimeout(0);
+        }
+      }
     });
   }
   ~Listener() { Stop(); }
@@ -248,6 +267,7 @@ class Listener {
   }
 
   lcm::LCM lcm_;
+  std::vector<std::unique_ptr<lcm::LCM>> routed_;
   std::atomic<bool> stop_{false};
   std::atomic<int> dxl_mode_{-1};
   std::atomic<bool> realtime_{false};
@@ -611,6 +631,10 @@ int main(int argc, char** argv) {
                  "the LCM URL of every process (the config's lcm_url is replaced by it), e.g. "
                  "mpudpm://239.255.76.67:7667?ttl=0&nports=64 for LCM's multi-port provider")
       ->capture_default_str();
+  bool routes = false;
+  cli.add_flag("--routes", routes,
+               "FT_<LEG> and CONTACT_WRENCH(_SUM) on ports of their own (config lcm_route, as "
+               "config/bigant.pbtxt ships): only their readers receive them");
   bool keep = false;
   bool record = false;
   cli.add_flag("--record", record,
@@ -642,6 +666,23 @@ int main(int argc, char** argv) {
     text = std::regex_replace(text, std::regex("reply_timeout_s: [0-9.]+"),
                               "reply_timeout_s: 0.05\n  max_velocity_rad_s: 1000");
     text = std::regex_replace(text, std::regex("lcm_url: \"[^\"]*\""), "lcm_url: \"" + url + "\"");
+    std::string ft_url, cw_url;
+    if (routes) {
+      const std::smatch m = [&] {
+        std::smatch r;
+        std::regex_match(url, r, std::regex("udpm://([^:]+):([0-9]+)(.*)"));
+        return r;
+      }();
+      if (m.empty()) {
+        std::fprintf(stderr, "--routes needs a udpm:// --lcm-url, got %s\n", url.c_str());
+        return 2;
+      }
+      const int port = std::stoi(m[2]);
+      ft_url = "udpm://" + m[1].str() + ":" + std::to_string(port + 1) + m[3].str();
+      cw_url = "udpm://" + m[1].str() + ":" + std::to_string(port + 2) + m[3].str();
+      text += "\nlcm_route { channels: \"FT_.*\" url: \"" + ft_url + "\" }\n";
+      text += "lcm_route { channels: \"CONTACT_WRENCH(_SUM)?\" url: \"" + cw_url + "\" }\n";
+    }
     const std::string config_path = path("config.pbtxt");
     {
       std::ofstream out(config_path);
@@ -674,7 +715,7 @@ int main(int argc, char** argv) {
       return 1;
     }
     auto tap = std::make_unique<BusTap>(path("bridge-tty"), path("twin-tty"));
-    auto listener = std::make_unique<Listener>(url, subscriber_realtime);
+    auto listener = std::make_unique<Listener>(url, subscriber_realtime, ft_url, cw_url);
     if (!listener->good() || !commander.good()) {
       std::fprintf(stderr, "LCM unavailable\n");
       return 1;
