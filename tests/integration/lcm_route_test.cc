@@ -2,7 +2,10 @@
 // and only a process subscribed to it joins that port, so the kernel hands its datagrams to
 // nobody else. Checked against plain LCM instances on each port, which hear what the kernel
 // delivers there; in the binary's own network namespace.
+#include <signal.h>
+
 #include <chrono>
+#include <fstream>
 #include <cstdint>
 #include <map>
 #include <string>
@@ -13,6 +16,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "child_process.h"
 #include "common/bus.h"
 #include "ftcal/config.h"
 #include "test_helpers.h"
@@ -44,17 +48,17 @@ TEST(LcmRoute, ARoutedChannelReachesItsReadersAndNoSocketOnTheMainPort) {
   const std::vector<LcmBus::Route> routes = {{"FT_.*", kFt}};
   ServiceStats p_stats(Quiet()), r_stats(Quiet()), x_stats(Quiet());
   LcmBus publisher(kMain, p_stats, routes);
-  LcmBus reader(kMain, r_stats, routes);    // one channel of each kind, by name
-  LcmBus pattern(kMain, x_stats, routes);   // a regular expression
+  LcmBus reader(kMain, r_stats, routes);   // one channel of each kind, by name
+  LcmBus pattern(kMain, x_stats, routes);  // a regular expression
   EXPECT_EQ(publisher.UrlOf("FT_HL"), kFt);
   EXPECT_EQ(publisher.UrlOf("FTCAL_STATUS"), kMain);
   std::map<std::string, int> by_name, by_pattern;
-  reader.SubscribeRaw("FT_HL", [&](const MessageInfo& i, const void*, int) { ++by_name[i.channel]; });
+  reader.SubscribeRaw("FT_HL",
+                      [&](const MessageInfo& i, const void*, int) { ++by_name[i.channel]; });
   reader.SubscribeRaw("FTCAL_STATUS",
                       [&](const MessageInfo& i, const void*, int) { ++by_name[i.channel]; });
-  pattern.SubscribeRaw("FT_.*", [&](const MessageInfo& i, const void*, int) {
-    ++by_pattern[i.channel];
-  });
+  pattern.SubscribeRaw("FT_.*",
+                       [&](const MessageInfo& i, const void*, int) { ++by_pattern[i.channel]; });
   EXPECT_EQ(reader.Filenos().size(), 2u);  // both ports
   Ear main_port(kMain), ft_port(kFt);
 
@@ -85,12 +89,47 @@ TEST(LcmRoute, ARoutedChannelReachesItsReadersAndNoSocketOnTheMainPort) {
   EXPECT_EQ(ft_port.heard["FTCAL_STATUS"], 0);
 }
 
+// scripts/spy's relay: a routed group's channels, main and routed, onto one URL lcm-spy reads.
+TEST(LcmRoute, TheRelayCopiesEveryPickedChannelOntoOneUrl) {
+  ASSERT_TRUE(testing::InNetns());
+  const std::string dir = testing::MakeTempDir();
+  const std::string config = dir + "/config.pbtxt";
+  std::ofstream(config) << testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt")
+                        << "\nlcm_route { channels: \"FT_.*\" url: \"" << kFt << "\" }\n";
+  constexpr char kSpy[] = "udpm://239.255.76.67:7699?ttl=0";
+  Ear spy(kSpy);
+  testing::Child relay(
+      {FTCAL_RELAY, "--config", config, "--channels", "FT_HL|FTCAL_STATUS", "--to", kSpy},
+      dir + "/relay.out", dir + "/relay.err");
+  ServiceStats stats(Quiet());
+  LcmBus publisher(kMain, stats, {{"FT_.*", kFt}});
+  const uint8_t payload[8] = {};
+  // Until the relay has joined both ports: each copy it makes is heard here.
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  while ((spy.heard["FT_HL"] == 0 || spy.heard["FTCAL_STATUS"] == 0) &&
+         std::chrono::steady_clock::now() < deadline) {
+    publisher.PublishRaw("FT_HL", payload, sizeof payload);
+    publisher.PublishRaw("FTCAL_STATUS", payload, sizeof payload);
+    publisher.PublishRaw("FT_ML", payload, sizeof payload);  // not picked
+    spy.lcm.handleTimeout(20);
+  }
+  EXPECT_GT(spy.heard["FT_HL"], 0) << testing::ReadFile(dir + "/relay.err");
+  EXPECT_GT(spy.heard["FTCAL_STATUS"], 0) << testing::ReadFile(dir + "/relay.err");
+  EXPECT_EQ(spy.heard["FT_ML"], 0);
+  relay.Signal(SIGTERM);
+  const auto status = relay.Wait(10);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_EQ(testing::DescribeWaitStatus(*status), "exit 0")
+      << testing::ReadFile(dir + "/relay.err");
+  testing::RemoveTree(dir);
+}
+
 TEST(LcmRoute, ConfigRefusesARouteOnAPortAlreadyInUse) {
-  const std::string base =
-      testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+  const std::string base = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
   try {
-    LoadConfigText(base + "\nlcm_route { channels: \"FT_.*\" url: \"udpm://239.255.76.68:7667?ttl=0\" }\n",
-                   "test");
+    LoadConfigText(
+        base + "\nlcm_route { channels: \"FT_.*\" url: \"udpm://239.255.76.68:7667?ttl=0\" }\n",
+        "test");
     FAIL() << "a route on lcm_url's port was taken";
   } catch (const std::exception& e) {
     EXPECT_NE(std::string(e.what()).find("lcm_route[0].url"), std::string::npos) << e.what();
