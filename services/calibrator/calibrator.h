@@ -1,6 +1,7 @@
-// ftcal-calibrator's work (pipeline items 3 and 5): the recorded (or live) experiment in, the
-// calibration file out. The collector (collector.h) gathers the data from the bus; this file
-// checks it and calibrates; outputs.h writes what goes beside the calibration.
+// ftcal-calibrator's work, offline from a recording (--log) or live on the bus: the experiment
+// in, the calibration file out (and, with --reestimate-offsets, offsets re-estimated on a base).
+// The collector (collector.h) gathers the data from the bus; this file checks it and calibrates;
+// outputs.h writes what goes beside the calibration.
 //
 // RunCalibration() checks what was collected (every series, markers present, the config's legs
 // are the log's FT_* channels, no damaged bytes), runs Calibrate() and fills provenance. Every

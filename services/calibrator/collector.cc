@@ -78,6 +78,7 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
 void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   // Each input log's signers count their sequences afresh: logs may be given in any order.
+  unsigned_markers_ += verifier_.unsigned_seen();
   verifier_ = auth::Verifier::FromConfig(config_);
   bus_ = &bus;
   event_end_ = -1;
@@ -743,10 +744,22 @@ std::vector<StandingPose> CalibrationCollector::StandingPoses() const {
 }
 
 void CalibrationCollector::CheckMarkersAndLegs(const std::string& phases) const {
+  const std::string& channel = config_.channels().experiment();
+  const int64_t refused = unsigned_markers_ + verifier_.unsigned_seen();
+  if (counters_.markers == 0 && refused > 0 && !config_.auth().allow_unsigned()) {
+    throw CalibratorInputError(
+        "no EXPERIMENT markers accepted: " + std::to_string(refused) + " on channel '" + channel +
+        "' were refused as unsigned, and the config requires them signed (auth.allow_unsigned "
+        "is false). Record them from a sequencer run with --signing-key whose public key is an "
+        "auth.trusted_key for '" +
+        channel +
+        "', or, for an unsigned recording you trust (the loopback twin's), set auth { "
+        "allow_unsigned: true } in the config. Without markers the calibrator cannot tell " +
+        phases);
+  }
   if (counters_.markers == 0) {
-    throw CalibratorInputError("no EXPERIMENT markers (channel '" +
-                               config_.channels().experiment() + "') in the input: cannot tell " +
-                               phases);
+    throw CalibratorInputError("no EXPERIMENT markers (channel '" + channel +
+                               "') in the input: cannot tell " + phases);
   }
   std::string unknown, silent;
   std::set<std::string> expected;

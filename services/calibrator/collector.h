@@ -158,7 +158,8 @@ class CalibrationCollector {
   const std::vector<HangingRecording>& HangingRecordings() const;
   std::vector<StandingPose> StandingPoses() const;
   // Throws CalibratorInputError when there were no EXPERIMENT markers (`phases`: what cannot be
-  // told apart without them) or the FT_* channels seen are not the config's legs.
+  // told apart without them; when the config refused unsigned ones, how many and what to do)
+  // or the FT_* channels seen are not the config's legs.
   void CheckMarkersAndLegs(const std::string& phases) const;
 
   // The aligned samples of the first completed WALKING phase (empty when there was none).
@@ -197,6 +198,7 @@ class CalibrationCollector {
   const config::Config& config_;
   // EXPERIMENT is a signed channel (common/envelope.h).
   auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
+  int64_t unsigned_markers_ = 0;  // refused as unsigned by the verifiers of earlier inputs
   DeviceInputs inputs_;
   SegmenterOptions segmenter_options_;
   Aligner aligner_;

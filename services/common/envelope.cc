@@ -202,6 +202,7 @@ std::pair<std::optional<Opened>, std::optional<wire::Refusal>> Verifier::Open(
     for (int i = 0; i < 8; ++i)
       fingerprint = fingerprint << 8 | static_cast<const uint8_t*>(data)[i];
     if (fingerprint == inner_fingerprint) {
+      ++unsigned_seen_;
       return refuse("unsigned", "a bare message where a signed envelope is required");
     }
   }

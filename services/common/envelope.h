@@ -115,6 +115,9 @@ class Verifier {
 
   // True when some trusted key may sign `channel`.
   bool Trusts(const std::string& channel) const;
+  // Bare messages Open() was given where an envelope belongs (refused as "unsigned", whether
+  // or not the subscriber then takes them unsigned): a reader can say why it saw none.
+  int64_t unsigned_seen() const { return unsigned_seen_; }
 
   // Refuses envelopes signed or numbered more than `us` ahead of the receive time (FromConfig:
   // auth.max_clock_ahead_s).
@@ -133,6 +136,7 @@ class Verifier {
   std::vector<TrustedKey> keys_;
   std::vector<std::string> key_hex_;
   int64_t max_ahead_us_ = 2'000'000;
+  int64_t unsigned_seen_ = 0;
   bool persist_ = true;
   std::shared_ptr<SeenStore> store_;
   signed_envelope_t envelope_;  // reused: decoding allocates the payload

@@ -1,4 +1,5 @@
-// ftcal-corrector: ground-contact wrenches from every transducer sample (pipeline item 4).
+// ftcal-corrector: ground-contact wrenches from every transducer sample, with a calibration
+// applied (CONTACT_WRENCH per leg-sample, CONTACT_WRENCH_SUM per six).
 #include <exception>
 
 #include "common/exit_codes.h"

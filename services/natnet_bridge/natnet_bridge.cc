@@ -24,6 +24,9 @@ constexpr double kMaxQuaternionNormError = 1e-3;
 constexpr double kDescriptionsRetryS = 1.0;
 // While Motive answers but sends no frames, ask again this often whether it is still there.
 constexpr double kProbeIntervalS = 1.0;
+// A unicast client whose frames stop for this long connects again (a restarted Motive has
+// forgotten it): ten frame periods at 200 Hz, well below silence_s.
+constexpr double kUnicastRejoinS = 0.05;
 // A mapped sample time later than its receipt by more, or older by more than a second, is a
 // clock we do not understand: the receipt time is used instead (and counted).
 constexpr double kMaxFutureUs = 1000.0;
@@ -148,8 +151,7 @@ NatNetBridge::NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, Pub
       stats_(stats),
       publish_(std::move(publish)),
       now_utime_(std::move(now_utime)),
-      next_connect_(Clock::now()),
-      backoff_s_(options_.backoff_min_s) {
+      next_connect_(Clock::now()) {
   for (const char* name : {"frames",          "published",         "untracked",
                            "frame_gaps",      "frames_lost",       "frame_restarts",
                            "duplicates",      "decode_errors",     "edit_mode_frames",
@@ -158,7 +160,7 @@ NatNetBridge::NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, Pub
                            "server_lost",     "not_streaming",     "keepalives",
                            "timeouts",        "foreign_packets",   "unknown_messages",
                            "clock_fallbacks", "clock_resyncs",     "system_latency_us",
-                           "transit_us"}) {
+                           "transit_us",      "frames_paused",     "reordered"}) {
     stats_.Counter(name);
   }
   server_ip_ = Ipv4(options_.address, "mocap.natnet.server_address");
@@ -256,7 +258,7 @@ void NatNetBridge::SendToServer(uint16_t id, const std::vector<uint8_t>& payload
 }
 
 void NatNetBridge::SendConnect() {
-  sent_at_ = Clock::now();
+  connect_sent_at_ = Clock::now();
   SendToServer(natnet::kConnect, natnet::EncodeConnect(kClientName, options_.bitstream));
 }
 
@@ -264,8 +266,15 @@ void NatNetBridge::RequestDescriptions() {
   ++stats_.Counter("description_reads");
   descriptions_pending_ = true;
   retry_descriptions_at_.reset();
-  sent_at_ = Clock::now();
+  modeldef_sent_at_ = Clock::now();
   SendToServer(natnet::kRequestModelDef, {});
+}
+
+void NatNetBridge::StartProbe() {
+  ++stats_.Counter("probes");
+  probing_ = true;
+  connect_since_ = Clock::now();
+  SendConnect();
 }
 
 int NatNetBridge::TimerDueMs() const {
@@ -274,6 +283,8 @@ int NatNetBridge::TimerDueMs() const {
         std::chrono::duration_cast<std::chrono::milliseconds>(next_connect_ - Clock::now()).count();
     return static_cast<int>(std::clamp<int64_t>(ms + 1, 0, 100));
   }
+  // A NAT_CONNECT waiting for its answer is repeated every connect_repeat_s: look often.
+  if (link_ == Link::kAwaitInfo || probing_) return 10;
   return 20;
 }
 
@@ -411,18 +422,21 @@ void NatNetBridge::HandleServerInfo(const natnet::Packet& p) {
   }
   if (probing_) {
     // Motive answers, so it is up: while it sends no frames the bridge waits, it does not
-    // start over (its descriptions still hold).
+    // start over (its descriptions still hold). Before silence_s the answer only says that a
+    // unicast client's connect reached it.
     probing_ = false;
+    server_ = info;
+    if (SecondsSince(last_frame_at_) <= options_.silence_s) return;
     if (!server_up_not_streaming_) {
       ++stats_.Counter("not_streaming");
       stats_.log().warn("Motive at {} answers but sends no frames: waiting", options_.address);
     }
     server_up_not_streaming_ = true;
-    server_ = info;
     return;
   }
   if (link_ != Link::kAwaitInfo) return;  // a late duplicate
   server_ = info;
+  sequence_.Forget();  // a new session: its frame numbers are its own
   // The version to parse with: the one asked for (unicast), which Motive honours in
   // NAT_CONNECT (§2.3), else the server's; a Bitstream reply overrides both.
   version_ = options_.bitstream.value_or(info.version());
@@ -511,8 +525,7 @@ void NatNetBridge::ServerLost(const std::string& why) {
   stats_.Error("natnet server lost", options_.address + ": " + why);
   ResetSession();
   link_ = Link::kDisconnected;
-  next_connect_ = After(backoff_s_);
-  backoff_s_ = std::min(options_.backoff_max_s, backoff_s_ * 2);
+  next_connect_ = Clock::now();  // connect again at once (and every connect_repeat_s)
 }
 
 void NatNetBridge::ResetSession() {
@@ -533,21 +546,22 @@ void NatNetBridge::OnTimer() {
   if (link_ == Link::kDisconnected) {
     if (now >= next_connect_) {
       link_ = Link::kAwaitInfo;
+      connect_since_ = now;
       SendConnect();
     }
     return;
   }
   if (link_ == Link::kAwaitInfo) {
-    if (SecondsSince(sent_at_) > options_.reply_timeout_s) {
+    if (SecondsSince(connect_since_) > options_.reply_timeout_s) {
       ++stats_.Counter("timeouts");
       stats_.Error("natnet no SERVERINFO", "Motive at " + options_.address + ":" +
                                                std::to_string(options_.command_port) +
                                                " did not answer NAT_CONNECT (streaming off, "
                                                "wrong address or interface?)");
-      link_ = Link::kDisconnected;
-      next_connect_ = After(backoff_s_);
-      backoff_s_ = std::min(options_.backoff_max_s, backoff_s_ * 2);
+      connect_since_ = now;
     }
+    // Asked again until it answers: it may come back at any moment.
+    if (SecondsSince(connect_sent_at_) >= options_.connect_repeat_s) SendConnect();
     return;
   }
   if (!options_.multicast && now >= next_keepalive_) {
@@ -557,7 +571,7 @@ void NatNetBridge::OnTimer() {
     next_keepalive_ = now + std::chrono::duration_cast<Clock::duration>(
                                 std::chrono::duration<double>(options_.keepalive_s));
   }
-  if (descriptions_pending_ && SecondsSince(sent_at_) > options_.reply_timeout_s) {
+  if (descriptions_pending_ && SecondsSince(modeldef_sent_at_) > options_.reply_timeout_s) {
     ++stats_.Counter("timeouts");
     if (link_ == Link::kAwaitDescriptions) {
       ServerLost("no answer to NAT_REQUEST_MODELDEF");
@@ -567,22 +581,28 @@ void NatNetBridge::OnTimer() {
   }
   if (retry_descriptions_at_ && now >= *retry_descriptions_at_) RequestDescriptions();
   if (link_ != Link::kStreaming) return;
+  const double quiet_s = SecondsSince(last_frame_at_);
   if (probing_) {
-    if (SecondsSince(sent_at_) > options_.reply_timeout_s) {
-      ServerLost("no frame for " + std::to_string(SecondsSince(last_frame_at_)) +
-                 " s and no answer to NAT_CONNECT");
+    if (quiet_s > options_.silence_s && SecondsSince(connect_since_) > options_.reply_timeout_s) {
+      ServerLost("no frame for " + std::to_string(quiet_s) + " s and no answer to NAT_CONNECT");
+      return;
     }
+    // Until it answers: for a unicast client the CONNECT that reaches a restarted Motive is
+    // the one that makes it stream again.
+    if (SecondsSince(connect_sent_at_) >= options_.connect_repeat_s) SendConnect();
     return;
   }
-  const double quiet_s = SecondsSince(last_frame_at_);
-  const double probe_after_s =
-      server_up_not_streaming_ ? options_.silence_s + kProbeIntervalS : options_.silence_s;
-  if (quiet_s > probe_after_s && SecondsSince(sent_at_) > kProbeIntervalS * 0.5) {
-    // Is Motive gone, or up and not streaming? Only SERVERINFO tells; for a unicast client
-    // the CONNECT also re-registers it with a restarted Motive.
-    ++stats_.Counter("probes");
-    probing_ = true;
-    SendConnect();
+  if (server_up_not_streaming_) {
+    // It answered and sends nothing (paused): ask again now and then whether it is still there.
+    if (SecondsSince(connect_sent_at_) > kProbeIntervalS) StartProbe();
+    return;
+  }
+  // Is Motive gone, or up and not streaming? Only SERVERINFO tells. A unicast client asks
+  // early: a Motive that restarted streams to it only once it connects again.
+  const double ask_after_s =
+      options_.multicast ? options_.silence_s : std::min(options_.silence_s, kUnicastRejoinS);
+  if (quiet_s > ask_after_s && SecondsSince(connect_sent_at_) >= options_.connect_repeat_s) {
+    StartProbe();
   }
 }
 
@@ -644,36 +664,43 @@ void NatNetBridge::HandleFrame(const natnet::Packet& p, int64_t receive_us) {
   }
   stats_.CountIn();
   ++stats_.Counter("frames");
+  const bool after_silence = SecondsSince(last_frame_at_) > options_.silence_s;
   last_frame_at_ = Clock::now();
   probing_ = false;
   if (server_up_not_streaming_) stats_.log().info("Motive streams again");
   server_up_not_streaming_ = false;
-  if (!got_frame_) backoff_s_ = options_.backoff_min_s;  // the link works: next loss retries fast
   got_frame_ = true;
 
   const std::string where = "frame " + std::to_string(f.frame_number);
-  if (last_frame_) {
-    const int64_t step = int64_t{f.frame_number} - *last_frame_;
-    const bool restarted =
-        step < 0 || (last_timestamp_s_ && f.timestamp_s + 1.0 < *last_timestamp_s_);
-    if (step == 0) {
-      ++stats_.Counter("duplicates");
+  const std::optional<int32_t> newest = sequence_.last();
+  const auto verdict = sequence_.Accept(
+      {f.frame_number, f.timestamp_s, f.transmit_ticks, natnet::FrameSequence::Digest(p.payload)},
+      after_silence);
+  stats_.Counter("frame_gaps") = sequence_.gaps();
+  stats_.Counter("frames_lost") = sequence_.lost();
+  stats_.Counter("frames_paused") = sequence_.paused();
+  stats_.Counter("reordered") = sequence_.late();
+  stats_.Counter("duplicates") = sequence_.duplicates();
+  stats_.Counter("frame_restarts") = sequence_.restarts();
+  switch (verdict) {
+    case natnet::FrameSequence::Verdict::kDuplicate:
       stats_.Drop("natnet duplicate frame", where + " again");
       return;
-    }
-    if (restarted) {
+    case natnet::FrameSequence::Verdict::kLate:
+      // Published frames stay in order (§6): a late one is dropped, and is not lost.
+      stats_.Drop("natnet late frame", where + " after frame " + std::to_string(*newest));
+      if (f.model_list_changed() && !descriptions_pending_) RequestDescriptions();
+      return;
+    case natnet::FrameSequence::Verdict::kRestart:
       // Motive restarted (or a take was rewound): its clock and maybe its ids changed.
-      ++stats_.Counter("frame_restarts");
+      stats_.log().info("Motive restarted: {} after frame {}", where, newest.value_or(0));
       ++stats_.Counter("clock_resyncs");
       offset_window_.clear();
       if (!descriptions_pending_) RequestDescriptions();
-    } else if (step > 1) {
-      ++stats_.Counter("frame_gaps");
-      stats_.Counter("frames_lost") += step - 1;
-    }
+      break;
+    case natnet::FrameSequence::Verdict::kNext:
+      break;
   }
-  last_frame_ = f.frame_number;
-  last_timestamp_s_ = f.timestamp_s;
 
   if (f.model_list_changed()) {
     ++stats_.Counter("model_changes");

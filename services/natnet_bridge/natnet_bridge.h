@@ -6,7 +6,8 @@
 //
 // Testable without LCM: the caller passes a publish callback and a clock; the class never
 // blocks longer than the wait it is given. Counters (ServiceStats, in the heartbeat): frames,
-// published, untracked, frame_gaps, frames_lost, frame_restarts, duplicates, decode_errors,
+// published, untracked, frame_gaps, frames_lost, frames_paused (numbers skipped while Motive sent
+// nothing), reordered (late frames, dropped), frame_restarts, duplicates, decode_errors,
 // edit_mode_frames, model_changes, description_reads, bitstream_changes, body_missing,
 // connects, probes, server_lost, not_streaming, keepalives, timeouts, foreign_packets,
 // unknown_messages, clock_fallbacks, and the latest timing in microseconds: system_latency_us
@@ -25,6 +26,7 @@
 
 #include "common/device.h"
 #include "common/service_stats.h"
+#include "frame_sequence.h"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "natnet_protocol.h"
@@ -78,8 +80,9 @@ struct NatNetBridgeOptions {
   double keepalive_s = 1.0;
   double reply_timeout_s = 1.0;  // SERVERINFO and MODELDEF answers
   double silence_s = 0.5;        // no frame this long: DEGRADED, and probe the server
-  double backoff_min_s = 0.05;
-  double backoff_max_s = 1.0;
+  // An unanswered NAT_CONNECT is sent again this often: a restarted Motive streams to a unicast
+  // client only once it connects again, so the client must not wait out a reply timeout.
+  double connect_repeat_s = 0.05;
   double clock_window_s = 5.0;  // the minimum-transit window of the clock offset
 };
 
@@ -132,6 +135,7 @@ class NatNetBridge : public Device {
   void CloseSockets();
   void SendToServer(uint16_t id, const std::vector<uint8_t>& payload);
   void SendConnect();
+  void StartProbe();
   void RequestDescriptions();
   void Drain(int fd);
   void HandleServerInfo(const natnet::Packet& p);
@@ -156,10 +160,11 @@ class NatNetBridge : public Device {
   uint32_t server_ip_ = 0;  // network order
   Link link_ = Link::kDisconnected;
   Clock::time_point next_connect_;
-  Clock::time_point sent_at_;  // the outstanding request (CONNECT or MODELDEF)
+  Clock::time_point connect_since_;    // the first NAT_CONNECT of the unanswered ones
+  Clock::time_point connect_sent_at_;  // the latest NAT_CONNECT
+  Clock::time_point modeldef_sent_at_;
   Clock::time_point next_keepalive_;
   Clock::time_point last_frame_at_;
-  double backoff_s_;
   bool probing_ = false;  // silent: a CONNECT is out to see whether Motive is up
   bool server_up_not_streaming_ = false;
   bool descriptions_pending_ = false;
@@ -173,8 +178,7 @@ class NatNetBridge : public Device {
   std::string descriptions_problem_;
   std::optional<Clock::time_point> retry_descriptions_at_;
 
-  std::optional<int32_t> last_frame_;
-  std::optional<double> last_timestamp_s_;
+  natnet::FrameSequence sequence_;
   // Sliding minimum of (receipt - transmit) over clock_window_s: the clock offset plus the
   // smallest transit seen, Motive's clock mapped onto the host's without echoes (§5.3).
   std::deque<std::pair<int64_t, double>> offset_window_;

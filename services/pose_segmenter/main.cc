@@ -1,4 +1,5 @@
-// ftcal-pose-segmenter: aligned samples and steady standing poses (pipeline item 2).
+// ftcal-pose-segmenter: the transducer, servo and mocap streams aligned into SYNC_SAMPLE, and
+// the steady standing poses found in them published as STEADY_POSE (the calibrator's input).
 #include <exception>
 #include <future>
 #include <memory>

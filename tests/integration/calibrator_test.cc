@@ -73,6 +73,8 @@ struct Fixture {
   config::Config config;
   std::unique_ptr<BigAntTwin> twin;
   std::string log, log_no_markers, log_no_z_neg, log_truncated, truth, config_other;
+  std::string config_signed;  // the same, but EXPERIMENT markers must be signed
+  int64_t markers = 0;        // the EXPERIMENT markers in `log`, all unsigned
   std::vector<Event> events;  // the whole session, for the live test
 };
 Fixture* fx = nullptr;
@@ -154,6 +156,14 @@ class CalibratorTest : public ::testing::Test {
     cfg.replace(cfg.find("channels {}"), 11, "channels { ft_prefix: \"ATI_\" }");
     fx->config_other = fx->dir + "/other.pbtxt";
     std::ofstream(fx->config_other) << cfg;
+    // The same robot with signatures required, as config/bigant.pbtxt's auth has them.
+    std::string signed_cfg = ReadFile(kConfig);
+    const std::string unsigned_ok = "allow_unsigned: true";
+    signed_cfg.replace(signed_cfg.find(unsigned_ok), unsigned_ok.size(), "allow_unsigned: false");
+    fx->config_signed = fx->dir + "/signed.pbtxt";
+    std::ofstream(fx->config_signed) << signed_cfg;
+    fx->markers = std::count_if(all.begin(), all.end(),
+                                [&](const Event& e) { return e.channel == ch.experiment(); });
   }
   static void TearDownTestSuite() {
     // FTCAL_TEST_KEEP=1 keeps the logs, calibration and report for a look.
@@ -1069,6 +1079,23 @@ TEST_F(CalibratorTest, CalibratesTheTwinsLogCloseToTruthWithProvenanceAndReport)
 
 TEST_F(CalibratorTest, RefusesALogWithoutMarkers) {
   ExpectRefused({"--log", fx->log_no_markers}, "no_markers", "no EXPERIMENT markers");
+}
+
+TEST_F(CalibratorTest, RefusesUnsignedMarkersNamingTheirCountAndWhatToDo) {
+  // The twin's markers are unsigned; a config that requires signed ones refuses every one. The
+  // refusal must say so, not that the log has no markers.
+  ASSERT_GT(fx->markers, 0);
+  const std::string out = fx->dir + "/unsigned.pbtxt";
+  const Result r = Run({"--log", fx->log, "--config", fx->config_signed, "--out", out}, "unsigned");
+  EXPECT_EQ(r.exit_code, 2) << r.err;
+  EXPECT_NE(r.err.find(std::to_string(fx->markers) + " on channel 'EXPERIMENT' were refused as "
+                                                     "unsigned"),
+            std::string::npos)
+      << r.err;
+  EXPECT_NE(r.err.find("auth.allow_unsigned"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("--signing-key"), std::string::npos) << r.err;
+  EXPECT_EQ(r.err.find("no EXPERIMENT markers (channel"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(out));
 }
 
 TEST_F(CalibratorTest, RefusesALogMissingASeries) {

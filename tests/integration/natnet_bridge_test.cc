@@ -370,6 +370,167 @@ TEST(NatNetBridgeTest, ReconnectsAfterMotiveRestarts) {
   EXPECT_GT(matched, 150);
 }
 
+// What the bridge should count of a unicast client's stream, from the frames as the emulator
+// sent them (in sending order; loopback delivers every datagram, in order).
+struct StreamTruth {
+  int64_t lost = 0;        // numbers never sent between the first and the last frame sent
+  int64_t late = 0;        // frames sent after a higher-numbered one
+  int64_t duplicates = 0;  // second copies
+};
+StreamTruth TruthOf(const std::vector<sim::NatNetSentFrame>& sent) {
+  StreamTruth t;
+  std::set<int32_t> numbers;
+  for (const auto& s : sent) {
+    numbers.insert(s.frame_number);
+    t.late += s.late;
+    t.duplicates += s.duplicated;
+  }
+  if (sent.empty()) return t;
+  const int32_t first = sent.front().frame_number;
+  const int32_t last = *numbers.rbegin();
+  for (int32_t n = first; n <= last; ++n) t.lost += !numbers.count(n);
+  return t;
+}
+
+TEST(NatNetBridgeTest, LateFramesAreDroppedNotTakenForARestartAndAreNotLost) {
+  // UDP reordering (docs/natnet-protocol.md §6): a late frame is dropped and counted as
+  // reordered; it is not a Motive restart (no clock resync, no new descriptions), and the
+  // frame numbers it fills in are not lost.
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.seed = 5;
+  eo.faults.reorder_probability = 0.04;
+  eo.faults.duplicate_probability = 0.03;
+  eo.faults.gap_probability = 0.02;
+  PairRun run = RunWithBridge(eo, 600, BridgeOptions(false));
+  const StreamTruth truth = TruthOf(run.sent);
+  ASSERT_GT(truth.late, 5);
+  ASSERT_GT(truth.duplicates, 5);
+  ASSERT_GT(truth.lost, 5);
+  EXPECT_EQ(run.Counter("frame_restarts"), 0);
+  EXPECT_EQ(run.Counter("clock_resyncs"), 0);
+  EXPECT_EQ(run.emulator.descriptions_sent, 1);
+  EXPECT_EQ(run.Counter("reordered"), truth.late);
+  EXPECT_EQ(run.Counter("duplicates"), truth.duplicates);
+  EXPECT_EQ(run.Counter("frames_lost"), truth.lost);
+  EXPECT_EQ(run.Counter("decode_errors"), 0);
+  // Every frame that came in order was published once, in order, as generated; no late one.
+  std::map<int32_t, const sim::NatNetSentFrame*> by_frame;
+  int64_t in_order = 0;
+  for (const auto& s : run.sent) {
+    by_frame[s.frame_number] = &s;
+    in_order += !s.late;
+  }
+  int64_t previous = -1;
+  for (const auto& m : run.published) {
+    const auto& s = *by_frame.at(static_cast<int32_t>(m.frame_number));
+    EXPECT_FALSE(s.late) << "late frame " << m.frame_number << " published";
+    EXPECT_GT(m.frame_number, previous);
+    previous = m.frame_number;
+    ExpectMatchesTruth(m, s, "frame " + std::to_string(m.frame_number));
+  }
+  // Only what came before the descriptions is missing (as in the fault-free run).
+  EXPECT_LE(in_order - static_cast<int64_t>(run.published.size()), 2);
+}
+
+TEST(NatNetBridgeTest, FramesSkippedWhileMotiveIsPausedAreNotLost) {
+  // Paused (up, answering, no frames) for 1.5 s while its frame numbers run on: the numbers
+  // skipped then are counted as paused; only the gaps of the stream itself are lost.
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.seed = 3;
+  eo.faults.gap_probability = 0.03;
+  eo.faults.silent.push_back({150, 300});
+  PairRun run = RunWithBridge(eo, 700, BridgeOptions(false));
+  int64_t lost = 0, paused = 0, pauses = 0;
+  for (size_t i = 1; i < run.sent.size(); ++i) {
+    const auto& a = run.sent[i - 1];
+    const auto& b = run.sent[i];
+    const int64_t skipped = b.frame_number - a.frame_number - 1;
+    if (b.tick - a.tick == 1) {
+      lost += skipped;
+    } else {
+      paused += skipped;
+      ++pauses;
+    }
+  }
+  ASSERT_EQ(pauses, 1);
+  ASSERT_GE(paused, 300);
+  ASSERT_GT(lost, 3);
+  EXPECT_EQ(run.Counter("frames_lost"), lost);
+  EXPECT_EQ(run.Counter("frames_paused"), paused);
+  EXPECT_EQ(run.Counter("frame_restarts"), 0);
+  EXPECT_EQ(run.Counter("server_lost"), 0);
+  EXPECT_GE(run.Counter("not_streaming"), 1);
+  const int64_t after = std::count_if(run.published.begin(), run.published.end(),
+                                      [](const auto& m) { return m.frame_number > 460; });
+  EXPECT_GT(after, 200);
+}
+
+TEST(NatNetBridgeTest, UnicastClientRejoinsARestartedMotiveWithin100Ms) {
+  // A restarted Motive streams to no unicast client until one connects again (§2.5): the bridge
+  // must ask again promptly, not wait out a reply timeout. Motive is gone for 0.7 s, longer
+  // than the bridge's silence_s (0.5 s), so it returns while the bridge probes.
+  auto eo = EmulatorOptions({4, 1}, false);
+  eo.faults.down.push_back({200, 140});
+  PairRun run = RunWithBridge(eo, 600, BridgeOptions(false));
+  ASSERT_EQ(run.emulator.restarts, 1);
+  ASSERT_GT(run.emulator.restart_utime, 0);
+  // The first frame the restarted Motive sent (to a client that connected again) and the first
+  // the bridge published after the restart, against the instant Motive came back.
+  const auto first_sent =
+      std::find_if(run.sent.begin(), run.sent.end(), [](const auto& s) { return s.tick >= 340; });
+  ASSERT_NE(first_sent, run.sent.end());
+  const double transmit_ms =
+      1e-3 * double(first_sent->exposure_utime + 2000 - run.emulator.restart_utime);
+  std::printf("[ rejoin   ] first frame %.1f ms after Motive came back\n", transmit_ms);
+  EXPECT_LT(transmit_ms, 100.0);
+  size_t restart_at = 0;
+  for (size_t i = 1; i < run.published.size() && restart_at == 0; ++i) {
+    if (run.published[i].frame_number < run.published[i - 1].frame_number) restart_at = i;
+  }
+  ASSERT_GT(restart_at, 0u) << "nothing published after the restart";
+  const auto& m = run.published[restart_at];
+  const double published_ms = 1e-3 * double(m.utime + 2000 - run.emulator.restart_utime);
+  std::printf("[ rejoin   ] first frame published %.1f ms after Motive came back\n", published_ms);
+  EXPECT_LT(published_ms, 100.0);
+  // Its pose under the renumbered body is right.
+  const auto s = std::find_if(first_sent, run.sent.end(),
+                              [&](const auto& x) { return x.frame_number == m.frame_number; });
+  ASSERT_NE(s, run.sent.end());
+  ExpectMatchesTruth(m, *s, "first after the restart");
+  EXPECT_EQ(run.Counter("frame_restarts"), 1);  // frame 1 again, after a silence
+  EXPECT_EQ(run.Counter("frames_lost"), 0);
+}
+
+TEST(NatNetBridgeTest, AShortMotiveRestartIsTakenForOneFromItsFrames) {
+  // Gone for 0.3 s, less than silence_s: no probe, no reconnect; the multicast frames resume
+  // with numbers from 1 again, which a late frame could not be. One restart: the clock resynced,
+  // the descriptions read again, the renumbered body found by name.
+  auto eo = EmulatorOptions({4, 1}, true);
+  eo.faults.down.push_back({200, 60});
+  PairRun run = RunWithBridge(eo, 500, BridgeOptions(true));
+  ASSERT_EQ(run.emulator.restarts, 1);
+  EXPECT_EQ(run.Counter("frame_restarts"), 1);
+  EXPECT_EQ(run.Counter("clock_resyncs"), 1);
+  EXPECT_EQ(run.Counter("server_lost"), 0);
+  EXPECT_EQ(run.Counter("reordered"), 0);
+  EXPECT_EQ(run.Counter("frames_lost"), 0);
+  std::map<int32_t, const sim::NatNetSentFrame*> after;
+  for (const auto& s : run.sent) {
+    if (s.tick >= 260) after[s.frame_number] = &s;
+  }
+  size_t restart_at = 0;
+  for (size_t i = 1; i < run.published.size() && restart_at == 0; ++i) {
+    if (run.published[i].frame_number < run.published[i - 1].frame_number) restart_at = i;
+  }
+  ASSERT_GT(restart_at, 0u);
+  for (size_t i = restart_at; i < run.published.size(); ++i) {
+    const auto& m = run.published[i];
+    ExpectMatchesTruth(m, *after.at(static_cast<int32_t>(m.frame_number)),
+                       "after the restart, frame " + std::to_string(m.frame_number));
+  }
+  EXPECT_GT(run.published.size() - restart_at, 200u);
+}
+
 TEST(NatNetBridgeTest, UnicastKeepAliveHoldsTheSession) {
   auto eo = EmulatorOptions({4, 1}, false);
   eo.client_timeout_s = 1.5;

@@ -16,3 +16,11 @@ set_tests_properties(scripts_readme_package_list_matches_setup PROPERTIES LABELS
 # The C++ is formatted as .clang-format says (issue 15, house rules): scripts/format fixes it.
 add_test(NAME clang_format_check COMMAND "${PROJECT_SOURCE_DIR}/scripts/format" --check)
 set_tests_properties(clang_format_check PROPERTIES LABELS unit.fast TIMEOUT 120)
+
+# scripts/setup beside a held dpkg lock (unattended upgrades at boot): waits and says so,
+# installs once it is released, gives up after FTCAL_DPKG_LOCK_WAIT_S. A lock file and stubs
+# of its own: the machine's apt is never touched.
+add_test(NAME scripts_setup_waits_for_a_held_dpkg_lock
+  COMMAND bash "${CMAKE_CURRENT_LIST_DIR}/setup_lock_test.sh" "${PROJECT_SOURCE_DIR}")
+set_tests_properties(scripts_setup_waits_for_a_held_dpkg_lock PROPERTIES
+  LABELS integration.fast TIMEOUT 60)

@@ -1,5 +1,5 @@
 // Stream alignment: six asynchronous transducer streams, the servo state and motion capture
-// into SyncSamples at the transducers' rate (pipeline item 2; the segmenter's input).
+// into SyncSamples at the transducers' rate (the pose segmenter's and the calibrator's input).
 //
 // Rule. A sample is emitted when every leg has a reading newer than the last emitted time.
 // The sync time is the NEWEST of those six readings' times: it is the moment the set became

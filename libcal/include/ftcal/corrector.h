@@ -1,5 +1,5 @@
 // The corrector: every transducer sample into ground-contact wrenches (docs/method.md,
-// "Correction"; pipeline item 4).
+// "Correction"; what ftcal-corrector runs on every sample).
 //
 // Model: eq. 3 rotated to W (the same as GroundWrenchW in sensing_model.h),
 //   w^W_gc,k = X(R_WC) [ X(X_C_ft,k) (w_m,k - w_o,k) - (m_k g^C ; (X_C_ft,k r_k(phi_k)) x m_k g^C)

@@ -256,14 +256,17 @@ void NatNetEmulator::Tick() {
   const int64_t k = tick_;
   const bool down = InAny(f.down, k);
   if (down && up_) {
-    Close();  // Motive is gone: nothing answers
+    Close();  // Motive is gone: nothing answers, and what it held back is never sent
     clients_.clear();
+    held_.clear();
     up_ = false;
   } else if (!down && !up_) {
     // Motive restarts: its clock, frame numbers and (here) the body's id start over.
     Bind();
     up_ = true;
     ++counters_.restarts;
+    counters_.restart_utime = WallUtime();
+    max_sent_number_ = 0;
     start_s_ = SteadySeconds();
     frame_base_ = k;
     skipped_ = 0;
@@ -300,8 +303,14 @@ void NatNetEmulator::Tick() {
   }
   const bool duplicate = u(rng_) < f.duplicate_probability;
   const bool corrupt = u(rng_) < f.corrupt_probability;
+  // Drawn only when asked for, so that the other faults' sequence for a seed stays as it was.
+  int64_t hold_ticks = 0;
+  if (f.reorder_probability > 0 && u(rng_) < f.reorder_probability) {
+    hold_ticks = std::uniform_int_distribution<int64_t>(1, 3)(rng_);
+  }
   ++tick_;
-  if (down || InAny(f.silent, k)) return;
+  if (down) return;
+  if (InAny(f.silent, k)) return ReleaseHeld(k);
 
   const bool untracked = !pose->body_tracked || InAny(f.untracked, k);
   const bool edit = InAny(f.edit_mode, k);
@@ -371,18 +380,18 @@ void NatNetEmulator::Tick() {
                  natnet::EncodePacket(natnet::kFrameOfData, payload))
         .first->second;
   };
-  int receivers = 0;
+  Outgoing out;
   const int copies = duplicate ? 2 : 1;
+  auto add = [&](const sockaddr_in& to, const std::vector<uint8_t>& bytes) {
+    for (int c = 0; c < copies; ++c) out.datagrams.push_back({to, bytes});
+  };
+  int receivers = 0;
   if (options_.multicast) {
     sockaddr_in to{};
     to.sin_family = AF_INET;
     to.sin_port = htons(data_port_);
     ::inet_pton(AF_INET, options_.multicast_group.c_str(), &to.sin_addr);
-    const auto& bytes = packet_for(options_.version);
-    for (int c = 0; c < copies; ++c) {
-      ::sendto(data_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to),
-               sizeof to);
-    }
+    add(to, packet_for(options_.version));
     receivers = 1;
   } else {
     for (const auto& [endpoint, client] : clients_) {
@@ -390,35 +399,57 @@ void NatNetEmulator::Tick() {
       to.sin_family = AF_INET;
       to.sin_addr.s_addr = endpoint.first;
       to.sin_port = endpoint.second;
-      const auto& bytes = packet_for(client.version);
-      for (int c = 0; c < copies; ++c) {
-        ::sendto(data_fd_, bytes.data(), bytes.size(), 0, reinterpret_cast<sockaddr*>(&to),
-                 sizeof to);
-      }
+      add(to, packet_for(client.version));
       ++receivers;
     }
   }
-  if (receivers == 0) return;
-  ++counters_.frames_sent;
-  counters_.frames_corrupt += corrupt;
-  counters_.frames_untracked += untracked;
-  counters_.frames_duplicated += duplicate;
-  if (observer_) {
-    NatNetSentFrame s;
-    s.tick = k;
-    s.frame_number = frame.frame_number;
-    s.timestamp_s = frame.timestamp_s;
-    s.exposure_utime = exposure_utime;
-    s.corrupt = corrupt;
-    s.duplicated = duplicate;
-    s.tracked = !untracked;
-    s.edit_mode = edit;
-    s.R_GC = pose->R_GC;
-    s.p_GoCo_G_m = pose->p_GoCo_G_m;
-    s.markers_G_m = pose->markers_G_m;
-    s.receivers = receivers;
-    observer_(s);
+  if (receivers == 0) return ReleaseHeld(k);
+  NatNetSentFrame& s = out.frame;
+  s.tick = k;
+  s.frame_number = frame.frame_number;
+  s.timestamp_s = frame.timestamp_s;
+  s.exposure_utime = exposure_utime;
+  s.corrupt = corrupt;
+  s.duplicated = duplicate;
+  s.tracked = !untracked;
+  s.edit_mode = edit;
+  s.R_GC = pose->R_GC;
+  s.p_GoCo_G_m = pose->p_GoCo_G_m;
+  s.markers_G_m = pose->markers_G_m;
+  s.receivers = receivers;
+  if (hold_ticks > 0) {
+    // UDP reordering: this frame goes out after the frames of the next hold_ticks ticks.
+    out.release_tick = k + hold_ticks;
+    held_.push_back(std::move(out));
+  } else {
+    Emit(out);
   }
+  ReleaseHeld(k);
+}
+
+void NatNetEmulator::Emit(Outgoing& out) {
+  for (const Datagram& d : out.datagrams) {
+    ::sendto(data_fd_, d.bytes.data(), d.bytes.size(), 0, reinterpret_cast<const sockaddr*>(&d.to),
+             sizeof d.to);
+  }
+  NatNetSentFrame& s = out.frame;
+  s.late = s.frame_number < max_sent_number_;
+  max_sent_number_ = std::max(max_sent_number_, s.frame_number);
+  ++counters_.frames_sent;
+  counters_.frames_corrupt += s.corrupt;
+  counters_.frames_untracked += !s.tracked;
+  counters_.frames_duplicated += s.duplicated;
+  counters_.frames_reordered += s.late;
+  if (observer_) observer_(s);
+}
+
+void NatNetEmulator::ReleaseHeld(int64_t tick) {
+  // In the order they were held back; after this tick's frame, so they arrive late.
+  auto due = [tick](const Outgoing& o) { return o.release_tick <= tick; };
+  for (Outgoing& o : held_) {
+    if (due(o)) Emit(o);
+  }
+  held_.erase(std::remove_if(held_.begin(), held_.end(), due), held_.end());
 }
 
 void NatNetEmulator::Run(int64_t max_ticks, const std::function<bool()>& keep_going) {

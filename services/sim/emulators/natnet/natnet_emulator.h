@@ -15,9 +15,11 @@
 // that instant on the host clock, so a test can measure the bridge's time-stamping residual.
 //
 // Faults, deterministic for a seed and schedule (ticks count from the first frame): frame
-// gaps, duplicated frames, corrupt frames (a byte after the end tag, the datagram's length
+// gaps, duplicated frames, reordered frames (held back and sent after the next 1..3 frames, as
+// UDP may deliver them), corrupt frames (a byte after the end tag, the datagram's length
 // agreeing: only a decoder that checks it consumed everything refuses it), untracked windows
-// (tracked bit clear, the last pose resent), silent windows (Motive up, answering, no frames),
+// (tracked bit clear, the last pose resent), silent windows (Motive up and answering but paused:
+// no frames, while its camera frame numbers run on),
 // edit-mode windows, down windows (Motive gone: no answers; afterwards it restarts with frame
 // numbers and ticks from zero and the body renumbered), model-list changes (bit 1 set, the two
 // bodies swap order and ids), mid-exposure 0.
@@ -60,10 +62,11 @@ struct NatNetFaults {
   uint64_t seed = 1;
   double gap_probability = 0.0;        // per tick: 1..3 frame numbers skipped
   double duplicate_probability = 0.0;  // per tick: the frame is sent twice
+  double reorder_probability = 0.0;    // per tick: held back, sent after the next 1..3 frames
   double corrupt_probability = 0.0;    // per tick: a byte count off (see the header)
   bool mid_exposure_zero = false;      // USB cameras / playback: mid-exposure ticks 0
   std::vector<NatNetWindow> untracked;
-  std::vector<NatNetWindow> silent;     // up, answering, no frames
+  std::vector<NatNetWindow> silent;     // up, answering, no frames (paused; numbers run on)
   std::vector<NatNetWindow> edit_mode;  // frames flagged edit mode
   std::vector<NatNetWindow> down;       // gone; restarts afterwards
   std::vector<int64_t> model_changes;   // bit 1 and a reshuffle at these ticks
@@ -91,7 +94,7 @@ struct NatNetEmulatorOptions {
   NatNetFaults faults;
 };
 
-// One frame as it went out (values narrowed to f32 as on the wire).
+// One frame as it went out, when it went out (values narrowed to f32 as on the wire).
 struct NatNetSentFrame {
   int64_t tick = 0;
   int32_t frame_number = 0;
@@ -99,6 +102,7 @@ struct NatNetSentFrame {
   int64_t exposure_utime = 0;  // mid-exposure on the host clock, us since the epoch
   bool corrupt = false;
   bool duplicated = false;  // sent twice
+  bool late = false;        // sent after a frame with a higher number (reordered)
   bool tracked = true;
   bool edit_mode = false;
   Eigen::Matrix3d R_GC = Eigen::Matrix3d::Identity();  // the source's (truth)
@@ -113,6 +117,7 @@ struct NatNetEmulatorCounters {
   int64_t frames_corrupt = 0;
   int64_t frames_untracked = 0;
   int64_t frames_duplicated = 0;
+  int64_t frames_reordered = 0;  // sent after a frame with a higher number
   int64_t gaps = 0;
   int64_t frames_skipped = 0;
   int64_t connects = 0;
@@ -120,6 +125,7 @@ struct NatNetEmulatorCounters {
   int64_t descriptions_sent = 0;
   int64_t clients_expired = 0;
   int64_t restarts = 0;
+  int64_t restart_utime = 0;  // the host clock when Motive last came back (sockets bound again)
   int64_t model_changes = 0;
   int64_t requests_unrecognized = 0;
 };
@@ -151,12 +157,24 @@ class NatNetEmulator {
     natnet::Version version;
     double last_heard_s = 0;
   };
+  struct Datagram {
+    sockaddr_in to{};
+    std::vector<uint8_t> bytes;
+  };
+  // A frame's datagrams (every copy to every receiver), sent now or held back (reordering).
+  struct Outgoing {
+    int64_t release_tick = 0;
+    std::vector<Datagram> datagrams;
+    NatNetSentFrame frame;
+  };
   void Bind();
   void Close();
   void ReadCommands();
   void HandleCommand(const natnet::Packet& p, const sockaddr_in& from);
   void Reply(const sockaddr_in& to, uint16_t id, const std::vector<uint8_t>& payload);
   void Tick();
+  void Emit(Outgoing& out);
+  void ReleaseHeld(int64_t tick);
   double Seconds() const;  // since (re)start
   uint64_t Ticks() const;
   natnet::Version VersionFor(const sockaddr_in& from) const;
@@ -180,6 +198,8 @@ class NatNetEmulator {
   double start_s_ = 0;    // steady seconds at the (re)start: tick origin
   bool swapped_ = false;  // the bodies' order and ids after model changes
   std::optional<NatNetPose> last_tracked_;
+  std::vector<Outgoing> held_;   // reordered frames waiting for their release tick
+  int32_t max_sent_number_ = 0;  // the highest frame number sent since the (re)start
   std::mt19937_64 rng_;
   NatNetEmulatorCounters counters_;
 };
