@@ -103,6 +103,19 @@ class DoctorTest : public ::testing::Test {
     return out;
   }
   static double T(int64_t utime) { return 1e-6 * static_cast<double>(utime - kT0); }
+  // The healthy session without the EXPERIMENT markers of `phase`.
+  static std::vector<Event> WithoutPhase(int8_t phase) {
+    std::vector<Event> events;
+    for (const Event& e : fx->events) {
+      experiment_marker_t m;
+      if (e.channel == fx->config.channels().experiment() &&
+          m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 && m.phase == phase) {
+        continue;
+      }
+      events.push_back(e);
+    }
+    return events;
+  }
 };
 
 // "<what> at <t> s for <length> s": the numbers of the first stretch after `prefix`.
@@ -178,17 +191,7 @@ TEST_F(DoctorTest, AStallIsFoundWithItsTimeAndLengthAndNothingCountedLost) {
 }
 
 TEST_F(DoctorTest, AMissingHangingSeriesIsNotCalibratableAndNamed) {
-  std::vector<Event> events;
-  for (const Event& e : fx->events) {
-    experiment_marker_t m;
-    if (e.channel == fx->config.channels().experiment() &&
-        m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 &&
-        m.phase == experiment_marker_t::HANG_Z_NEG) {
-      continue;
-    }
-    events.push_back(e);
-  }
-  const Result r = Doctor("missing", events);
+  const Result r = Doctor("missing", WithoutPhase(experiment_marker_t::HANG_Z_NEG));
   EXPECT_EQ(r.exit_code, 2) << r.out;
   EXPECT_NE(r.out.find("verdict: NOT calibratable"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("problem: hanging series missing (no completed start..stop): HANG_Z_NEG:"),
@@ -197,16 +200,7 @@ TEST_F(DoctorTest, AMissingHangingSeriesIsNotCalibratableAndNamed) {
 }
 
 TEST_F(DoctorTest, ScriptsCalibrateStopsOnANotCalibratableRecordingUnlessForced) {
-  std::vector<Event> events;
-  for (const Event& e : fx->events) {
-    experiment_marker_t m;
-    if (e.channel == fx->config.channels().experiment() &&
-        m.decode(e.data.data(), 0, static_cast<int>(e.data.size())) > 0 &&
-        m.phase == experiment_marker_t::HANG_X_NEG) {
-      continue;
-    }
-    events.push_back(e);
-  }
+  std::vector<Event> events = WithoutPhase(experiment_marker_t::HANG_X_NEG);
   std::stable_sort(events.begin(), events.end(),
                    [](const Event& a, const Event& b) { return a.utime < b.utime; });
   const std::string log = fx->dir + "/no-x-neg.lcmlog";
