@@ -278,7 +278,10 @@ void LogExaminer::OnServo(const MessageInfo& /*info*/, const void* data, int siz
     s.last_tick[i] = m.device_tick_ms[k];
     const int64_t mapped = s.clocks[i]->Observe(m.device_tick_ms[k], m.utime);
     if (k == 0) s.h.queuing.Add(1e-6 * static_cast<double>(m.utime - mapped));
-    if (s.have_angle) s.travel_rad[i] += std::abs(m.angle_rad[k] - s.last_angle[i]);
+    // Wrapped angles (Position mode) jump by 2 pi where the shaft only passed pi.
+    if (s.have_angle) {
+      s.travel_rad[i] += std::abs(std::remainder(m.angle_rad[k] - s.last_angle[i], kTwoPi));
+    }
     s.last_angle[i] = m.angle_rad[k];
   }
   s.have_angle = true;

@@ -142,6 +142,13 @@ TEST_F(DoctorTest, AHealthySessionIsCalibratable) {
         << phase << "\n"
         << r.out;
   }
+  // Each hanging series turned the shafts through the twin's 3 cycles, a turn each.
+  for (const char* phase : {"HANG_X_POS", "HANG_X_NEG", "HANG_Z_POS", "HANG_Z_NEG"}) {
+    EXPECT_TRUE(std::regex_search(
+        r.out, std::regex(std::string("\n  ") + phase + " .* completed +shaft travel 3.0 turns")))
+        << phase << "\n"
+        << r.out;
+  }
 }
 
 TEST_F(DoctorTest, AGapInsideStandingIsFoundWithItsTimeAndLength) {
