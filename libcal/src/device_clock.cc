@@ -64,12 +64,6 @@ void DeviceClock::Restart(int64_t ticks, int64_t receipt_us) {
   late_since_x_ = -1;
 }
 
-int64_t DeviceClock::fit_samples() const {
-  int64_t n = 0;
-  for (const Slice& s : slices_) n += s.n;
-  return n;
-}
-
 double DeviceClock::fit_span_s() const {
   return slices_.empty() ? 0.0 : slices_.back().last_x - slices_.front().first_x;
 }

@@ -633,23 +633,11 @@ void AtiBridge::HandleSocket(Transducer& t) {
       // A socket queue is first in, first out: a datagram stamped before the last look that
       // emptied the queue was not in it then.
       const bool held = kernel_ns < t.drained_at_ns;
-      // Each record of a (buffered) datagram is its own sample. The last was taken just before
-      // the box sent the datagram; the others before it by their distance on the box's 7 kHz
-      // sample counter, so a reader that orders samples by time (the corrector, the aligner)
-      // does not see k samples at one instant. Never before the previous sample's stamp, so
-      // that the stream's times only rise. The device's clock mapped onto the host's comes
-      // with the batched FT message (issue 37, item 2; issue 38).
+      // Each record of a (buffered) datagram is its own sample, stamped from the datagram's
+      // receipt and its last record's place on the box's counter (HandleRecord).
       const std::uint32_t last_ft = rdt::DecodeRecord(data + len - rdt::kRecordBytes).ft_sequence;
-      const std::int64_t receipt_us = kernel_ns / 1000;
       for (std::size_t off = 0; off < len; off += rdt::kRecordBytes) {
-        const std::uint32_t before = last_ft - rdt::DecodeRecord(data + off).ft_sequence;
-        const std::int64_t back_us =
-            before <= kMaxStampBackTicks
-                ? static_cast<std::int64_t>(before) * 1'000'000 / kFtCounterHz
-                : 0;
-        const std::int64_t utime = std::max(receipt_us - back_us, t.last_utime + 1);
-        t.last_utime = utime;
-        HandleRecord(t, data + off, kernel_ns, user_ns, utime, held);
+        HandleRecord(t, data + off, kernel_ns, user_ns, last_ft, held);
       }
     }
     if (t.tracker.accepted() != accepted_before) {
@@ -669,7 +657,7 @@ void AtiBridge::HandleSocket(Transducer& t) {
 }
 
 void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
-                             std::int64_t user_ns, std::int64_t utime, bool held) {
+                             std::int64_t user_ns, std::uint32_t datagram_last_ft, bool held) {
   const rdt::Record rec = rdt::DecodeRecord(bytes);
   ++t.c.received;
   using V = rdt::SequenceTracker::Verdict;
@@ -777,6 +765,16 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
     t.restart_pending = false;
   }
 
+  // The datagram's last record was taken just before the box sent it; an earlier one of a
+  // buffered datagram before that by its distance on the box's 7 kHz sample counter, so that a
+  // reader ordering samples by time (the corrector, the aligner) does not see k samples at one
+  // instant. Never at or before the previous sample's stamp: the stream's times only rise. The
+  // device's clock mapped onto the host's comes with the batched FT message (issues 37, 38).
+  const std::uint32_t before = datagram_last_ft - rec.ft_sequence;
+  const std::int64_t back_us = before <= kMaxStampBackTicks
+                                   ? static_cast<std::int64_t>(before) * 1'000'000 / kFtCounterHz
+                                   : 0;
+  const std::int64_t utime = std::max(kernel_ns / 1000 - back_us, t.last_utime + 1);
   ft_sample_t& m = t.msg;
   m.utime = utime;
   m.rdt_sequence = rec.rdt_sequence;
@@ -796,6 +794,7 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   try {
     publish_(t.channel, t.encoded.data(), size);
     ++t.c.published;
+    t.last_utime = utime;
   } catch (const std::exception& e) {
     ++t.c.publish_errors;
     if (!t.logged_publish) {

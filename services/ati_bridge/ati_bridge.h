@@ -168,8 +168,9 @@ class AtiBridge : public Device {
  private:
   struct Transducer;
   void HandleSocket(Transducer& t);
+  // `datagram_last_ft`: the ft_sequence of the datagram's last record (the sample's stamp).
   void HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
-                    std::int64_t user_ns, std::int64_t utime, bool held);
+                    std::int64_t user_ns, std::uint32_t datagram_last_ft, bool held);
   void SendRequest(Transducer& t, rdt::Command command);
   void ReadCalibration(Transducer& t);
   // Resolves the default records per datagram from the page's rate and checks a buffered

@@ -221,7 +221,13 @@ void LcmBus::TransportSubscribe(size_t subscription, const std::string& channel)
     // so a deep queue only absorbs stalls (~4 s of all six transducers at 600 Hz); LCM keeps
     // the messages beyond its ring buffer on the heap.
     sub->setQueueCapacity(kSubscriptionQueueCapacity);
-    t.subscribed = true;
+    if (!t.subscribed) {
+      // Subscribed now, so asking for the descriptor joins no group it would not anyway.
+      t.subscribed = true;
+      listening_.push_back(&t);
+      fds_.push_back(t.lcm.getFileno());
+      pollfds_.push_back({fds_.back(), POLLIN, 0});
+    }
   }
 }
 
@@ -232,34 +238,18 @@ void LcmBus::TransportPublish(const std::string& channel, const void* data, int 
   }
 }
 
-std::vector<int> LcmBus::Filenos() {
-  std::vector<int> fds;
-  // Only where something is subscribed: asking an unsubscribed udpm instance for its
-  // descriptor would join its group and take in every message on its port.
-  for (const auto& t : transports_) {
-    if (t->subscribed) fds.push_back(t->lcm.getFileno());
-  }
-  return fds;
-}
-
 int LcmBus::HandleOnce(int timeout_ms) {
-  std::vector<Transport*> live;
-  for (const auto& t : transports_) {
-    if (t->subscribed) live.push_back(t.get());
-  }
-  if (live.empty()) {
+  if (listening_.empty()) {
     std::this_thread::sleep_for(std::chrono::milliseconds(timeout_ms));
     return 0;
   }
-  if (live.size() == 1) return live[0]->lcm.handleTimeout(timeout_ms);
-  std::vector<pollfd> fds;
-  for (Transport* t : live) fds.push_back({t->lcm.getFileno(), POLLIN, 0});
-  const int n = ::poll(fds.data(), fds.size(), timeout_ms);
+  if (listening_.size() == 1) return listening_[0]->lcm.handleTimeout(timeout_ms);
+  const int n = ::poll(pollfds_.data(), pollfds_.size(), timeout_ms);
   if (n <= 0) return n;
   int handled = 0;
-  for (size_t i = 0; i < fds.size(); ++i) {
-    if ((fds[i].revents & POLLIN) == 0) continue;
-    const int r = live[i]->lcm.handleTimeout(0);
+  for (size_t i = 0; i < pollfds_.size(); ++i) {
+    if ((pollfds_[i].revents & POLLIN) == 0) continue;
+    const int r = listening_[i]->lcm.handleTimeout(0);
     if (r < 0) return r;
     handled += r;
   }

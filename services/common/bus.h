@@ -14,6 +14,7 @@
 // message that does not pass or does not decode is counted as a drop.
 #pragma once
 
+#include <poll.h>
 #include <sys/stat.h>
 
 #include <array>
@@ -121,7 +122,10 @@ class Bus {
   // For a process that runs its own loop (a bridge paced by its device): the descriptors that
   // are readable when a message waits (none on replay; one per transport route subscribed to),
   // and HandleOnce() to handle what waits.
-  virtual std::vector<int> Filenos() { return {}; }
+  virtual const std::vector<int>& Filenos() {
+    static const std::vector<int> none;
+    return none;
+  }
   bool HasSubscriptions() const { return !subscriptions_.empty(); }
   // Handles at most one message per route, waiting up to `timeout_ms` for the first; returns
   // >0 handled, 0 timeout, <0 error (-1 on replay).
@@ -197,7 +201,7 @@ class LcmBus : public Bus {
   int64_t NowUtime() const override;
   void Run(const std::function<void()>& tick, int64_t tick_us) override;
   bool IsReplay() const override { return false; }
-  std::vector<int> Filenos() override;
+  const std::vector<int>& Filenos() override { return fds_; }
   int HandleOnce(int timeout_ms) override;
   // The URL a channel is published on.
   const std::string& UrlOf(const std::string& channel);
@@ -219,6 +223,11 @@ class LcmBus : public Bus {
   size_t TransportOf(const std::string& channel);
   std::vector<std::unique_ptr<Transport>> transports_;
   std::unordered_map<std::string, size_t> transport_of_;  // channel -> index, as published
+  // The transports subscribed to, and their descriptors: kept as they are subscribed, so that
+  // waiting for a message allocates nothing.
+  std::vector<Transport*> listening_;
+  std::vector<int> fds_;
+  std::vector<pollfd> pollfds_;
   std::vector<std::unique_ptr<Trampoline>> trampolines_;
 };
 

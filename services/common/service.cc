@@ -343,13 +343,9 @@ void ServiceApp::RunDevice(Device& device) {
         if (next_heartbeat <= now) next_heartbeat = now + period;
       }
     }
-    // The bus's socket only when something is subscribed: LCM's udpm provider opens no receive
-    // socket until then, and asking for its descriptor would join the group and take in every
-    // message on it.
+    // The bus's sockets: only those of the routes subscribed to (Bus::Filenos).
     fds.clear();
-    const std::vector<int> bus_fds =
-        bus_->HasSubscriptions() ? bus_->Filenos() : std::vector<int>{};
-    for (int fd : bus_fds) fds.push_back({fd, POLLIN, 0});
+    for (int fd : bus_->Filenos()) fds.push_back({fd, POLLIN, 0});
     const std::size_t first = fds.size();
     device.AddPollFds(&fds);
     const auto wake = std::min({device.NextDeadline(), next_heartbeat, now + max_wait});

@@ -78,8 +78,8 @@ void LogExaminer::Judge(HealthReport& r) const {
       if (!out.empty()) {
         double total_s = 0;
         for (const Stretch& x : out) total_s += x.length_s;
-        r.notes.push_back(s.name + ": " + std::to_string(out.size()) + what + " between phases, " +
-                          Format("%.1f s", total_s) + " in all");
+        r.notes.push_back({s.name, std::to_string(out.size()) + what + " between phases, " +
+                                       Format("%.1f s", total_s) + " in all"});
       }
     }
     if (s.duplicates > 0) {
@@ -95,20 +95,24 @@ void LogExaminer::Judge(HealthReport& r) const {
                            "rate that is not the device's, or the host's clock being slewed)");
     }
     if (s.clock_restarts > 0) {
-      r.notes.push_back(s.name + ": its clock map started afresh " +
-                        std::to_string(s.clock_restarts) +
-                        " times (its counter fell or stood still while the host's time went on)");
+      r.notes.push_back(
+          {s.name, "its clock map started afresh " + std::to_string(s.clock_restarts) +
+                       " times (its counter fell or stood still while the host's time went on)"});
     }
     for (const auto& [what, n] : s.flagged) {
-      const std::string line =
-          s.name + ": " + std::to_string(n) + " samples " + what +
+      const std::string text =
+          std::to_string(n) + " samples " + what +
           Format(" (%.1f %%)", 100.0 * static_cast<double>(n) / static_cast<double>(s.samples));
       // A marker out of view now and then is the motion capture's everyday life: the frames
       // without every marker are left out of the poses (segmenter.require_all_markers).
       const bool everyday =
           (what == "untracked" || what == "markers missing") &&
           static_cast<double>(n) <= kMocapWarnShare * static_cast<double>(s.samples);
-      (everyday ? r.notes : r.warnings).push_back(line);
+      if (everyday) {
+        r.notes.push_back({s.name, text});
+      } else {
+        r.warnings.push_back(s.name + ": " + text);
+      }
     }
   }
   if (r.markers == 0) {
@@ -148,7 +152,8 @@ void LogExaminer::Judge(HealthReport& r) const {
                            "calibrator.min_poses (" +
                            std::to_string(config_.calibrator().min_poses()) + ")");
     } else if (r.steady_poses == 0) {
-      r.notes.push_back("no STEADY_POSE events recorded: the calibrator segments the poses itself");
+      r.notes.push_back(
+          {"", "no STEADY_POSE events recorded: the calibrator segments the poses itself"});
     }
     std::string optional;
     for (int code :
@@ -158,7 +163,7 @@ void LogExaminer::Judge(HealthReport& r) const {
         optional += (optional.empty() ? "" : ", ") + PhaseName(code);
       }
     }
-    if (!optional.empty()) r.notes.push_back("not in the recording (optional): " + optional);
+    if (!optional.empty()) r.notes.push_back({"", "not in the recording (optional): " + optional});
   }
   const double max_share = config_.calibrator().max_gap_share();
   for (const PhaseHealth& p : r.phases) {
@@ -232,24 +237,19 @@ std::string Render(const HealthReport& r) {
   for (const std::string& p : r.problems) out += "  problem: " + p + "\n";
   for (const std::string& w : r.warnings) out += "  warning: " + w + "\n";
   // The same note of several streams once, naming them all (six transducers alike).
-  std::vector<std::pair<std::string, std::string>> notes;  // (streams, what)
-  for (const std::string& n : r.notes) {
-    const size_t colon = n.find(": ");
-    const bool of_stream = colon != std::string::npos && n.find(' ') > colon &&
-                           n.substr(0, colon).find(',') == std::string::npos;
-    const std::string who = of_stream ? n.substr(0, colon) : "";
-    const std::string what = of_stream ? n.substr(colon + 2) : n;
-    auto same = std::find_if(notes.begin(), notes.end(), [&](const auto& x) {
-      return !who.empty() && !x.first.empty() && x.second == what;
+  std::vector<HealthReport::Note> notes;
+  for (const HealthReport::Note& n : r.notes) {
+    auto same = std::find_if(notes.begin(), notes.end(), [&](const HealthReport::Note& x) {
+      return !n.stream.empty() && !x.stream.empty() && x.text == n.text;
     });
     if (same != notes.end()) {
-      same->first += ", " + who;
+      same->stream += ", " + n.stream;
     } else {
-      notes.emplace_back(who, what);
+      notes.push_back(n);
     }
   }
-  for (const auto& [who, what] : notes) {
-    out += "  note: " + (who.empty() ? what : who + ": " + what) + "\n";
+  for (const HealthReport::Note& n : notes) {
+    out += "  note: " + (n.stream.empty() ? n.text : n.stream + ": " + n.text) + "\n";
   }
   return out;
 }

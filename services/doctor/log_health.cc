@@ -72,10 +72,10 @@ double DelayHistogram::Quantile(double q) const {
 struct StreamCursor {
   int64_t first_counter = -1, last_counter = -1;
   int64_t first_utime = -1, last_utime = -1;
-  double RateHz(double counter_hz) const {
+  // Counts per second of host time since the counter's first value.
+  double RateHz() const {
     const double span_s = 1e-6 * static_cast<double>(last_utime - first_utime);
-    return span_s > 1.0 ? static_cast<double>(last_counter - first_counter) / span_s / counter_hz
-                        : 0.0;
+    return span_s > 1.0 ? static_cast<double>(last_counter - first_counter) / span_s : 0.0;
   }
 };
 
@@ -88,8 +88,6 @@ struct LogExaminer::FtState {
 
 struct LogExaminer::ServoState {
   StreamHealth h;
-  int64_t last_utime = -1, first_utime = -1;
-  int64_t cycles = 0;
   std::array<std::unique_ptr<DeviceClock>, kNumLegs> clocks;
   std::array<int64_t, kNumLegs> last_tick{};
   std::array<double, kNumLegs> last_angle{};
@@ -122,7 +120,7 @@ LogExaminer::LogExaminer(const config::Config& config)
 
 LogExaminer::~LogExaminer() = default;
 
-void LogExaminer::Attach(Bus& bus, ServiceStats& /*stats*/) {
+void LogExaminer::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   for (int k = 0; k < kNumLegs; ++k) {
     bus.SubscribeRaw(inputs_.FtChannel(k), [this, k](const MessageInfo& info, const void* data,
@@ -183,13 +181,12 @@ double LogExaminer::Since(int64_t utime) const {
 
 // A sample of a stream with a per-sample counter: what it lost before this one, or how long the
 // host heard nothing although nothing was lost.
-static void Advance(StreamHealth& h, StreamCursor& c, int64_t counter, int64_t utime,
-                    double counter_hz, double t_s,
+static void Advance(StreamHealth& h, StreamCursor& c, int64_t counter, int64_t utime, double t_s,
                     const std::function<std::string(double)>& phase_at) {
   ++h.samples;
   if (c.last_counter >= 0) {
     const int64_t step = counter - c.last_counter;
-    const double rate_hz = c.RateHz(counter_hz);
+    const double rate_hz = c.RateHz();
     if (step == 0) {
       ++h.duplicates;
     } else if (step < 0) {
@@ -235,7 +232,7 @@ void LogExaminer::OnFt(int leg, const MessageInfo& /*info*/, const void* data, i
   Seen(utime);
   const int64_t lost_before = s.h.lost;
   const size_t gaps_before = s.h.gaps.size();
-  Advance(s.h, s.cursor, s.rdt(peek->rdt_sequence), utime, 1.0, Since(utime), phase_at_);
+  Advance(s.h, s.cursor, s.rdt(peek->rdt_sequence), utime, Since(utime), phase_at_);
   if (peek->in.flags & ft_sample_t::FLAG_SATURATED) ++s.h.flagged["saturated"];
   if (peek->in.flags & ft_sample_t::FLAG_STATUS_ERROR) ++s.h.flagged["status error"];
   const int64_t mapped = s.clock.Observe(s.sequence(peek->ft_sequence), utime);
@@ -286,8 +283,8 @@ void LogExaminer::OnServo(const MessageInfo& /*info*/, const void* data, int siz
   }
   s.have_angle = true;
   const double t_s = Since(m.utime);
-  if (s.last_utime >= 0) {
-    const double silence_s = 1e-6 * static_cast<double>(m.utime - s.last_utime);
+  if (s.h.last_utime >= 0) {
+    const double silence_s = 1e-6 * static_cast<double>(m.utime - s.h.last_utime);
     if (lost > 0) {
       s.h.lost += lost;
       s.h.gaps.push_back({t_s - silence_s, silence_s, lost, PhaseAt(t_s - silence_s)});
@@ -295,8 +292,6 @@ void LogExaminer::OnServo(const MessageInfo& /*info*/, const void* data, int siz
       s.h.stalls.push_back({t_s - silence_s, silence_s, 0, PhaseAt(t_s - silence_s)});
     }
   }
-  if (s.first_utime < 0) s.first_utime = m.utime;
-  s.last_utime = m.utime;
   if (s.h.first_utime < 0) s.h.first_utime = m.utime;
   s.h.last_utime = m.utime;
 }
@@ -310,7 +305,7 @@ void LogExaminer::OnMocap(const MessageInfo& /*info*/, const void* data, int siz
   const mocap_body_t& m = mocap_scratch_;
   if (m.body != config_.mocap().body_name()) return;
   Seen(m.utime);
-  Advance(s.h, s.cursor, m.frame_number, m.utime, 1.0, Since(m.utime), phase_at_);
+  Advance(s.h, s.cursor, m.frame_number, m.utime, Since(m.utime), phase_at_);
   if (!m.tracked) ++s.h.flagged["untracked"];
   bool all = m.tracked && m.num_markers >= static_cast<int>(config_.robot().chassis_marker_count());
   for (bool t : m.marker_tracked) all = all && t;
@@ -355,14 +350,14 @@ HealthReport LogExaminer::Finish() {
   }
   HealthReport r = report_;
   for (auto& s : ft_) {
-    s->h.rate_hz = s->cursor.RateHz(1.0);
+    s->h.rate_hz = s->cursor.RateHz();
     s->h.has_clock = s->clock.started();
     s->h.skew_ppm = s->clock.skew_ppm();
     s->h.clock_restarts = s->clock.restarts();
     r.streams.push_back(s->h);
   }
   StreamHealth servo = servo_->h;
-  const double servo_span_s = 1e-6 * static_cast<double>(servo_->last_utime - servo_->first_utime);
+  const double servo_span_s = 1e-6 * static_cast<double>(servo.last_utime - servo.first_utime);
   servo.rate_hz =
       servo_span_s > 0 ? static_cast<double>(servo.samples + servo.lost - 1) / servo_span_s : 0;
   // The servos' clocks: the one furthest from the host's (each servo counts its own ticks).
@@ -376,7 +371,7 @@ HealthReport LogExaminer::Finish() {
   }
   r.streams.push_back(servo);
   StreamHealth mocap = mocap_->h;
-  mocap.rate_hz = mocap_->cursor.RateHz(1.0);
+  mocap.rate_hz = mocap_->cursor.RateHz();
   mocap.has_clock = mocap_->clock.started();
   mocap.skew_ppm = mocap_->clock.skew_ppm();
   mocap.clock_restarts = mocap_->clock.restarts();

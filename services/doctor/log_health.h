@@ -89,7 +89,11 @@ struct HealthReport {
   int64_t steady_poses = 0;
   std::vector<std::string> problems;  // each makes the recording not calibratable
   std::vector<std::string> warnings;  // calibratable, but look first
-  std::vector<std::string> notes;     // worth knowing, nothing wrong
+  struct Note {
+    std::string stream;  // the stream it is about; empty for the recording as a whole
+    std::string text;
+  };
+  std::vector<Note> notes;  // worth knowing, nothing wrong
 };
 
 class LogExaminer {
@@ -98,7 +102,7 @@ class LogExaminer {
   ~LogExaminer();
   // Subscribes to what a recording holds; then the bus's Run() feeds it. One bus per file, the
   // files of one recording in order.
-  void Attach(Bus& bus, ServiceStats& stats);
+  void Attach(Bus& bus);
   // After each file: its size and event count, and the refusals its bus counted.
   void FileDone(const std::string& path, int64_t bytes, int64_t events, const ServiceStats& stats);
   // Closes the open phase and judges.

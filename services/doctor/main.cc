@@ -55,7 +55,7 @@ int main(int argc, char** argv) {
       ftcal::ServiceStats stats(log);
       // Nothing is published: the replay output stays uncommitted and is removed.
       ftcal::LogReplayBus bus(path, scratch, stats);
-      examiner.Attach(bus, stats);
+      examiner.Attach(bus);
       bus.Run([] {}, 3'600'000'000);
       if (!bus.finished()) throw std::runtime_error("reading '" + path + "' stopped early");
       struct stat st {};

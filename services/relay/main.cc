@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <iostream>
 #include <string>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
@@ -36,13 +37,14 @@ int main(int argc, char** argv) {
   try {
     const ftcal::config::Config config = ftcal::LoadConfigOrDefault(config_path);
     ftcal::ServiceStats stats(log);
-    ftcal::LcmBus bus(config.lcm_url(), stats, ftcal::RoutesOf(config));
-    for (const auto& r : ftcal::RoutesOf(config)) {
-      if (r.url == to || config.lcm_url() == to) {
-        throw std::invalid_argument("--to " + to + " is a URL of the group itself: the copies " +
-                                    "would reach every reader twice");
-      }
+    const std::vector<ftcal::LcmBus::Route> routes = ftcal::RoutesOf(config);
+    bool ours = config.lcm_url() == to;
+    for (const auto& r : routes) ours = ours || r.url == to;
+    if (ours) {
+      throw std::invalid_argument("--to " + to + " is a URL of the group itself: the copies " +
+                                  "would reach every reader twice");
     }
+    ftcal::LcmBus bus(config.lcm_url(), stats, routes);
     lcm::LCM out(to);
     if (!out.good()) throw std::runtime_error("cannot open LCM at '" + to + "'");
     int64_t relayed = 0;

@@ -42,49 +42,11 @@ using testing::Child;
 using testing::Encode;
 using testing::NowUs;
 using testing::StatusCounter;
+using testing::StatusWatch;
 using Clock = std::chrono::steady_clock;
 
 constexpr char kUrl[] = "udpm://239.255.76.67:7667?ttl=0";
 constexpr double kTimeoutS = 30.0;
-
-// The heartbeats of the processes under test, the latest per pid.
-class StatusWatch {
- public:
-  explicit StatusWatch(lcm::LCM& lcm) : lcm_(lcm) {
-    sub_ = lcm_.subscribe("FTCAL_STATUS", &StatusWatch::On, this);
-  }
-  ~StatusWatch() { lcm_.unsubscribe(sub_); }
-
-  // Waits for a heartbeat of `pid` received after this call for which `pred` holds.
-  std::optional<service_status_t> Await(pid_t pid,
-                                        const std::function<bool(const service_status_t&)>& pred,
-                                        double timeout_s = kTimeoutS) {
-    latest_.erase(pid);
-    const auto deadline = Clock::now() + std::chrono::duration<double>(timeout_s);
-    while (Clock::now() < deadline) {
-      lcm_.handleTimeout(100);
-      const auto it = latest_.find(pid);
-      if (it != latest_.end() && pred(it->second)) return it->second;
-    }
-    return std::nullopt;
-  }
-  std::optional<service_status_t> AwaitCounter(pid_t pid, const std::string& name, int64_t value) {
-    return Await(pid, [&](const service_status_t& s) { return StatusCounter(s, name) == value; });
-  }
-
- private:
-  void On(const lcm::ReceiveBuffer* rbuf, const std::string&) {
-    service_status_t s;
-    if (s.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) !=
-        static_cast<int>(rbuf->data_size)) {
-      return;
-    }
-    latest_[static_cast<pid_t>(s.pid)] = s;
-  }
-  lcm::LCM& lcm_;
-  lcm::Subscription* sub_;
-  std::map<pid_t, service_status_t> latest_;
-};
 
 class RestartReplayTest : public testing::NetnsDirTest {
  protected:

@@ -13,8 +13,10 @@
 #include <cstring>
 #include <cstdint>
 #include <cstdlib>
+#include <functional>
 #include <iostream>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -138,6 +140,49 @@ inline int64_t StatusCounter(const service_status_t& s, const std::string& name)
   }
   return -1;
 }
+
+// The heartbeats (FTCAL_STATUS) of the processes under test, the latest per pid, heard on the
+// caller's LCM instance while it waits.
+class StatusWatch {
+ public:
+  explicit StatusWatch(lcm::LCM& lcm) : lcm_(lcm) {
+    sub_ = lcm_.subscribe("FTCAL_STATUS", &StatusWatch::On, this);
+  }
+  ~StatusWatch() { lcm_.unsubscribe(sub_); }
+  StatusWatch(const StatusWatch&) = delete;
+  StatusWatch& operator=(const StatusWatch&) = delete;
+
+  // Waits for a heartbeat of `pid` received after this call for which `pred` holds.
+  std::optional<service_status_t> Await(pid_t pid,
+                                        const std::function<bool(const service_status_t&)>& pred,
+                                        double timeout_s = 30) {
+    latest_.erase(pid);
+    const auto deadline =
+        std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    while (std::chrono::steady_clock::now() < deadline) {
+      lcm_.handleTimeout(100);
+      const auto it = latest_.find(pid);
+      if (it != latest_.end() && pred(it->second)) return it->second;
+    }
+    return std::nullopt;
+  }
+  std::optional<service_status_t> AwaitCounter(pid_t pid, const std::string& name, int64_t value) {
+    return Await(pid, [&](const service_status_t& s) { return StatusCounter(s, name) == value; });
+  }
+
+ private:
+  void On(const lcm::ReceiveBuffer* rbuf, const std::string&) {
+    service_status_t s;
+    if (s.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) !=
+        static_cast<int>(rbuf->data_size)) {
+      return;
+    }
+    latest_[static_cast<pid_t>(s.pid)] = s;
+  }
+  lcm::LCM& lcm_;
+  lcm::Subscription* sub_;
+  std::map<pid_t, service_status_t> latest_;
+};
 
 // Runs this test and everything it starts from here on (children inherit it) ahead of whatever
 // else the machine runs: builds, other tests, CI's busy neighbours. The twin stands in for

@@ -70,8 +70,7 @@ class DeviceClock {
   // How often the map started afresh (a counter that fell or stood still, a host clock that
   // stepped).
   int64_t restarts() const { return restarts_; }
-  // Samples in the current fit, and the device time they span (s).
-  int64_t fit_samples() const;
+  // The device time the current fit spans (s).
   double fit_span_s() const;
 
  private:
