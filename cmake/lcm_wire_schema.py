@@ -53,9 +53,16 @@ def parse(path):
         sys.exit(f"{path}: expected one struct, found {len(structs)}")
     name, body = structs[0]
     members = []
+    caps = {}
     for decl in body.split(";"):
         decl = decl.strip()
-        if not decl or decl.startswith("const "):
+        if decl.startswith("const "):
+            # `const intN_t MAX_<MEMBER> = v` caps the integer member that sizes arrays.
+            c = re.fullmatch(r"const\s+int\d+_t\s+MAX_(\w+)\s*=\s*(\d+)", decl)
+            if c:
+                caps[c.group(1).lower()] = int(c.group(2))
+            continue
+        if not decl:
             continue
         m = re.fullmatch(r"([\w.]+)\s+(\w+)\s*((?:\[\s*\w+\s*\]\s*)*)", decl)
         if not m:
@@ -66,7 +73,10 @@ def parse(path):
                      "primitive members only (extend cmake/lcm_wire_schema.py and wire_guard)")
         dims = re.findall(r"\[\s*(\w+)\s*\]", dims_text)
         members.append((typ, member, dims))
-    return (package.group(1) if package else ""), name, members
+    for member in caps:
+        if not any(m == member and not d and t in INTEGERS for t, m, d in members):
+            sys.exit(f"{path}: MAX_{member.upper()} names no integer member '{member}'")
+    return (package.group(1) if package else ""), name, members, caps
 
 
 def fingerprint(members):
@@ -82,7 +92,7 @@ def fingerprint(members):
     return ((u << 1) + ((u >> 63) & 1)) & MASK
 
 
-def emit(path, package, name, members, out, index):
+def emit(path, package, name, members, caps, out, index):
     fields = []
     scalars = {}
     for i, (typ, member, dims) in enumerate(members):
@@ -101,8 +111,9 @@ def emit(path, package, name, members, out, index):
             cdims.append("{0, -1}")
         if not dims and typ in INTEGERS:
             scalars[member] = i
+        cap = f", {caps[member]}" if member in caps else ""
         fields.append(f'    {{"{member}", Prim::{PRIMITIVES[typ]}, {len(dims)}, '
-                      f'{{{", ".join(cdims)}}}}},')
+                      f'{{{", ".join(cdims)}}}{cap}}},')
     full = f"{package}.{name}" if package else name
     out.append(f"// {path}")
     out.append(f"const Field kFields{index}[] = {{")

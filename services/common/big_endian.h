@@ -9,6 +9,11 @@
 
 namespace ftcal {
 
+inline uint16_t Be16(const uint8_t* p) {
+  uint16_t v;
+  std::memcpy(&v, p, sizeof v);
+  return be16toh(v);
+}
 inline uint32_t Be32(const uint8_t* p) {
   uint32_t v;
   std::memcpy(&v, p, sizeof v);

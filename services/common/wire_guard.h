@@ -10,7 +10,7 @@
 // table per .lcm file, generated at build time by cmake/lcm_wire_schema.py) and refuses, before
 // any allocation, a message whose
 //   - fingerprint is not the type's,
-//   - length field is negative or above its cap (kMaxLength, or a tighter per-field cap),
+//   - length field is negative or above its cap (kMaxLength, or the type's MAX_<MEMBER>),
 //   - arrays (multi-dimensional ones multiplied out) need more bytes than remain,
 //   - strings have length 0, run past the end, lack their terminating NUL or hold another,
 //   - booleans are neither 0 nor 1,
@@ -49,6 +49,9 @@ struct Field {
   Prim type;
   uint8_t ndims;
   Dim dims[3];
+  // For an integer member that sizes arrays: the largest size it may give (the type's
+  // `const MAX_<MEMBER>`, e.g. ft_batch_t's MAX_N); 0: kMaxLength.
+  int64_t cap = 0;
 };
 
 struct Schema {
