@@ -34,24 +34,6 @@ LegWrench LegWrenchOf(const ContactWrenches& c) {
   return w;
 }
 
-WrenchSum WrenchSumOf(const ContactWrenches& c) {
-  WrenchSum s;
-  s.utime = c.utime;
-  s.total_W = c.total_W;
-  s.residual_W = c.residual_W;
-  s.calibration_version = c.calibration_version;
-  s.oldest_ft_age_s = 0.0;
-  for (const double age : c.ft_age_s) {
-    if (age < 0) {
-      s.oldest_ft_age_s = -1.0;
-      break;
-    }
-    s.oldest_ft_age_s = std::max(s.oldest_ft_age_s, age);
-  }
-  s.flags = c.sum_flags;
-  return s;
-}
-
 Corrector::Corrector(const CorrectorOptions& options) : options_(options) {
   CheckAge(options.max_ft_age_s, "max_ft_age_s");
   CheckAge(options.max_servo_age_s, "max_servo_age_s");
@@ -85,8 +67,10 @@ void Corrector::SetCalibration(const RobotCalibration& cal, int64_t version) {
   has_calibration_ = true;
   // Wrenches corrected with the previous calibration must not be summed with new ones.
   for (LegState& s : state_) s.seen = false;
+  for (History& h : history_) h.count = 0;
   for (ComMemo& m : com_memo_) m.valid = false;  // computed with the old CoM curve
-  since_sum_ = 0;
+  newest_utime_ = 0;
+  first_utime_ = 0;
   last_sum_utime_ = -1;
 }
 
@@ -185,11 +169,19 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
   st.wrench_W = std::isnan(angle) ? Vec6::Constant(kNaN)
                                   : CorrectLeg(in.leg, in.wrench, ComInC(in.leg, angle), R_WC);
 
+  History& h = history_[in.leg];
+  Past& past = h.ring[static_cast<size_t>(h.count % kHistory)];
+  past.utime = t;
+  past.flags = flags;
+  past.wrench_W = st.wrench_W;
+  ++h.count;
+  if (newest_utime_ == 0) first_utime_ = t;
+  newest_utime_ = std::max(newest_utime_, t);
+
   out->utime = t;
   out->updated_leg = in.leg;
   out->calibration_version = version_;
   out->total_W.setZero();
-  int32_t sum_flags = 0;
   for (int k = 0; k < kNumLegs; ++k) {
     const LegState& s = state_[k];
     if (!s.seen) {
@@ -201,7 +193,6 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
       out->ft_age_s[k] = 1e-6 * static_cast<double>(t - s.utime);
       if (std::abs(out->ft_age_s[k]) > options_.max_ft_age_s) flags |= kFlagStaleFt;
       flags |= s.flags & kFlagSaturated;
-      sum_flags |= s.flags;
     }
     out->total_W += out->wrench_W[k];
   }
@@ -209,17 +200,62 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
   out->residual_W[2] -= weight_total_n_;
   out->flags = flags;
   out->leg_flags = st.flags;
-  out->sum_flags = sum_flags | (flags & kFlagStaleFt);
-  constexpr unsigned kAllLegs = (1u << kNumLegs) - 1;
-  since_sum_ |= 1u << in.leg;
-  if (last_sum_utime_ < 0) last_sum_utime_ = t;
-  out->sum_due = since_sum_ == kAllLegs ||
-                 1e-6 * static_cast<double>(t - last_sum_utime_) > options_.max_ft_age_s;
-  if (out->sum_due) {
-    since_sum_ = 0;
-    last_sum_utime_ = t;
-  }
   ++counters_.corrected;
+  return true;
+}
+
+bool Corrector::NextSum(WrenchSum* out) {
+  if (!has_calibration_) return false;
+  const auto max_age_us = static_cast<int64_t>(options_.max_ft_age_s * 1e6);
+  // A leg never seen is waited for as long as a seen one: max_ft_age_s from the first sample.
+  auto silent = [&](int k) {
+    return (state_[k].seen ? state_[k].utime : first_utime_) < newest_utime_ - max_age_us;
+  };
+  int pace = -1;
+  for (int k = 0; k < kNumLegs && pace < 0; ++k) {
+    if (!silent(k)) pace = k;
+  }
+  if (pace < 0) return false;  // no leg seen yet
+  // The pace leg's oldest sample after the last sum (still in its history).
+  const History& ph = history_[pace];
+  const int64_t first = std::max<int64_t>(0, ph.count - kHistory);
+  int64_t i = ph.count - 1;
+  if (i < first || ph.At(i).utime <= last_sum_utime_) return false;
+  while (i > first && ph.At(i - 1).utime > last_sum_utime_) --i;
+  const int64_t t = ph.At(i).utime;
+  for (int k = 0; k < kNumLegs; ++k) {
+    // Wait for its sample at or after t.
+    if (!silent(k) && (!state_[k].seen || state_[k].utime < t)) return false;
+  }
+  out->utime = t;
+  out->calibration_version = version_;
+  out->total_W.setZero();
+  out->oldest_ft_age_s = 0.0;
+  int32_t flags = 0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const History& hk = history_[k];
+    if (hk.count == 0) {
+      out->total_W += Vec6::Constant(kNaN);
+      out->oldest_ft_age_s = -1.0;
+      flags |= kFlagStaleFt;
+      continue;
+    }
+    // The sample nearest t: from the latest back while the one before is no farther.
+    const int64_t oldest = std::max<int64_t>(0, hk.count - kHistory);
+    int64_t j = hk.count - 1;
+    auto distance = [&](int64_t at) { return std::abs(hk.At(at).utime - t); };
+    while (j > oldest && distance(j - 1) <= distance(j)) --j;
+    const Past& p = hk.At(j);
+    out->total_W += p.wrench_W;
+    const double age_s = 1e-6 * static_cast<double>(distance(j));
+    if (out->oldest_ft_age_s >= 0) out->oldest_ft_age_s = std::max(out->oldest_ft_age_s, age_s);
+    if (age_s > options_.max_ft_age_s) flags |= kFlagStaleFt;
+    flags |= p.flags;
+  }
+  out->residual_W = out->total_W;
+  out->residual_W[2] -= weight_total_n_;
+  out->flags = flags;
+  last_sum_utime_ = t;
   return true;
 }
 

@@ -21,6 +21,7 @@
 
 #include <spdlog/fmt/fmt.h>
 
+#include "ftcal/device_clock.h"
 #include "ftcal/legs.h"
 
 namespace ftcal {
@@ -37,10 +38,8 @@ constexpr auto kCalibrationRetry = std::chrono::seconds(1);
 constexpr auto kCalibrationRetryMax = std::chrono::seconds(16);
 constexpr auto kStateLogPeriod = std::chrono::seconds(30);
 // The Net F/T's internal sample counter (ft_sequence) runs at 7000 Hz whatever the RDT rate
-// (docs/device-protocols.md §1.3). Records of one datagram lie at most 40 RDT periods apart; a
-// larger distance is a damaged counter, not time.
+// (docs/device-protocols.md §1.3): the clock each record's sample time is mapped from.
 constexpr std::int64_t kFtCounterHz = 7000;
-constexpr std::uint32_t kMaxStampBackTicks = 7000;
 
 std::int64_t RealtimeNs() {
   timespec ts;
@@ -126,8 +125,11 @@ struct AtiBridge::Transducer {
   double backoff_s = 0;
   int unanswered = 0;
 
-  ft_sample_t msg;
+  ft_batch_t msg;  // the batch being filled: msg.n records so far
   std::vector<std::uint8_t> encoded;
+  std::array<std::int64_t, ft_batch_t::MAX_N> ticks{};  // each batched record's counter, unwrapped
+  std::int64_t ft_unwrapped = 0;  // last_ft, unwrapped (a reboot makes it fall)
+  DeviceClock clock{DeviceClockOptions{static_cast<double>(kFtCounterHz)}};
 
   // recvmmsg slots.
   std::vector<std::uint8_t> slots;
@@ -270,7 +272,19 @@ AtiBridge::AtiBridge(const config::Config& config, const std::vector<std::string
     }
 
     t->msg.leg = name;
+    // Sized for the largest batch once: a batch of fewer records overwrites the front.
+    constexpr std::size_t kMaxN = ft_batch_t::MAX_N;
+    t->msg.n = ft_batch_t::MAX_N;
+    t->msg.sample_utime.resize(kMaxN);
+    t->msg.rdt_sequence.resize(kMaxN);
+    t->msg.ft_sequence.resize(kMaxN);
+    t->msg.status.resize(kMaxN);
+    t->msg.counts.assign(kMaxN, std::vector<std::int32_t>(6, 0));
+    t->msg.wrench.assign(kMaxN, std::vector<double>(6, 0.0));
+    t->msg.gap.resize(kMaxN);
+    t->msg.flags.resize(kMaxN);
     t->encoded.resize(static_cast<std::size_t>(t->msg.getEncodedSize()));
+    t->msg.n = 0;
     t->slots.resize(kBatch * kSlotBytes);
     for (int i = 0; i < kBatch; ++i) {
       t->iovs[i] = {t->slots.data() + i * kSlotBytes, kSlotBytes};
@@ -633,12 +647,13 @@ void AtiBridge::HandleSocket(Transducer& t) {
       // A socket queue is first in, first out: a datagram stamped before the last look that
       // emptied the queue was not in it then.
       const bool held = kernel_ns < t.drained_at_ns;
-      // Each record of a (buffered) datagram is its own sample, stamped from the datagram's
-      // receipt and its last record's place on the box's counter (HandleRecord).
-      const std::uint32_t last_ft = rdt::DecodeRecord(data + len - rdt::kRecordBytes).ft_sequence;
+      // The records of a (buffered) datagram travel on as one message (at most MAX_N, the
+      // protocol's largest buffer, so one message unless a box sends more than it may).
       for (std::size_t off = 0; off < len; off += rdt::kRecordBytes) {
-        HandleRecord(t, data + off, kernel_ns, user_ns, last_ft, held);
+        HandleRecord(t, data + off);
+        if (t.msg.n == ft_batch_t::MAX_N) PublishBatch(t, kernel_ns, user_ns, held);
       }
+      PublishBatch(t, kernel_ns, user_ns, held);
     }
     if (t.tracker.accepted() != accepted_before) {
       t.last_record = batch_time;
@@ -656,8 +671,7 @@ void AtiBridge::HandleSocket(Transducer& t) {
   }
 }
 
-void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
-                             std::int64_t user_ns, std::uint32_t datagram_last_ft, bool held) {
+void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes) {
   const rdt::Record rec = rdt::DecodeRecord(bytes);
   ++t.c.received;
   using V = rdt::SequenceTracker::Verdict;
@@ -721,6 +735,8 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
       }
     }
   }
+  t.ft_unwrapped = t.have_ft ? t.ft_unwrapped + static_cast<std::int32_t>(rec.ft_sequence - t.last_ft)
+                             : rec.ft_sequence;
   t.have_ft = true;
   t.last_ft = rec.ft_sequence;
 
@@ -736,7 +752,7 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   const bool saturated =
       rdt::StatusSaturated(rec.status) || rdt::ExceedsRatedRange(w, t.rated_range);
   if (saturated) {
-    flags |= ft_sample_t::FLAG_SATURATED;
+    flags |= ft_batch_t::FLAG_SATURATED;
     ++t.c.saturated;
     if (!t.logged_saturated) {
       t.logged_saturated = true;
@@ -747,7 +763,7 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
     }
   }
   if (rec.status != 0) {
-    flags |= ft_sample_t::FLAG_STATUS_ERROR;
+    flags |= ft_batch_t::FLAG_STATUS_ERROR;
     ++t.c.status_nonzero;
     if (!t.logged_status) {
       t.logged_status = true;
@@ -759,42 +775,56 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
   }
   const std::int64_t gap = t.pending_gap + r.lost;
   t.pending_gap = 0;
-  if (gap > 0) flags |= ft_sample_t::FLAG_GAP;
+  if (gap > 0) flags |= ft_batch_t::FLAG_GAP;
   if (t.restart_pending) {
-    flags |= ft_sample_t::FLAG_RESTARTED;
+    flags |= ft_batch_t::FLAG_RESTARTED;
     t.restart_pending = false;
   }
 
-  // The datagram's last record was taken just before the box sent it; an earlier one of a
-  // buffered datagram before that by its distance on the box's 7 kHz sample counter, so that a
-  // reader ordering samples by time (the corrector, the aligner) does not see k samples at one
-  // instant. Never at or before the previous sample's stamp: the stream's times only rise. The
-  // device's clock mapped onto the host's comes with the batched FT message (issues 37, 38).
-  const std::uint32_t before = datagram_last_ft - rec.ft_sequence;
-  const std::int64_t back_us = before <= kMaxStampBackTicks
-                                   ? static_cast<std::int64_t>(before) * 1'000'000 / kFtCounterHz
-                                   : 0;
-  const std::int64_t utime = std::max(kernel_ns / 1000 - back_us, t.last_utime + 1);
-  ft_sample_t& m = t.msg;
-  m.utime = utime;
-  m.rdt_sequence = rec.rdt_sequence;
-  m.ft_sequence = rec.ft_sequence;
-  m.status = rec.status;
-  for (int i = 0; i < 6; ++i) {
-    m.counts[i] = rec.counts[static_cast<std::size_t>(i)];
-    m.wrench[i] = w(i);
+  ft_batch_t& m = t.msg;
+  const auto i = static_cast<std::size_t>(m.n);
+  t.ticks[i] = t.ft_unwrapped;
+  m.rdt_sequence[i] = rec.rdt_sequence;
+  m.ft_sequence[i] = rec.ft_sequence;
+  m.status[i] = rec.status;
+  for (std::size_t j = 0; j < 6; ++j) {
+    m.counts[i][j] = rec.counts[j];
+    m.wrench[i][j] = w(static_cast<int>(j));
   }
-  m.gap = static_cast<std::int32_t>(std::min<std::int64_t>(gap, INT32_MAX));
-  m.flags = flags;
-  const int size = static_cast<int>(t.encoded.size());
-  if (m.encode(t.encoded.data(), 0, size) != size) {
+  m.gap[i] = static_cast<std::int32_t>(std::min<std::int64_t>(gap, INT32_MAX));
+  m.flags[i] = flags;
+  ++m.n;
+}
+
+void AtiBridge::PublishBatch(Transducer& t, std::int64_t kernel_ns, std::int64_t user_ns,
+                             bool held) {
+  ft_batch_t& m = t.msg;
+  if (m.n == 0) return;
+  const auto n = static_cast<std::size_t>(m.n);
+  // The box sends a datagram as soon as its last record is taken: the receipt bounds that
+  // record's time from above (plus the least transport delay, which the map keeps), and the
+  // clock map of many datagrams gives each record its instant on the counter's own rate, so
+  // a reader that orders by time (the corrector, the aligner) sees the samples 1/7000 s apart
+  // however the datagrams queued. Never after the receipt, never at or before the previous
+  // record's time: the stream's times only rise.
+  const std::int64_t receipt_us = kernel_ns / 1000;
+  t.clock.Observe(t.ticks[n - 1], receipt_us);
+  for (std::size_t i = 0; i < n; ++i) {
+    const std::int64_t mapped = std::min(t.clock.Map(t.ticks[i]), receipt_us);
+    m.sample_utime[i] = std::max(mapped, t.last_utime + 1);
+    t.last_utime = m.sample_utime[i];
+  }
+  m.receipt_utime = receipt_us;
+  const int size = m.getEncodedSize();
+  const bool encoded = m.encode(t.encoded.data(), 0, size) == size;
+  m.n = 0;
+  if (!encoded) {
     ++t.c.publish_errors;
     return;
   }
   try {
     publish_(t.channel, t.encoded.data(), size);
-    ++t.c.published;
-    t.last_utime = utime;
+    t.c.published += n;
   } catch (const std::exception& e) {
     ++t.c.publish_errors;
     if (!t.logged_publish) {
@@ -804,11 +834,13 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int6
     return;
   }
   const std::int64_t done_ns = RealtimeNs();
-  kernel_latency_.Add(done_ns - kernel_ns);
-  user_latency_.Add(done_ns - user_ns);
-  if (held) {
-    ++t.c.held_in_stack;
-    held_latency_.Add(done_ns - kernel_ns);
+  for (std::size_t i = 0; i < n; ++i) {
+    kernel_latency_.Add(done_ns - kernel_ns);
+    user_latency_.Add(done_ns - user_ns);
+    if (held) {
+      ++t.c.held_in_stack;
+      held_latency_.Add(done_ns - kernel_ns);
+    }
   }
 }
 

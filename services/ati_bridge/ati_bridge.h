@@ -1,5 +1,5 @@
 // ftcal-ati-bridge's work: ATI Net F/T transducers over RDT (docs/device-protocols.md §1) in,
-// ft_sample_t on FT_<LEG> out.
+// ft_batch_t on FT_<LEG> out.
 //
 // Per transducer: a UDP socket bound to an ephemeral port, from which the start command is
 // sent, so the box streams back to it (§1.2): real-time (0x0002, one record per datagram) when
@@ -7,15 +7,19 @@
 // 2..40, count 0 either way. Counts per unit come from the config or else from the box's
 // calibration page (GET /netftapi2.xml); without them the bridge refuses to start. In buffered
 // mode the page's RDT buffer size (comrdtbsiz) must equal k, and k defaults to the page's output
-// rate (comrdtrate) / 1000, rounded, at least 1. Every record of a datagram is published as its
-// own ft_sample_t. Every record is checked (length, sequence) before it is published: lost,
+// rate (comrdtrate) / 1000, rounded, at least 1. The records of a datagram are published
+// together, as one ft_batch_t (one message per datagram, not per record). Every record is checked (length, sequence) before it is published: lost,
 // duplicated, late (reordered), stale and wrong-length records are counted and never
 // published; a published sample is always a record as the device sent it, converted. After
 // ~100 ms of silence the start is re-sent with a bounded back-off and the transducer is reported
 // down until records come back; when ft_sequence jumps backwards (the box rebooted) the
 // calibration page is read again. Stop (0x0000) is sent on shutdown.
 //
-// The receive path allocates nothing: recvmmsg into fixed buffers, an ft_sample_t per
+// Sample times: each record's place on the box's internal 7 kHz counter (ft_sequence), mapped
+// onto the host clock by a DeviceClock fitted to (the datagram's last counter, its kernel
+// receipt stamp), published beside the receipt time (docs/method.md, "Clocks and delays").
+//
+// The receive path allocates nothing: recvmmsg into fixed buffers, an ft_batch_t per
 // transducer reused, its encoding into a fixed buffer. Latency from receipt (kernel timestamp
 // SO_TIMESTAMPNS, and the clock when recvmmsg returned) to the end of the publish call is kept
 // in fixed histograms.
@@ -34,7 +38,7 @@
 
 #include "common/device.h"
 #include "common/service_stats.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "proto/config.pb.h"
 #include "rdt_codec.h"
 
@@ -111,7 +115,8 @@ class LatencyHistogram {
 
 class AtiBridge : public Device {
  public:
-  // Called for every sample: channel, LCM-encoded ft_sample_t bytes. Must not keep the pointer.
+  // Called for every datagram's records: channel, LCM-encoded ft_batch_t bytes. Must not keep
+  // the pointer.
   using Publisher = std::function<void(const std::string& channel, const void* data, int size)>;
 
   // `legs`: names of the transducers to serve (empty: every leg of the config). Throws
@@ -129,7 +134,7 @@ class AtiBridge : public Device {
   // AtiBoxMismatchError when the box's RDT buffer size is not the config's.
   void Start();
   // Waits up to `timeout_ms` for datagrams, handles all that are there, and re-sends starts
-  // that are due (one Device::Step). Returns the number of samples published.
+  // that are due (one Device::Step). Returns the number of records published.
   int Poll(int timeout_ms);
   // Sends stop to every transducer (idempotent).
   void Stop();
@@ -168,9 +173,10 @@ class AtiBridge : public Device {
  private:
   struct Transducer;
   void HandleSocket(Transducer& t);
-  // `datagram_last_ft`: the ft_sequence of the datagram's last record (the sample's stamp).
-  void HandleRecord(Transducer& t, const std::uint8_t* bytes, std::int64_t kernel_ns,
-                    std::int64_t user_ns, std::uint32_t datagram_last_ft, bool held);
+  // Checks a record and, when it is to be published, appends it to t's batch.
+  void HandleRecord(Transducer& t, const std::uint8_t* bytes);
+  // Stamps the batch's records (the clock map) and publishes it as one message.
+  void PublishBatch(Transducer& t, std::int64_t kernel_ns, std::int64_t user_ns, bool held);
   void SendRequest(Transducer& t, rdt::Command command);
   void ReadCalibration(Transducer& t);
   // Resolves the default records per datagram from the page's rate and checks a buffered

@@ -308,34 +308,31 @@ void CheckOrThrow(const MessageInfo& info, const void* data, int size) {
 void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* data, int size) {
   if (counting_only_) {
     // Aligned samples of a phase read only for its counts (a STANDING phase not segmented
-    // again, a TRIPOD phase whose stances are not collected) would go nowhere: the record is
-    // only counted. Checked as a decode would check it, so a damaged log is refused the same.
+    // again, a TRIPOD phase whose stances are not collected) would go nowhere: the records are
+    // only counted. Checked as a decode would check them, so a damaged log is refused the same.
     const bool barrier = noting_.barrier;
     noting_.barrier = true;  // unless counted
-    std::optional<int64_t> sequence;
-    if (const std::optional<FtPeek> peek = PeekFtSample(data, size, k)) {
-      sequence = peek->rdt_sequence;  // bytes the checks pass, read in place
-    } else {
-      CheckOrThrow<ft_sample_t>(info, data, size);
-      sequence = PeekRdtSequence(data, size);
+    std::optional<int> n = PeekRdtSequences(data, size, k, &sequences_);
+    if (!n) {
+      // Not the plain layout of this leg: the wire guard and FromLcm name what is wrong.
+      DecodeOrThrow(info, data, size, &ft_scratch_);
+      inputs_.FromFt(k, ft_scratch_, &batch_);
+      n = batch_.n;
+      for (int i = 0; i < batch_.n; ++i) {
+        sequences_[static_cast<size_t>(i)] = batch_.records[static_cast<size_t>(i)].rdt_sequence;
+      }
     }
-    if (!sequence) {
-      throw BadInput("undecodable ft_sample_t on " + info.channel + ": not an ft_sample_t",
-                     "the wire guard's checks passed but rdt_sequence could not be read");
+    if (phases_.open()) {
+      for (int i = 0; i < *n; ++i) CountRecord(k, sequences_[static_cast<size_t>(i)]);
     }
-    if (phases_.open()) CountRecord(k, *sequence);
     noting_.barrier = barrier;
     return;
   }
-  if (const std::optional<FtPeek> peek = PeekFtSample(data, size, k)) {
-    if (phases_.open()) CountRecord(k, peek->rdt_sequence);
-    aligner_.AddFt(peek->in);
-    return;
+  inputs_.FtOf(k, info, data, size, &ft_scratch_, &batch_);  // decoded into again: no allocation
+  for (const FtRecord& r : batch_) {
+    if (phases_.open()) CountRecord(k, r.rdt_sequence);
+    aligner_.AddFt(r.in);
   }
-  ft_sample_t& msg = ft_scratch_;  // decoded into again: no allocation per sample
-  DecodeOrThrow(info, data, size, &msg);
-  if (phases_.open()) CountRecord(k, msg.rdt_sequence);
-  aligner_.AddFt(inputs_.FromFt(k, msg));
 }
 
 void CalibrationCollector::DeferredTail::Push(const void* data, int size) {

@@ -71,7 +71,7 @@ struct CollectorCounters {
 };
 
 // One completed phase's transducer records per leg, counted by the devices' RDT sequence
-// numbers (ft_sample_t.rdt_sequence rises by 1 a record): what reached this input and what
+// numbers (ft_batch_t.rdt_sequence rises by 1 a record): what reached this input and what
 // did not, wherever it was lost (network, bridge, the recorder's socket).
 struct PhaseGaps {
   int phase = -1;  // experiment_marker_t phase code
@@ -239,7 +239,9 @@ class CalibrationCollector {
   // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
   // config's).
   std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};
-  ft_sample_t ft_scratch_;
+  ft_batch_t ft_scratch_;
+  FtBatch batch_;
+  std::array<int64_t, kMaxFtRecords> sequences_{};
   servo_state_t servo_scratch_;
   mocap_body_t mocap_scratch_;
   // Over a STANDING phase not segmented again no transducer sample goes to the aligner, so of

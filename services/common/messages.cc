@@ -42,68 +42,147 @@ double DoubleAt(const uint8_t* p) {
 
 }  // namespace
 
-// LCM's encoding of ft_sample_t (lcm-gen's rules): the 8-byte fingerprint, then the fields in
+// LCM's encoding of ft_batch_t (lcm-gen's rules): the 8-byte fingerprint, then the fields in
 // their .lcm order, big-endian; a string is its int32 length (with the NUL) and its bytes and
-// NUL. So rdt_sequence follows the fingerprint, utime and leg. messages_test checks this
+// NUL; an array of n is its n elements, row by row. So after receipt_utime, the name and n
+// come the per-record arrays, each n long, at fixed multiples of n. messages_test checks this
 // against the generated encoder, and the fingerprint check refuses any other layout.
-std::optional<int64_t> PeekRdtSequence(const void* data, int size) {
-  constexpr int kFingerprint = 0, kLegLength = 16, kLegBytes = 20;
-  const auto* p = static_cast<const uint8_t*>(data);
-  if (size < kLegBytes) return std::nullopt;
-  if (Int64At(p + kFingerprint) != ft_sample_t::getHash()) return std::nullopt;
-  const int32_t leg_length = Int32At(p + kLegLength);
-  if (leg_length < 1 || leg_length > size - kLegBytes - 8) return std::nullopt;
-  return Int64At(p + kLegBytes + leg_length);
-}
+namespace {
 
-std::optional<FtPeek> PeekFtSample(const void* data, int size, int leg) {
-  // After the name: rdt_sequence, ft_sequence, status (int64), counts[6] (int32), wrench[6]
-  // (double), gap, flags (int32).
-  constexpr int kLegBytes = 20, kAfterLeg = 3 * 8 + 6 * 4 + 6 * 8 + 4 + 4;
-  constexpr int kWrench = 3 * 8 + 6 * 4, kFlags = kAfterLeg - 4;
-  if (leg < 0 || leg >= kNumLegs || size < kLegBytes) return std::nullopt;
-  const std::string_view name = kLegNames[leg];
-  const auto length = static_cast<int>(name.size()) + 1;  // with its NUL
+constexpr int kFtAfterNamePerRecord = 4 * 8 + 6 * 4 + 6 * 8 + 4 + 4;  // bytes per record
+
+// Where the arrays start and how many records, or nullopt when `data` is not the layout of an
+// ft_batch_t with leg `leg`'s name.
+struct FtLayout {
+  const uint8_t* arrays;
+  int n;
+};
+std::optional<FtLayout> FtLayoutOf(const void* data, int size, int leg) {
+  constexpr int kNameLength = 16, kName = 20;
   const auto* p = static_cast<const uint8_t*>(data);
-  if (size != kLegBytes + length + kAfterLeg || Int64At(p) != ft_sample_t::getHash() ||
-      Int32At(p + 16) != length || std::memcmp(p + kLegBytes, name.data(), name.size()) != 0 ||
-      p[kLegBytes + name.size()] != 0) {
+  if (size < kName || Int64At(p) != ft_batch_t::getHash()) return std::nullopt;
+  const int32_t length = Int32At(p + kNameLength);
+  if (length < 1 || length > size - kName - 2) return std::nullopt;
+  if (leg < 0 || leg >= kNumLegs) return std::nullopt;
+  const std::string_view name = kLegNames[leg];
+  if (length != static_cast<int>(name.size()) + 1 ||
+      std::memcmp(p + kName, name.data(), name.size()) != 0) {
     return std::nullopt;
   }
-  const uint8_t* after = p + kLegBytes + length;
-  FtPeek out;
-  out.in.utime = Int64At(p + 8);
-  out.in.leg = leg;
-  for (int i = 0; i < 6; ++i) out.in.wrench[i] = DoubleAt(after + kWrench + 8 * i);
-  out.in.flags = Int32At(after + kFlags);
-  out.rdt_sequence = Int64At(after);
-  out.ft_sequence = Int64At(after + 8);
-  out.status = Int64At(after + 16);
-  return out;
+  if (p[kName + length - 1] != 0) return std::nullopt;
+  const uint8_t* after = p + kName + length;
+  const int n = static_cast<int16_t>(Be16(after));
+  if (n < 1 || n > kMaxFtRecords ||
+      size != kName + length + 2 + n * kFtAfterNamePerRecord) {
+    return std::nullopt;
+  }
+  return FtLayout{after + 2, n};
 }
 
-FtInput FromLcm(const ft_sample_t& msg, int leg) {
+}  // namespace
+
+bool PeekFtBatch(const void* data, int size, int leg, FtBatch* out) {
+  const std::optional<FtLayout> layout = FtLayoutOf(data, size, leg);
+  if (!layout) return false;
+  const uint8_t* a = layout->arrays;
+  const int n = layout->n;
+  const uint8_t* utime = a;
+  const uint8_t* rdt = a + 8 * n;
+  const uint8_t* ft = a + 16 * n;
+  const uint8_t* status = a + 24 * n;
+  const uint8_t* wrench = a + 32 * n + 24 * n;
+  const uint8_t* gap = wrench + 48 * n;
+  const uint8_t* flags = gap + 4 * n;
+  out->leg = leg;
+  out->receipt_utime = Int64At(static_cast<const uint8_t*>(data) + 8);
+  out->n = n;
+  for (int i = 0; i < n; ++i) {
+    FtRecord& r = out->records[static_cast<size_t>(i)];
+    r.in.utime = Int64At(utime + 8 * i);
+    r.in.leg = leg;
+    for (int j = 0; j < 6; ++j) r.in.wrench[j] = DoubleAt(wrench + 48 * i + 8 * j);
+    r.in.flags = Int32At(flags + 4 * i);
+    r.rdt_sequence = Int64At(rdt + 8 * i);
+    r.ft_sequence = Int64At(ft + 8 * i);
+    r.status = Int64At(status + 8 * i);
+    r.gap = Int32At(gap + 4 * i);
+  }
+  return true;
+}
+
+std::optional<int> PeekRdtSequences(const void* data, int size, int leg,
+                                    std::array<int64_t, kMaxFtRecords>* sequences) {
+  if (leg < 0) return std::nullopt;
+  const std::optional<FtLayout> layout = FtLayoutOf(data, size, leg);
+  if (!layout) return std::nullopt;
+  const uint8_t* rdt = layout->arrays + 8 * layout->n;
+  for (int i = 0; i < layout->n; ++i) (*sequences)[static_cast<size_t>(i)] = Int64At(rdt + 8 * i);
+  return layout->n;
+}
+
+void FromLcm(const ft_batch_t& msg, int leg, FtBatch* out) {
   if (leg < 0 || leg >= kNumLegs || msg.leg != kLegNames[leg]) {
     throw BadInput(
         "leg name not the channel's",
         "message names leg '" + msg.leg + "' on the channel of leg " +
             (leg >= 0 && leg < kNumLegs ? std::string(kLegNames[leg]) : std::to_string(leg)));
   }
-  FtInput in;
-  in.utime = msg.utime;
-  in.leg = leg;
-  for (int i = 0; i < 6; ++i) in.wrench[i] = msg.wrench[i];
-  in.flags = msg.flags;
-  return in;
+  if (msg.n < 1 || msg.n > kMaxFtRecords) {
+    throw BadInput("FT record count", "ft_batch_t on leg " + msg.leg + " holds " +
+                                          std::to_string(msg.n) + " records, not 1.." +
+                                          std::to_string(kMaxFtRecords));
+  }
+  // lcm-gen's decoder sizes every array by n: a message it decoded has them all n long.
+  out->leg = leg;
+  out->receipt_utime = msg.receipt_utime;
+  out->n = msg.n;
+  for (int i = 0; i < msg.n; ++i) {
+    FtRecord& r = out->records[static_cast<size_t>(i)];
+    r.in.utime = msg.sample_utime[i];
+    r.in.leg = leg;
+    for (int j = 0; j < 6; ++j) r.in.wrench[j] = msg.wrench[i][j];
+    r.in.flags = msg.flags[i];
+    r.rdt_sequence = msg.rdt_sequence[i];
+    r.ft_sequence = msg.ft_sequence[i];
+    r.status = msg.status[i];
+    r.gap = msg.gap[i];
+  }
 }
 
-ft_sample_t ToLcm(const FtInput& in) {
-  ft_sample_t msg{};
-  msg.utime = in.utime;
-  msg.leg = std::string(kLegNames.at(static_cast<size_t>(in.leg)));
-  for (int i = 0; i < 6; ++i) msg.wrench[i] = in.wrench[i];
-  msg.flags = in.flags;
+ft_batch_t ToLcm(const FtBatch& batch) {
+  ft_batch_t msg{};
+  msg.receipt_utime = batch.receipt_utime;
+  msg.leg = std::string(kLegNames.at(static_cast<size_t>(batch.leg)));
+  msg.n = static_cast<int16_t>(batch.n);
+  const auto n = static_cast<size_t>(batch.n);
+  msg.sample_utime.resize(n);
+  msg.rdt_sequence.resize(n);
+  msg.ft_sequence.resize(n);
+  msg.status.resize(n);
+  msg.counts.assign(n, std::vector<int32_t>(6, 0));
+  msg.wrench.assign(n, std::vector<double>(6, 0.0));
+  msg.gap.resize(n);
+  msg.flags.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    const FtRecord& r = batch.records[i];
+    msg.sample_utime[i] = r.in.utime;
+    msg.rdt_sequence[i] = r.rdt_sequence;
+    msg.ft_sequence[i] = r.ft_sequence;
+    msg.status[i] = r.status;
+    for (size_t j = 0; j < 6; ++j) msg.wrench[i][j] = r.in.wrench[static_cast<int>(j)];
+    msg.gap[i] = r.gap;
+    msg.flags[i] = r.in.flags;
+  }
   return msg;
+}
+
+FtBatch BatchOf(const FtInput& in, int64_t receipt_utime) {
+  FtBatch b;
+  b.leg = in.leg;
+  b.receipt_utime = receipt_utime;
+  b.n = 1;
+  b.records[0].in = in;
+  return b;
 }
 
 // ---- SERVO_STATE ----
@@ -404,56 +483,117 @@ calibration_t ToLcm(const calibration::Calibration& proto, int64_t version, int6
 
 // ---- CONTACT_WRENCH, CONTACT_WRENCH_SUM ----
 
-LegWrench FromLcm(const contact_wrench_t& msg) {
+namespace {
+
+template <class Msg>
+void CheckBatchCount(const char* what, const Msg& msg, size_t arrays_of_n) {
+  if (msg.n < 1 || msg.n > Msg::MAX_N || arrays_of_n < static_cast<size_t>(msg.n)) {
+    throw BadInput(std::string(what) + " count",
+                   std::to_string(msg.n) + " entries (arrays of " + std::to_string(arrays_of_n) +
+                       "), not 1.." + std::to_string(Msg::MAX_N));
+  }
+}
+
+}  // namespace
+
+LegWrench LegWrenchAt(const contact_wrench_t& msg, int i) {
+  const auto at = static_cast<size_t>(i);
+  LegWrench w;
+  w.utime = msg.utime[at];
+  w.leg = msg.leg;
+  for (size_t j = 0; j < 6; ++j) w.wrench_W[static_cast<int>(j)] = msg.wrench_w[at][j];
+  w.servo_age_s = msg.servo_age_s[at];
+  w.mocap_age_s = msg.mocap_age_s[at];
+  w.flags = msg.flags[at];
+  return w;
+}
+
+std::vector<LegWrench> FromLcm(const contact_wrench_t& msg) {
   if (msg.leg < 0 || msg.leg >= kNumLegs) {
     throw BadInput("CONTACT_WRENCH leg index", "leg " + std::to_string(msg.leg) + " outside [0, " +
                                                    std::to_string(kNumLegs) + ")");
   }
-  LegWrench w;
-  w.utime = msg.utime;
-  w.leg = msg.leg;
-  for (int i = 0; i < 6; ++i) w.wrench_W[i] = msg.wrench_w[i];
-  w.servo_age_s = msg.servo_age_s;
-  w.mocap_age_s = msg.mocap_age_s;
-  w.flags = msg.flags;
-  return w;
+  CheckBatchCount("CONTACT_WRENCH", msg, msg.utime.size());
+  std::vector<LegWrench> out;
+  out.reserve(static_cast<size_t>(msg.n));
+  for (int i = 0; i < msg.n; ++i) out.push_back(LegWrenchAt(msg, i));
+  return out;
 }
 
-contact_wrench_t ToLcm(const LegWrench& w) {
-  contact_wrench_t msg{};
-  msg.utime = w.utime;
-  msg.leg = static_cast<int8_t>(w.leg);
-  for (int i = 0; i < 6; ++i) msg.wrench_w[i] = w.wrench_W[i];
-  msg.servo_age_s = static_cast<float>(w.servo_age_s);
-  msg.mocap_age_s = static_cast<float>(w.mocap_age_s);
-  msg.flags = static_cast<int8_t>(w.flags);
-  return msg;
+// lcm-gen's encoder and size walk `n` elements of each array, not the vectors' sizes: a cleared
+// message keeps its vectors (and their rows), and the next appends write over them, so a
+// publisher that reuses one message allocates nothing once it has held its largest batch.
+namespace {
+
+template <class T>
+T& Slot(std::vector<T>& v, size_t i) {
+  if (v.size() <= i) v.resize(i + 1);
+  return v[i];
+}
+std::vector<double>& Row6(std::vector<std::vector<double>>& v, size_t i) {
+  std::vector<double>& row = Slot(v, i);
+  row.resize(6);
+  return row;
 }
 
-WrenchSum FromLcm(const contact_wrench_sum_t& msg) {
+}  // namespace
+
+void ClearLcm(int leg, int64_t receipt_utime, contact_wrench_t* msg) {
+  msg->receipt_utime = receipt_utime;
+  msg->leg = static_cast<int8_t>(leg);
+  msg->n = 0;
+}
+
+void AppendLcm(const LegWrench& w, contact_wrench_t* msg) {
+  const auto i = static_cast<size_t>(msg->n);
+  ++msg->n;
+  Slot(msg->utime, i) = w.utime;
+  std::vector<double>& row = Row6(msg->wrench_w, i);
+  for (size_t j = 0; j < 6; ++j) row[j] = w.wrench_W[static_cast<int>(j)];
+  Slot(msg->servo_age_s, i) = static_cast<float>(w.servo_age_s);
+  Slot(msg->mocap_age_s, i) = static_cast<float>(w.mocap_age_s);
+  Slot(msg->flags, i) = static_cast<int8_t>(w.flags);
+}
+
+WrenchSum WrenchSumAt(const contact_wrench_sum_t& msg, int i) {
+  const auto at = static_cast<size_t>(i);
   WrenchSum s;
-  s.utime = msg.utime;
-  for (int i = 0; i < 6; ++i) {
-    s.total_W[i] = msg.total_w[i];
-    s.residual_W[i] = msg.residual_w[i];
+  s.utime = msg.utime[at];
+  for (size_t j = 0; j < 6; ++j) {
+    s.total_W[static_cast<int>(j)] = msg.total_w[at][j];
+    s.residual_W[static_cast<int>(j)] = msg.residual_w[at][j];
   }
   s.calibration_version = msg.calibration_version;
-  s.oldest_ft_age_s = msg.oldest_ft_age_s;
-  s.flags = msg.flags;
+  s.oldest_ft_age_s = msg.oldest_ft_age_s[at];
+  s.flags = msg.flags[at];
   return s;
 }
 
-contact_wrench_sum_t ToLcm(const WrenchSum& s) {
-  contact_wrench_sum_t msg{};
-  msg.utime = s.utime;
-  for (int i = 0; i < 6; ++i) {
-    msg.total_w[i] = s.total_W[i];
-    msg.residual_w[i] = s.residual_W[i];
+std::vector<WrenchSum> FromLcm(const contact_wrench_sum_t& msg) {
+  CheckBatchCount("CONTACT_WRENCH_SUM", msg, msg.utime.size());
+  std::vector<WrenchSum> out;
+  out.reserve(static_cast<size_t>(msg.n));
+  for (int i = 0; i < msg.n; ++i) out.push_back(WrenchSumAt(msg, i));
+  return out;
+}
+
+void ClearLcm(int64_t calibration_version, contact_wrench_sum_t* msg) {
+  msg->calibration_version = calibration_version;
+  msg->n = 0;
+}
+
+void AppendLcm(const WrenchSum& s, contact_wrench_sum_t* msg) {
+  const auto i = static_cast<size_t>(msg->n);
+  ++msg->n;
+  Slot(msg->utime, i) = s.utime;
+  std::vector<double>& total = Row6(msg->total_w, i);
+  std::vector<double>& residual = Row6(msg->residual_w, i);
+  for (size_t j = 0; j < 6; ++j) {
+    total[j] = s.total_W[static_cast<int>(j)];
+    residual[j] = s.residual_W[static_cast<int>(j)];
   }
-  msg.calibration_version = s.calibration_version;
-  msg.oldest_ft_age_s = static_cast<float>(s.oldest_ft_age_s);
-  msg.flags = static_cast<int8_t>(s.flags);
-  return msg;
+  Slot(msg->oldest_ft_age_s, i) = static_cast<float>(s.oldest_ft_age_s);
+  Slot(msg->flags, i) = static_cast<int8_t>(s.flags);
 }
 
 // ---- EXPERIMENT phases ----
@@ -517,11 +657,11 @@ std::optional<MocapInput> DeviceInputs::FromMocap(const mocap_body_t& msg) const
 void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
   if (h.ft) {
     for (int k = 0; k < kNumLegs; ++k) {
-      bus.SubscribeRaw(ft_channel_[k], [k, f = h.ft, scratch = std::make_shared<ft_sample_t>()](
+      bus.SubscribeRaw(ft_channel_[k], [this, k, f = h.ft, scratch = std::make_shared<ft_batch_t>(),
+                                        batch = std::make_shared<FtBatch>()](
                                            const MessageInfo& info, const void* data, int size) {
-        if (const std::optional<FtPeek> peek = PeekFtSample(data, size, k)) return f(peek->in);
-        DecodeOrThrow(info, data, size, scratch.get());
-        f(FromLcm(*scratch, k));
+        FtOf(k, info, data, size, scratch.get(), batch.get());
+        f(*batch);
       });
     }
   }
@@ -539,6 +679,13 @@ void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
                        if (const auto in = MocapOf(info, data, size, scratch.get())) f(*in);
                      });
   }
+}
+
+void DeviceInputs::FtOf(int leg, const MessageInfo& info, const void* data, int size,
+                        ft_batch_t* scratch, FtBatch* out) const {
+  if (PeekFtBatch(data, size, leg, out)) return;
+  DecodeOrThrow(info, data, size, scratch);
+  FromLcm(*scratch, leg, out);
 }
 
 ServoInput DeviceInputs::ServoOf(const MessageInfo& info, const void* data, int size,

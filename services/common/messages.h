@@ -17,6 +17,7 @@
 #include <stdexcept>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "common/bus.h"
 #include "ftcal/aligner.h"
@@ -27,7 +28,7 @@
 #include "ftcal/dataset.h"
 #include "ftcal/experiment_marker_t.hpp"
 #include "ftcal/experiment_phase.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/segmenter.h"
 #include "ftcal/servo_state_t.hpp"
@@ -63,33 +64,53 @@ static_assert(experiment_marker_t::WALKING == static_cast<int>(ExperimentPhase::
 static_assert(experiment_marker_t::TRIPOD == static_cast<int>(ExperimentPhase::kTripod));
 static_assert(experiment_marker_t::TARE == static_cast<int>(ExperimentPhase::kTare));
 
-// ---- FT_<LEG>: ft_sample_t <-> FtInput ----
-// `leg` is the channel's leg; the message must name the same one (BadInput otherwise).
-FtInput FromLcm(const ft_sample_t& msg, int leg);
-ft_sample_t ToLcm(const FtInput& in);
-// rdt_sequence of an encoded ft_sample_t, read in place: a reader that only counts records (the
-// calibrator over a span it does not align) need not decode the rest. nullopt when `data` is
-// not long enough to be one or has another fingerprint. The rest is not looked at: run the wire
-// guard's Check first when the message is untrusted.
-std::optional<int64_t> PeekRdtSequence(const void* data, int size);
-// The Peek* functions below read an encoded device message in place, giving what wire::Decode
-// and FromLcm would give, bit for bit, when the bytes are exactly what lcm-gen's encoder writes
-// for a message they accept (the wire guard's rules, wire_guard.h, and FromLcm's). That is the
-// only case they read; nullopt for anything else (another fingerprint or leg name, a size that
-// is not the layout's, ...), which the caller then decodes through wire::Decode and FromLcm, and
-// they name what is wrong. Why by hand: LCM's generated decoder costs a function call per
-// scalar field and a string copy per name, after the wire guard's walk of the same bytes; for
-// the few fields a stage takes, that was a quarter of the calibrator's reading thread in perf
-// on the report-scale log (its four hanging series: 182 ms before, 71-115 ms after).
-//
-// An ft_sample_t on leg `leg`'s channel: its FtInput and rdt_sequence.
-struct FtPeek {
+// ---- FT_<LEG>: ft_batch_t <-> FtBatch ----
+// One record of an FT message: its FtInput (utime = the record's sample_utime) and the device's
+// numbers a reader may count by.
+struct FtRecord {
   FtInput in;
   int64_t rdt_sequence = 0;
   int64_t ft_sequence = 0;  // the device's internal sample counter (ftcal-doctor's clock)
   int64_t status = 0;
+  int32_t gap = 0;
 };
-std::optional<FtPeek> PeekFtSample(const void* data, int size, int leg);
+// One ft_batch_t: a datagram's 1..kMaxFtRecords records, oldest first. Fixed storage, so a
+// reader decodes into one it keeps and allocates nothing per message.
+inline constexpr int kMaxFtRecords = ft_batch_t::MAX_N;
+struct FtBatch {
+  int leg = 0;
+  int64_t receipt_utime = 0;
+  int n = 0;
+  std::array<FtRecord, kMaxFtRecords> records;
+  const FtRecord* begin() const { return records.data(); }
+  const FtRecord* end() const { return records.data() + n; }
+};
+// `leg` is the channel's leg; the message must name the same one and hold 1..kMaxFtRecords
+// records with every array of its count (BadInput naming what is wrong otherwise).
+void FromLcm(const ft_batch_t& msg, int leg, FtBatch* out);
+// Every field from the batch (counts zero: FtRecord does not carry them).
+ft_batch_t ToLcm(const FtBatch& batch);
+// A batch of one record: the sample as a test or the twin's log writer makes it.
+FtBatch BatchOf(const FtInput& in, int64_t receipt_utime);
+// The Peek* functions below read an encoded device message in place, giving what wire::Decode
+// and FromLcm would give, bit for bit, when the bytes are exactly what lcm-gen's encoder writes
+// for a message they accept (the wire guard's rules, wire_guard.h, and FromLcm's). That is the
+// only case they read; false/nullopt for anything else (another fingerprint or leg name, a size
+// that is not the layout's, ...), which the caller then decodes through wire::Decode and
+// FromLcm, and they name what is wrong. Why by hand: LCM's generated decoder costs a function
+// call per scalar field and a string copy per name, after the wire guard's walk of the same
+// bytes; for the few fields a stage takes, that was a quarter of the calibrator's reading
+// thread in perf on the report-scale log (its four hanging series: 182 ms before, 71-115 ms
+// after).
+//
+// An ft_batch_t on leg `leg`'s channel into *out.
+bool PeekFtBatch(const void* data, int size, int leg, FtBatch* out);
+// An ft_batch_t's record count and each record's rdt_sequence, read in place: a reader that
+// only counts records (the calibrator over a span it does not align) need not read the rest.
+// nullopt when `data` is not the layout of an ft_batch_t of leg `leg`, as PeekFtBatch.
+// `sequences` gets n values.
+std::optional<int> PeekRdtSequences(const void* data, int size, int leg,
+                                    std::array<int64_t, kMaxFtRecords>* sequences);
 
 // ---- SERVO_STATE: servo_state_t <-> ServoInput ----
 // Every leg exactly once, by name, in any order (BadInput otherwise).
@@ -145,14 +166,22 @@ struct CalibrationMessage {
 CalibrationMessage FromLcm(const calibration_t& msg);
 calibration_t ToLcm(const calibration::Calibration& proto, int64_t version, int64_t utime);
 
-// ---- CONTACT_WRENCH: contact_wrench_t <-> LegWrench (one leg-sample) ----
-// A leg index outside the legs is a BadInput. Ages travel as float seconds (-1: none).
-LegWrench FromLcm(const contact_wrench_t& msg);
-contact_wrench_t ToLcm(const LegWrench& in);
+// ---- CONTACT_WRENCH: contact_wrench_t <-> LegWrench (leg-samples) ----
+// A leg index outside the legs, a count outside 1..MAX_N or an array of another length is a
+// BadInput. Ages travel as float seconds (-1: none).
+std::vector<LegWrench> FromLcm(const contact_wrench_t& msg);
+// The message's sample i (no checks: for a message FromLcm took, or one this process made).
+LegWrench LegWrenchAt(const contact_wrench_t& msg, int i);
+// Starts a message of leg `leg` for the samples of the FT message received at receipt_utime,
+// and appends one leg-sample (the corrector's hot path: the vectors keep their capacity).
+void ClearLcm(int leg, int64_t receipt_utime, contact_wrench_t* msg);
+void AppendLcm(const LegWrench& in, contact_wrench_t* msg);
 
 // ---- CONTACT_WRENCH_SUM: contact_wrench_sum_t <-> WrenchSum ----
-WrenchSum FromLcm(const contact_wrench_sum_t& msg);
-contact_wrench_sum_t ToLcm(const WrenchSum& in);
+std::vector<WrenchSum> FromLcm(const contact_wrench_sum_t& msg);
+WrenchSum WrenchSumAt(const contact_wrench_sum_t& msg, int i);
+void ClearLcm(int64_t calibration_version, contact_wrench_sum_t* msg);
+void AppendLcm(const WrenchSum& in, contact_wrench_sum_t* msg);
 
 // ---- EXPERIMENT phases ----
 // The hanging series of a HANG_* phase, nullopt for any other phase.
@@ -171,7 +200,11 @@ class DeviceInputs {
 
   // FT_<LEG> channel name of leg k.
   const std::string& FtChannel(int k) const { return ft_channel_[k]; }
-  FtInput FromFt(int leg, const ft_sample_t& msg) const { return FromLcm(msg, leg); }
+  void FromFt(int leg, const ft_batch_t& msg, FtBatch* out) const { FromLcm(msg, leg, out); }
+  // One FT message's batch: read in place when it can be (PeekFtBatch), else decoded into
+  // *scratch as a typed subscription decodes (BadInput naming what is wrong).
+  void FtOf(int leg, const MessageInfo& info, const void* data, int size, ft_batch_t* scratch,
+            FtBatch* out) const;
   // nullopt for another rigid body than the config's chassis body.
   std::optional<MocapInput> FromMocap(const mocap_body_t& msg) const;
   // One message's input: read in place when it can be (Peek*), else decoded into *scratch as a
@@ -183,7 +216,7 @@ class DeviceInputs {
 
   // A null handler is not subscribed. Mocap frames of another body are not handed on.
   struct Handlers {
-    std::function<void(const FtInput&)> ft;
+    std::function<void(const FtBatch&)> ft;  // one FT_<LEG> message
     std::function<void(const ServoInput&)> servo;
     std::function<void(const MocapInput&)> mocap;
   };

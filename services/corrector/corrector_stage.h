@@ -1,7 +1,8 @@
 // ftcal-corrector's work, transport-agnostic through the Bus (docs/method.md, "Correction"):
-// every FT_<LEG> sample becomes one CONTACT_WRENCH with that leg's ground-contact wrench in W
-// about the CoM (libcal's Corrector), using SERVO_STATE for the leg phase and MOCAP_BODY for
-// R_WC; once every leg has a new sample, one CONTACT_WRENCH_SUM with the six legs' sum.
+// every FT_<LEG> message becomes one CONTACT_WRENCH with its samples' ground-contact wrenches
+// in W about the CoM (libcal's Corrector), using SERVO_STATE for the leg phase and MOCAP_BODY
+// for R_WC; the six legs' sums at the pace leg's sample instants (Corrector::NextSum) that the
+// message completed go out together on one CONTACT_WRENCH_SUM.
 //
 // Calibration: from --calibration FILE at start and/or any CALIBRATION message, picked up
 // without a restart. A message is checked (its SHA-256, the protobuf, CalibrationFromProto
@@ -43,7 +44,7 @@ class CorrectorStage {
   void UseCalibration(const calibration::Calibration& proto, int64_t version,
                       const std::string& sha256);
   bool has_calibration() const { return corrector_.has_calibration(); }
-  // CONTACT_WRENCH and CONTACT_WRENCH_SUM messages published.
+  // Leg-samples published on CONTACT_WRENCH, and sums on CONTACT_WRENCH_SUM.
   int64_t leg_samples() const { return leg_samples_; }
   int64_t sums() const { return sums_; }
   // Says in the status (last error, DEGRADED) why nothing is published yet. Called once the
@@ -51,7 +52,7 @@ class CorrectorStage {
   void ReportWaitingForCalibration();
 
  private:
-  void OnFt(const FtInput& in);
+  void OnFt(const FtBatch& batch);
   void OnServo(const ServoInput& in);
   void OnMocap(const MocapInput& in);
   void OnCalibration(const MessageInfo& info, const calibration_t& msg);
@@ -73,6 +74,8 @@ class CorrectorStage {
   // in a live process (Bus::seen_store), so a restart refuses what it used before.
   std::map<std::string, int64_t> last_version_;
   ContactWrenches out_;
+  contact_wrench_t wrench_msg_;   // reused: its vectors keep their capacity
+  contact_wrench_sum_t sum_msg_;  // reused too
   std::vector<uint8_t> buffer_;
   struct Counters {
     int64_t *corrected, *no_calibration, *calibrations, *calibrations_refused, *drop_out_of_order,

@@ -11,7 +11,7 @@
 int main(int argc, char** argv) {
   ftcal::ServiceApp app(
       {"ftcal-corrector",
-       "Reads FT_<LEG> (ft_sample_t), SERVO_STATE, MOCAP_BODY and CALIBRATION (calibration_t). "
+       "Reads FT_<LEG> (ft_batch_t), SERVO_STATE, MOCAP_BODY and CALIBRATION (calibration_t). "
        "Publishes CONTACT_WRENCH (contact_wrench_t) for every transducer sample: that leg's "
        "ground-contact wrench in W about the CoM (docs/method.md eq. 3), the servo and mocap "
        "ages and stale/saturated flags (inputs older than corrector.max_*_age_s); and "

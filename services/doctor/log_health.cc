@@ -214,37 +214,37 @@ static void Advance(StreamHealth& h, StreamCursor& c, int64_t counter, int64_t u
 
 void LogExaminer::OnFt(int leg, const MessageInfo& /*info*/, const void* data, int size) {
   FtState& s = *ft_[static_cast<size_t>(leg)];
-  std::optional<FtPeek> peek = PeekFtSample(data, size, leg);
-  if (!peek) {
-    ft_sample_t msg;
-    if (wire::Decode(data, size, &msg) || msg.leg != kLegNames[static_cast<size_t>(leg)]) {
+  FtBatch& batch = ft_batch_;
+  if (!PeekFtBatch(data, size, leg, &batch)) {
+    if (wire::Decode(data, size, &ft_scratch_) ||
+        ft_scratch_.leg != kLegNames[static_cast<size_t>(leg)] || ft_scratch_.n < 1 ||
+        ft_scratch_.n > kMaxFtRecords) {
       ++s.h.flagged["undecodable"];
       return;
     }
-    peek.emplace();
-    peek->in.utime = msg.utime;
-    peek->in.flags = msg.flags;
-    peek->rdt_sequence = msg.rdt_sequence;
-    peek->ft_sequence = msg.ft_sequence;
-    peek->status = msg.status;
+    FromLcm(ft_scratch_, leg, &batch);
   }
-  const int64_t utime = peek->in.utime;
-  Seen(utime);
-  const int64_t lost_before = s.h.lost;
-  const size_t gaps_before = s.h.gaps.size();
-  Advance(s.h, s.cursor, s.rdt(peek->rdt_sequence), utime, Since(utime), phase_at_);
-  if (peek->in.flags & ft_sample_t::FLAG_SATURATED) ++s.h.flagged["saturated"];
-  if (peek->in.flags & ft_sample_t::FLAG_STATUS_ERROR) ++s.h.flagged["status error"];
-  const int64_t mapped = s.clock.Observe(s.sequence(peek->ft_sequence), utime);
-  s.h.queuing.Add(1e-6 * static_cast<double>(utime - mapped));
-  if (open_phase_) {
-    PhaseHealth& p = report_.phases[*open_phase_];
-    ++p.ft_received[static_cast<size_t>(leg)];
-    // What was lost before the phase began is not the phase's.
-    if (s.h.gaps.size() > gaps_before && !s.h.gaps.back().phase.empty()) {
-      p.ft_lost[static_cast<size_t>(leg)] += s.h.lost - lost_before;
+  for (const FtRecord& r : batch) {
+    const int64_t utime = r.in.utime;
+    Seen(utime);
+    const int64_t lost_before = s.h.lost;
+    const size_t gaps_before = s.h.gaps.size();
+    Advance(s.h, s.cursor, s.rdt(r.rdt_sequence), utime, Since(utime), phase_at_);
+    if (r.in.flags & ft_batch_t::FLAG_SATURATED) ++s.h.flagged["saturated"];
+    if (r.in.flags & ft_batch_t::FLAG_STATUS_ERROR) ++s.h.flagged["status error"];
+    if (open_phase_) {
+      PhaseHealth& p = report_.phases[*open_phase_];
+      ++p.ft_received[static_cast<size_t>(leg)];
+      // What was lost before the phase began is not the phase's.
+      if (s.h.gaps.size() > gaps_before && !s.h.gaps.back().phase.empty()) {
+        p.ft_lost[static_cast<size_t>(leg)] += s.h.lost - lost_before;
+      }
     }
   }
+  // The box's clock against the host's: its datagram's last record against the receipt.
+  const FtRecord& last = batch.records[static_cast<size_t>(batch.n - 1)];
+  const int64_t mapped = s.clock.Observe(s.sequence(last.ft_sequence), batch.receipt_utime);
+  s.h.queuing.Add(1e-6 * static_cast<double>(batch.receipt_utime - mapped));
 }
 
 void LogExaminer::OnServo(const MessageInfo& /*info*/, const void* data, int size) {

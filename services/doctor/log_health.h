@@ -133,6 +133,8 @@ class LogExaminer {
   std::optional<size_t> open_phase_;  // index in report_.phases
   std::function<std::string(double)> phase_at_ = [this](double t_s) { return PhaseAt(t_s); };
   servo_state_t servo_scratch_;
+  ft_batch_t ft_scratch_;
+  FtBatch ft_batch_;
   mocap_body_t mocap_scratch_;
 };
 

@@ -13,7 +13,7 @@
 int main(int argc, char** argv) {
   ftcal::ServiceApp app(
       {"ftcal-pose-segmenter",
-       "Reads FT_<LEG> (ft_sample_t, six legs), SERVO_STATE, MOCAP_BODY and EXPERIMENT. "
+       "Reads FT_<LEG> (ft_batch_t, six legs), SERVO_STATE, MOCAP_BODY and EXPERIMENT. "
        "Publishes SYNC_SAMPLE (sync_sample_t) each time every leg has a newer reading: the six "
        "wrenches, the shaft angles interpolated to that time and the latest attitude; and, "
        "while the EXPERIMENT phase is STANDING, STEADY_POSE (steady_pose_t) for each steady "

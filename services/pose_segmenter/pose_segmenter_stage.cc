@@ -28,7 +28,7 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus, b
 
   const auto& ch = config.channels();
   inputs_.Subscribe(
-      bus, {[this](const FtInput& in) { OnFt(in); }, [this](const ServoInput& in) { OnServo(in); },
+      bus, {[this](const FtBatch& batch) { OnFt(batch); }, [this](const ServoInput& in) { OnServo(in); },
             [this](const MocapInput& in) { OnMocap(in); }});
   // Markers repeat once a second while a phase runs: a live stage takes only fresh ones, so an
   // old session's start marker cannot open a phase here (offline, the window holds against the
@@ -50,9 +50,11 @@ void PoseSegmenterStage::CountAlignerDrop(const std::string& stream,
   }
 }
 
-void PoseSegmenterStage::OnFt(const FtInput& in) {
-  const AlignerCounters before = aligner_.counters();
-  if (!aligner_.AddFt(in)) CountAlignerDrop(inputs_.FtChannel(in.leg), before);
+void PoseSegmenterStage::OnFt(const FtBatch& batch) {
+  for (const FtRecord& r : batch) {
+    const AlignerCounters before = aligner_.counters();
+    if (!aligner_.AddFt(r.in)) CountAlignerDrop(inputs_.FtChannel(batch.leg), before);
+  }
   PublishCounters();
 }
 

@@ -38,7 +38,7 @@ class PoseSegmenterStage {
   const AlignerCounters& aligner_counters() const { return aligner_.counters(); }
 
  private:
-  void OnFt(const FtInput& in);
+  void OnFt(const FtBatch& batch);
   void OnServo(const ServoInput& in);
   void OnMocap(const MocapInput& in);
   void OnExperiment(const experiment_marker_t& msg);

@@ -6,7 +6,7 @@
 #include <sstream>
 
 #include "ftcal/config.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/service_status_t.hpp"
 
 namespace ftcal::sequencer {
@@ -130,7 +130,7 @@ std::optional<std::string> Safety::OverRange(const Inputs& in) const {
                std::to_string(k) + "].ati.rated_range)";
       }
     }
-    if (r.flags & ft_sample_t::FLAG_SATURATED)
+    if (r.flags & ft_batch_t::FLAG_SATURATED)
       return "FT_" + std::string(kLegNames[k]) + " is flagged saturated";
   }
   return std::nullopt;

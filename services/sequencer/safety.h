@@ -41,7 +41,7 @@ struct StatusReading {
 
 // The latest of every input, as the sequencer last saw it.
 struct Inputs {
-  std::array<std::optional<FtInput>, kNumLegs> ft;
+  std::array<std::optional<FtInput>, kNumLegs> ft;  // a message's extremes (sequencer.cc)
   std::optional<ServoInput> servo;
   std::optional<MocapInput> mocap;
   // Bridges' heartbeats by process name (ftcal-ati-bridge, ...; only the names the sequencer

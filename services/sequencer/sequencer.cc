@@ -221,7 +221,20 @@ Sequencer::Sequencer(const config::Config& config, Bus& bus, auth::Signer& signe
 
   const config::Channels& ch = config.channels();
   DeviceInputs::Handlers handlers;
-  handlers.ft = [this](const FtInput& in) { inputs_.ft[in.leg] = in; };
+  // A message's extremes: per axis the value farthest from zero, the flags or-ed, the last
+  // record's time, so the range check sees every record of a datagram, not only its last.
+  handlers.ft = [this](const FtBatch& batch) {
+    FtInput extreme = batch.records[static_cast<size_t>(batch.n - 1)].in;
+    for (const FtRecord& r : batch) {
+      for (int i = 0; i < 6; ++i) {
+        if (!(std::abs(r.in.wrench[i]) <= std::abs(extreme.wrench[i]))) {
+          extreme.wrench[i] = r.in.wrench[i];
+        }
+      }
+      extreme.flags |= r.in.flags;
+    }
+    inputs_.ft[batch.leg] = extreme;
+  };
   handlers.servo = [this](const ServoInput& in) {
     inputs_.servo = in;
     Tick();

@@ -74,12 +74,19 @@ SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_
     ft_sequence0_[k] = static_cast<uint32_t>(rng_());
     tick0_ms_[k] = static_cast<int64_t>(Uniform() * 32768.0);
 
-    ft_sample_t& m = ft_[k];
-    m = ft_sample_t{};
+    // One record a message, as a box in real-time mode (k = 1) sends them.
+    ft_batch_t& m = ft_[k];
+    m = ft_batch_t{};
     m.leg = leg.name();
-    m.status = 0;
-    m.gap = 0;
-    m.flags = 0;
+    m.n = 1;
+    m.sample_utime.assign(1, 0);
+    m.rdt_sequence.assign(1, 0);
+    m.ft_sequence.assign(1, 0);
+    m.status.assign(1, 0);
+    m.counts.assign(1, std::vector<int32_t>(6, 0));
+    m.wrench.assign(1, std::vector<double>(6, 0.0));
+    m.gap.assign(1, 0);
+    m.flags.assign(1, 0);
   }
   servo_channel_ = ch.servo_state();
   mocap_channel_ = ch.mocap_body();
@@ -142,15 +149,16 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   std::array<Pending, 8> pending;
 
   for (int k = 0; k < kNumLegs; ++k) {
-    ft_sample_t& m = ft_[k];
+    ft_batch_t& m = ft_[k];
     const int64_t utime = t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform()) * 1e6);
-    m.utime = utime;
-    ++m.rdt_sequence;  // 1 for the first record of the stream
-    m.ft_sequence =
-        static_cast<uint32_t>(ft_sequence0_[k] + static_cast<uint32_t>(70 * (m.rdt_sequence - 1)));
-    for (int i = 0; i < 6; ++i) {
-      m.counts[i] = f.counts[k][i];
-      m.wrench[i] = f.reading[k][i];
+    m.receipt_utime = utime;
+    m.sample_utime[0] = utime;
+    ++m.rdt_sequence[0];  // 1 for the first record of the stream
+    m.ft_sequence[0] = static_cast<uint32_t>(ft_sequence0_[k] +
+                                             static_cast<uint32_t>(70 * (m.rdt_sequence[0] - 1)));
+    for (size_t i = 0; i < 6; ++i) {
+      m.counts[0][i] = f.counts[k][i];
+      m.wrench[0][i] = f.reading[k][i];
     }
     size_[k] = EncodeInto(m, &buffer_[k]);
     pending[k] = {utime, k};

@@ -30,7 +30,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "common/atomic_log.h"
@@ -117,7 +117,7 @@ class SimLogWriter {
   std::array<int64_t, kNumLegs> tick0_ms_{};
 
   // Messages and encode buffers reused for every frame (no allocation per event).
-  std::array<ft_sample_t, kNumLegs> ft_;
+  std::array<ft_batch_t, kNumLegs> ft_;
   servo_state_t servo_;
   mocap_body_t mocap_;
   experiment_marker_t marker_;

@@ -216,63 +216,110 @@ TEST(Corrector, ANewCalibrationReplacesTheOldAndForgetsWrenchesCorrectedWithIt) 
   EXPECT_TRUE(out->flags & kFlagStaleFt);
 }
 
-// The sum is due once per set of six: when every leg has a new sample since the previous sum, or,
-// with a leg silent, at the first sample more than max_ft_age_s after it. Its views carry the
-// sample's own flags (LegWrenchOf) and every leg's, with stale FT (WrenchSumOf).
-TEST(Corrector, TheSumIsDueOncePerSetOfSixOrWhenALegFallsSilent) {
+// The sums are of one instant: each leg's samples come a datagram (7) at a time and the legs'
+// clocks are apart by up to 60 us of a 143 us period; a sum at each of leg 0's sample times
+// takes every leg's sample of that instant, whatever order the legs' batches arrive in. Each
+// sample's wrench differs, so a sum mixing instants would show. Its views carry each sample's
+// own flags (LegWrenchOf) and every summed sample's (the sum's).
+TEST(Corrector, SumsAreOfOneInstantWhicheverOrderTheLegsBatchesArriveIn) {
+  const RobotCalibration cal = MakeCalibration(10);
+  constexpr int kBatch = 7, kBatches = 6, kSamples = kBatch * kBatches;
+  constexpr int64_t kPeriodUs = 143, kT0 = 1'000'000;
+  auto sample = [](int k, int j) {
+    Vec6 w;
+    w << 1 + j, 2 - 0.5 * j, 25 + 0.25 * j * k, 0.1 * k, 0.2, 0.3 + 0.01 * j;
+    return FtInput{kT0 + j * kPeriodUs + 10 * k, k, w, 0};
+  };
+  for (const bool reverse : {false, true}) {
+    SCOPED_TRACE(reverse ? "legs' batches in reverse order" : "legs' batches in leg order");
+    Corrector c({});
+    c.SetCalibration(cal, 3);
+    c.AddServo({kT0 - 1000, Fill(0.2)});
+    c.AddServo({kT0 + 100'000, Fill(0.2)});
+    c.AddMocap({kT0 - 1000, true, Mat3::Identity(), true});
+    std::array<std::array<Vec6, kSamples>, kNumLegs> corrected;
+    std::vector<WrenchSum> sums;
+    for (int b = 0; b < kBatches; ++b) {
+      for (int i = 0; i < kNumLegs; ++i) {
+        const int k = reverse ? kNumLegs - 1 - i : i;
+        for (int j = b * kBatch; j < (b + 1) * kBatch; ++j) {
+          const auto out = c.AddFt(sample(k, j), k == 2 && j == 9);
+          ASSERT_TRUE(out);
+          const LegWrench leg = LegWrenchOf(*out);
+          EXPECT_EQ(leg.leg, k);
+          EXPECT_EQ(leg.utime, sample(k, j).utime);
+          EXPECT_EQ(leg.flags, k == 2 && j == 9 ? kFlagSaturated : 0);
+          corrected[k][j] = leg.wrench_W;
+          WrenchSum sum;
+          while (c.NextSum(&sum)) sums.push_back(sum);
+        }
+      }
+    }
+    // Every instant of leg 0 whose six samples are in: all of them.
+    ASSERT_EQ(sums.size(), static_cast<size_t>(kSamples));
+    for (int j = 0; j < kSamples; ++j) {
+      const WrenchSum& sum = sums[static_cast<size_t>(j)];
+      Vec6 total = Vec6::Zero();
+      for (int k = 0; k < kNumLegs; ++k) total += corrected[k][j];
+      EXPECT_EQ(sum.utime, sample(0, j).utime);
+      EXPECT_EQ(sum.total_W, total) << "instant " << j;
+      EXPECT_EQ(sum.residual_W[2], total[2] - cal.TotalWeightN());
+      EXPECT_EQ(sum.calibration_version, 3);
+      EXPECT_NEAR(sum.oldest_ft_age_s, 50e-6, 1e-12);  // leg 5, 50 us after leg 0
+      EXPECT_EQ(sum.flags, j == 9 ? kFlagSaturated : 0) << "instant " << j;
+    }
+  }
+}
+
+// A silent leg is not waited for: once its latest sample is max_ft_age_s older than the newest,
+// the sums go on without it, flagged stale; when leg 0 is the silent one, the next leg sets
+// the pace. Before that, no sum is made past the silent leg's last sample.
+TEST(Corrector, ASilentLegIsNotWaitedForAndItsSumsAreFlaggedStale) {
   const RobotCalibration cal = MakeCalibration(10);
   CorrectorOptions opt;
   opt.max_ft_age_s = 0.05;
-  Corrector c(opt);
-  c.SetCalibration(cal, 3);
-  Vec6 w;
-  w << 1, 2, 25, 0.1, 0.2, 0.3;
-  int64_t t = 1'000'000;
-  // Two rounds in leg order: due at the sixth of each, never before.
-  for (int round = 0; round < 2; ++round, t += 10'000) {
-    c.AddServo({t, Fill(0.2)});
-    c.AddMocap({t, true, Mat3::Identity(), true});
-    for (int k = 0; k < kNumLegs; ++k) {
-      const auto out = c.AddFt({t + k, k, w, 0}, k == 2);
-      ASSERT_TRUE(out);
-      EXPECT_EQ(out->sum_due, k == kNumLegs - 1) << "round " << round << " leg " << k;
-      const LegWrench leg = LegWrenchOf(*out);
-      EXPECT_EQ(leg.leg, k);
-      EXPECT_EQ(leg.utime, t + k);
-      EXPECT_EQ(leg.wrench_W, out->wrench_W[k]);
-      EXPECT_EQ(leg.flags, k == 2 ? kFlagSaturated : 0);
-      if (out->sum_due) {
-        const WrenchSum sum = WrenchSumOf(*out);
-        Vec6 total = Vec6::Zero();
-        for (int l = 0; l < kNumLegs; ++l) total += out->wrench_W[l];
-        EXPECT_EQ(sum.total_W, total);
-        EXPECT_EQ(sum.residual_W[2], total[2] - cal.TotalWeightN());
-        EXPECT_EQ(sum.calibration_version, 3);
-        EXPECT_NEAR(sum.oldest_ft_age_s, 5e-6, 1e-12);  // leg 0, 5 us before leg 5
-        EXPECT_EQ(sum.flags, kFlagSaturated);           // leg 2's, or-ed in
+  for (const int silent : {0, 3}) {
+    SCOPED_TRACE("leg " + std::to_string(silent) + " falls silent");
+    Corrector c(opt);
+    c.SetCalibration(cal, 3);
+    Vec6 w;
+    w << 1, 2, 25, 0.1, 0.2, 0.3;
+    std::vector<WrenchSum> sums;
+    const int64_t t0 = 1'000'000, period = 1000, stop = t0 + 10 * period;
+    for (int64_t t = t0; t < t0 + 100 * period; t += period) {
+      c.AddServo({t, Fill(0.2)});
+      c.AddMocap({t, true, Mat3::Identity(), true});
+      for (int k = 0; k < kNumLegs; ++k) {
+        if (k == silent && t > stop) continue;
+        ASSERT_TRUE(c.AddFt({t + k, k, w, 0}, false));
+        WrenchSum sum;
+        while (c.NextSum(&sum)) sums.push_back(sum);
       }
     }
-  }
-  // Leg 0 falls silent: the others' samples complete no set, until max_ft_age_s has passed
-  // since the last sum; that sum flags leg 0 stale.
-  const int64_t last_sum = t - 10'000 + kNumLegs - 1;
-  for (; t < last_sum + 80'000; t += 10'000) {
-    c.AddServo({t, Fill(0.2)});
-    c.AddMocap({t, true, Mat3::Identity(), true});
-    for (int k = 1; k < kNumLegs; ++k) {
-      const auto out = c.AddFt({t + k, k, w, 0}, false);
-      ASSERT_TRUE(out);
-      const bool late = 1e-6 * static_cast<double>(t + k - last_sum) > opt.max_ft_age_s;
-      if (out->sum_due) {
-        EXPECT_TRUE(late) << "due at " << t + k;
-        EXPECT_TRUE(WrenchSumOf(*out).flags & kFlagStaleFt);
-        EXPECT_GT(WrenchSumOf(*out).oldest_ft_age_s, opt.max_ft_age_s);
-        return;
+    ASSERT_FALSE(sums.empty());
+    const int pace = silent == 0 ? 1 : 0;
+    bool resumed = false;
+    for (size_t i = 0; i < sums.size(); ++i) {
+      const WrenchSum& s = sums[i];
+      if (i > 0) EXPECT_GT(s.utime, sums[i - 1].utime);
+      if (s.utime <= stop + silent) {
+        EXPECT_EQ(s.flags & kFlagStaleFt, 0) << "at " << s.utime;
+        continue;
       }
-      EXPECT_FALSE(late) << "not due at " << t + k;
+      // Past the silent leg's last sample: made once it counts as silent, from its last
+      // sample, flagged when that is more than max_ft_age_s from the instant.
+      EXPECT_EQ((s.utime - t0 - pace) % period, 0) << "an instant of the pace leg " << pace;
+      const bool stale = 1e-6 * static_cast<double>(s.utime - stop - silent) > opt.max_ft_age_s;
+      EXPECT_EQ((s.flags & kFlagStaleFt) != 0, stale) << "at " << s.utime;
+      resumed = true;
     }
+    EXPECT_TRUE(resumed) << "no sum after leg " << silent << " fell silent";
+    EXPECT_GT(sums.back().oldest_ft_age_s, opt.max_ft_age_s);
+    // Instants between the silent leg's last sample and its being silent are summed late, not
+    // lost: one sum per pace-leg sample over the whole run (leg 0's 11, then leg 1's 90 from
+    // its sample 1 us after leg 0's last, when leg 0 is the one that stops).
+    EXPECT_EQ(sums.size(), silent == 0 ? 11u + 90u : 100u);
   }
-  ADD_FAILURE() << "no sum while leg 0 was silent";
 }
 
 TEST(Corrector, RefusesANonFiniteCalibrationAndKeepsTheOldOne) {

@@ -17,11 +17,14 @@
 // An input older than its configured age sets its stale flag: the number is still published,
 // flagged, never silently used.
 //
-// The sum is worth publishing once per set of six (the service sends every leg-sample on its own
-// and the sum separately, docs/architecture.md "CONTACT_WRENCH"): `sum_due` is set by the sample
-// that completes a set, every leg having a new sample since the previous sum, or, when a leg falls
-// silent, by the first sample more than max_ft_age_s after the previous sum (its stale flag says
-// which).
+// Sums at one instant (NextSum): the six legs' transducers sample on clocks of their own, and a
+// leg's samples arrive a datagram at a time, so "the latest of each leg" mixes moments up to a
+// datagram apart. A sum is taken instead at each sample instant t of the pace leg (the first
+// leg in config order that is not silent: its latest sample, or for a leg never seen the first
+// of any leg, within max_ft_age_s of the newest of any leg), from each leg's corrected sample nearest t (kept in a short history), once every
+// leg that is not silent has a sample at or after t; a silent leg is not waited for, and its
+// sample (or none) flags the sum kFlagStaleFt. So a sum's six wrenches are of the same moment
+// to within half a sample period, whatever the order the legs' messages arrive in.
 //
 // Speed: the per-leg constant transforms (R, p of X_C_ft,k, the offset, the weight, the CoM
 // curve) are precomputed when a calibration is set; a sample costs one leg's correction and a
@@ -63,10 +66,8 @@ struct ContactWrenches {
   double mocap_age_s = -1.0;                // -1: no mocap frame
   int32_t flags = 0;
   // The flags of the triggering sample's own correction (kFlagStaleServo, kFlagStaleMocap,
-  // kFlagSaturated), and those of every leg's latest sample or-ed with kFlagStaleFt (the sum's).
+  // kFlagSaturated).
   int32_t leg_flags = 0;
-  int32_t sum_flags = 0;
-  bool sum_due = false;  // see the header comment: this sample completes a set of six
 };
 
 // One leg-sample's correction, as published on CONTACT_WRENCH.
@@ -82,14 +83,14 @@ LegWrench LegWrenchOf(const ContactWrenches& c);
 
 // The six legs' sum, as published on CONTACT_WRENCH_SUM.
 struct WrenchSum {
-  int64_t utime = 0;
+  int64_t utime = 0;  // the instant: a sample time of the pace leg
   Vec6 total_W = Vec6::Zero();
   Vec6 residual_W = Vec6::Zero();
   int64_t calibration_version = 0;
-  double oldest_ft_age_s = -1.0;  // -1: a leg has no sample yet
-  int32_t flags = 0;              // every leg's latest flags or-ed, with kFlagStaleFt
+  // The largest distance in time of a leg's sample used from utime; -1: a leg has none yet.
+  double oldest_ft_age_s = -1.0;
+  int32_t flags = 0;  // the six samples' flags or-ed, with kFlagStaleFt
 };
-WrenchSum WrenchSumOf(const ContactWrenches& c);
 
 struct CorrectorCounters {
   int64_t ft_in = 0, servo_in = 0, mocap_in = 0;
@@ -118,6 +119,9 @@ class Corrector {
   std::optional<ContactWrenches> AddFt(const FtInput& in, bool saturated);
   // Same without the optional (the hot path): false when there is no output.
   bool AddFt(const FtInput& in, bool saturated, ContactWrenches* out);
+  // The next sum that is due (header comment), oldest first; false when none is yet. Call it
+  // until false after each AddFt.
+  bool NextSum(WrenchSum* out);
 
   const CorrectorCounters& counters() const { return counters_; }
 
@@ -157,9 +161,23 @@ class Corrector {
     Vec3 r_C = Vec3::Zero();
   };
   std::array<ComMemo, kNumLegs> com_memo_;
-  // Legs with a new sample since the last sum (bit k), and that sum's time (-1: none yet).
-  unsigned since_sum_ = 0;
-  int64_t last_sum_utime_ = -1;
+  // Each leg's latest corrected samples, for the sums (oldest overwritten): 256 samples are
+  // 37 ms at 7 kHz, more than one leg's messages lag another's on a loaded host.
+  struct Past {
+    int64_t utime = 0;
+    int32_t flags = 0;
+    Vec6 wrench_W = Vec6::Zero();
+  };
+  static constexpr int kHistory = 256;
+  struct History {
+    std::array<Past, kHistory> ring;
+    int64_t count = 0;  // pushed so far; ring[(count - 1) % kHistory] is the latest
+    const Past& At(int64_t i) const { return ring[static_cast<size_t>(i % kHistory)]; }
+  };
+  std::array<History, kNumLegs> history_;
+  int64_t newest_utime_ = 0;     // of any leg's sample (0: none since the calibration)
+  int64_t first_utime_ = 0;      // the first sample's since the calibration
+  int64_t last_sum_utime_ = -1;  // the last sum's instant (-1: none yet)
   CorrectorCounters counters_;
 };
 
