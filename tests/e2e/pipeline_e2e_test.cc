@@ -322,8 +322,8 @@ class PipelineE2e : public ::testing::Test {
       }
     }
     WalkErrors e;
-    for (const contact_wrench_t& m :
-         ReadChannel<contact_wrench_t>(px->wrench_logs.at(name), ch.contact_wrench())) {
+    for (const LegWrench& m :
+         ReadLegWrenches(px->wrench_logs.at(name), ch.contact_wrench())) {
       ++e.outputs;
       const int k = m.leg;
       EXPECT_TRUE(k >= 0 && k < kNumLegs) << name;
@@ -342,7 +342,7 @@ class PipelineE2e : public ::testing::Test {
       const Pose3 X_W_C(f.R_WC, Vec3::Zero());
       const Vec6 truth = TransformWrench(X_W_C, f.ground_w_C[k]);
       Vec6 got;
-      for (int a = 0; a < 6; ++a) got[a] = m.wrench_w[a];
+      for (int a = 0; a < 6; ++a) got[a] = m.wrench_W[a];
       e.leg_force[k].Add(got.head<3>() - truth.head<3>());
       e.leg_torque[k].Add(got.tail<3>() - truth.tail<3>());
       ++e.leg_samples;
@@ -350,8 +350,8 @@ class PipelineE2e : public ::testing::Test {
     // The first sum whose six legs all carry frame i's samples (each leg's latest sample at the
     // sum's time is of frame i): its total is frame i's.
     int64_t last_total_frame = -1;
-    for (const contact_wrench_sum_t& s :
-         ReadChannel<contact_wrench_sum_t>(px->wrench_logs.at(name), ch.contact_wrench_sum())) {
+    for (const WrenchSum& s :
+         ReadWrenchSums(px->wrench_logs.at(name), ch.contact_wrench_sum())) {
       if (s.flags != 0) continue;  // stale or saturated inputs: flagged, not compared
       int64_t i = -1;
       bool one_frame = true;
@@ -372,7 +372,7 @@ class PipelineE2e : public ::testing::Test {
       Vec6 total_truth = Vec6::Zero();
       for (int l = 0; l < kNumLegs; ++l) total_truth += TransformWrench(X_W_C, f.ground_w_C[l]);
       Vec6 total;
-      for (int a = 0; a < 6; ++a) total[a] = s.total_w[a];
+      for (int a = 0; a < 6; ++a) total[a] = s.total_W[a];
       e.total_force.Add(total.head<3>() - total_truth.head<3>());
       e.total_torque.Add(total.tail<3>() - total_truth.tail<3>());
       ++e.frames_with_total;

@@ -272,8 +272,8 @@ void ExpectSegmenterLostOnlyThatFrame(const std::string& clean, const std::strin
 void ExpectCorrectorLostOnlyThatSample(const std::string& clean, const std::string& dirty,
                                        size_t lost) {
   const auto& ch = fx->config.channels();
-  const auto a = ReadChannel<contact_wrench_t>(clean, ch.contact_wrench());
-  const auto b = ReadChannel<contact_wrench_t>(dirty, ch.contact_wrench());
+  const auto a = ReadLegWrenches(clean, ch.contact_wrench());
+  const auto b = ReadLegWrenches(dirty, ch.contact_wrench());
   ASSERT_EQ(a.size(), fx->frames.size() * kNumLegs);
   ASSERT_EQ(b.size(), a.size() - 1);
   const int64_t lost_utime = Utime(fx->frames[lost].t_s);
@@ -289,16 +289,16 @@ void ExpectCorrectorLostOnlyThatSample(const std::string& clean, const std::stri
   EXPECT_EQ(c.same_inputs + c.inputs_differ, b.size());
   EXPECT_EQ(c.worst, 0.0);
 
-  const auto sa = ReadChannel<contact_wrench_sum_t>(clean, ch.contact_wrench_sum());
-  const auto sb = ReadChannel<contact_wrench_sum_t>(dirty, ch.contact_wrench_sum());
+  const auto sa = ReadWrenchSums(clean, ch.contact_wrench_sum());
+  const auto sb = ReadWrenchSums(dirty, ch.contact_wrench_sum());
   ASSERT_EQ(sa.size(), fx->frames.size());
   ASSERT_EQ(sb.size(), sa.size() - 1);
   for (size_t i = 0; i < sb.size(); ++i) {
-    const contact_wrench_sum_t& ref = sa[i < lost ? i : i + 1];
+    const WrenchSum& ref = sa[i < lost ? i : i + 1];
     EXPECT_EQ(sb[i].utime, ref.utime) << "sum " << i;
     if (i < lost) {
       for (int j = 0; j < 6; ++j)
-        EXPECT_TRUE(SameOrBothNan(sb[i].total_w[j], ref.total_w[j])) << "sum " << i;
+        EXPECT_TRUE(SameOrBothNan(sb[i].total_W[j], ref.total_W[j])) << "sum " << i;
       EXPECT_EQ(sb[i].oldest_ft_age_s, ref.oldest_ft_age_s);
     } else {
       EXPECT_NEAR(sb[i].oldest_ft_age_s, 0.01, 1e-6) << "sum " << i;
@@ -408,8 +408,8 @@ TEST_F(BadLogsTest, CorrectorRefusesACalibrationForOtherLegs) {
   const std::string log = Path("other_legs.lcmlog");
   WriteLog(log, ev);
   const std::string out = Replay(FTCAL_CORRECTOR, log, "corrector_other_legs");
-  EXPECT_TRUE(ReadChannel<contact_wrench_t>(out, ch.contact_wrench()).empty());
-  EXPECT_TRUE(ReadChannel<contact_wrench_sum_t>(out, ch.contact_wrench_sum()).empty());
+  EXPECT_TRUE(ReadLegWrenches(out, ch.contact_wrench()).empty());
+  EXPECT_TRUE(ReadWrenchSums(out, ch.contact_wrench_sum()).empty());
   const service_status_t s = FinalStatus(out);
   auto c = Counters(s);
   EXPECT_EQ(c["calibrations_refused"], 1);

@@ -340,8 +340,8 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   const std::string cor_in = Path("cor_ref_in.lcmlog"), cor_ref = Path("cor_ref.lcmlog");
   WriteLog(cor_in, with_cal);
   RunToEnd({FTCAL_CORRECTOR, "--config", kConfig, "--replay", cor_in, "--out", cor_ref}, "cor_ref");
-  const auto live_w = ReadChannel<contact_wrench_t>(recorded, ch.contact_wrench());
-  const auto ref_w = ReadChannel<contact_wrench_t>(cor_ref, ch.contact_wrench());
+  const auto live_w = ReadLegWrenches(recorded, ch.contact_wrench());
+  const auto ref_w = ReadLegWrenches(cor_ref, ch.contact_wrench());
   const WrenchComparison c = CompareWrenches(live_w, ref_w);
   std::printf(
       "CONTACT_WRENCH: %zu live, %zu replayed; %zu with the same inputs (max |diff| %.3g), "
@@ -365,7 +365,7 @@ TEST_F(PipelineLiveTest, LiveChainGivesTheReplaysPosesCalibrationAndWrenches) {
   EXPECT_EQ(ref_sums.worst, 0.0);
   EXPECT_LT(ref_sums.worst_age, 1e-6);
   EXPECT_GE(ref_sums.sums * kNumLegs + kNumLegs, ref_w.size());
-  const auto live_sums = ReadChannel<contact_wrench_sum_t>(recorded, ch.contact_wrench_sum());
+  const auto live_sums = ReadWrenchSums(recorded, ch.contact_wrench_sum());
   EXPECT_GT(live_sums.size(), live_w.size() / kNumLegs / 2);
   for (const auto& s : live_sums) EXPECT_EQ(s.calibration_version, cal_msg.version);
 }
@@ -455,8 +455,8 @@ TEST_F(PipelineLiveTest, CorrectorKilledAndRestartedCorruptsNothing) {
   logger.Signal(SIGINT);
   ASSERT_TRUE(logger.Wait(10));
 
-  const auto live_w = ReadChannel<contact_wrench_t>(recorded, ch.contact_wrench());
-  const auto ref_w = ReadChannel<contact_wrench_t>(ref, ch.contact_wrench());
+  const auto live_w = ReadLegWrenches(recorded, ch.contact_wrench());
+  const auto ref_w = ReadLegWrenches(ref, ch.contact_wrench());
   size_t ft_events = 0;
   for (const Event& e : walk) ft_events += e.channel.rfind(ch.ft_prefix(), 0) == 0;
   ASSERT_EQ(ref_w.size(), ft_events);

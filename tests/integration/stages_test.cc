@@ -48,6 +48,9 @@ using twin_log::Event;
 using twin_log::Flat;
 using twin_log::kT0;
 using twin_log::ReadChannel;
+using twin_log::ReadFtRecords;
+using twin_log::ReadLegWrenches;
+using twin_log::ReadWrenchSums;
 using twin_log::Utime;
 using twin_log::WriteLog;
 
@@ -275,8 +278,8 @@ TEST_F(StagesTest, SegmenterReplayAlignsEveryFrameAndFindsEachPoseWithTrueMedian
 TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibrationMidRun) {
   const std::string out = Replay(FTCAL_CORRECTOR, fx->log_path, "corrector");
   const auto& ch = fx->config.channels();
-  const auto wrenches = ReadChannel<contact_wrench_t>(out, ch.contact_wrench());
-  const auto sums = ReadChannel<contact_wrench_sum_t>(out, ch.contact_wrench_sum());
+  const auto wrenches = ReadLegWrenches(out, ch.contact_wrench());
+  const auto sums = ReadWrenchSums(out, ch.contact_wrench_sum());
   // One output per transducer sample; one sum per frame, when its six legs have come.
   ASSERT_EQ(wrenches.size(), fx->frames.size() * kNumLegs);
   ASSERT_EQ(sums.size(), fx->frames.size());
@@ -285,35 +288,35 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
   // arms up to 0.3 m.
   double sum_sq_f = 0, sum_sq_tau = 0, max_f = 0, max_tau = 0;
   int n = 0;
-  for (const contact_wrench_t& m : wrenches) {
+  for (const LegWrench& m : wrenches) {
     const TwinFrame& f = FrameAt(m.utime);
     const int k = m.leg;
     // Expected flags: the first frame's readings come before any servo state or mocap frame
     // (stale servo and mocap, the leg's wrench NaN).
     if (m.utime == kT0) {
-      EXPECT_EQ(m.flags, contact_wrench_t::FLAG_STALE_SERVO | contact_wrench_t::FLAG_STALE_MOCAP);
-      EXPECT_TRUE(std::isnan(m.wrench_w[2]));
+      EXPECT_EQ(m.flags, kFlagStaleServo | kFlagStaleMocap);
+      EXPECT_TRUE(std::isnan(m.wrench_W[2]));
       continue;
     }
     EXPECT_EQ(m.flags, 0) << "utime " << m.utime << " leg " << k;
     const Vec6 truth_W = TransformWrench(Pose3(f.R_WC, Vec3::Zero()), f.ground_w_C[k]);
     for (int i = 0; i < 6; ++i) {
-      const double e = std::abs(m.wrench_w[i] - truth_W[i]);
+      const double e = std::abs(m.wrench_W[i] - truth_W[i]);
       (i < 3 ? sum_sq_f : sum_sq_tau) += e * e;
       (i < 3 ? max_f : max_tau) = std::max(i < 3 ? max_f : max_tau, e);
     }
     ++n;
   }
   const double weight = fx->twin->Truth().TotalWeightN();
-  for (const contact_wrench_sum_t& s : sums) {
+  for (const WrenchSum& s : sums) {
     const TwinFrame& f = FrameAt(s.utime);  // the frame whose last leg completed the set
     // The first frame's: every leg stale servo and mocap, no number. A new calibration forgets
     // the legs corrected with the old one: no sum mixes the two (CheckSums below), and the sum
     // of the frame where v2 arrives is all v2 (the calibration arrives between frames).
     if (s.utime == kT0) {
       EXPECT_EQ(s.flags,
-                contact_wrench_sum_t::FLAG_STALE_SERVO | contact_wrench_sum_t::FLAG_STALE_MOCAP);
-      EXPECT_TRUE(std::isnan(s.total_w[2]));
+                kFlagStaleServo | kFlagStaleMocap);
+      EXPECT_TRUE(std::isnan(s.total_W[2]));
       continue;
     }
     EXPECT_EQ(s.flags, 0) << "utime " << s.utime;
@@ -322,9 +325,9 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
     EXPECT_EQ(s.calibration_version, s.utime < fx->v2_utime ? 1 : 2);
     // All six legs of this frame: their sum is the robot's weight when the pose is steady.
     if (f.steady) {
-      EXPECT_NEAR(s.total_w[2], weight, 1.0);
+      EXPECT_NEAR(s.total_W[2], weight, 1.0);
     }
-    EXPECT_NEAR(s.residual_w[2], s.total_w[2] - weight, 1e-9);
+    EXPECT_NEAR(s.residual_W[2], s.total_W[2] - weight, 1e-9);
   }
   const twin_log::SumCheck sc =
       twin_log::CheckSums(out, ch.contact_wrench(), ch.contact_wrench_sum(), weight);
@@ -445,8 +448,8 @@ TEST_F(StagesTest, SegmenterRestartedMidPoseLosesAtMostThatPose) {
 TEST_F(StagesTest, CorrectorWithoutACalibrationPublishesNothingAndSaysWhy) {
   const std::string out = Replay(FTCAL_CORRECTOR, fx->log_no_cal_path, "corrector_no_cal");
   const auto& ch = fx->config.channels();
-  EXPECT_TRUE(ReadChannel<contact_wrench_t>(out, ch.contact_wrench()).empty());
-  EXPECT_TRUE(ReadChannel<contact_wrench_sum_t>(out, ch.contact_wrench_sum()).empty());
+  EXPECT_TRUE(ReadLegWrenches(out, ch.contact_wrench()).empty());
+  EXPECT_TRUE(ReadWrenchSums(out, ch.contact_wrench_sum()).empty());
   const auto status = ReadChannel<service_status_t>(out, ch.status());
   ASSERT_EQ(status.size(), 1u);
   EXPECT_NE(status[0].last_error.find("no calibration"), std::string::npos) << status[0].last_error;
@@ -470,10 +473,10 @@ TEST_F(StagesTest, CorrectorStartsWithACalibrationFile) {
   const auto status = child.Wait(120);
   ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
       << ReadFile(fx->dir + "/corrector_file.err");
-  const auto wrenches = ReadChannel<contact_wrench_t>(out, fx->config.channels().contact_wrench());
+  const auto wrenches = ReadLegWrenches(out, fx->config.channels().contact_wrench());
   ASSERT_EQ(wrenches.size(), fx->frames.size() * kNumLegs);
   const auto sums =
-      ReadChannel<contact_wrench_sum_t>(out, fx->config.channels().contact_wrench_sum());
+      ReadWrenchSums(out, fx->config.channels().contact_wrench_sum());
   ASSERT_FALSE(sums.empty());
   EXPECT_EQ(sums.back().calibration_version, 5);
 

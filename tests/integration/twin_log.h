@@ -15,11 +15,12 @@
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
 
+#include "common/messages.h"
 #include "ftcal/config.h"
 #include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "sim/twin.h"
@@ -118,15 +119,16 @@ inline void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vect
   const int64_t t = Utime(f.t_s);
   const auto& ch = cfg.channels();
   for (int k = 0; k < kNumLegs; ++k) {
-    ft_sample_t m{};
-    m.utime = t;
-    m.leg = std::string(kLegNames[k]);
-    m.rdt_sequence = std::llround(f.t_s * 100) + 1;
-    m.ft_sequence = 70 * m.rdt_sequence;
-    for (int i = 0; i < 6; ++i) {
-      m.counts[i] = f.counts[k][i];
-      m.wrench[i] = f.reading[k][i];
-    }
+    FtBatch b;
+    b.leg = k;
+    b.receipt_utime = t;
+    b.n = 1;
+    FtRecord& r = b.records[0];
+    r.in = {t, k, f.reading[k], 0};
+    r.rdt_sequence = std::llround(f.t_s * 100) + 1;
+    r.ft_sequence = 70 * r.rdt_sequence;
+    ft_batch_t m = ToLcm(b);
+    for (size_t i = 0; i < 6; ++i) m.counts[0][i] = f.counts[k][i];
     events->push_back(Encode(t, ch.ft_prefix() + m.leg, m));
   }
   servo_state_t s{};
@@ -213,16 +215,42 @@ inline size_t AppendSession(const BigAntTwin& twin, const config::Config& cfg,
 
 inline bool SameOrBothNan(double a, double b) { return a == b || (std::isnan(a) && std::isnan(b)); }
 
-using WrenchKey = std::pair<int64_t, int32_t>;  // (utime, leg)
-using WrenchIndex = std::map<WrenchKey, const contact_wrench_t*>;
+// The batched messages of a channel, one element per sample.
+inline std::vector<LegWrench> ReadLegWrenches(const std::string& path, const std::string& channel) {
+  std::vector<LegWrench> out;
+  for (const contact_wrench_t& m : ReadChannel<contact_wrench_t>(path, channel)) {
+    for (const LegWrench& w : FromLcm(m)) out.push_back(w);
+  }
+  return out;
+}
+inline std::vector<WrenchSum> ReadWrenchSums(const std::string& path, const std::string& channel) {
+  std::vector<WrenchSum> out;
+  for (const contact_wrench_sum_t& m : ReadChannel<contact_wrench_sum_t>(path, channel)) {
+    for (const WrenchSum& s : FromLcm(m)) out.push_back(s);
+  }
+  return out;
+}
+inline std::vector<FtRecord> ReadFtRecords(const std::string& path, const std::string& channel,
+                                           int leg) {
+  std::vector<FtRecord> out;
+  FtBatch batch;
+  for (const ft_batch_t& m : ReadChannel<ft_batch_t>(path, channel)) {
+    FromLcm(m, leg, &batch);
+    out.insert(out.end(), batch.begin(), batch.end());
+  }
+  return out;
+}
 
-inline WrenchIndex IndexWrenches(const std::vector<contact_wrench_t>& v) {
+using WrenchKey = std::pair<int64_t, int32_t>;  // (utime, leg)
+using WrenchIndex = std::map<WrenchKey, const LegWrench*>;
+
+inline WrenchIndex IndexWrenches(const std::vector<LegWrench>& v) {
   WrenchIndex index;
   for (const auto& m : v) index[{m.utime, m.leg}] = &m;
   return index;
 }
 
-inline bool SameInputs(const contact_wrench_t& a, const contact_wrench_t& b) {
+inline bool SameInputs(const LegWrench& a, const LegWrench& b) {
   return a.flags == b.flags && SameOrBothNan(a.servo_age_s, b.servo_age_s) &&
          SameOrBothNan(a.mocap_age_s, b.mocap_age_s);
 }
@@ -236,9 +264,9 @@ inline void Worst(double x, double y, double* worst) {
   }
 }
 
-inline double MaxWrenchDifference(const contact_wrench_t& a, const contact_wrench_t& b) {
+inline double MaxWrenchDifference(const LegWrench& a, const LegWrench& b) {
   double worst = 0.0;
-  for (int i = 0; i < 6; ++i) Worst(a.wrench_w[i], b.wrench_w[i], &worst);
+  for (int i = 0; i < 6; ++i) Worst(a.wrench_W[i], b.wrench_W[i], &worst);
   return worst;
 }
 
@@ -252,8 +280,8 @@ struct WrenchComparison {
   std::vector<int64_t> differ_utimes;
 };
 
-inline WrenchComparison CompareWrenches(const std::vector<contact_wrench_t>& test,
-                                        const std::vector<contact_wrench_t>& ref) {
+inline WrenchComparison CompareWrenches(const std::vector<LegWrench>& test,
+                                        const std::vector<LegWrench>& ref) {
   const WrenchIndex r_index = IndexWrenches(ref);
   std::map<WrenchKey, int> seen;
   WrenchComparison c;
@@ -276,11 +304,12 @@ inline WrenchComparison CompareWrenches(const std::vector<contact_wrench_t>& tes
   return c;
 }
 
-// Every CONTACT_WRENCH_SUM of a log against the leg-samples published before it in the same log:
-// its total is the sum of the six legs' latest wrench_w, its residual that total minus
-// (0, 0, weight_n, 0, 0, 0) (not checked when weight_n is NaN), its oldest_ft_age_s the oldest
-// of their ages. A sum while a leg has
-// no sample under the current calibration carries NaN (counted in nan_sums, not compared).
+// Every sum of a log's CONTACT_WRENCH_SUM against the leg-samples published before it in the
+// same log: its total is the sum of each leg's sample nearest its instant (the earlier of two
+// as near), its residual that total minus (0, 0, weight_n, 0, 0, 0) (not checked when weight_n
+// is NaN), its oldest_ft_age_s the largest distance of those samples from the instant. A sum
+// while a leg has no sample under the current calibration carries NaN (counted in nan_sums,
+// not compared).
 struct SumCheck {
   size_t sums = 0;
   size_t nan_sums = 0;
@@ -293,8 +322,7 @@ inline SumCheck CheckSums(const std::string& path, const std::string& leg_channe
                           const std::string& sum_channel, double weight_n) {
   SumCheck c;
   lcm::LogFile log(path, "r");
-  std::array<contact_wrench_t, kNumLegs> current{};
-  std::array<bool, kNumLegs> have{};
+  std::array<std::vector<LegWrench>, kNumLegs> seen;
   while (const lcm::LogEvent* e = log.readNextEvent()) {
     if (e->channel == leg_channel) {
       contact_wrench_t m;
@@ -302,34 +330,44 @@ inline SumCheck CheckSums(const std::string& path, const std::string& leg_channe
         ADD_FAILURE() << "bad contact_wrench_t in " << path;
         continue;
       }
-      current[m.leg] = m;
-      have[m.leg] = true;
-      ++c.legs;
+      for (const LegWrench& w : FromLcm(m)) {
+        seen[static_cast<size_t>(w.leg)].push_back(w);
+        ++c.legs;
+      }
     } else if (e->channel == sum_channel) {
-      contact_wrench_sum_t s{};
-      if (s.decode(e->data, 0, e->datalen) != e->datalen) {
+      contact_wrench_sum_t m{};
+      if (m.decode(e->data, 0, e->datalen) != e->datalen) {
         ADD_FAILURE() << "bad contact_wrench_sum_t in " << path;
         continue;
       }
-      ++c.sums;
-      if (std::isnan(s.total_w[0]) ||
-          !std::all_of(have.begin(), have.end(), [](bool b) { return b; })) {
-        ++c.nan_sums;
-        continue;
-      }
-      double total[6] = {0, 0, 0, 0, 0, 0};
-      double oldest = 0.0;
-      for (int k = 0; k < kNumLegs; ++k) {
-        for (int i = 0; i < 6; ++i) total[i] += current[k].wrench_w[i];
-        oldest = std::max(oldest, 1e-6 * static_cast<double>(s.utime - current[k].utime));
-      }
-      for (int i = 0; i < 6; ++i) {
-        Worst(s.total_w[i], total[i], &c.worst);
-        if (!std::isnan(weight_n)) {
-          Worst(s.residual_w[i], total[i] - (i == 2 ? weight_n : 0.0), &c.worst);
+      for (const WrenchSum& s : FromLcm(m)) {
+        ++c.sums;
+        if (std::isnan(s.total_W[0]) ||
+            std::any_of(seen.begin(), seen.end(), [](const auto& v) { return v.empty(); })) {
+          ++c.nan_sums;
+          continue;
         }
+        Vec6 total = Vec6::Zero();
+        double oldest = 0.0;
+        for (const auto& legs : seen) {
+          auto it = std::lower_bound(
+              legs.begin(), legs.end(), s.utime,
+              [](const LegWrench& w, int64_t t) { return w.utime < t; });
+          if (it == legs.end() || (it != legs.begin() && s.utime - std::prev(it)->utime <=
+                                                             it->utime - s.utime)) {
+            --it;
+          }
+          total += it->wrench_W;
+          oldest = std::max(oldest, 1e-6 * static_cast<double>(std::abs(s.utime - it->utime)));
+        }
+        for (int i = 0; i < 6; ++i) {
+          Worst(s.total_W[i], total[i], &c.worst);
+          if (!std::isnan(weight_n)) {
+            Worst(s.residual_W[i], total[i] - (i == 2 ? weight_n : 0.0), &c.worst);
+          }
+        }
+        c.worst_age = std::max(c.worst_age, std::abs(s.oldest_ft_age_s - oldest));
       }
-      c.worst_age = std::max(c.worst_age, std::abs(s.oldest_ft_age_s - oldest));
     }
   }
   return c;
