@@ -26,7 +26,7 @@
 #include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
@@ -139,16 +139,16 @@ class StagesTest : public ::testing::Test {
     // as a drop and change nothing.
     const int64_t t100 = Utime(fx->frames[100].t_s), t99 = Utime(fx->frames[99].t_s);
     std::vector<Event> bad;
-    ft_sample_t ft{};
-    ft.utime = t100 - 5;
-    ft.leg = "HL";
-    ft.wrench[2] = std::nan("");
-    bad.push_back(Encode(t100 - 5, ch.ft_prefix() + "HL", ft));  // NaN
-    ft.wrench[2] = 1.0;
-    bad.push_back(Encode(t100 - 5, ch.ft_prefix() + "ML", ft));  // another leg's sample
-    ft.leg = "HR";
-    ft.utime = t99;
-    bad.push_back(Encode(t100 - 4, ch.ft_prefix() + "HR", ft));  // not newer than HR's last
+    FtInput in{t100 - 5, 0, Vec6::Zero(), 0};
+    in.wrench[2] = std::nan("");
+    bad.push_back(Encode(t100 - 5, ch.ft_prefix() + "HL", ToLcm(BatchOf(in, t100 - 5))));  // NaN
+    in.wrench[2] = 1.0;
+    // another leg's sample
+    bad.push_back(Encode(t100 - 5, ch.ft_prefix() + "ML", ToLcm(BatchOf(in, t100 - 5))));
+    in.leg = 3;  // HR
+    in.utime = t99;
+    // not newer than HR's last
+    bad.push_back(Encode(t100 - 4, ch.ft_prefix() + "HR", ToLcm(BatchOf(in, t100 - 4))));
     bad.push_back(Event{t100 - 4, ch.ft_prefix() + "FR", {1, 2, 3, 4, 5}});  // undecodable
     servo_state_t servo{};
     servo.utime = t100 - 3;

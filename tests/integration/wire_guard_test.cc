@@ -21,7 +21,7 @@
 #include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/process_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
@@ -89,7 +89,7 @@ TEST(WireSchemaTest, EveryMessageTypeHasASchemaWithLcmGensFingerprint) {
   ExpectSchemaMatches<calibration_t>();
   ExpectSchemaMatches<contact_wrench_t>();
   ExpectSchemaMatches<experiment_marker_t>();
-  ExpectSchemaMatches<ft_sample_t>();
+  ExpectSchemaMatches<ft_batch_t>();
   ExpectSchemaMatches<mocap_body_t>();
   ExpectSchemaMatches<service_status_t>();
   ExpectSchemaMatches<servo_command_t>();
@@ -132,13 +132,41 @@ TEST(WireGuardTest, WellFormedMessagesPassAndDecodeAsSent) {
   EXPECT_EQ(got.body, "chassis");
   EXPECT_TRUE(std::isnan(got.residual_m));
 
-  // Fixed-size arrays only (one leg per message): nothing to cap, the size is the type's.
+  // A batch of the most samples a message may carry (MAX_N) passes; one more is refused
+  // before any decoding, naming the type's own cap, though the bytes are all there.
   contact_wrench_t cw{};
   cw.leg = 1;
-  for (int i = 0; i < 6; ++i) cw.wrench_w[i] = i + 1;
-  cw.servo_age_s = 0.001f;
-  cw.mocap_age_s = -1.0f;
-  EXPECT_FALSE(Guard<contact_wrench_t>(Encode(cw)));
+  for (int n = contact_wrench_t::MAX_N; n <= contact_wrench_t::MAX_N + 1; ++n) {
+    cw.n = static_cast<int16_t>(n);
+    cw.utime.assign(static_cast<size_t>(n), 5);
+    cw.wrench_w.assign(static_cast<size_t>(n), std::vector<double>{1, 2, 3, 4, 5, 6});
+    cw.servo_age_s.assign(static_cast<size_t>(n), 0.001f);
+    cw.mocap_age_s.assign(static_cast<size_t>(n), -1.0f);
+    cw.flags.assign(static_cast<size_t>(n), 0);
+    const auto refused = Guard<contact_wrench_t>(Encode(cw));
+    if (n == contact_wrench_t::MAX_N) {
+      EXPECT_FALSE(refused);
+    } else {
+      ASSERT_TRUE(refused);
+      EXPECT_EQ(refused->kind, "length over cap");
+      EXPECT_NE(refused->detail.find("(cap 40)"), std::string::npos) << refused->detail;
+    }
+  }
+  ft_batch_t ft{};
+  ft.leg = "HL";
+  ft.n = ft_batch_t::MAX_N + 1;
+  const auto n = static_cast<size_t>(ft.n);
+  ft.sample_utime.assign(n, 1);
+  ft.rdt_sequence.assign(n, 1);
+  ft.ft_sequence.assign(n, 1);
+  ft.status.assign(n, 0);
+  ft.counts.assign(n, std::vector<int32_t>(6, 0));
+  ft.wrench.assign(n, std::vector<double>(6, 0.0));
+  ft.gap.assign(n, 0);
+  ft.flags.assign(n, 0);
+  const auto ft_refused = Guard<ft_batch_t>(Encode(ft));
+  ASSERT_TRUE(ft_refused);
+  EXPECT_EQ(ft_refused->kind, "length over cap");
 
   service_status_t st{};
   st.name = "ftcal-x";

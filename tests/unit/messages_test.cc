@@ -54,47 +54,81 @@ std::string BadInputReason(Fn fn) {
   return "";
 }
 
-TEST(Messages, FtSampleRoundTrip) {
+FtBatch SomeBatch(int leg, int n) {
   Distinct d;
-  FtInput in;
-  in.utime = 1'700'000'000'123'456;
-  in.leg = 4;
-  in.wrench = DistinctVec6(d);
-  in.flags = ft_sample_t::FLAG_SATURATED | ft_sample_t::FLAG_GAP;
-  const ft_sample_t msg = ToLcm(in);
-  EXPECT_EQ(msg.leg, "MR");
-  const FtInput back = FromLcm(msg, 4);
-  EXPECT_EQ(back.utime, in.utime);
-  EXPECT_EQ(back.leg, in.leg);
-  EXPECT_EQ(back.wrench, in.wrench);
-  EXPECT_EQ(back.flags, in.flags);
-  // On another leg's channel the message is refused, naming both.
-  const std::string why = BadInputReason([&] { FromLcm(msg, 1); });
-  EXPECT_NE(why.find("'MR'"), std::string::npos) << why;
-  EXPECT_NE(why.find("ML"), std::string::npos) << why;
+  FtBatch b;
+  b.leg = leg;
+  b.receipt_utime = 1'700'000'000'123'999;
+  b.n = n;
+  for (int i = 0; i < n; ++i) {
+    FtRecord& r = b.records[static_cast<size_t>(i)];
+    r.in.utime = 1'700'000'000'123'456 + 143 * i;
+    r.in.leg = leg;
+    r.in.wrench = DistinctVec6(d);
+    r.in.flags = i % 2 ? ft_batch_t::FLAG_SATURATED | ft_batch_t::FLAG_GAP : 0;
+    r.rdt_sequence = 4'294'967'290 + i;
+    r.ft_sequence = 7 * i - 3;
+    r.status = i == 1 ? 0x20000 : 0;
+    r.gap = i;
+  }
+  return b;
 }
 
-// The in-place read agrees with the generated encoder for every leg name length and sign of
-// the number, and refuses what is not an ft_sample_t or is cut short.
-TEST(Messages, PeekRdtSequenceReadsWhatTheEncoderWrote) {
-  for (const std::string& leg : {std::string(""), std::string("HL"), std::string("LEG_SEVEN")}) {
+void ExpectSame(const FtRecord& a, const FtRecord& b);
+
+TEST(Messages, FtBatchRoundTrip) {
+  for (const int n : {1, 7, kMaxFtRecords}) {
+    const FtBatch in = SomeBatch(4, n);
+    const ft_batch_t msg = ToLcm(in);
+    EXPECT_EQ(msg.leg, "MR");
+    EXPECT_EQ(msg.n, n);
+    FtBatch back;
+    FromLcm(msg, 4, &back);
+    EXPECT_EQ(back.leg, 4);
+    EXPECT_EQ(back.receipt_utime, in.receipt_utime);
+    ASSERT_EQ(back.n, n);
+    for (int i = 0; i < n; ++i) {
+      ExpectSame(back.records[static_cast<size_t>(i)], in.records[static_cast<size_t>(i)]);
+    }
+    // On another leg's channel the message is refused, naming both.
+    const std::string why = BadInputReason([&] { FromLcm(msg, 1, &back); });
+    EXPECT_NE(why.find("'MR'"), std::string::npos) << why;
+    EXPECT_NE(why.find("ML"), std::string::npos) << why;
+  }
+  // A batch of none, or of more than a datagram can hold, is refused, naming the count.
+  ft_batch_t empty = ToLcm(SomeBatch(0, 1));
+  empty.n = 0;
+  FtBatch out;
+  EXPECT_NE(BadInputReason([&] { FromLcm(empty, 0, &out); }).find("holds 0 records"),
+            std::string::npos);
+  const FtInput one{5, 2, Vec6::Constant(1.5), 0};
+  const FtBatch single = BatchOf(one, 9);
+  EXPECT_EQ(single.n, 1);
+  EXPECT_EQ(single.leg, 2);
+  EXPECT_EQ(single.receipt_utime, 9);
+  EXPECT_EQ(single.records[0].in.wrench, one.wrench);
+}
+
+// The in-place read agrees with the generated encoder for any count and sign of the numbers,
+// and refuses what is not an ft_batch_t of the channel's leg or is cut short.
+TEST(Messages, PeekRdtSequencesReadsWhatTheEncoderWrote) {
+  for (const int n : {1, 7, kMaxFtRecords}) {
     for (int64_t seq : {int64_t{1}, int64_t{4'294'967'295}, int64_t{-7}, int64_t{1} << 40}) {
-      ft_sample_t msg{};
-      msg.utime = 1'700'000'000'123'456;
-      msg.leg = leg;
-      msg.rdt_sequence = seq;
-      msg.ft_sequence = 99;
-      std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
-      ASSERT_EQ(msg.encode(bytes.data(), 0, static_cast<int>(bytes.size())),
+      FtBatch b = SomeBatch(0, n);
+      for (int i = 0; i < n; ++i) b.records[static_cast<size_t>(i)].rdt_sequence = seq + 3 * i;
+      std::vector<uint8_t> bytes(static_cast<size_t>(ToLcm(b).getEncodedSize()));
+      ASSERT_EQ(ToLcm(b).encode(bytes.data(), 0, static_cast<int>(bytes.size())),
                 static_cast<int>(bytes.size()));
       const auto size = static_cast<int>(bytes.size());
-      EXPECT_EQ(PeekRdtSequence(bytes.data(), size), seq) << "leg '" << leg << "'";
-      // Cut short before the number ends: refused, not read past the end.
-      const int leg_end = 20 + static_cast<int>(leg.size()) + 1;
-      EXPECT_EQ(PeekRdtSequence(bytes.data(), leg_end + 7), std::nullopt);
-      EXPECT_EQ(PeekRdtSequence(bytes.data(), 19), std::nullopt);
-      bytes[3] ^= 0x01;  // another fingerprint
-      EXPECT_EQ(PeekRdtSequence(bytes.data(), size), std::nullopt);
+      std::array<int64_t, kMaxFtRecords> got{};
+      ASSERT_EQ(PeekRdtSequences(bytes.data(), size, 0, &got), n);
+      for (int i = 0; i < n; ++i) EXPECT_EQ(got[static_cast<size_t>(i)], seq + 3 * i);
+      // Another leg's channel, cut short, another fingerprint: refused, not read past the end.
+      EXPECT_EQ(PeekRdtSequences(bytes.data(), size, 1, &got), std::nullopt);
+      EXPECT_EQ(PeekRdtSequences(bytes.data(), size - 1, 0, &got), std::nullopt);
+      EXPECT_EQ(PeekRdtSequences(bytes.data(), 19, 0, &got), std::nullopt);
+      bytes[3] ^= 0x01;
+      EXPECT_EQ(PeekRdtSequences(bytes.data(), size, 0, &got), std::nullopt);
     }
   }
 }
@@ -112,11 +146,13 @@ std::vector<uint8_t> Encoded(const Msg& msg) {
 bool SameBits(double a, double b) { return std::memcmp(&a, &b, sizeof a) == 0; }
 
 // What wire::Decode then FromLcm give for these bytes; nullopt when either refuses.
-std::optional<FtInput> DecodedFt(const std::vector<uint8_t>& b, int leg) {
-  ft_sample_t msg;
+std::optional<FtBatch> DecodedFt(const std::vector<uint8_t>& b, int leg) {
+  ft_batch_t msg;
   if (wire::Decode(b.data(), static_cast<int>(b.size()), &msg)) return std::nullopt;
   try {
-    return FromLcm(msg, leg);
+    FtBatch out;
+    FromLcm(msg, leg, &out);
+    return out;
   } catch (const BadInput&) {
     return std::nullopt;
   }
@@ -145,6 +181,21 @@ void ExpectSame(const FtInput& a, const FtInput& b) {
   for (int i = 0; i < 6; ++i) EXPECT_TRUE(SameBits(a.wrench[i], b.wrench[i])) << i;
   EXPECT_EQ(a.flags, b.flags);
 }
+void ExpectSame(const FtRecord& a, const FtRecord& b) {
+  ExpectSame(a.in, b.in);
+  EXPECT_EQ(a.rdt_sequence, b.rdt_sequence);
+  EXPECT_EQ(a.ft_sequence, b.ft_sequence);
+  EXPECT_EQ(a.status, b.status);
+  EXPECT_EQ(a.gap, b.gap);
+}
+void ExpectSame(const FtBatch& a, const FtBatch& b) {
+  EXPECT_EQ(a.leg, b.leg);
+  EXPECT_EQ(a.receipt_utime, b.receipt_utime);
+  ASSERT_EQ(a.n, b.n);
+  for (int i = 0; i < a.n; ++i) {
+    ExpectSame(a.records[static_cast<size_t>(i)], b.records[static_cast<size_t>(i)]);
+  }
+}
 void ExpectSame(const ServoInput& a, const ServoInput& b) {
   EXPECT_EQ(a.utime, b.utime);
   for (int k = 0; k < kNumLegs; ++k) EXPECT_TRUE(SameBits(a.angle_rad[k], b.angle_rad[k])) << k;
@@ -158,19 +209,15 @@ void ExpectSame(const MocapInput& a, const MocapInput& b) {
   }
 }
 
-ft_sample_t SomeFtSample(int leg) {
-  Distinct d;
-  ft_sample_t msg{};
-  msg.utime = 1'700'000'000'123'456;
-  msg.leg = std::string(kLegNames[static_cast<size_t>(leg)]);
-  msg.rdt_sequence = 4'294'967'295;
-  msg.ft_sequence = -3;
-  msg.status = 0x20000;
-  for (int i = 0; i < 6; ++i) msg.counts[i] = -1000 * (i + 1);
-  for (int i = 0; i < 6; ++i) msg.wrench[i] = (i % 2 ? -1 : 1) * d();
-  msg.wrench[4] = std::numeric_limits<double>::quiet_NaN();
-  msg.gap = 2;
-  msg.flags = -2;  // every bit but the first: the sign bit read as the encoder wrote it
+// Every field distinct, a NaN, a negative counter and flags with the sign bit: read as the
+// encoder wrote them.
+ft_batch_t SomeFtBatch(int leg, int n = 7) {
+  ft_batch_t msg = ToLcm(SomeBatch(leg, n));
+  for (int i = 0; i < n; ++i) {
+    for (size_t j = 0; j < 6; ++j) msg.counts[static_cast<size_t>(i)][j] = -1000 * (i + 1);
+  }
+  msg.wrench[static_cast<size_t>(n - 1)][4] = std::numeric_limits<double>::quiet_NaN();
+  msg.flags[0] = -2;
   return msg;
 }
 
@@ -197,27 +244,28 @@ mocap_body_t SomeMocapBody(const std::string& body, int markers, bool all_tracke
   return msg;
 }
 
-TEST(Messages, PeekFtSampleGivesWhatTheDecoderGives) {
+TEST(Messages, PeekFtBatchGivesWhatTheDecoderGives) {
   for (int leg = 0; leg < kNumLegs; ++leg) {
-    const std::vector<uint8_t> b = Encoded(SomeFtSample(leg));
-    const auto size = static_cast<int>(b.size());
-    const std::optional<FtPeek> peek = PeekFtSample(b.data(), size, leg);
-    ASSERT_TRUE(peek.has_value()) << kLegNames[static_cast<size_t>(leg)];
-    ExpectSame(peek->in, *DecodedFt(b, leg));
-    EXPECT_EQ(peek->rdt_sequence, 4'294'967'295);
-    EXPECT_EQ(peek->ft_sequence, -3);
-    EXPECT_EQ(peek->status, 0x20000);
-    EXPECT_EQ(peek->in.flags, -2);
-    // On another leg's channel, cut short, one byte too many, another fingerprint: not read
-    // here (the decoder then says what is wrong).
-    EXPECT_FALSE(PeekFtSample(b.data(), size, (leg + 1) % kNumLegs));
-    EXPECT_FALSE(PeekFtSample(b.data(), size - 1, leg));
-    std::vector<uint8_t> longer = b;
-    longer.push_back(0);
-    EXPECT_FALSE(PeekFtSample(longer.data(), size + 1, leg));
-    std::vector<uint8_t> other = b;
-    other[3] ^= 0x01;
-    EXPECT_FALSE(PeekFtSample(other.data(), size, leg));
+    for (const int n : {1, 7, kMaxFtRecords}) {
+      const std::vector<uint8_t> b = Encoded(SomeFtBatch(leg, n));
+      const auto size = static_cast<int>(b.size());
+      FtBatch peek;
+      ASSERT_TRUE(PeekFtBatch(b.data(), size, leg, &peek)) << kLegNames[static_cast<size_t>(leg)];
+      ExpectSame(peek, *DecodedFt(b, leg));
+      EXPECT_EQ(peek.records[0].rdt_sequence, 4'294'967'290);
+      EXPECT_EQ(peek.records[0].ft_sequence, -3);
+      EXPECT_EQ(peek.records[0].in.flags, -2);
+      // On another leg's channel, cut short, one byte too many, another fingerprint: not read
+      // here (the decoder then says what is wrong).
+      EXPECT_FALSE(PeekFtBatch(b.data(), size, (leg + 1) % kNumLegs, &peek));
+      EXPECT_FALSE(PeekFtBatch(b.data(), size - 1, leg, &peek));
+      std::vector<uint8_t> longer = b;
+      longer.push_back(0);
+      EXPECT_FALSE(PeekFtBatch(longer.data(), size + 1, leg, &peek));
+      std::vector<uint8_t> other = b;
+      other[3] ^= 0x01;
+      EXPECT_FALSE(PeekFtBatch(other.data(), size, leg, &peek));
+    }
   }
 }
 
@@ -298,12 +346,13 @@ TEST(Messages, PeeksAcceptExactlyWhatTheDecoderAccepts) {
   int ft_read = 0, servo_read = 0, mocap_read = 0;
   for (int t = 0; t < kTries; ++t) {
     const int leg = t % kNumLegs;
-    const std::vector<uint8_t> ft = damaged(Encoded(SomeFtSample(leg)));
-    const auto ft_peek = PeekFtSample(ft.data(), static_cast<int>(ft.size()), leg);
-    const std::optional<FtInput> ft_decoded = DecodedFt(ft, leg);
-    ASSERT_EQ(ft_peek.has_value(), ft_decoded.has_value()) << "try " << t;
-    if (ft_peek) {
-      ExpectSame(ft_peek->in, *ft_decoded);
+    const std::vector<uint8_t> ft = damaged(Encoded(SomeFtBatch(leg, 1 + t % 8)));
+    FtBatch ft_peek;
+    const bool ft_peeked = PeekFtBatch(ft.data(), static_cast<int>(ft.size()), leg, &ft_peek);
+    const std::optional<FtBatch> ft_decoded = DecodedFt(ft, leg);
+    ASSERT_EQ(ft_peeked, ft_decoded.has_value()) << "try " << t;
+    if (ft_peeked) {
+      ExpectSame(ft_peek, *ft_decoded);
       ++ft_read;
     }
 
@@ -548,46 +597,82 @@ TEST(Messages, CalibrationRoundTripAndRefusals) {
 
 TEST(Messages, ContactWrenchRoundTrip) {
   Distinct d;  // multiples of 1/8: the float ages carry them exactly
-  LegWrench w;
-  w.utime = 31337;
-  w.leg = 2;
-  w.wrench_W = DistinctVec6(d);
-  w.servo_age_s = d();
-  w.mocap_age_s = d();
-  w.flags = kFlagStaleMocap | kFlagSaturated;
-  const contact_wrench_t msg = ToLcm(w);
-  const LegWrench back = FromLcm(msg);
-  EXPECT_EQ(back.utime, w.utime);
-  EXPECT_EQ(back.leg, w.leg);
-  EXPECT_EQ(back.wrench_W, w.wrench_W);
-  EXPECT_EQ(back.servo_age_s, w.servo_age_s);
-  EXPECT_EQ(back.mocap_age_s, w.mocap_age_s);
-  EXPECT_EQ(back.flags, w.flags);
-  // The size the architecture map quotes: fingerprint + payload.
-  EXPECT_EQ(msg.getEncodedSize(), 8 + 66);
-  contact_wrench_t bad = msg;
+  std::vector<LegWrench> in;
+  for (int i = 0; i < 7; ++i) {
+    LegWrench w;
+    w.utime = 31337 + 143 * i;
+    w.leg = 2;
+    w.wrench_W = DistinctVec6(d);
+    w.servo_age_s = d();
+    w.mocap_age_s = d();
+    w.flags = i % 2 ? kFlagStaleMocap | kFlagSaturated : 0;
+    in.push_back(w);
+  }
+  contact_wrench_t msg;
+  // A message reused for a longer batch first: the shorter one must not carry its tail.
+  ClearLcm(2, 1, &msg);
+  for (int i = 0; i < 9; ++i) AppendLcm(in[0], &msg);
+  ClearLcm(2, 31337 + 1000, &msg);
+  for (const LegWrench& w : in) AppendLcm(w, &msg);
+  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+  ASSERT_EQ(msg.encode(bytes.data(), 0, static_cast<int>(bytes.size())),
+            static_cast<int>(bytes.size()));
+  contact_wrench_t decoded;
+  ASSERT_FALSE(wire::Decode(bytes.data(), static_cast<int>(bytes.size()), &decoded));
+  EXPECT_EQ(decoded.receipt_utime, 31337 + 1000);
+  const std::vector<LegWrench> back = FromLcm(decoded);
+  ASSERT_EQ(back.size(), in.size());
+  for (size_t i = 0; i < in.size(); ++i) {
+    EXPECT_EQ(back[i].utime, in[i].utime);
+    EXPECT_EQ(back[i].leg, in[i].leg);
+    EXPECT_EQ(back[i].wrench_W, in[i].wrench_W);
+    EXPECT_EQ(back[i].servo_age_s, in[i].servo_age_s);
+    EXPECT_EQ(back[i].mocap_age_s, in[i].mocap_age_s);
+    EXPECT_EQ(back[i].flags, in[i].flags);
+  }
+  // The size the architecture map quotes: fingerprint, receipt, leg and count, then 65 bytes
+  // a leg-sample.
+  EXPECT_EQ(bytes.size(), 8u + 8 + 1 + 2 + 65 * in.size());
+  contact_wrench_t bad = decoded;
   bad.leg = 6;
   EXPECT_NE(BadInputReason([&] { FromLcm(bad); }).find("leg 6"), std::string::npos);
+  bad = decoded;
+  bad.n = 0;
+  EXPECT_NE(BadInputReason([&] { FromLcm(bad); }).find("0 entries"), std::string::npos);
 }
 
 TEST(Messages, ContactWrenchSumRoundTrip) {
   Distinct d;
-  WrenchSum s;
-  s.utime = 31338;
-  s.total_W = DistinctVec6(d);
-  s.residual_W = DistinctVec6(d);
-  s.calibration_version = 8;
-  s.oldest_ft_age_s = d();
-  s.flags = kFlagStaleFt | kFlagStaleServo;
-  const contact_wrench_sum_t msg = ToLcm(s);
-  const WrenchSum back = FromLcm(msg);
-  EXPECT_EQ(back.utime, s.utime);
-  EXPECT_EQ(back.total_W, s.total_W);
-  EXPECT_EQ(back.residual_W, s.residual_W);
-  EXPECT_EQ(back.calibration_version, 8);
-  EXPECT_EQ(back.oldest_ft_age_s, s.oldest_ft_age_s);
-  EXPECT_EQ(back.flags, s.flags);
-  EXPECT_EQ(msg.getEncodedSize(), 8 + 117);
+  std::vector<WrenchSum> in;
+  for (int i = 0; i < 3; ++i) {
+    WrenchSum s;
+    s.utime = 31338 + i;
+    s.total_W = DistinctVec6(d);
+    s.residual_W = DistinctVec6(d);
+    s.calibration_version = 8;
+    s.oldest_ft_age_s = d();
+    s.flags = i == 1 ? kFlagStaleFt | kFlagStaleServo : 0;
+    in.push_back(s);
+  }
+  contact_wrench_sum_t msg;
+  ClearLcm(8, &msg);
+  for (const WrenchSum& s : in) AppendLcm(s, &msg);
+  std::vector<uint8_t> bytes(static_cast<size_t>(msg.getEncodedSize()));
+  ASSERT_EQ(msg.encode(bytes.data(), 0, static_cast<int>(bytes.size())),
+            static_cast<int>(bytes.size()));
+  contact_wrench_sum_t decoded;
+  ASSERT_FALSE(wire::Decode(bytes.data(), static_cast<int>(bytes.size()), &decoded));
+  const std::vector<WrenchSum> back = FromLcm(decoded);
+  ASSERT_EQ(back.size(), in.size());
+  for (size_t i = 0; i < in.size(); ++i) {
+    EXPECT_EQ(back[i].utime, in[i].utime);
+    EXPECT_EQ(back[i].total_W, in[i].total_W);
+    EXPECT_EQ(back[i].residual_W, in[i].residual_W);
+    EXPECT_EQ(back[i].calibration_version, 8);
+    EXPECT_EQ(back[i].oldest_ft_age_s, in[i].oldest_ft_age_s);
+    EXPECT_EQ(back[i].flags, in[i].flags);
+  }
+  EXPECT_EQ(bytes.size(), 8u + 8 + 2 + 109 * in.size());
 }
 
 // LCM 1.3's coretypes move doubles and floats through int64_t* and int32_t*
@@ -616,7 +701,7 @@ uint32_t BitsOf(float v) {
 contact_wrench_sum_t DecodedSum(const std::vector<uint8_t>& wire) {
   contact_wrench_sum_t m{};
   if (m.decode(wire.data(), 0, static_cast<int>(wire.size())) != static_cast<int>(wire.size())) {
-    m.utime = -1;
+    m.calibration_version = -1;
   }
   return m;
 }
@@ -625,7 +710,7 @@ double DecodedTotal(const std::vector<uint8_t>& wire, int i) {
   if (m.decode(wire.data(), 0, static_cast<int>(wire.size())) != static_cast<int>(wire.size())) {
     return -1.0;
   }
-  return m.total_w[i];
+  return m.total_w[0][static_cast<size_t>(i)];
 }
 
 TEST(LcmCoretypes, ValueInitialisedMessagesDecodeAndEncodeEveryDouble) {
@@ -633,33 +718,34 @@ TEST(LcmCoretypes, ValueInitialisedMessagesDecodeAndEncodeEveryDouble) {
   const double residual[6] = {-1.5, 2.0, -80.0, 3.5, 0.125, -9.0};
   std::vector<uint8_t> wire;
   PutBigEndian(static_cast<uint64_t>(contact_wrench_sum_t::getHash()), 8, &wire);
-  PutBigEndian(1234567, 8, &wire);  // utime
+  PutBigEndian(42, 8, &wire);       // calibration_version
+  PutBigEndian(1, 2, &wire);        // n
+  PutBigEndian(1234567, 8, &wire);  // utime[0]
   for (double v : total) PutBigEndian(BitsOf(v), 8, &wire);
   for (double v : residual) PutBigEndian(BitsOf(v), 8, &wire);
-  PutBigEndian(42, 8, &wire);  // calibration_version
   PutBigEndian(BitsOf(0.75f), 4, &wire);
-  PutBigEndian(3, 1, &wire);  // flags
+  PutBigEndian(3, 1, &wire);  // flags[0]
 
   for (int i = 0; i < 6; ++i) EXPECT_EQ(DecodedTotal(wire, i), total[i]) << i;
   const contact_wrench_sum_t in = DecodedSum(wire);
-  EXPECT_EQ(in.utime, 1234567);
-  for (int i = 0; i < 6; ++i) {
-    EXPECT_EQ(in.total_w[i], total[i]) << i;
-    EXPECT_EQ(in.residual_w[i], residual[i]) << i;
-  }
   EXPECT_EQ(in.calibration_version, 42);
-  EXPECT_EQ(in.oldest_ft_age_s, 0.75f);
-  EXPECT_EQ(in.flags, 3);
+  ASSERT_EQ(in.n, 1);
+  EXPECT_EQ(in.utime[0], 1234567);
+  for (size_t i = 0; i < 6; ++i) {
+    EXPECT_EQ(in.total_w[0][i], total[i]) << i;
+    EXPECT_EQ(in.residual_w[0][i], residual[i]) << i;
+  }
+  EXPECT_EQ(in.oldest_ft_age_s[0], 0.75f);
+  EXPECT_EQ(in.flags[0], 3);
 
   contact_wrench_sum_t out{};
-  out.utime = 1234567;
-  for (int i = 0; i < 6; ++i) {
-    out.total_w[i] = total[i];
-    out.residual_w[i] = residual[i];
-  }
   out.calibration_version = 42;
-  out.oldest_ft_age_s = 0.75f;
-  out.flags = 3;
+  out.n = 1;
+  out.utime = {1234567};
+  out.total_w = {std::vector<double>(total, total + 6)};
+  out.residual_w = {std::vector<double>(residual, residual + 6)};
+  out.oldest_ft_age_s = {0.75f};
+  out.flags = {3};
   std::vector<uint8_t> encoded(wire.size());
   ASSERT_EQ(out.encode(encoded.data(), 0, static_cast<int>(encoded.size())),
             static_cast<int>(wire.size()));
@@ -711,8 +797,8 @@ TEST(Messages, DeviceInputsOverAReplayedLog) {
       log.writeEvent(&ev);
     };
     const auto& ch = config.channels();
-    write(ch.ft_prefix() + "HR", ToLcm(ft));
-    write(ch.ft_prefix() + "HL", ToLcm(ft));  // HR's sample on HL's channel
+    write(ch.ft_prefix() + "HR", ToLcm(BatchOf(ft, 10)));
+    write(ch.ft_prefix() + "HL", ToLcm(BatchOf(ft, 10)));  // HR's sample on HL's channel
     write(ch.servo_state(), ToLcm(servo));
     write(ch.mocap_body(), ToLcm(mocap, "another body", markers));
     write(ch.mocap_body(), ToLcm(mocap, config.mocap().body_name(), markers));
@@ -722,17 +808,17 @@ TEST(Messages, DeviceInputsOverAReplayedLog) {
   LogReplayBus bus(in_path, in_path + ".out", stats);
   const DeviceInputs inputs(config);
   EXPECT_EQ(inputs.FtChannel(3), config.channels().ft_prefix() + "HR");
-  std::vector<FtInput> fts;
+  std::vector<FtRecord> fts;
   std::vector<ServoInput> servos;
   std::vector<MocapInput> frames;
-  inputs.Subscribe(bus, {[&](const FtInput& in) { fts.push_back(in); },
+  inputs.Subscribe(bus, {[&](const FtBatch& b) { fts.insert(fts.end(), b.begin(), b.end()); },
                          [&](const ServoInput& in) { servos.push_back(in); },
                          [&](const MocapInput& in) { frames.push_back(in); }});
   bus.Run([] {}, 1'000'000);
   ::unlink(in_path.c_str());
   ASSERT_EQ(fts.size(), 1u);
-  EXPECT_EQ(fts[0].leg, 3);
-  EXPECT_EQ(fts[0].wrench, ft.wrench);
+  EXPECT_EQ(fts[0].in.leg, 3);
+  EXPECT_EQ(fts[0].in.wrench, ft.wrench);
   ASSERT_EQ(servos.size(), 1u);
   EXPECT_EQ(servos[0].angle_rad, servo.angle_rad);
   ASSERT_EQ(frames.size(), 1u);

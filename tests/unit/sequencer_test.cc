@@ -362,7 +362,7 @@ TEST_F(SafetyTest, StaleOverRangeSaturatedAndFailedBridgeAreNamed) {
   ASSERT_TRUE(over.has_value());
   EXPECT_NE(over->find("FT_MR Fz = 401 is beyond the rated range 400"), std::string::npos) << *over;
   in.ft[4]->wrench[2] = 10.0;
-  in.ft[4]->flags = ft_sample_t::FLAG_SATURATED;
+  in.ft[4]->flags = ft_batch_t::FLAG_SATURATED;
   over = safety.OverRange(in);
   ASSERT_TRUE(over.has_value());
   EXPECT_NE(over->find("FT_MR is flagged saturated"), std::string::npos) << *over;
@@ -551,11 +551,18 @@ class Robot {
       const TwinFrame& f = driven_.Frame(t_, angle_);
       for (int k = 0; k < kNumLegs; ++k) {
         if (silent_leg_ == k) continue;
-        ft_sample_t ft{};
-        ft.utime = bus_.NowUtime();
-        ft.leg = std::string(kLegNames[k]);
-        for (int a = 0; a < 6; ++a) ft.wrench[a] = f.reading[k][a];
-        bus_.Deliver("FT_" + std::string(kLegNames[k]), ft);
+        const FtInput ft{bus_.NowUtime(), k, f.reading[k], 0};
+        FtBatch batch = BatchOf(ft, ft.utime);
+        if (spike_leg_ == k) {
+          // A datagram of three records whose middle one is a spike of 10 kN on Fz.
+          batch.n = 3;
+          for (int r = 0; r < 3; ++r) {
+            batch.records[static_cast<size_t>(r)].in = ft;
+            batch.records[static_cast<size_t>(r)].in.utime = ft.utime - 2 + r;
+          }
+          batch.records[1].in.wrench[2] = 1e4;
+        }
+        bus_.Deliver("FT_" + std::string(kLegNames[k]), ToLcm(batch));
       }
       mocap_body_t m{};
       m.utime = bus_.NowUtime();
@@ -597,6 +604,7 @@ class Robot {
     }
   }
   void Silence(int leg) { silent_leg_ = leg; }
+  void Spike(int leg) { spike_leg_ = leg; }
   // The link from the sequencer to the bridge is cut (commands lost) or mended.
   void Cut(bool cut) { cut_ = cut; }
   const Angles& angles() const { return angle_; }
@@ -623,6 +631,7 @@ class Robot {
   Angles angle_{}, goal_{};
   size_t seen_ = 0;
   int silent_leg_ = -1;
+  int spike_leg_ = -1;
   bool cut_ = false;
   double t_ = 0.0;
   const int64_t t0_;
@@ -817,6 +826,23 @@ TEST(SequencerRun, SilentTransducerStopsTheMotionClosesTheMarkerAndResumesAtThat
   EXPECT_NE(std::find(held.begin(), held.end(), all[interrupted_pose * 100]), held.end());
   EXPECT_NE(std::find(held.begin(), held.end(), all[700]), held.end());
   std::filesystem::remove(progress);
+}
+
+// A transducer's message carries a datagram of records: one beyond the rated range in the
+// middle of it stops the run, though the message's last record is in range.
+TEST(SequencerRun, ARecordBeyondTheRatedRangeInsideADatagramStopsTheRun) {
+  const config::Config c = SimConfig(kGridPlan);
+  ServiceStats stats(QuietLog());
+  ManualBus bus(stats);
+  Robot robot(c, bus);
+  Sequencer seq(c, bus, TestSigner(), Sequencer::Options{"grid", true, "", "s9"});
+  robot.Run(seq, 120.0, [&](double t) {
+    if (t > 5.0) robot.Spike(2);
+  });
+  ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
+  EXPECT_NE(seq.stop_reason().find("FT_FL Fz = 1e+04 is beyond the rated range 400"), std::string::npos)
+      << seq.stop_reason();
+  EXPECT_LT(robot.t(), 5.1);
 }
 
 TEST(SequencerRun, HangingIsRefusedWhileTheFeetCarryTheRobot) {
