@@ -1,7 +1,7 @@
 // Corrector throughput (the architecture issue's target: >= 3,000,000 leg-samples/s over a log,
 // log in -> log out, on 2 cores).
 //
-// A leg-sample is one FT_<LEG> sample (one leg's ft_sample_t) turned into a corrected wrench:
+// A leg-sample is one FT_<LEG> sample (one record of a leg's ft_batch_t) turned into a corrected wrench:
 // in the stage, one CONTACT_WRENCH message (that leg's wrench) and a sixth of a
 // CONTACT_WRENCH_SUM (the six legs' sum and residual) encoded and written to the output log.
 // Servo states and mocap frames are read and used but not counted. bytes_per_leg_sample is the
@@ -92,10 +92,7 @@ struct Data {
       b.num_markers = 0;
       write(t, config.channels().mocap_body(), b);
       for (int k = 0; k < kNumLegs; ++k) {
-        ft_sample_t m{};
-        m.utime = t;
-        m.leg = std::string(kLegNames[k]);
-        for (int i = 0; i < 6; ++i) m.wrench[i] = f.reading[k][i];
+        const ft_batch_t m = ToLcm(BatchOf(FtInput{t, k, f.reading[k], 0}, t));
         write(t, config.channels().ft_prefix() + m.leg, m);
       }
     }

@@ -6,7 +6,7 @@
 add_executable(pipeline_e2e_test "${CMAKE_CURRENT_LIST_DIR}/pipeline_e2e_test.cc")
 target_include_directories(pipeline_e2e_test PRIVATE "${CMAKE_CURRENT_LIST_DIR}")
 target_link_libraries(pipeline_e2e_test PRIVATE
-  ftcal_sim_log ftcal_twin ftcal_lcmtypes ftcal_child_process
+  ftcal_sim_log ftcal_twin ftcal_lcmtypes ftcal_messages ftcal_child_process
   GTest::gtest GTest::gtest_main Threads::Threads)
 target_compile_definitions(pipeline_e2e_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
