@@ -1,4 +1,4 @@
-// ftcal-ati-bridge: ATI Net F/T transducers (RDT over UDP) -> ft_sample_t on FT_<LEG>.
+// ftcal-ati-bridge: ATI Net F/T transducers (RDT over UDP) -> ft_batch_t on FT_<LEG>.
 //
 // The bridge is a Device (common/device.h): ServiceApp's loop waits on its sockets, runs its
 // re-send deadlines, and sends the 1 Hz heartbeat, at once when the state changes (RUNNING <->
@@ -18,7 +18,7 @@ int main(int argc, char** argv) {
        "Streams the legs' ATI Net F/T transducers over RDT (UDP; a start command from an "
        "ephemeral port of this host, stop on exit; real-time, or buffered with the config's "
        "records_per_datagram, which must match the box's comrdtbsiz) and publishes every valid "
-       "record as ft_sample_t on FT_<LEG>: counts, wrench [N; N*m] (counts per unit from the "
+       "datagram as one ft_batch_t on FT_<LEG>: per record counts, wrench [N; N*m] (counts per unit from the "
        "config or the sensor's /netftapi2.xml, the config's sign applied), sequence numbers, "
        "status, gap and flags. Lost, duplicated, reordered and malformed records are counted, "
        "never published. Heartbeat counters per leg; DEGRADED while a transducer is silent.",

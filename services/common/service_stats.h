@@ -1,7 +1,7 @@
 // What a process counts about itself; its heartbeat (service_status_t) publishes these.
 //
 // Bad input and errors are counted per *kind* (a short stable label such as
-// "undecodable ftcal.ft_sample_t on FT_HL") and logged the first time each kind occurs, then at
+// "undecodable ftcal.ft_batch_t on FT_HL") and logged the first time each kind occurs, then at
 // most once per repeat_log_period with the count since the last line, so a 100 Hz stream of bad
 // packets costs one log line a minute, not a hundred a second; LogSummary() prints the totals
 // per kind at exit. last_error() is the latest error text, cleared when the process says it

@@ -42,7 +42,7 @@ struct FtInput {
   int64_t utime = 0;
   int leg = 0;  // index in kLegNames (config order)
   Vec6 wrench = Vec6::Zero();
-  int32_t flags = 0;  // ft_sample_t FLAG_* bits, passed through (OR over the six legs)
+  int32_t flags = 0;  // ft_batch_t FLAG_* bits, passed through (OR over the six legs)
 };
 
 struct ServoInput {
