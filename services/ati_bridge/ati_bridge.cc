@@ -810,7 +810,12 @@ void AtiBridge::PublishBatch(Transducer& t, std::int64_t kernel_ns, std::int64_t
   const std::int64_t receipt_us = kernel_ns / 1000;
   t.clock.Observe(t.ticks[n - 1], receipt_us);
   for (std::size_t i = 0; i < n; ++i) {
-    const std::int64_t mapped = std::min(t.clock.Map(t.ticks[i]), receipt_us);
+    // Each record capped so as to leave the later ones of the datagram 1 us each before the
+    // receipt: when several map at or after it (a datagram less delayed than the map's line,
+    // between two refits), capping them all at the receipt let the rising rule push the later
+    // ones past it (receipt + 1, + 2, ...).
+    const auto later = static_cast<std::int64_t>(n - 1 - i);
+    const std::int64_t mapped = std::min(t.clock.Map(t.ticks[i]), receipt_us - later);
     m.sample_utime[i] = std::max(mapped, t.last_utime + 1);
     t.last_utime = m.sample_utime[i];
   }

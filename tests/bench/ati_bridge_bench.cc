@@ -59,7 +59,7 @@
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 
 extern char** environ;
 
@@ -121,9 +121,13 @@ class Listener {
     stop_ = true;
     thread_.join();
   }
-  void OnSample(const lcm::ReceiveBuffer*, const std::string& channel) {
+  // Counts records, as the bridge's "published" does: a message carries a datagram's n.
+  void OnSample(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+    ftcal::ft_batch_t m;
+    const bool ok = m.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) ==
+                    static_cast<int>(rbuf->data_size);
     std::lock_guard<std::mutex> lock(mu_);
-    ++heard_[channel.substr(3)];
+    if (ok) heard_[channel.substr(3)] += m.n;
   }
   std::map<std::string, long long> heard() {
     std::lock_guard<std::mutex> lock(mu_);

@@ -5,22 +5,27 @@
 // Dynamixel and mocap bridges, ftcal-corrector with the twin's true calibration, and an LCM
 // subscriber in this program. Must run inside scripts/netns-exec (ctest does).
 //
-// 1. End-to-end latency, over the samples whose ft_sample_t.utime falls in the --duration s
-//    window after --warmup s. ft_sample_t.utime is the kernel's receive timestamp of the RDT
-//    datagram in the bridge's socket (SO_TIMESTAMPNS, CLOCK_REALTIME; services/ati_bridge) for
-//    a datagram's last record, and before it by the record's distance on the box's 7 kHz counter
-//    for the others of a buffered datagram (k > 1): there the figures include the time a record
-//    waited in the box for its datagram to fill, up to (k - 1) / rate. contact_wrench_t.utime
-//    is that sample's utime, so every interval below is on one clock:
-//      - FT_<LEG>:        utime -> this program's handler for the FT message (bridge + LCM hop);
-//      - CONTACT_WRENCH:  utime -> this program's handler for the CONTACT_WRENCH (+ corrector).
+// 1. End-to-end latency, per leg-sample (each record of a message counted once), over the
+//    samples whose sample_utime falls in the --duration s window after --warmup s. An FT_<LEG>
+//    message (ft_batch_t) carries one RDT datagram's records: its receipt_utime is the kernel's
+//    receive timestamp of that datagram in the bridge's socket (SO_TIMESTAMPNS, CLOCK_REALTIME;
+//    services/ati_bridge), and each record's sample_utime its instant on the box's 7 kHz
+//    counter mapped to the host clock, never after the receipt. contact_wrench_t carries the
+//    receipt_utime of the FT message its samples came in, and each sample's utime is that
+//    record's sample_utime. The latencies are measured from the receipt, so they are on one
+//    clock and leave out the time a record waited in the box for its datagram to fill (up to
+//    (k - 1) / rate for k records a datagram), which no stage after the box can shorten:
+//      - FT_<LEG>:        receipt_utime -> this program's handler for the FT message (bridge +
+//                         LCM hop), for each of its records;
+//      - CONTACT_WRENCH:  the FT message's receipt_utime -> this program's handler for the
+//                         CONTACT_WRENCH (+ corrector), for each of its samples.
 //    Each also to LCM's ReceiveBuffer::recv_utime, liblcm's stamp of the datagram as it read it,
 //    before the handler ran. Every FT and CONTACT_WRENCH is decoded in the handler, as a real
 //    consumer would: this subscriber is one more SCHED_OTHER process on the two cores.
 //    Loss: per leg the twin's records in the window are told by the RDT sequence numbers of
-//    the FT heard (last - first + 1: records lost right at the window's two edges are not
-//    seen); FT heard and CONTACT_WRENCH heard are counted against that. Over the whole run the
-//    twin's own count of records sent is compared with everything heard.
+//    the FT records heard (last - first + 1: records lost right at the window's two edges are
+//    not seen); FT records heard and CONTACT_WRENCH samples heard are counted against that. Over
+//    the whole run the twin's own count of records sent is compared with everything heard.
 // 2. Command latency: a signed MOVE published on SERVO_CMD (from a key the config trusts, which
 //    ARMed the bridge; heartbeats keep the dead-man fed) -> the Sync Write of Goal Position
 //    carrying the new goals, seen on the serial line. The Dynamixel bridge's port is a
@@ -44,6 +49,11 @@
 //       [--record]
 //
 // The figures depend on what else the machine runs: the load average is printed with them.
+//
+// The figures below were measured while FT_<LEG> carried one record a message (ft_sample_t),
+// each latency from that record's own stamp (for a buffered datagram's earlier records, before
+// its receipt by their distance on the counter: up to (k - 1) / rate of waiting in the box
+// included); they are not remeasured since FT_<LEG> became ft_batch_t.
 //
 // Measured 2026-12-02 on the 2-vCPU CI VM while a full test suite ran beside it (load average
 // 4-5 before and during each run, so every figure is inflated), defaults (12 s counted):
@@ -136,7 +146,7 @@
 #include "child_process.h"
 #include "ftcal/config.h"
 #include "ftcal/contact_wrench_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "signed_commander.h"
 #include "sim/live.h"
@@ -175,8 +185,10 @@ std::string Quantiles(std::vector<std::int64_t> v) {
 // liblcm's receive stamp and the handler's clock; and the Dynamixel bridge's gate mode.
 class Listener {
  public:
+  // One leg-sample: an FT record, or a CONTACT_WRENCH sample.
   struct Event {
-    std::int64_t utime;         // the transducer sample's
+    std::int64_t utime;         // the transducer sample's (sample_utime)
+    std::int64_t receipt;       // its datagram's receipt in the bridge (receipt_utime)
     std::int64_t lcm_recv;      // LCM's receive stamp
     std::int64_t handled;       // this program's clock in the handler
     std::int64_t rdt_sequence;  // FT only
@@ -238,14 +250,17 @@ class Listener {
  private:
   void OnFt(const lcm::ReceiveBuffer* rb, const std::string&) {
     const std::int64_t now = NowUs();
-    ftcal::ft_sample_t m;
+    ftcal::ft_batch_t m;
     if (m.decode(rb->data, 0, rb->data_size) != static_cast<int>(rb->data_size)) {
       ++undecodable;
       return;
     }
     const int k = LegOf(m.leg);
     if (k < 0) return;
-    ft_[k].push_back({m.utime, rb->recv_utime, now, m.rdt_sequence});
+    for (int i = 0; i < m.n; ++i) {
+      ft_[k].push_back({m.sample_utime[i], m.receipt_utime, rb->recv_utime, now,
+                        m.rdt_sequence[i]});
+    }
   }
   void OnContact(const lcm::ReceiveBuffer* rb, const std::string&) {
     const std::int64_t now = NowUs();
@@ -255,7 +270,9 @@ class Listener {
       ++undecodable;
       return;
     }
-    cw_[m.leg].push_back({m.utime, rb->recv_utime, now, -1});
+    for (int i = 0; i < m.n; ++i) {
+      cw_[m.leg].push_back({m.utime[i], m.receipt_utime, rb->recv_utime, now, -1});
+    }
   }
   void OnStatus(const lcm::ReceiveBuffer* rb, const std::string&) {
     ftcal::service_status_t m;
@@ -871,16 +888,16 @@ int main(int argc, char** argv) {
         if (prev >= 0 && e.rdt_sequence > prev + 1) n_gap += e.rdt_sequence - prev - 1;
         prev = std::max(prev, e.rdt_sequence);
         ++n_ft;
-        ft_lat.push_back(e.handled - e.utime);
-        ft_lat_lcm.push_back(e.lcm_recv - e.utime);
+        ft_lat.push_back(e.handled - e.receipt);
+        ft_lat_lcm.push_back(e.lcm_recv - e.receipt);
         ft_heard_at[e.utime] = e.handled;
       }
       std::int64_t n_cw = 0;
       for (const auto& e : cw) {
         if (e.utime < window_from || e.utime >= window_to) continue;
         ++n_cw;
-        cw_lat.push_back(e.handled - e.utime);
-        cw_lat_lcm.push_back(e.lcm_recv - e.utime);
+        cw_lat.push_back(e.handled - e.receipt);
+        cw_lat_lcm.push_back(e.lcm_recv - e.receipt);
         const auto it = ft_heard_at.find(e.utime);
         if (it != ft_heard_at.end()) corr_lat.push_back(e.handled - it->second);
       }
@@ -910,21 +927,25 @@ int main(int argc, char** argv) {
         const lcm::LogEvent* e = log.readNextEvent();
         if (e == nullptr) break;
         if (e->channel.rfind("FT_", 0) == 0) {
-          ftcal::ft_sample_t m;
+          ftcal::ft_batch_t m;
           if (m.decode(e->data, 0, e->datalen) != e->datalen) {
             ++undecodable;
             continue;
           }
           const int k = Listener::LegOf(m.leg);
-          if (k >= 0 && m.utime >= window_from && m.utime < window_to)
-            seq[k].push_back(m.rdt_sequence);
+          for (int i = 0; k >= 0 && i < m.n; ++i) {
+            if (m.sample_utime[i] >= window_from && m.sample_utime[i] < window_to)
+              seq[k].push_back(m.rdt_sequence[i]);
+          }
         } else if (e->channel == "CONTACT_WRENCH") {
           ftcal::contact_wrench_t m;
           if (m.decode(e->data, 0, e->datalen) != e->datalen || m.leg < 0 || m.leg >= 6) {
             ++undecodable;
             continue;
           }
-          if (m.utime >= window_from && m.utime < window_to) ++rec_cw[m.leg];
+          for (int i = 0; i < m.n; ++i) {
+            if (m.utime[i] >= window_from && m.utime[i] < window_to) ++rec_cw[m.leg];
+          }
         }
       }
       long long rec_sent = 0, rec_ft = 0, rec_cw_total = 0;

@@ -7,6 +7,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
@@ -35,7 +36,7 @@
 #include "child_process.h"
 #include "test_helpers.h"
 #include "ftcal/config.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/service_status_t.hpp"
 
 // After Eigen (through ati_bridge.h): the split-mode httplib.h pulls in headers whose macros
@@ -60,29 +61,114 @@ using testing::SleepS;
 // One row of the emulator's truth CSV.
 using TruthRow = testing::AtiTruthRow;
 
-// The stamps of one leg's published samples, by the datagram each came in: they only rise; the
-// last record of a datagram carries its receipt and each earlier one is stamped before it by
-// its distance on the box's 7 kHz counter (or later, where that would fall before the previous
-// sample). Returns how many datagrams of `k` records were stamped by the counter throughout.
-int ExpectStampsByCounter(const std::vector<std::pair<std::uint32_t, ft_sample_t>>& by_datagram,
-                          int k) {
-  std::map<std::uint32_t, std::vector<const ft_sample_t*>> groups;
-  for (std::size_t i = 0; i < by_datagram.size(); ++i) {
-    if (i > 0) {
-      EXPECT_GT(by_datagram[i].second.utime, by_datagram[i - 1].second.utime)
-          << "rdt " << by_datagram[i].second.rdt_sequence << ": stamps only rise";
+// One record of a published ft_batch_t, with what its message said of it: the tests compare
+// the bridge's output with the emulator's truth record by record.
+struct FtRec {
+  std::string leg;
+  std::int64_t message = 0;  // the published message it came in, numbered in the order heard
+  int n = 0;                 // records in that message
+  int index = 0;             // its place in that message
+  std::int64_t receipt_utime = 0;
+  std::int64_t sample_utime = 0;
+  std::int64_t rdt_sequence = 0;
+  std::int64_t ft_sequence = 0;
+  std::int64_t status = 0;
+  std::array<std::int32_t, 6> counts{};
+  std::array<double, 6> wrench{};
+  std::int32_t gap = 0;
+  std::int32_t flags = 0;
+};
+
+// Appends the records of published message number `message`. A message of no records or of
+// more than MAX_N fails the test (LCM's decoder has already made every array n long).
+void AppendRecords(const ft_batch_t& m, std::int64_t message, std::vector<FtRec>* out) {
+  EXPECT_GE(m.n, 1) << m.leg << ": a message without records";
+  EXPECT_LE(m.n, int{ft_batch_t::MAX_N}) << m.leg;
+  for (int i = 0; i < m.n; ++i) {
+    FtRec r;
+    r.leg = m.leg;
+    r.message = message;
+    r.n = m.n;
+    r.index = i;
+    r.receipt_utime = m.receipt_utime;
+    r.sample_utime = m.sample_utime[i];
+    r.rdt_sequence = m.rdt_sequence[i];
+    r.ft_sequence = m.ft_sequence[i];
+    r.status = m.status[i];
+    for (int j = 0; j < 6; ++j) {
+      r.counts[j] = m.counts[i][j];
+      r.wrench[j] = m.wrench[i][j];
     }
-    groups[by_datagram[i].first].push_back(&by_datagram[i].second);
+    r.gap = m.gap[i];
+    r.flags = m.flags[i];
+    out->push_back(r);
+  }
+}
+
+// The box's internal sample counter (ft_sequence): 7000 ticks a second whatever its RDT rate.
+constexpr double kTickUs = 1e6 / 7000;
+// How far the spacing of two records of one datagram may be from their distance on that
+// counter. The bridge maps a record's counter to host time by its DeviceClock: t = a + b x, x
+// the counter over 7000 Hz, each result rounded to a whole us (device_clock.cc, Map). Two
+// records dt ticks apart are therefore b * dt * kTickUs apart, give or take 1 us of rounding.
+// b is the box's rate against the host's: 1 exactly until the map spans 2 s, then fitted from
+// the least delayed datagrams. Crystals keep b within 100 ppm of 1, and the host clock is
+// slewed by at most 500 ppm; 1000 ppm is twice the worst of that.
+double SpacingToleranceUs(std::int64_t dt_ticks) {
+  return 1.0 + 1e-3 * static_cast<double>(dt_ticks) * kTickUs;
+}
+
+// The times of one leg's published records, each with the datagram the truth says it came in:
+//  - one message per datagram: a datagram's records came in one message, which held nothing
+//    else (so they share its receipt_utime), and its n is the number of them;
+//  - sample_utime rises strictly over the stream and is never after its message's receipt;
+//  - within a message, consecutive records are spaced by their distance on the box's counter as
+//    the clock map gives it (SpacingToleranceUs). The bridge's clamps (never after the receipt,
+//    always after the previous record) can only pull a datagram's records closer together, so
+//    a spacing never exceeds that distance; a datagram spaced by it throughout is counted.
+// Returns how many datagrams of `k` records were spaced by the counter throughout.
+int ExpectStampsByCounter(const std::vector<std::pair<std::uint32_t, FtRec>>& by_datagram,
+                          int k) {
+  std::map<std::uint32_t, std::vector<const FtRec*>> groups;
+  std::map<std::int64_t, std::set<std::uint32_t>> datagrams_of_message;
+  for (std::size_t i = 0; i < by_datagram.size(); ++i) {
+    const FtRec& m = by_datagram[i].second;
+    if (i > 0) {
+      EXPECT_GT(m.sample_utime, by_datagram[i - 1].second.sample_utime)
+          << "rdt " << m.rdt_sequence << ": sample times only rise";
+    }
+    EXPECT_LE(m.sample_utime, m.receipt_utime)
+        << "rdt " << m.rdt_sequence << " (record " << m.index << " of " << m.n
+        << "): sampled after its datagram was received";
+    groups[by_datagram[i].first].push_back(&m);
+    datagrams_of_message[m.message].insert(by_datagram[i].first);
+  }
+  for (const auto& [message, datagrams] : datagrams_of_message) {
+    EXPECT_EQ(datagrams.size(), 1u) << "message " << message << " holds records of "
+                                    << datagrams.size() << " datagrams";
   }
   int by_counter = 0;
   for (const auto& [datagram, records] : groups) {
-    const ft_sample_t& last = *records.back();
+    const FtRec& first = *records.front();
+    // The listener hears a message whole or not at all: all of the datagram's records or none.
+    EXPECT_EQ(first.n, static_cast<int>(records.size()))
+        << "datagram " << datagram << " (rdt " << first.rdt_sequence << ")";
     bool exact = static_cast<int>(records.size()) == k;
-    for (const ft_sample_t* m : records) {
-      const auto ticks = static_cast<std::uint32_t>(last.ft_sequence - m->ft_sequence);
-      const std::int64_t back_us = static_cast<std::int64_t>(ticks) * 1'000'000 / 7000;
-      EXPECT_LE(last.utime - m->utime, back_us) << "rdt " << m->rdt_sequence;
-      exact = exact && last.utime - m->utime == back_us;
+    for (std::size_t i = 0; i < records.size(); ++i) {
+      const FtRec& m = *records[i];
+      EXPECT_EQ(m.message, first.message) << "datagram " << datagram << " split, rdt "
+                                          << m.rdt_sequence;
+      EXPECT_EQ(m.receipt_utime, first.receipt_utime) << "rdt " << m.rdt_sequence;
+      EXPECT_EQ(m.index, static_cast<int>(i)) << "rdt " << m.rdt_sequence;
+      if (i == 0) continue;
+      const FtRec& prev = *records[i - 1];
+      const auto ticks = static_cast<std::uint32_t>(m.ft_sequence - prev.ft_sequence);
+      const double nominal_us = ticks * kTickUs;
+      const double tolerance_us = SpacingToleranceUs(ticks);
+      const auto spacing = static_cast<double>(m.sample_utime - prev.sample_utime);
+      EXPECT_LE(spacing, nominal_us + tolerance_us)
+          << "rdt " << m.rdt_sequence << ": " << ticks << " ticks after the previous record";
+      exact = exact && std::abs(spacing - nominal_us) <= tolerance_us;
     }
     by_counter += exact;
   }
@@ -107,8 +193,9 @@ std::vector<TruthRow> ReadTruth(const std::string& path) {
   return rows;
 }
 
+// A record heard on LCM, and when its message was handled.
 struct Heard {
-  ft_sample_t msg;
+  FtRec msg;
   Clock::time_point when;
 };
 
@@ -117,8 +204,8 @@ class Collector {
  public:
   Collector() : lcm_(kListenUrl) {
     EXPECT_TRUE(lcm_.good());
-    // LCM's default queue of 30 messages per subscription drops the tail of a buffered box's
-    // burst (35 samples from one datagram, published back to back) while this thread is busy.
+    // LCM's default queue of 30 messages per subscription drops messages of six boxes' bursts
+    // (one message per datagram each) while this thread is busy.
     lcm_.subscribe("FT_.*", &Collector::OnSample, this)->setQueueCapacity(100000);
     lcm_.subscribe("FTCAL_STATUS", &Collector::OnStatus, this)->setQueueCapacity(10000);
     thread_ = std::thread([this] {
@@ -130,14 +217,17 @@ class Collector {
     thread_.join();
   }
   void OnSample(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
-    ft_sample_t m;
+    ft_batch_t m;
     if (m.decode(rbuf->data, 0, static_cast<int>(rbuf->data_size)) < 0) {
       ++undecodable_;
       return;
     }
+    const auto when = Clock::now();
+    std::vector<FtRec> records;
     std::lock_guard<std::mutex> lock(mu_);
+    AppendRecords(m, messages_++, &records);
     if (channel != "FT_" + m.leg) ++wrong_channel_;
-    samples_.push_back({m, Clock::now()});
+    for (const FtRec& r : records) samples_.push_back({r, when});
   }
   void OnStatus(const lcm::ReceiveBuffer* rbuf, const std::string&) {
     service_status_t m;
@@ -164,7 +254,8 @@ class Collector {
   std::atomic<bool> stop_{false};
   std::thread thread_;
   std::mutex mu_;
-  std::vector<Heard> samples_;
+  std::vector<Heard> samples_;  // per record
+  std::int64_t messages_ = 0;
   std::vector<std::pair<service_status_t, Clock::time_point>> statuses_;
   std::atomic<int> undecodable_{0};
   int wrong_channel_ = 0;
@@ -275,7 +366,7 @@ int ExpectSamplesMatchTruth(const std::vector<Heard>& heard, const std::vector<T
     index.emplace(std::make_tuple(r.leg, r.rdt_sequence, r.ft_sequence), &r);
   int matched = 0;
   for (const Heard& h : heard) {
-    const ft_sample_t& m = h.msg;
+    const FtRec& m = h.msg;
     const auto range =
         index.equal_range(std::make_tuple(m.leg, static_cast<std::uint32_t>(m.rdt_sequence),
                                           static_cast<std::uint32_t>(m.ft_sequence)));
@@ -297,15 +388,15 @@ int ExpectSamplesMatchTruth(const std::vector<Heard>& heard, const std::vector<T
       EXPECT_NEAR(m.wrench[i], row->counts[i] / kCountsPerUnit, 1e-9) << m.leg << " axis " << i;
     }
     EXPECT_EQ(m.status, 0);
-    EXPECT_EQ((m.flags & ft_sample_t::FLAG_STATUS_ERROR) != 0, m.status != 0);
-    EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.gap > 0);
+    EXPECT_EQ((m.flags & ft_batch_t::FLAG_STATUS_ERROR) != 0, m.status != 0);
+    EXPECT_EQ((m.flags & ft_batch_t::FLAG_GAP) != 0, m.gap > 0);
     ++matched;
   }
   return matched;
 }
 
-std::map<std::string, std::vector<ft_sample_t>> ByLeg(const std::vector<Heard>& heard) {
-  std::map<std::string, std::vector<ft_sample_t>> out;
+std::map<std::string, std::vector<FtRec>> ByLeg(const std::vector<Heard>& heard) {
+  std::map<std::string, std::vector<FtRec>> out;
   for (const Heard& h : heard) out[h.msg.leg].push_back(h.msg);
   return out;
 }
@@ -314,7 +405,7 @@ std::map<std::string, std::vector<ft_sample_t>> ByLeg(const std::vector<Heard>& 
 // went missing before each. The listener itself may miss a message on a loaded machine (LCM over
 // UDP), so the gap is checked where the truth says nothing publishable was between two samples
 // heard. Returns the number of gaps checked.
-int ExpectInOrderWithGaps(const std::vector<ft_sample_t>& samples,
+int ExpectInOrderWithGaps(const std::vector<FtRec>& samples,
                           const std::vector<TruthRow>& truth, const std::string& leg) {
   std::set<std::int64_t> publishable;
   for (const TruthRow& r : truth) {
@@ -332,18 +423,18 @@ int ExpectInOrderWithGaps(const std::vector<ft_sample_t>& samples,
   std::int64_t prev = 0;
   int gaps_checked = 0;
   for (std::size_t i = 0; i < samples.size(); ++i) {
-    const ft_sample_t& m = samples[i];
+    const FtRec& m = samples[i];
     EXPECT_GT(m.rdt_sequence, prev) << leg << ": published twice or out of order";
     if (m.rdt_sequence <= prev) return gaps_checked;
     const auto between =
         std::distance(publishable.upper_bound(prev), publishable.lower_bound(m.rdt_sequence));
     if (between == 0) {
       EXPECT_EQ(m.gap, m.rdt_sequence - prev - 1) << "rdt " << m.rdt_sequence;
-      EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.rdt_sequence - prev > 1);
+      EXPECT_EQ((m.flags & ft_batch_t::FLAG_GAP) != 0, m.rdt_sequence - prev > 1);
       if (m.gap > 0) ++gaps_checked;
     }
     // Only the stream's first publishable record carries the restart flag.
-    EXPECT_EQ((m.flags & ft_sample_t::FLAG_RESTARTED) != 0, m.rdt_sequence == *publishable.begin());
+    EXPECT_EQ((m.flags & ft_batch_t::FLAG_RESTARTED) != 0, m.rdt_sequence == *publishable.begin());
     prev = m.rdt_sequence;
   }
   return gaps_checked;
@@ -456,11 +547,11 @@ TEST_F(AtiBridgeTest, SilenceIsReportedDegradedAndRebootRereadsTheCalibrationPag
       const auto ticks = static_cast<std::int32_t>(s[i].ft_sequence - s[i - 1].ft_sequence);
       if (ticks < 7000 * 1.5) continue;  // the 2 s silence must show in ft_sequence
       resumed = true;
-      EXPECT_TRUE(s[i].flags & ft_sample_t::FLAG_RESTARTED);
+      EXPECT_TRUE(s[i].flags & ft_batch_t::FLAG_RESTARTED);
       EXPECT_LT(s[i].rdt_sequence, s[i - 1].rdt_sequence);
     }
     EXPECT_TRUE(resumed);
-    EXPECT_GT(s.back().utime - s.front().utime, 4'000'000);
+    EXPECT_GT(s.back().sample_utime - s.front().sample_utime, 4'000'000);
   }
   // ML: after the reboot ft_sequence restarted near 0 and the samples carry on.
   {
@@ -469,7 +560,7 @@ TEST_F(AtiBridgeTest, SilenceIsReportedDegradedAndRebootRereadsTheCalibrationPag
     for (std::size_t i = 1; i < s.size(); ++i) {
       if (static_cast<std::int32_t>(s[i].ft_sequence - s[i - 1].ft_sequence) < 0) {
         ++backwards;
-        EXPECT_TRUE(s[i].flags & ft_sample_t::FLAG_RESTARTED);
+        EXPECT_TRUE(s[i].flags & ft_batch_t::FLAG_RESTARTED);
         EXPECT_LT(s[i].ft_sequence, 7000 * 1.5);
       }
     }
@@ -513,14 +604,14 @@ TEST_F(AtiBridgeTest, KilledBridgeRestartsWithinASecondAndItsGapShows) {
     // A new stream (the listener may have missed its very first sample on a loaded machine;
     // the bridge's own counters below say the stream began at 1 with nothing lost).
     EXPECT_LT(after->msg.rdt_sequence, before->msg.rdt_sequence);
-    EXPECT_EQ((after->msg.flags & ft_sample_t::FLAG_RESTARTED) != 0, after->msg.rdt_sequence == 1);
+    EXPECT_EQ((after->msg.flags & ft_batch_t::FLAG_RESTARTED) != 0, after->msg.rdt_sequence == 1);
     EXPECT_EQ(Counter(second_status, std::string(leg) + ".restarts"), 1);
     EXPECT_EQ(Counter(second_status, std::string(leg) + ".lost"), 0);
     EXPECT_EQ(Counter(second_status, std::string(leg) + ".stale"), 0);
     EXPECT_GT(Counter(second_status, std::string(leg) + ".published"), 1000);
     // The time without a bridge shows in the device's own clock.
     EXPECT_GT(after->msg.ft_sequence - before->msg.ft_sequence, 7000 * 0.3);
-    EXPECT_GT(after->msg.utime - before->msg.utime, 300'000);
+    EXPECT_GT(after->msg.sample_utime - before->msg.sample_utime, 300'000);
   }
 }
 
@@ -544,7 +635,7 @@ TEST_F(AtiBridgeTest, RefusesToStreamWithoutTheCalibrationPage) {
 
 // A buffered run of the emulator's `legs` at `k` records per datagram, against its truth: the
 // bridge counted every fault of the truth as what it is, published every intact record once, and
-// every sample heard is a record the box sent, stamped with its datagram's receipt.
+// every record heard is one the box sent, each datagram one message stamped with its receipt.
 void ExpectBufferedRunMatchesTruth(const std::vector<TruthRow>& truth,
                                    const std::vector<Heard>& heard, const service_status_t& last,
                                    const std::vector<std::string>& legs, int k) {
@@ -590,16 +681,28 @@ void ExpectBufferedRunMatchesTruth(const std::vector<TruthRow>& truth,
     EXPECT_GT(ExpectInOrderWithGaps(samples, truth, leg), 5);
     // A lost datagram is k records lost: the gap of the sample after a dropped datagram (with
     // nothing else missing around it) is k.
-    int gaps_of_k = 0;
-    std::vector<std::pair<std::uint32_t, ft_sample_t>> by_datagram;
+    int gaps_of_k = 0, messages = 0, messages_of_k = 0;
+    std::vector<std::pair<std::uint32_t, FtRec>> by_datagram;
     for (std::size_t i = 0; i < samples.size(); ++i) {
-      const ft_sample_t& m = samples[i];
+      const FtRec& m = samples[i];
       if (i > 0 && m.gap == k && m.rdt_sequence - samples[i - 1].rdt_sequence == k + 1) {
         ++gaps_of_k;
       }
-      by_datagram.emplace_back(datagram_of.at(static_cast<std::uint32_t>(m.rdt_sequence)), m);
+      const std::uint32_t datagram = datagram_of.at(static_cast<std::uint32_t>(m.rdt_sequence));
+      // One message per datagram, of as many records as the box sent in it (k; fewer only in
+      // the part-filled last one).
+      if (m.index == 0) {
+        ++messages;
+        messages_of_k += m.n == k;
+        EXPECT_EQ(m.n, sizes.at(datagram)) << "datagram " << datagram;
+      }
+      by_datagram.emplace_back(datagram, m);
     }
     EXPECT_GT(gaps_of_k, 0);
+    // Every message heard but the part-filled last one: k records. (Most datagrams' messages
+    // were heard: a few percent of the datagrams were faulted, LCM may lose some.)
+    EXPECT_GE(messages_of_k, messages - 1);
+    EXPECT_GT(messages_of_k, static_cast<int>(sizes.size()) / 2);
     EXPECT_GT(ExpectStampsByCounter(by_datagram, k), 0);
   }
 }
@@ -835,10 +938,21 @@ TEST(AtiEmulatorInProcess, BufferedStartSendsDatagramsOfTheBufferSizeThePageStat
   EXPECT_EQ(seven.options().rdt_buffer_size, 7);
 }
 
+// One published message.
 struct Published {
   std::string channel;
-  ft_sample_t msg;
+  ft_batch_t msg;
 };
+
+// The records of the published messages, in order; each message on its leg's channel.
+std::vector<FtRec> Records(const std::vector<Published>& published) {
+  std::vector<FtRec> out;
+  for (std::size_t i = 0; i < published.size(); ++i) {
+    EXPECT_EQ(published[i].channel, "FT_" + published[i].msg.leg);
+    AppendRecords(published[i].msg, static_cast<std::int64_t>(i), &out);
+  }
+  return out;
+}
 
 // The bridge class against one emulated box, driven in one loop for `seconds`, then the box's
 // data ends and the bridge reads what is still on its way; returns what it published (and its
@@ -894,16 +1008,20 @@ TEST(AtiBridgeInProcess, ConfigSignAndCountsPerUnitOverrideThePage) {
   ati->set_counts_per_torque(4000);
   ati->set_records_per_datagram(1);  // real-time mode: nothing else to read from the page
   const auto out = RunBridge(cfg, box, 0.2);
-  ASSERT_GT(out.size(), 100u);
+  const auto records = Records(out);
+  ASSERT_GT(records.size(), 100u);
   for (const auto& p : out) {
     EXPECT_EQ(p.channel, "FT_HL");
     EXPECT_EQ(p.msg.leg, "HL");
-    for (int i = 0; i < 3; ++i) EXPECT_DOUBLE_EQ(p.msg.wrench[i], -p.msg.counts[i] / 2e6);
-    for (int i = 3; i < 6; ++i) EXPECT_DOUBLE_EQ(p.msg.wrench[i], -p.msg.counts[i] / 4000.0);
-    // 2 N/-3 N/-2.5 N*m: within the rated range; healthy status.
-    EXPECT_EQ(p.msg.flags & ~ft_sample_t::FLAG_RESTARTED, 0);
+    EXPECT_EQ(p.msg.n, 1);  // real time: a record per datagram, a message per datagram
   }
-  EXPECT_EQ(out.front().msg.flags, ft_sample_t::FLAG_RESTARTED);
+  for (const FtRec& m : records) {
+    for (int i = 0; i < 3; ++i) EXPECT_DOUBLE_EQ(m.wrench[i], -m.counts[i] / 2e6);
+    for (int i = 3; i < 6; ++i) EXPECT_DOUBLE_EQ(m.wrench[i], -m.counts[i] / 4000.0);
+    // 2 N/-3 N/-2.5 N*m: within the rated range; healthy status.
+    EXPECT_EQ(m.flags & ~ft_batch_t::FLAG_RESTARTED, 0);
+  }
+  EXPECT_EQ(records.front().flags, int{ft_batch_t::FLAG_RESTARTED});
   // Counts per unit, rated range and real-time mode all come from the config: the page is never
   // read.
   EXPECT_EQ(box.counters().http_requests, 0u);
@@ -911,8 +1029,9 @@ TEST(AtiBridgeInProcess, ConfigSignAndCountsPerUnitOverrideThePage) {
 
 // The exact account of a box that streams 35 records per datagram at 7000 records/s, with whole
 // datagrams dropped, duplicated, overtaken and corrupted: every record the box sent intact is
-// published once, in order, with the box's values, stamped with its datagram's receipt; every
-// fault counted as what it is.
+// published once, in order, with the box's values, each datagram as one message of its k
+// records stamped with its receipt and the records' sample times; every fault counted as what
+// it is.
 TEST(AtiBridgeInProcess, ABoxOf35RecordsPerDatagramIsPublishedOnceRecordForRecord) {
   constexpr int k = 35;
   sim::AtiEmulatorOptions o;
@@ -955,13 +1074,23 @@ TEST(AtiBridgeInProcess, ABoxOf35RecordsPerDatagramIsPublishedOnceRecordForRecor
     if (r.fault == "none" || r.fault == "duplicate") intact[r.rdt_sequence] = &r;
   }
   ASSERT_GT(intact.size(), 15000u);
-  ASSERT_EQ(out.size(), intact.size());
+  const auto records = Records(out);
+  ASSERT_EQ(records.size(), intact.size());
+  // One datagram of k records is ONE message of n = k: as many messages as datagrams with
+  // intact records, each of k records but the part-filled last one at the end of the data.
+  std::set<std::uint32_t> intact_datagrams;
+  for (const auto& [seq, r] : intact) intact_datagrams.insert(r->datagram);
+  EXPECT_EQ(out.size(), intact_datagrams.size());
+  for (std::size_t i = 0; i + 1 < out.size(); ++i) {
+    EXPECT_EQ(out[i].msg.n, k) << "message " << i << " of " << out.size();
+  }
+  EXPECT_GE(out.back().msg.n, 1);
+  EXPECT_LE(out.back().msg.n, k);
   auto it = intact.begin();
   std::uint32_t prev = 0;
-  std::vector<std::pair<std::uint32_t, ft_sample_t>> by_datagram;
+  std::vector<std::pair<std::uint32_t, FtRec>> by_datagram;
   int gaps_of_k = 0, saturated = 0;
-  for (const Published& p : out) {
-    const ft_sample_t& m = p.msg;
+  for (const FtRec& m : records) {
     const testing::AtiTruthRow& r = *it->second;
     ASSERT_EQ(static_cast<std::uint32_t>(m.rdt_sequence), r.rdt_sequence);
     EXPECT_EQ(static_cast<std::uint32_t>(m.ft_sequence), r.ft_sequence);
@@ -973,10 +1102,10 @@ TEST(AtiBridgeInProcess, ABoxOf35RecordsPerDatagramIsPublishedOnceRecordForRecor
     // The gap is what the truth says went missing since the previous intact record.
     EXPECT_EQ(m.gap, static_cast<std::int64_t>(r.rdt_sequence - prev - 1)) << r.rdt_sequence;
     if (m.gap == k) ++gaps_of_k;
-    EXPECT_EQ((m.flags & ft_sample_t::FLAG_GAP) != 0, m.gap > 0);
-    EXPECT_EQ((m.flags & ft_sample_t::FLAG_STATUS_ERROR) != 0, r.status != 0);
-    if (m.flags & ft_sample_t::FLAG_SATURATED) ++saturated;
-    EXPECT_EQ((m.flags & ft_sample_t::FLAG_RESTARTED) != 0, prev == 0);
+    EXPECT_EQ((m.flags & ft_batch_t::FLAG_GAP) != 0, m.gap > 0);
+    EXPECT_EQ((m.flags & ft_batch_t::FLAG_STATUS_ERROR) != 0, r.status != 0);
+    if (m.flags & ft_batch_t::FLAG_SATURATED) ++saturated;
+    EXPECT_EQ((m.flags & ft_batch_t::FLAG_RESTARTED) != 0, prev == 0);
     by_datagram.emplace_back(datagram_of.at(r.rdt_sequence), m);
     prev = r.rdt_sequence;
     ++it;
@@ -995,7 +1124,7 @@ TEST(AtiBridgeInProcess, ABoxOf35RecordsPerDatagramIsPublishedOnceRecordForRecor
                                                         {"lost", c.lost},
                                                         {"received", c.received}};
   testing::ExpectFaultsCounted(tally, [&](const std::string& n) { return counters.at(n); });
-  EXPECT_EQ(c.published, out.size());
+  EXPECT_EQ(c.published, records.size());  // counts records, not messages
   EXPECT_EQ(c.status_nonzero, static_cast<std::uint64_t>(saturated));  // bit 17 set in each
   EXPECT_GT(saturated, 100);
   EXPECT_EQ(c.saturated, static_cast<std::uint64_t>(saturated));
@@ -1018,6 +1147,7 @@ TEST(AtiBridgeInProcess, OneRecordPerDatagramIsRealTimeModeWhateverTheBoxsBuffer
   AtiTransducerCounters c;
   const auto out = RunBridge(cfg, box, 0.3, &c);
   ASSERT_GT(out.size(), 1000u);
+  for (const auto& p : out) EXPECT_EQ(p.msg.n, 1);  // a message per one-record datagram
   EXPECT_EQ(c.published, out.size());
   EXPECT_EQ(c.datagrams, c.received);
   EXPECT_EQ(c.lost, 0u);
@@ -1035,13 +1165,13 @@ TEST(AtiBridgeInProcess, SaturationFromStatusBitOrRatedRangeAndStatusErrorAreFla
     const std::array<std::int32_t, 6> base{0, 0, variant == 0 ? 100000000 : 450000000, 0, 0, 0};
     const std::uint32_t status = variant == 0 ? 0x80020000u : 0u;
     sim::AtiEmulator box(o, [&](std::uint64_t n, double) { return FixedState(n, base, status); });
-    const auto out = RunBridge(SimConfig(), box, 0.15);
-    ASSERT_GT(out.size(), 50u);
-    for (const auto& p : out) {
-      EXPECT_TRUE(p.msg.flags & ft_sample_t::FLAG_SATURATED);
-      EXPECT_EQ((p.msg.flags & ft_sample_t::FLAG_STATUS_ERROR) != 0, variant == 0);
-      EXPECT_EQ(p.msg.status, static_cast<std::int64_t>(status));
-      EXPECT_DOUBLE_EQ(p.msg.wrench[2], p.msg.counts[2] / 1e6);
+    const auto records = Records(RunBridge(SimConfig(), box, 0.15));
+    ASSERT_GT(records.size(), 50u);
+    for (const FtRec& m : records) {
+      EXPECT_TRUE(m.flags & ft_batch_t::FLAG_SATURATED);
+      EXPECT_EQ((m.flags & ft_batch_t::FLAG_STATUS_ERROR) != 0, variant == 0);
+      EXPECT_EQ(m.status, static_cast<std::int64_t>(status));
+      EXPECT_DOUBLE_EQ(m.wrench[2], m.counts[2] / 1e6);
     }
     EXPECT_EQ(box.counters().http_requests, 1u);  // counts per unit from the page
   }

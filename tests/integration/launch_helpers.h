@@ -37,7 +37,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/process_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "launcher/launch_plan.h"
@@ -218,7 +218,7 @@ class Ear {
  private:
   void OnAny(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
     const auto now = Clock::now();
-    ft_sample_t ft;
+    ft_batch_t ft;
     const bool is_ft = channel.rfind("FT_", 0) == 0 && ft.decode(rbuf->data, 0, rbuf->data_size) ==
                                                            static_cast<int>(rbuf->data_size);
     std::lock_guard<std::mutex> lock(mutex_);
@@ -228,7 +228,8 @@ class Ear {
     while (!a.empty() && a.front() < now - std::chrono::seconds(10)) a.pop_front();
     if (is_ft) {
       auto& h = ft_heard_[channel];
-      h.emplace_back(now, ft.rdt_sequence);
+      // One entry per record: a message carries a datagram's n records.
+      for (int i = 0; i < ft.n; ++i) h.emplace_back(now, ft.rdt_sequence[i]);
       while (!h.empty() && h.front().first < now - std::chrono::seconds(10)) h.pop_front();
     }
   }

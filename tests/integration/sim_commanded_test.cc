@@ -32,7 +32,7 @@
 #include "test_helpers.h"
 #include "signed_commander.h"
 #include "ftcal/config.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 #include "ftcal/signed_envelope_t.hpp"
 #include "ftcal/servo_state_t.hpp"
@@ -78,6 +78,8 @@ std::string TestConfigText(const std::string& device) {
 
 // The recorded log, decoded; times are the logger's (s).
 struct Recorded {
+  // One FT record. A message carries a datagram's records: its last one has the message's
+  // logged time, an earlier one that much before it as its sample time is before the last's.
   struct Ft {
     double t_s;
     int leg;
@@ -102,8 +104,8 @@ Recorded ReadLog(const std::string& path) {
     const std::string& ch = e->channel;
     const double t = static_cast<double>(e->timestamp) * 1e-6;
     if (ch.rfind("FT_", 0) == 0) {
-      ft_sample_t m;
-      if (!Decode(e, &m)) {
+      ft_batch_t m;
+      if (!Decode(e, &m) || m.n < 1) {
         ++r.undecodable;
         return;
       }
@@ -112,9 +114,13 @@ Recorded ReadLog(const std::string& path) {
         ++r.undecodable;
         return;
       }
-      Vec6 w;
-      for (int i = 0; i < 6; ++i) w[i] = m.wrench[i];
-      r.ft.push_back({t, *k, w});
+      for (int j = 0; j < m.n; ++j) {
+        Vec6 w;
+        for (int i = 0; i < 6; ++i) w[i] = m.wrench[j][i];
+        const double before_last = static_cast<double>(m.sample_utime[m.n - 1] -
+                                                       m.sample_utime[j]) * 1e-6;
+        r.ft.push_back({t - before_last, *k, w});
+      }
     } else if (ch == "SERVO_STATE") {
       servo_state_t m;
       if (!Decode(e, &m))

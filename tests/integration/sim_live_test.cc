@@ -15,6 +15,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -35,7 +36,7 @@
 #include "child_process.h"
 #include "test_helpers.h"
 #include "ftcal/config.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/service_status_t.hpp"
@@ -133,9 +134,17 @@ std::map<std::int64_t, QtmRow> ReadQtmTruth(const std::string& path) {
   return rows;
 }
 
-// The recorded log, decoded.
+// One record of a recorded ft_batch_t (a message per RDT datagram), with its message's leg.
+struct FtRecord {
+  std::string leg;
+  std::int64_t rdt_sequence = 0, ft_sequence = 0, status = 0;
+  std::array<std::int32_t, 6> counts{};
+  std::array<double, 6> wrench{};
+};
+
+// The recorded log, decoded; FT_<LEG> record by record.
 struct Recorded {
-  std::vector<ft_sample_t> ft;
+  std::vector<FtRecord> ft;
   std::vector<servo_state_t> servo;
   std::vector<mocap_body_t> mocap;
   std::vector<service_status_t> status;
@@ -156,7 +165,24 @@ Recorded ReadLog(const std::string& path) {
   testing::ForEachLogEvent(path, [&](const lcm::LogEvent* e) {
     const std::string& ch = e->channel;
     if (ch.rfind("FT_", 0) == 0) {
-      if (keep(e, &r.ft) && ch != "FT_" + r.ft.back().leg) ++r.wrong_channel;
+      ft_batch_t m;
+      if (!Decode(e, &m) || m.n < 1 || m.n > ft_batch_t::MAX_N) {
+        ++r.undecodable;
+        return;
+      }
+      if (ch != "FT_" + m.leg) ++r.wrong_channel;
+      for (int i = 0; i < m.n; ++i) {
+        FtRecord f;
+        f.leg = m.leg;
+        f.rdt_sequence = m.rdt_sequence[i];
+        f.ft_sequence = m.ft_sequence[i];
+        f.status = m.status[i];
+        for (int j = 0; j < 6; ++j) {
+          f.counts[j] = m.counts[i][j];
+          f.wrench[j] = m.wrench[i][j];
+        }
+        r.ft.push_back(f);
+      }
     } else if (ch == "SERVO_STATE") {
       keep(e, &r.servo);
     } else if (ch == "MOCAP_BODY") {
@@ -314,7 +340,7 @@ TEST(SimLive, ThreeBridgesRecordTheTwinsTruthAndCountEveryFault) {
       index.emplace(std::make_tuple(r.leg, r.rdt_sequence, r.ft_sequence), &r);
     std::map<std::string, std::int64_t> heard;
     double worst_quantization = 0;
-    for (const ft_sample_t& m : rec.ft) {
+    for (const FtRecord& m : rec.ft) {
       const auto range =
           index.equal_range(std::make_tuple(m.leg, static_cast<std::uint32_t>(m.rdt_sequence),
                                             static_cast<std::uint32_t>(m.ft_sequence)));

@@ -58,7 +58,7 @@
 #include "child_process.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/process_state_t.hpp"
 #include "launch_helpers.h"
 #include "test_helpers.h"
@@ -270,9 +270,13 @@ int64_t WallUtime() {
 }
 
 // The recording as ftcal-record wrote it: every file of `-i` (session.lcmlog.00, .01, ...), the
-// first and last event time of each, and each FT_<LEG> channel's records in log order.
+// first and last event time of each, and each FT_<LEG> channel's records in log order (a
+// message's records one by one).
 struct Recording {
   struct Ft {
+    // utime: the record's logged time. A message's last record has the message's (the logger's
+    // receipt); an earlier record of a buffered datagram that much before it as its sample time
+    // is before the last record's (sample_utime, one host's clock), as if it had come alone.
     int64_t seq, utime;
     int file;
     int32_t bridge_gap;  // what the bridge itself saw missing before this record
@@ -304,9 +308,12 @@ Recording ReadRecording(const std::string& dir) {
       if (span.first < 0) span.first = e->timestamp;
       span.second = e->timestamp;
       if (is_ft(e->channel)) {
-        ft_sample_t m;
+        ft_batch_t m;
         if (m.decode(e->data, 0, e->datalen) != e->datalen) continue;
-        rec.ft[e->channel].push_back({m.rdt_sequence, e->timestamp, f, m.gap});
+        for (int i = 0; i < m.n; ++i) {
+          const int64_t before_last = m.sample_utime[m.n - 1] - m.sample_utime[i];
+          rec.ft[e->channel].push_back({m.rdt_sequence[i], e->timestamp - before_last, f, m.gap[i]});
+        }
       } else if (e->channel == "EXPERIMENT") {
         if (rec.first_marker < 0) rec.first_marker = e->timestamp;
       } else if (e->channel == "PROCESS_STATE") {
