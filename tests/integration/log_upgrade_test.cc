@@ -490,6 +490,27 @@ TEST_F(LogUpgradeTest, TheProgramExitsTwoOnARefusalAndZeroWhenDone) {
   EXPECT_TRUE(fs::exists(new_));
 }
 
+TEST_F(LogUpgradeTest, AnEnvelopeWithAnOlderInnerMessageIsKeptAsSigned) {
+  // Re-encoding the inside would break the signature: the envelope is copied and counted.
+  const auto inner = Bytes(OldControl());
+  ftcal::signed_envelope_t envelope{};
+  envelope.sequence = 7;
+  envelope.inner_fingerprint = ftcal_pre_nonce::sequencer_control_t::getHash();
+  envelope.size = static_cast<int32_t>(inner.size());
+  envelope.payload = inner;
+  const Event in{77, "SEQUENCER_CONTROL", Bytes(envelope)};
+  WriteLog(old_, {in});
+  const Summary summary = UpgradeLog(old_, new_);
+  EXPECT_EQ(summary.converted, 0);
+  EXPECT_EQ(summary.old_signed, 1);
+  EXPECT_EQ(summary.channels.at("SEQUENCER_CONTROL").old_signed, 1);
+  const auto out = ReadLog(new_);
+  ASSERT_EQ(out.size(), 1u);
+  EXPECT_EQ(out[0].data, in.data);
+  EXPECT_EQ(out[0].utime, 77);
+  EXPECT_NE(Render(summary, old_, new_).find("kept 1 signed envelope"), std::string::npos);
+}
+
 TEST_F(LogUpgradeTest, TheGuardsRefusalOfAnOldFtSampleNamesTheCommand) {
   const auto old = Bytes(OldFt());
   const wire::Schema* current =
