@@ -55,18 +55,56 @@ else()
   message(STATUS "No JDK or lcm.jar: the lcm-spy jar is not built (scripts/spy will say so)")
 endif()
 
+# Older versions of the logged types (lcmtypes/legacy/<package>/, README there): C++ only, for
+# ftcal-log-upgrade, in a tree of their own. Not in FTCAL_LCM_FILES (lcm-spy's jar, the current
+# wire schemas).
+file(GLOB FTCAL_LEGACY_LCM_FILES CONFIGURE_DEPENDS "${PROJECT_SOURCE_DIR}/lcmtypes/legacy/*/*.lcm")
+set(FTCAL_LEGACY_CPP_DIR "${PROJECT_BINARY_DIR}/lcmtypes-legacy")
+set(_legacy_hpp "")
+foreach(_lcm ${FTCAL_LEGACY_LCM_FILES})
+  get_filename_component(_name "${_lcm}" NAME_WE)
+  get_filename_component(_dir "${_lcm}" DIRECTORY)
+  get_filename_component(_package "${_dir}" NAME)
+  list(APPEND _legacy_hpp "${FTCAL_LEGACY_CPP_DIR}/${_package}/${_name}.hpp")
+endforeach()
+add_custom_command(
+  OUTPUT ${_legacy_hpp}
+  COMMAND ${LCM_GEN} --cpp --cpp-hpath "${FTCAL_LEGACY_CPP_DIR}" ${FTCAL_LEGACY_LCM_FILES}
+  DEPENDS ${FTCAL_LEGACY_LCM_FILES}
+  COMMENT "lcm-gen: C++ legacy message types"
+  VERBATIM)
+add_custom_target(ftcal_legacy_lcmtypes_gen DEPENDS ${_legacy_hpp})
+add_library(ftcal_legacy_lcmtypes INTERFACE)
+add_dependencies(ftcal_legacy_lcmtypes ftcal_legacy_lcmtypes_gen)
+target_include_directories(ftcal_legacy_lcmtypes INTERFACE "${FTCAL_LEGACY_CPP_DIR}")
+target_link_libraries(ftcal_legacy_lcmtypes INTERFACE lcm::lcm)
+
 # Wire schemas for services/common/wire_guard (the checks before LCM's decoder runs):
-# ftcal_wire_schemas(FUNCTION OUT_CC FILES...) writes OUT_CC defining
-# `const std::vector<const ftcal::wire::Schema*>& FUNCTION()` from the .lcm FILES.
+# ftcal_wire_schemas(FUNCTION OUT_CC FILES... [LEGACY FILES...]) writes OUT_CC defining
+# `const std::vector<const ftcal::wire::Schema*>& FUNCTION()` from the .lcm FILES, and
+# `FUNCTIONLegacy()`, the older versions among the LEGACY files (for the guard's refusal to
+# name them; empty without).
 set(FTCAL_WIRE_SCHEMA_PY "${CMAKE_CURRENT_LIST_DIR}/lcm_wire_schema.py")
 function(ftcal_wire_schemas function out_cc)
+  cmake_parse_arguments(A "" "" "LEGACY" ${ARGN})
+  set(legacy "")
+  if(A_LEGACY)
+    set(legacy --legacy ${A_LEGACY})
+  endif()
   add_custom_command(
     OUTPUT "${out_cc}"
-    COMMAND "${FTCAL_PYTHON}" "${FTCAL_WIRE_SCHEMA_PY}" ${function} "${out_cc}" ${ARGN}
-    DEPENDS ${ARGN} "${FTCAL_WIRE_SCHEMA_PY}"
+    COMMAND "${FTCAL_PYTHON}" "${FTCAL_WIRE_SCHEMA_PY}" ${function} "${out_cc}"
+            ${A_UNPARSED_ARGUMENTS} ${legacy}
+    DEPENDS ${A_UNPARSED_ARGUMENTS} ${A_LEGACY} "${FTCAL_WIRE_SCHEMA_PY}"
     COMMENT "wire schemas: ${function}"
     VERBATIM)
 endfunction()
-ftcal_wire_schemas(FtcalSchemas "${PROJECT_BINARY_DIR}/wire_schemas.cc" ${FTCAL_LCM_FILES})
+ftcal_wire_schemas(FtcalSchemas "${PROJECT_BINARY_DIR}/wire_schemas.cc" ${FTCAL_LCM_FILES}
+  LEGACY ${FTCAL_LEGACY_LCM_FILES})
 # The rule lives in this directory; services/common compiles the file (CMP0118) after this.
 add_custom_target(ftcal_wire_schemas_gen DEPENDS "${PROJECT_BINARY_DIR}/wire_schemas.cc")
+# The legacy versions' own schemas, for ftcal-log-upgrade to check each old message before its
+# decoder runs.
+ftcal_wire_schemas(LegacySchemas "${PROJECT_BINARY_DIR}/legacy_wire_schemas.cc"
+  ${FTCAL_LEGACY_LCM_FILES})
+add_custom_target(ftcal_legacy_schemas_gen DEPENDS "${PROJECT_BINARY_DIR}/legacy_wire_schemas.cc")

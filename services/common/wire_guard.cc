@@ -168,6 +168,13 @@ const Schema* FindSchema(uint64_t fingerprint) {
   return nullptr;
 }
 
+const LegacyVersion* FindLegacyVersion(uint64_t fingerprint) {
+  for (const LegacyVersion& v : FtcalSchemasLegacy()) {
+    if (v.fingerprint == fingerprint) return &v;
+  }
+  return nullptr;
+}
+
 namespace {
 bool IsListed(const Schema* schema) {
   const auto& generated = FtcalSchemas();
@@ -189,11 +196,17 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
   }
   const uint64_t fingerprint = static_cast<uint64_t>(ReadSigned(bytes, 8));
   if (fingerprint != schema.fingerprint) {
-    char text[80];
+    char text[160];
     std::snprintf(text, sizeof text, "fingerprint %016llx, not %s's %016llx",
                   static_cast<unsigned long long>(fingerprint), schema.name,
                   static_cast<unsigned long long>(schema.fingerprint));
-    return Refusal{"wrong fingerprint", text};
+    std::string detail = text;
+    // A log recorded before a change of ftcal's types: say which version, and what to do.
+    if (const LegacyVersion* legacy = FindLegacyVersion(fingerprint)) {
+      detail += std::string(": an older ") + legacy->name + " (" + legacy->what +
+                "): convert the log with ftcal-log-upgrade OLD NEW";
+    }
+    return Refusal{"wrong fingerprint", detail};
   }
   const int64_t decoded_bound = kMaxDecodedBytesPerByte * total + kDecodedSlackBytes;
   int64_t pos = 8;

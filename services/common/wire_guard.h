@@ -76,6 +76,19 @@ struct Refusal {
 
 // The schemas of lcmtypes/*.lcm (generated).
 const std::vector<const Schema*>& FtcalSchemas();
+
+// An older version of one of ftcal's types, as logs recorded before a change carry it
+// (lcmtypes/legacy/). Check() names it when it meets its fingerprint, with the command that
+// converts the log (ftcal-log-upgrade).
+struct LegacyVersion {
+  uint64_t fingerprint;
+  const char* name;  // the type it is a version of: "ftcal.ft_sample_t"
+  const char* what;  // "one record a message, before ft_batch_t (1faf3aa)"
+};
+// The versions of lcmtypes/legacy/ (generated, beside FtcalSchemas()).
+const std::vector<LegacyVersion>& FtcalSchemasLegacy();
+// The older version with this fingerprint; nullptr when none is known.
+const LegacyVersion* FindLegacyVersion(uint64_t fingerprint);
 // Looks up a schema by fingerprint among FtcalSchemas() and those added by Register();
 // nullptr when none.
 const Schema* FindSchema(uint64_t fingerprint);
