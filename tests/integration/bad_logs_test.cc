@@ -330,7 +330,7 @@ TEST_F(BadLogsTest, CorruptPayloadIsCountedAndOnlyThatEventIsLost) {
     EXPECT_EQ(s.errors, s0.errors);
     // The kind is logged (once per kind); the heartbeat carries the count.
     const std::string err = ReadFile(dirty.substr(0, dirty.size() - 7) + ".err");
-    EXPECT_NE(err.find("undecodable ft_sample_t on FT_HL"), std::string::npos) << err;
+    EXPECT_NE(err.find("undecodable ft_batch_t on FT_HL"), std::string::npos) << err;
     if (exe == std::string(FTCAL_POSE_SEGMENTER)) {
       ExpectSegmenterLostOnlyThatFrame(clean, dirty, fx->damaged_frame);
     } else {
@@ -384,7 +384,7 @@ TEST_F(BadLogsTest, WrongTypeOnAnFtChannelIsCountedNotDecoded) {
     EXPECT_EQ(s.errors, s0.errors);
     // The kind is logged (once per kind); the heartbeat carries the count.
     const std::string err = ReadFile(dirty.substr(0, dirty.size() - 7) + ".err");
-    EXPECT_NE(err.find("undecodable ft_sample_t on FT_HL"), std::string::npos) << err;
+    EXPECT_NE(err.find("undecodable ft_batch_t on FT_HL"), std::string::npos) << err;
     for (const std::string& channel :
          {ch.sync_sample(), ch.contact_wrench(), ch.contact_wrench_sum()}) {
       EXPECT_EQ(RawChannel(clean, channel), RawChannel(dirty, channel)) << channel;
@@ -428,7 +428,7 @@ TEST_F(BadLogsTest, CalibratorRefusesACorruptPayload) {
   PatchFile(fx->session_log, log, payload, {0xff});
   ExpectCalibratorRefuses(
       log, "cal_payload",
-      {"damaged or truncated", "1 undecodable messages", "undecodable ft_sample_t on FT_HL"});
+      {"damaged or truncated", "1 undecodable messages", "undecodable ft_batch_t on FT_HL"});
 }
 
 TEST_F(BadLogsTest, CalibratorRefusesABrokenSyncWord) {
@@ -451,7 +451,7 @@ TEST_F(BadLogsTest, CalibratorRefusesAWrongTypeOnAnFtChannel) {
   const std::string log = Path("session_wrong_type.lcmlog");
   WriteLog(log, ev);
   ExpectCalibratorRefuses(log, "cal_wrong_type",
-                          {"damaged or truncated", "undecodable ft_sample_t on FT_HL"});
+                          {"damaged or truncated", "undecodable ft_batch_t on FT_HL"});
 }
 
 // A log from a robot whose leg HL is called XL: the config's legs are not the log's.

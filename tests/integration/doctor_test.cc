@@ -86,15 +86,17 @@ class DoctorTest : public ::testing::Test {
     r.out = ReadFile(fx->dir + "/" + tag + ".out") + ReadFile(fx->dir + "/" + tag + ".err");
     return r;
   }
-  // The FT messages of `leg` changed by `edit` (false: dropped).
+  // The FT messages (ft_batch_t) of `leg` changed by `edit` (false: dropped).
   static std::vector<Event> EditFt(const std::string& leg,
-                                   const std::function<bool(Event&, ft_sample_t&)>& edit) {
+                                   const std::function<bool(Event&, ft_batch_t&)>& edit) {
     std::vector<Event> out;
     const std::string channel = fx->config.channels().ft_prefix() + leg;
     for (Event e : fx->events) {
       if (e.channel == channel) {
-        ft_sample_t m;
-        EXPECT_GT(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())), 0);
+        ft_batch_t m;
+        EXPECT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                  static_cast<int>(e.data.size()));
+        EXPECT_GE(m.n, 1);
         if (!edit(e, m)) continue;
         e = Encode(e.utime, channel, m);
       }
@@ -155,7 +157,7 @@ TEST_F(DoctorTest, AGapInsideStandingIsFoundWithItsTimeAndLength) {
   // 25 records of FT_HL (0.25 s at 100 Hz), two seconds into STANDING.
   const double from_s = fx->standing_start_s + 2.0;
   double first_lost_s = -1;
-  const Result r = Doctor("gap", EditFt("HL", [&](Event& e, ft_sample_t&) {
+  const Result r = Doctor("gap", EditFt("HL", [&](Event& e, ft_batch_t&) {
                             const double t = T(e.utime);
                             if (t < from_s || t >= from_s + 0.25 - 1e-6) return true;
                             if (first_lost_s < 0) first_lost_s = t;
@@ -176,13 +178,15 @@ TEST_F(DoctorTest, AStallIsFoundWithItsTimeAndLengthAndNothingCountedLost) {
   // FT_ML's records of 0.3 s inside STANDING all arrive at its end, at once: nothing lost.
   const double from_s = fx->standing_start_s + 5.0;
   double last_before_s = -1, released_s = -1;
-  const Result r = Doctor("stall", EditFt("ML", [&](Event& e, ft_sample_t& m) {
+  // Received then and stamped then: the records' sample times as well as the receipt.
+  const Result r = Doctor("stall", EditFt("ML", [&](Event& e, ft_batch_t& m) {
                             const double t = T(e.utime);
                             if (t < from_s) last_before_s = t;
                             if (t >= from_s + 0.3 && released_s < 0) released_s = t;
                             if (t >= from_s && t < from_s + 0.3) {
                               e.utime = kT0 + std::llround((from_s + 0.3) * 1e6);
-                              m.utime = e.utime;
+                              m.receipt_utime = e.utime;
+                              for (int64_t& u : m.sample_utime) u = e.utime;
                             }
                             return true;
                           }));
@@ -236,13 +240,21 @@ TEST_F(DoctorTest, ScriptsCalibrateStopsOnANotCalibratableRecordingUnlessForced)
 }
 
 TEST_F(DoctorTest, ASkewedTransducerClockIsMeasured) {
-  // FT_FR's 7 kHz sample counter 300 ppm slow: 1.0003 host seconds per counted second.
+  // FT_FR's 7 kHz sample counter 300 ppm slow: 1.0003 host seconds per counted second. The
+  // doctor fits each message's last ft_sequence against its receipt_utime: that record's count
+  // is set from the receipt, and any earlier record's counted back from it by the sample times.
   constexpr double kSkewPpm = 300;
-  const Result r = Doctor("skew", EditFt("FR", [&](Event& e, ft_sample_t& m) {
-                            m.ft_sequence =
-                                std::llround(T(e.utime) / (1 + kSkewPpm * 1e-6) * 7000.0) + 123456;
-                            return true;
-                          }));
+  constexpr double kCountsPerHostS = 7000.0 / (1 + kSkewPpm * 1e-6);
+  const auto skew = [&](Event&, ft_batch_t& m) {
+    const size_t last = static_cast<size_t>(m.n - 1);
+    m.ft_sequence[last] = std::llround(T(m.receipt_utime) * kCountsPerHostS) + 123456;
+    for (size_t j = 0; j < last; ++j) {
+      const double before_s = 1e-6 * static_cast<double>(m.sample_utime[last] - m.sample_utime[j]);
+      m.ft_sequence[j] = m.ft_sequence[last] - std::llround(before_s * kCountsPerHostS);
+    }
+    return true;
+  };
+  const Result r = Doctor("skew", EditFt("FR", skew));
   std::smatch row;
   ASSERT_TRUE(std::regex_search(r.out, row, std::regex("\nFT_FR .* ([-+][0-9.]+) ppm"))) << r.out;
   EXPECT_NEAR(std::stod(row[1]), kSkewPpm, 2.0) << r.out;

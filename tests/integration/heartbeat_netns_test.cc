@@ -9,13 +9,14 @@
 #include <optional>
 #include <sstream>
 #include <thread>
+#include <vector>
 
 #include <gtest/gtest.h>
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
 #include "test_helpers.h"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/service_status_t.hpp"
 
 namespace ftcal {
@@ -183,8 +184,8 @@ TEST_F(HeartbeatNetnsTest, StatusMarksAKilledPublisherLost) {
 using Event = testing::LoggedEvent;
 using testing::ReadLogEvents;
 
-ft_sample_t DecodeSample(const Event& e) {
-  ft_sample_t s;
+ft_batch_t DecodeSample(const Event& e) {
+  ft_batch_t s;
   EXPECT_EQ(s.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
             static_cast<int>(e.data.size()));
   return s;
@@ -204,11 +205,23 @@ TEST_F(HeartbeatNetnsTest, AStageLiveAndOverItsRecordingPublishesTheSame) {
   const std::string legs[] = {"HL", "ML", "FL", "HR", "MR", "FR"};
   constexpr int kSamples = 20;
   for (int k = 0; k < kSamples; ++k) {
-    ft_sample_t s{};
-    s.utime = 1000 + k;
+    // 1..3 records a message, each record's numbers its own.
+    ft_batch_t s{};
+    s.receipt_utime = 1000 + k;
     s.leg = k == 7 ? "XX" : legs[k % 6];  // one refused
-    s.rdt_sequence = k + 1;
-    for (int a = 0; a < 6; ++a) s.wrench[a] = 0.5 * k - a;
+    s.n = static_cast<int16_t>(1 + k % 3);
+    for (int j = 0; j < s.n; ++j) {
+      s.sample_utime.push_back(s.receipt_utime - (s.n - 1 - j));
+      s.rdt_sequence.push_back(10 * k + j + 1);
+      s.ft_sequence.push_back(70 * k + 7 * j);
+      s.status.push_back(0);
+      s.counts.push_back(std::vector<int32_t>(6, 0));
+      std::vector<double> wrench(6);
+      for (int a = 0; a < 6; ++a) wrench[a] = 0.5 * k - a + 0.125 * j;
+      s.wrench.push_back(wrench);
+      s.gap.push_back(0);
+      s.flags.push_back(0);
+    }
     ASSERT_EQ(lcm.publish("ECHO_IN", &s), 0);
     if (k == 12) {
       const uint8_t junk[5] = {9, 9, 9, 9, 9};
@@ -251,20 +264,27 @@ TEST_F(HeartbeatNetnsTest, AStageLiveAndOverItsRecordingPublishesTheSame) {
   ASSERT_EQ(replayed.size(), live.size());
   size_t j = 0;
   for (const auto& in_event : inputs) {
-    const ft_sample_t in = DecodeSample(in_event);
+    const ft_batch_t in = DecodeSample(in_event);
     if (in.leg == "XX") continue;
-    const ft_sample_t a = DecodeSample(live[j]), b = DecodeSample(replayed[j]);
+    const ft_batch_t a = DecodeSample(live[j]), b = DecodeSample(replayed[j]);
     EXPECT_EQ(a.leg, in.leg);
     EXPECT_EQ(b.leg, in.leg);
-    EXPECT_EQ(a.rdt_sequence, b.rdt_sequence);
-    for (int k = 0; k < 6; ++k) {
-      EXPECT_EQ(a.wrench[k], 2 * in.wrench[k]);
-      EXPECT_EQ(b.wrench[k], a.wrench[k]);
+    ASSERT_EQ(a.n, in.n) << "echo " << j;
+    ASSERT_EQ(b.n, in.n) << "echo " << j;
+    EXPECT_EQ(a.rdt_sequence, in.rdt_sequence);
+    EXPECT_EQ(b.rdt_sequence, a.rdt_sequence);
+    EXPECT_EQ(a.sample_utime, in.sample_utime);
+    EXPECT_EQ(b.sample_utime, a.sample_utime);
+    for (size_t r = 0; r < in.wrench.size(); ++r) {
+      for (int k = 0; k < 6; ++k) {
+        EXPECT_EQ(a.wrench[r][k], 2 * in.wrench[r][k]);
+        EXPECT_EQ(b.wrench[r][k], a.wrench[r][k]);
+      }
     }
     // Replay stamps with the recorded input's time; live with the time it handled it.
     EXPECT_EQ(replayed[j].timestamp, in_event.timestamp);
-    EXPECT_EQ(b.utime, in_event.timestamp);
-    EXPECT_GE(a.utime, in_event.timestamp - 100'000);
+    EXPECT_EQ(b.receipt_utime, in_event.timestamp);
+    EXPECT_GE(a.receipt_utime, in_event.timestamp - 100'000);
     ++j;
   }
   EXPECT_EQ(final_status.msgs_in, kSamples + 1);

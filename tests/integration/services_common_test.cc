@@ -6,6 +6,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -32,7 +33,7 @@
 #include "ftcal/config.h"
 #include "ftcal/digest_cache.h"
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "status/status_board.h"
 
 namespace ftcal {
@@ -48,15 +49,29 @@ std::shared_ptr<spdlog::logger> QuietLogger() {
   return log;
 }
 
-ft_sample_t Sample(const std::string& leg, int64_t utime, double scale) {
-  ft_sample_t s{};
-  s.utime = utime;
+// An FT message of `n` records received at `utime`, the last one sampled then and each earlier
+// one 1 ms before the next; every record's numbers differ from the others'.
+ft_batch_t Sample(const std::string& leg, int64_t utime, double scale, int n = 1) {
+  ft_batch_t s{};
+  s.receipt_utime = utime;
   s.leg = leg;
-  s.rdt_sequence = utime / 1000;
-  s.ft_sequence = 7 * s.rdt_sequence;
-  for (int i = 0; i < 6; ++i) {
-    s.counts[i] = static_cast<int32_t>(1000 * (i + 1) * scale);
-    s.wrench[i] = (i + 1) * scale - 3.5;
+  s.n = static_cast<int16_t>(n);
+  for (int j = 0; j < n; ++j) {
+    const int64_t back = n - 1 - j;
+    s.sample_utime.push_back(utime - 1000 * back);
+    s.rdt_sequence.push_back(utime / 1000 - back);
+    s.ft_sequence.push_back(7 * s.rdt_sequence.back());
+    s.status.push_back(0);
+    std::vector<int32_t> counts(6);
+    std::vector<double> wrench(6);
+    for (int i = 0; i < 6; ++i) {
+      counts[i] = static_cast<int32_t>(1000 * (i + 1) * scale) + j;
+      wrench[i] = (i + 1) * scale - 3.5 + 0.25 * j;
+    }
+    s.counts.push_back(counts);
+    s.wrench.push_back(wrench);
+    s.gap.push_back(0);
+    s.flags.push_back(0);
   }
   return s;
 }
@@ -245,12 +260,12 @@ TEST(AtomicLogFileTest, ATapSeesEveryByteAndTheDigestIsHandedToTheCache) {
 TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
   ServiceStats stats(QuietLogger());
   LcmBus bus("memq://", stats);
-  std::vector<ft_sample_t> got;
-  bus.Subscribe<ft_sample_t>("FT_.*", [&](const MessageInfo& info, const ft_sample_t& s) {
+  std::vector<ft_batch_t> got;
+  bus.Subscribe<ft_batch_t>("FT_.*", [&](const MessageInfo& info, const ft_batch_t& s) {
     EXPECT_EQ(info.channel, "FT_" + s.leg);
     EXPECT_GT(info.recv_utime, 0);
     if (s.leg == "XX") throw BadInput("unknown leg", "leg XX");
-    if (s.status == 666) throw std::runtime_error("boom");
+    if (std::count(s.status.begin(), s.status.end(), 666) > 0) throw std::runtime_error("boom");
     got.push_back(s);
   });
   const uint8_t garbage[7] = {1, 2, 3, 4, 5, 6, 7};
@@ -258,25 +273,29 @@ TEST(LcmBusTest, TypedHandlersGetDecodedMessagesAndBadOnesAreCountedNotThrown) {
   bus.Publish("FT_ML", experiment_marker_t{});        // drop: wrong type
   bus.Publish("FT_FL", Sample("FL", 10, 1.0));        // ok
   bus.Publish("FT_XX", Sample("XX", 11, 1.0));        // drop: BadInput
-  ft_sample_t failing = Sample("HR", 12, 1.0);
-  failing.status = 666;
-  bus.Publish("FT_HR", failing);                // error: exception
-  bus.Publish("FT_MR", Sample("MR", 13, 2.0));  // ok
-  bus.Publish("OTHER", Sample("FR", 14, 1.0));  // not subscribed
+  ft_batch_t failing = Sample("HR", 12, 1.0, 3);
+  failing.status[1] = 666;
+  bus.Publish("FT_HR", failing);                   // error: exception
+  bus.Publish("FT_MR", Sample("MR", 13, 2.0, 3));  // ok
+  bus.Publish("OTHER", Sample("FR", 14, 1.0));     // not subscribed
   while (bus.HandleOnce(0) > 0) {
   }
   ASSERT_EQ(got.size(), 2u);
   EXPECT_EQ(got[0].leg, "FL");
   EXPECT_EQ(got[1].leg, "MR");
-  EXPECT_EQ(got[1].wrench[5], 6 * 2.0 - 3.5);
+  ASSERT_EQ(got[1].n, 3);
+  ASSERT_EQ(got[1].wrench.size(), 3u);
+  EXPECT_EQ(got[1].wrench[0][5], 6 * 2.0 - 3.5);
+  EXPECT_EQ(got[1].wrench[2][5], 6 * 2.0 - 3.5 + 0.5);
+  EXPECT_EQ(got[1].sample_utime, (std::vector<int64_t>{13 - 2000, 13 - 1000, 13}));
   EXPECT_EQ(stats.msgs_out(), 7);
   EXPECT_EQ(stats.msgs_in(), 6);
   EXPECT_EQ(stats.drops(), 3);
   EXPECT_EQ(stats.errors(), 1);
   EXPECT_EQ(stats.last_error(), "handler for FT_.*: boom");
   EXPECT_EQ(stats.kinds().at("unknown leg"), 1);
-  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_HL: truncated"), 1);
-  EXPECT_EQ(stats.kinds().at("undecodable ft_sample_t on FT_ML: wrong fingerprint"), 1);
+  EXPECT_EQ(stats.kinds().at("undecodable ft_batch_t on FT_HL: truncated"), 1);
+  EXPECT_EQ(stats.kinds().at("undecodable ft_batch_t on FT_ML: wrong fingerprint"), 1);
 }
 
 // A consumer that cannot keep up sheds what waited too long instead of serving it late. memq
@@ -289,11 +308,11 @@ TEST(LcmBusTest, ShedLateDropsWhatWaitedTooLongAndServesTheRestFresh) {
   constexpr int64_t kMaxQueueUs = 20'000;
   std::vector<int64_t> waited_us;
   int other = 0;
-  bus.Subscribe<ft_sample_t>("FT_HL", [&](const MessageInfo& info, const ft_sample_t&) {
+  bus.Subscribe<ft_batch_t>("FT_HL", [&](const MessageInfo& info, const ft_batch_t&) {
     waited_us.push_back(bus.NowUtime() - info.recv_utime);
     std::this_thread::sleep_for(std::chrono::milliseconds(2));
   });
-  bus.Subscribe<ft_sample_t>("FT_ML", [&](const MessageInfo&, const ft_sample_t&) { ++other; });
+  bus.Subscribe<ft_batch_t>("FT_ML", [&](const MessageInfo&, const ft_batch_t&) { ++other; });
   bus.ShedLate("FT_HL", kMaxQueueUs);
   for (int i = 0; i < kSent; ++i) bus.Publish("FT_HL", Sample("HL", i, 1.0));
   for (int i = 0; i < 50; ++i) bus.Publish("FT_ML", Sample("ML", i, 1.0));
@@ -377,12 +396,12 @@ TEST(UserErrorsTest, LibraryTextsAreNamedAsWhatTheyAreAndFtcalTextsPassThrough) 
 TEST(UserErrorsTest, AHandlersIndexOutOfRangeIsCountedAsAnInternalErrorInTheStatus) {
   ServiceStats stats(QuietLogger());
   LcmBus bus("memq://", stats);
-  bus.Subscribe<ft_sample_t>("FT_.*", [&](const MessageInfo&, const ft_sample_t& s) {
+  bus.Subscribe<ft_batch_t>("FT_.*", [&](const MessageInfo&, const ft_batch_t& s) {
     std::vector<double> three(3);
-    (void)three.at(static_cast<std::size_t>(s.status));
+    (void)three.at(static_cast<std::size_t>(s.status.at(0)));
   });
-  ft_sample_t bad = Sample("HL", 10, 1.0);
-  bad.status = 7;
+  ft_batch_t bad = Sample("HL", 10, 1.0);
+  bad.status[0] = 7;
   bus.Publish("FT_HL", bad);
   while (bus.HandleOnce(0) > 0) {
   }
@@ -563,7 +582,7 @@ TEST_F(ReplayStageTest, OutputsCarryTheInputTimesAndBadEventsAreCounted) {
     // Valid samples every 250 ms from t0 to t0 + 2.5 s, with bad events between them.
     for (int k = 0; k <= 10; ++k) {
       const int64_t t = t0 + k * 250 * ms;
-      Write(in, "ECHO_IN", t, Encode(Sample(legs[k % 6], t - 5 * ms, k + 1.0)));
+      Write(in, "ECHO_IN", t, Encode(Sample(legs[k % 6], t - 5 * ms, k + 1.0, 1 + k % 3)));
       if (k == 0) Write(in, "OTHER", t + 10 * ms, Encode(Sample("HL", t, 1.0)));  // ignored
       if (k == 1) {
         Write(in, "ECHO_IN", t0 + 300 * ms, {0xde, 0xad, 0xbe, 0xef, 1, 2, 3});  // corrupt
@@ -577,8 +596,8 @@ TEST_F(ReplayStageTest, OutputsCarryTheInputTimesAndBadEventsAreCounted) {
       }
       if (k == 2) {
         Write(in, "ECHO_IN", t0 + 600 * ms, Encode(Sample("XX", t0, 1.0)));  // unknown leg
-        ft_sample_t failing = Sample("HL", t0, 1.0);
-        failing.status = 666;  // the stage's handler throws
+        ft_batch_t failing = Sample("HL", t0, 1.0, 2);
+        failing.status[1] = 666;  // the stage's handler throws
         Write(in, "ECHO_IN", t0 + 700 * ms, Encode(failing));
       }
     }
@@ -608,14 +627,18 @@ TEST_F(ReplayStageTest, OutputsCarryTheInputTimesAndBadEventsAreCounted) {
     }
     ASSERT_EQ(out[i].channel, "ECHO_OUT") << "event " << i;
     EXPECT_EQ(out[i].timestamp, t);
-    const ft_sample_t expected_in = Sample(legs[k % 6], t - 5 * ms, k + 1.0);
-    const auto echoed = Decode<ft_sample_t>(out[i]);
-    EXPECT_EQ(echoed.utime, t);
+    const ft_batch_t expected_in = Sample(legs[k % 6], t - 5 * ms, k + 1.0, 1 + k % 3);
+    const auto echoed = Decode<ft_batch_t>(out[i]);
+    EXPECT_EQ(echoed.receipt_utime, t);
     EXPECT_EQ(echoed.leg, expected_in.leg);
+    ASSERT_EQ(echoed.n, expected_in.n) << "event " << i;
+    EXPECT_EQ(echoed.sample_utime, expected_in.sample_utime);
     EXPECT_EQ(echoed.rdt_sequence, expected_in.rdt_sequence);
-    for (int a = 0; a < 6; ++a) {
-      EXPECT_EQ(echoed.counts[a], expected_in.counts[a]);
-      EXPECT_EQ(echoed.wrench[a], 2 * expected_in.wrench[a]);
+    EXPECT_EQ(echoed.counts, expected_in.counts);
+    ASSERT_EQ(echoed.wrench.size(), expected_in.wrench.size());
+    for (size_t r = 0; r < echoed.wrench.size(); ++r) {
+      ASSERT_EQ(echoed.wrench[r].size(), 6u);
+      for (int a = 0; a < 6; ++a) EXPECT_EQ(echoed.wrench[r][a], 2 * expected_in.wrench[r][a]);
     }
     ++i;
   }

@@ -21,7 +21,7 @@
 #include "ftcal/config.h"
 #include "ftcal/digest_cache.h"
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
@@ -74,7 +74,7 @@ double WrapToPi(double a) { return std::remainder(a, 2.0 * M_PI); }
 struct Decoded {
   std::vector<std::string> channel;
   std::vector<int64_t> timestamp;
-  std::array<std::vector<ft_sample_t>, kNumLegs> ft;
+  std::array<std::vector<ft_batch_t>, kNumLegs> ft;  // the writer's: one record a message
   std::vector<servo_state_t> servo;
   std::vector<mocap_body_t> mocap;
   std::vector<experiment_marker_t> markers;
@@ -96,7 +96,7 @@ Decoded ReadLog(const std::string& path) {
     d.timestamp.push_back(e->timestamp);
     bool ok = false;
     if (e->channel.rfind("FT_", 0) == 0) {
-      ft_sample_t m;
+      ft_batch_t m;
       ok = DecodeExactly(*e, &m);
       const auto k = LegIndex(e->channel.substr(3));
       ok = ok && k.has_value();
@@ -230,24 +230,31 @@ TEST_F(SimLogTest, FtSamplesAreTheTwinReadingsWithDeviceCounters) {
     const auto& ft = log_->ft[k];
     ASSERT_EQ(ft.size(), frames.size());
     for (size_t i = 0; i < ft.size(); ++i) {
-      const ft_sample_t& m = ft[i];
+      const ft_batch_t& m = ft[i];
       ASSERT_EQ(m.leg, kLegNames[k]);
-      ASSERT_EQ(m.rdt_sequence, static_cast<int64_t>(i) + 1);
+      // One record a message (a box in real-time mode), decoded exactly: every array has it.
+      ASSERT_EQ(m.n, 1) << kLegNames[k] << " message " << i;
+      ASSERT_EQ(m.rdt_sequence[0], static_cast<int64_t>(i) + 1);
       if (i > 0) {
-        ASSERT_EQ((m.ft_sequence - ft[i - 1].ft_sequence + (int64_t{1} << 32)) % (int64_t{1} << 32),
-                  70);
+        ASSERT_EQ(
+            (m.ft_sequence[0] - ft[i - 1].ft_sequence[0] + (int64_t{1} << 32)) % (int64_t{1} << 32),
+            70);
       }
-      ASSERT_GE(m.ft_sequence, 0);
-      ASSERT_LT(m.ft_sequence, int64_t{1} << 32);
-      ASSERT_EQ(m.status, 0);
-      ASSERT_EQ(m.flags, 0);
-      ASSERT_EQ(m.gap, 0);
-      const int64_t latency = m.utime - Utime(frames[i].t_s);
+      ASSERT_GE(m.ft_sequence[0], 0);
+      ASSERT_LT(m.ft_sequence[0], int64_t{1} << 32);
+      ASSERT_EQ(m.status[0], 0);
+      ASSERT_EQ(m.flags[0], 0);
+      ASSERT_EQ(m.gap[0], 0);
+      // The record is stamped with its receipt: the host time, a device latency after the frame.
+      ASSERT_EQ(m.sample_utime[0], m.receipt_utime) << i;
+      const int64_t latency = m.sample_utime[0] - Utime(frames[i].t_s);
       ASSERT_GE(latency, 500) << i;
       ASSERT_LE(latency, 1800) << i;
+      ASSERT_EQ(m.wrench[0].size(), 6u);
+      ASSERT_EQ(m.counts[0].size(), 6u);
       for (int a = 0; a < 6; ++a) {
-        ASSERT_EQ(m.wrench[a], frames[i].reading[k][a]) << kLegNames[k] << " frame " << i;
-        ASSERT_EQ(m.counts[a], frames[i].counts[k][a]);
+        ASSERT_EQ(m.wrench[0][a], frames[i].reading[k][a]) << kLegNames[k] << " frame " << i;
+        ASSERT_EQ(m.counts[0][a], frames[i].counts[k][a]);
       }
     }
   }
@@ -373,7 +380,9 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
     EXPECT_LT(start.utime, Utime(first.t_s));
     EXPECT_GT(stop.utime, log_->mocap[phases[p].end - 1].utime);
     EXPECT_GT(stop.utime, log_->servo[phases[p].end - 1].utime);
-    for (int k = 0; k < kNumLegs; ++k) EXPECT_GT(stop.utime, log_->ft[k][phases[p].end - 1].utime);
+    for (int k = 0; k < kNumLegs; ++k) {
+      EXPECT_GT(stop.utime, log_->ft[k][phases[p].end - 1].receipt_utime);
+    }
     if (p + 1 < phases.size()) {
       EXPECT_LT(stop.utime, log_->markers[2 * p + 2].utime);
     }
@@ -381,9 +390,10 @@ TEST_F(SimLogTest, MarkersBracketEachPhaseWithStatedGravity) {
     const double span_s = (last.t_s - first.t_s);
     const double rate = static_cast<double>(phases[p].end - phases[p].first - 1) / span_s;
     EXPECT_NEAR(rate, 100.0, 1e-6) << p;
-    const double host_rate = static_cast<double>(phases[p].end - phases[p].first - 1) /
-                             (1e-6 * static_cast<double>(log_->ft[0][phases[p].end - 1].utime -
-                                                         log_->ft[0][phases[p].first].utime));
+    const double host_rate =
+        static_cast<double>(phases[p].end - phases[p].first - 1) /
+        (1e-6 * static_cast<double>(log_->ft[0][phases[p].end - 1].sample_utime.at(0) -
+                                    log_->ft[0][phases[p].first].sample_utime.at(0)));
     EXPECT_NEAR(host_rate, 100.0, 1.0) << p;
   }
 }
@@ -419,7 +429,10 @@ TEST_F(SimLogTest, SameSeedSameBytesOtherSeedOtherBytes) {
   const Decoded d = ReadLog(other);
   ASSERT_EQ(d.ft[2].size(), log_->ft[2].size());
   for (size_t i = 0; i < d.ft[2].size(); i += 97) {
-    for (int a2 = 0; a2 < 6; ++a2) ASSERT_EQ(d.ft[2][i].wrench[a2], log_->ft[2][i].wrench[a2]);
+    ASSERT_EQ(d.ft[2][i].n, 1);
+    for (int a2 = 0; a2 < 6; ++a2) {
+      ASSERT_EQ(d.ft[2][i].wrench[0][a2], log_->ft[2][i].wrench[0][a2]);
+    }
   }
 }
 
