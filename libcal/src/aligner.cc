@@ -63,7 +63,9 @@ Aligner::Aligner(const AlignerOptions& options, Callback on_sample)
       max_mocap_age_us_(SecondsToUs(options.max_mocap_age_s, "max_mocap_age_s")),
       on_sample_(std::move(on_sample)),
       last_sync_utime_(INT64_MIN),
-      newest_ft_utime_(INT64_MIN) {}
+      newest_ft_utime_(INT64_MIN) {
+  last_ft_utime_.fill(INT64_MIN);
+}
 
 bool Aligner::AddFt(const FtInput& in) {
   if (in.leg < 0 || in.leg >= kNumLegs) {
@@ -75,35 +77,45 @@ bool Aligner::AddFt(const FtInput& in) {
     ++counters_.non_finite;
     return false;
   }
-  std::optional<FtInput>& latest = latest_ft_[in.leg];
-  if (latest && in.utime <= latest->utime) {
+  if (in.utime <= last_ft_utime_[in.leg]) {
     ++counters_.out_of_order;
     return false;
   }
-  latest = in;
+  last_ft_utime_[in.leg] = in.utime;
   newest_ft_utime_ = std::max(newest_ft_utime_, in.utime);
-
-  bool complete = true;
-  int64_t sync_utime = INT64_MIN;
-  for (const auto& l : latest_ft_) {
-    if (!l || l->utime <= last_sync_utime_) {
-      complete = false;
-      break;
-    }
-    sync_utime = std::max(sync_utime, l->utime);
+  std::deque<FtInput>& q = queue_[in.leg];
+  q.push_back(in);
+  if (q.size() > kMaxQueued) {
+    q.pop_front();
+    ++counters_.unaligned;
   }
-  if (complete) {
-    Pending p;
-    p.out.sample.utime = sync_utime;
-    for (int k = 0; k < kNumLegs; ++k) {
-      p.out.sample.wrench[k] = latest_ft_[k]->wrench;
-      p.out.flags |= latest_ft_[k]->flags;
-    }
-    pending_.push_back(p);
-    last_sync_utime_ = sync_utime;
-  }
+  FormSamples();
   Resolve(newest_ft_utime_);
   return true;
+}
+
+void Aligner::FormSamples() {
+  std::deque<FtInput>& pace = queue_[0];
+  while (!pace.empty()) {
+    const int64_t t = pace.front().utime;
+    for (const auto& q : queue_) {
+      if (q.empty() || q.back().utime < t) return;  // a nearer reading may still come
+    }
+    Pending p;
+    p.out.sample.utime = t;
+    for (int k = 0; k < kNumLegs; ++k) {
+      std::deque<FtInput>& q = queue_[k];
+      // Readings before one that is at or before t can be no instant's nearest any more.
+      while (q.size() >= 2 && q[1].utime <= t) q.pop_front();
+      const FtInput* use = &q[0];
+      if (q.size() >= 2 && q[0].utime < t && q[1].utime - t < t - q[0].utime) use = &q[1];
+      p.out.sample.wrench[k] = use->wrench;
+      p.out.flags |= use->flags;
+    }
+    pending_.push_back(p);
+    last_sync_utime_ = t;
+    pace.pop_front();
+  }
 }
 
 bool Aligner::AddServo(const ServoInput& in) {
@@ -112,25 +124,44 @@ bool Aligner::AddServo(const ServoInput& in) {
   return true;
 }
 
-bool Aligner::AddMocap(const MocapInput& in) { return AcceptMocap(in, &mocap_, &counters_); }
+bool Aligner::AddMocap(const MocapInput& in) {
+  if (!AcceptMocap(in, &mocap_, &counters_)) return false;
+  mocap_history_.push_back(in);
+  // A second of frames at 100-300 Hz: more than any sample waits for.
+  if (mocap_history_.size() > 512) mocap_history_.pop_front();
+  Resolve(newest_ft_utime_);
+  return true;
+}
+
+const MocapInput* Aligner::MocapNearest(int64_t utime) const {
+  if (mocap_history_.empty()) return nullptr;
+  // From the newest back while the one before is no farther (the earlier of two as near).
+  size_t i = mocap_history_.size() - 1;
+  auto distance = [&](size_t at) { return std::llabs(mocap_history_[at].utime - utime); };
+  while (i > 0 && distance(i - 1) <= distance(i)) --i;
+  return &mocap_history_[i];
+}
 
 void Aligner::Resolve(int64_t newest_ft_utime) {
   while (!pending_.empty()) {
     AlignedSample& out = pending_.front().out;
     const int64_t t = out.sample.utime;
-    if (!servo_.empty() && servo_.newest().utime >= t) {
+    // Wait for a later servo state and a later mocap frame while the transducers are less
+    // than each one's max age ahead: until then a later input could still change the sample.
+    const bool servo_later = !servo_.empty() && servo_.newest().utime >= t;
+    const bool mocap_later = !mocap_history_.empty() && mocap_history_.back().utime >= t;
+    if ((!servo_later && newest_ft_utime - t <= max_servo_age_us_) ||
+        (!mocap_later && newest_ft_utime - t <= max_mocap_age_us_)) {
+      return;
+    }
+    if (servo_later) {
       const auto angles = servo_.At(t);
       if (!angles->interpolated && angles->age_s * 1e6 > static_cast<double>(max_servo_age_us_)) {
         ++counters_.stale_servo;  // only states long after it: the stream just started
       } else {
         Emit(out, *angles);
       }
-      pending_.pop_front();
-      continue;
-    }
-    // No later state yet: wait while the transducers are less than max_servo_age ahead.
-    if (newest_ft_utime - t <= max_servo_age_us_) return;
-    if (!servo_.empty() && t - servo_.newest().utime <= max_servo_age_us_) {
+    } else if (!servo_.empty() && t - servo_.newest().utime <= max_servo_age_us_) {
       ++counters_.servo_held;
       Emit(out, *servo_.At(t));
     } else {
@@ -143,10 +174,11 @@ void Aligner::Resolve(int64_t newest_ft_utime) {
 void Aligner::Emit(AlignedSample& out, const ServoHistory::Lookup& angles) {
   SyncSample& s = out.sample;
   s.angle_rad = angles.angle_rad;
-  const bool fresh = mocap_ && std::llabs(s.utime - mocap_->utime) <= max_mocap_age_us_;
-  s.R_WC = (mocap_ && mocap_->tracked) ? mocap_->R_WC : Mat3::Identity();
-  s.attitude_ok = fresh && mocap_->tracked;
-  s.markers_ok = s.attitude_ok && mocap_->markers_ok;
+  const MocapInput* m = MocapNearest(s.utime);
+  const bool fresh = m != nullptr && std::llabs(s.utime - m->utime) <= max_mocap_age_us_;
+  s.R_WC = (m != nullptr && m->tracked) ? m->R_WC : Mat3::Identity();
+  s.attitude_ok = fresh && m->tracked;
+  s.markers_ok = s.attitude_ok && m->markers_ok;
   if (!s.attitude_ok) ++counters_.stale_mocap;
   ++counters_.emitted;
   if (on_sample_) on_sample_(out);

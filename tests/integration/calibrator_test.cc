@@ -34,7 +34,7 @@
 #include "ftcal/config.h"
 #include "ftcal/digest_cache.h"
 #include "ftcal/experiment_marker_t.hpp"
-#include "ftcal/ft_sample_t.hpp"
+#include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "sim/twin.h"
@@ -323,9 +323,11 @@ TEST_F(CalibratorTest, RefusesAPhaseThatLostRecordsUnlessAllowedAndCountsThemExa
     }
     if (phase == experiment_marker_t::STANDING && e.channel == "FT_ML" &&
         ++ml_standing > ml_total_standing / 2) {
-      ft_sample_t m;
-      ASSERT_GT(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())), 0);
-      m.rdt_sequence = ml_standing - ml_total_standing / 2;  // a new RDT stream: 1, 2, ...
+      ft_batch_t m;
+      ASSERT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                static_cast<int>(e.data.size()));
+      ASSERT_EQ(m.n, 1);                                        // the twin's: a record a message
+      m.rdt_sequence[0] = ml_standing - ml_total_standing / 2;  // a new RDT stream: 1, 2, ...
       events.push_back(Encode(e.utime, e.channel, m));
       continue;
     }
@@ -492,6 +494,137 @@ TEST_F(CalibratorTest, ASecondRunSkipsTheStandingSpanAndWritesTheSameCalibration
   EXPECT_EQ(a.DebugString(), b.DebugString());
   EXPECT_EQ(ReadFile(ResidualsPathFor(first)), ReadFile(ResidualsPathFor(second)));
   EXPECT_EQ(ReadFile(WalkingPathFor(first)), ReadFile(WalkingPathFor(second)));
+}
+
+// A Net F/T in buffered mode sends several records a datagram, and the bridge publishes them
+// as one ft_batch_t. The session with each leg's records regrouped 7 to a message (sent when
+// its last record was, receipt = that record's time; a message ends early where the records'
+// rdt_sequence jumps, as a datagram holds consecutive records, and at a marker, as the twin's
+// log has no records between its phases) calibrates to the same calibration, number for number: the reader is indifferent
+// to how the records were batched.
+TEST_F(CalibratorTest, RecordsBatchedSevenToAMessageCalibrateTheSame) {
+  constexpr int kPerMessage = 7;
+  const auto& ch = fx->config.channels();
+  std::map<std::string, int64_t> left;  // per FT channel: records still to come
+  for (const Event& e : fx->events) {
+    if (e.channel.rfind(ch.ft_prefix(), 0) == 0) ++left[e.channel];
+  }
+  ASSERT_EQ(left.size(), static_cast<size_t>(kNumLegs));
+  std::map<std::string, ft_batch_t> open;  // per FT channel: the message being filled
+  std::map<std::string, Event> open_event;  // per FT channel: the last record's event
+  std::vector<Event> events;
+  int64_t records_in = 0, records_out = 0, messages_out = 0;
+  auto close = [&](const std::string& channel) {
+    ft_batch_t& b = open[channel];
+    if (b.n == 0) return;
+    records_out += b.n;
+    ++messages_out;
+    events.push_back(Encode(open_event[channel].utime, channel, b));
+    b = ft_batch_t{};
+  };
+  for (const Event& e : fx->events) {
+    // The twin's log has no records between its phases: a datagram the box sent before a
+    // marker went out before it.
+    if (e.channel == ch.experiment()) {
+      for (int k = 0; k < kNumLegs; ++k) close(ch.ft_prefix() + std::string(kLegNames[k]));
+    }
+    if (e.channel.rfind(ch.ft_prefix(), 0) != 0) {
+      events.push_back(e);
+      continue;
+    }
+    ft_batch_t one;
+    ASSERT_EQ(one.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+              static_cast<int>(e.data.size()));
+    ASSERT_EQ(one.n, 1) << "the twin's log: a record a message";
+    ASSERT_EQ(one.sample_utime[0], one.receipt_utime);
+    ++records_in;
+    if (open[e.channel].n > 0 && one.rdt_sequence[0] != open[e.channel].rdt_sequence.back() + 1) {
+      close(e.channel);
+    }
+    ft_batch_t& b = open[e.channel];
+    open_event[e.channel] = e;
+    if (b.n == 0) {
+      b = ft_batch_t{};
+      b.leg = one.leg;
+    }
+    ++b.n;
+    b.receipt_utime = one.receipt_utime;
+    b.sample_utime.push_back(one.sample_utime[0]);
+    b.rdt_sequence.push_back(one.rdt_sequence[0]);
+    b.ft_sequence.push_back(one.ft_sequence[0]);
+    b.status.push_back(one.status[0]);
+    b.counts.push_back(one.counts[0]);
+    b.wrench.push_back(one.wrench[0]);
+    b.gap.push_back(one.gap[0]);
+    b.flags.push_back(one.flags[0]);
+    const bool last = --left[e.channel] == 0;
+    if (b.n == kPerMessage || last) close(e.channel);
+  }
+  for (const auto& [channel, b] : open) EXPECT_EQ(b.n, 0) << channel << ": records left over";
+  ASSERT_EQ(records_out, records_in);
+  // Mostly 7 a message: a short one only where a phase ends.
+  ASSERT_LE(messages_out, records_in / kPerMessage + 20 * kNumLegs);
+  const std::string batched = fx->dir + "/batched.lcmlog";
+  WriteLog(batched, events);
+  {  // What the log holds: every record once, in order, 7 a message.
+    for (int k = 0; k < kNumLegs; ++k) {
+      const std::string channel = ch.ft_prefix() + std::string(kLegNames[k]);
+      const std::vector<FtRecord> a = twin_log::ReadFtRecords(fx->log, channel, k);
+      const std::vector<FtRecord> b = twin_log::ReadFtRecords(batched, channel, k);
+      ASSERT_EQ(a.size(), b.size()) << channel;
+      for (size_t i = 0; i < a.size(); ++i) {
+        ASSERT_EQ(a[i].in.utime, b[i].in.utime) << channel << " " << i;
+        ASSERT_EQ(a[i].rdt_sequence, b[i].rdt_sequence) << channel << " " << i;
+        ASSERT_EQ(a[i].in.wrench, b[i].in.wrench) << channel << " " << i;
+      }
+      const auto messages = twin_log::ReadChannel<ft_batch_t>(batched, channel);
+      EXPECT_LT(messages.size(), a.size() / kPerMessage + 20) << channel;
+    }
+  }
+  {  // Collected in this process first, to say where a difference begins.
+    CalibrationCollector one(fx->config), seven(fx->config);
+    EXPECT_EQ(ReadIndexed(one, fx->log, nullptr), 0);
+    EXPECT_EQ(ReadIndexed(seven, batched, nullptr), 0);
+    ASSERT_EQ(one.phase_gaps().size(), seven.phase_gaps().size());
+    for (size_t p = 0; p < one.phase_gaps().size(); ++p) {
+      const PhaseGaps &a = one.phase_gaps()[p], &b = seven.phase_gaps()[p];
+      SCOPED_TRACE(PhaseName(a.phase));
+      EXPECT_EQ(a.phase, b.phase);
+      EXPECT_EQ(a.received, b.received);
+      EXPECT_EQ(a.lost, b.lost);
+      EXPECT_EQ(a.restarts, b.restarts);
+    }
+    const std::vector<HangingRecording>& ha = one.HangingRecordings();
+    const std::vector<HangingRecording>& hb = seven.HangingRecordings();
+    ASSERT_EQ(ha.size(), hb.size());
+    for (size_t s = 0; s < ha.size(); ++s) {
+      for (int k = 0; k < kNumLegs; ++k) {
+        EXPECT_EQ(ha[s].legs[k].t_s.size(), hb[s].legs[k].t_s.size())
+            << "hanging series " << s << ", leg " << kLegNames[k] << ": aligned samples";
+        EXPECT_TRUE(ha[s].legs[k].t_s == hb[s].legs[k].t_s &&
+                    ha[s].legs[k].wrench == hb[s].legs[k].wrench &&
+                    ha[s].legs[k].angle_rad == hb[s].legs[k].angle_rad)
+            << "hanging series " << s << ", leg " << kLegNames[k];
+      }
+    }
+    EXPECT_EQ(one.segmented_pose_count(), seven.segmented_pose_count());
+    EXPECT_EQ(one.walking_samples().size(), seven.walking_samples().size());
+  }
+
+  const std::string one_out = fx->dir + "/cal-one-a-message.pbtxt";
+  const std::string batched_out = fx->dir + "/cal-batched.pbtxt";
+  const Result r1 = Run({"--log", fx->log, "--config", kConfig, "--out", one_out}, "one_a_message");
+  const Result r7 = Run({"--log", batched, "--config", kConfig, "--out", batched_out}, "batched");
+  ASSERT_EQ(r1.exit_code, 0) << r1.err;
+  ASSERT_EQ(r7.exit_code, 0) << r7.err;
+  calibration::Calibration a = ReadCalibrationFile(one_out), b = ReadCalibrationFile(batched_out);
+  ASSERT_EQ(a.leg_size(), kNumLegs);
+  EXPECT_EQ(a.recording_gaps_size(), b.recording_gaps_size());
+  // Everything but the provenance (the input's name and digest, command line, time).
+  a.clear_provenance();
+  b.clear_provenance();
+  EXPECT_EQ(a.DebugString(), b.DebugString());
+  EXPECT_EQ(ReadFile(ResidualsPathFor(one_out)), ReadFile(ResidualsPathFor(batched_out)));
 }
 
 // A writer hands its log's digest over: the segmenter takes the poses log's SHA-256 as it
@@ -668,9 +801,11 @@ TEST_F(CalibratorTest, ASpanIndexSkipsWhatItCountedAndChangesNothingCollected) {
     if (phase == experiment_marker_t::STANDING) {
       if (e.channel == ch.ft_prefix() + "HL" && ++hl % 7 == 0) continue;  // lost
       if (e.channel == ch.ft_prefix() + "ML" && ++ml > 2000) {            // a new RDT stream
-        ft_sample_t m;
-        ASSERT_GT(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())), 0);
-        m.rdt_sequence = ml - 2000;
+        ft_batch_t m;
+        ASSERT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                  static_cast<int>(e.data.size()));
+        ASSERT_EQ(m.n, 1);  // the twin's: a record a message
+        m.rdt_sequence[0] = ml - 2000;
         push(Encode(e.utime, e.channel, m));
         continue;
       }

@@ -65,48 +65,117 @@ TEST(ServoHistory, InterpolatesUnwrappedAgainstHandComputedValues) {
   EXPECT_FALSE(h.Add(Servo(1'010'000, {})));
 }
 
-TEST(Aligner, EmitsAtTheNewestLegTimeWithInterpolatedAnglesWhenTheLaterServoStateArrives) {
+TEST(Aligner, EmitsAtThePaceLegsTimeWithInterpolatedAnglesWhenTheLaterServoStateArrives) {
   Collect c;
   Aligner a({}, c.cb());
   a.AddMocap(LevelMocap(990'000));
   a.AddServo(Servo(1'000'000, {0.1, 0.2, 0.3, 0.4, 0.5, 0.6}));
-  // Legs stamped 1.001 .. 1.006 s: the set is complete at 1.006 s.
+  // Legs stamped 1.001 .. 1.006 s: every leg has a reading at or after the pace leg's 1.001 s
+  // once the sixth has come.
   for (int k = 0; k < kNumLegs; ++k) a.AddFt({1'001'000 + 1000 * k, k, WrenchOf(k, 1.0), 0});
+  a.AddMocap(LevelMocap(1'020'000));
   EXPECT_TRUE(c.out.empty()) << "must wait for a servo state after the sync time";
   EXPECT_EQ(a.pending(), 1u);
   a.AddServo(Servo(1'010'000, {0.2, 0.2, 0.1, 0.4, 0.5, 1.6}));
   ASSERT_EQ(c.out.size(), 1u);
   const SyncSample& s = c.out[0].sample;
-  EXPECT_EQ(s.utime, 1'006'000);
-  // alpha = 0.6: 0.1 + 0.06, 0.3 - 0.12, 0.6 + 0.6.
-  EXPECT_NEAR(s.angle_rad[0], 0.16, 1e-12);
+  EXPECT_EQ(s.utime, 1'001'000);
+  // alpha = 0.1: 0.1 + 0.01, 0.3 - 0.02, 0.6 + 0.1.
+  EXPECT_NEAR(s.angle_rad[0], 0.11, 1e-12);
   EXPECT_NEAR(s.angle_rad[1], 0.2, 1e-12);
-  EXPECT_NEAR(s.angle_rad[2], 0.18, 1e-12);
-  EXPECT_NEAR(s.angle_rad[5], 1.2, 1e-12);
+  EXPECT_NEAR(s.angle_rad[2], 0.28, 1e-12);
+  EXPECT_NEAR(s.angle_rad[5], 0.7, 1e-12);
   for (int k = 0; k < kNumLegs; ++k) EXPECT_EQ(s.wrench[k], WrenchOf(k, 1.0)) << k;
-  EXPECT_TRUE(s.attitude_ok);  // 16 ms old
+  EXPECT_TRUE(s.attitude_ok);  // the nearer frame, 11 ms before
   EXPECT_TRUE(s.markers_ok);
   EXPECT_EQ(a.counters().emitted, 1);
 }
 
-TEST(Aligner, NextSampleNeedsEveryLegNewerThanTheLastSyncTime) {
+TEST(Aligner, ASampleTakesEachLegsReadingNearestThePaceLegsInstant) {
   Collect c;
   Aligner a({}, c.cb());
   a.AddServo(Servo(0, {}));
   a.AddServo(Servo(1'000'000, {}));
+  a.AddMocap(LevelMocap(0));
+  a.AddMocap(LevelMocap(1'000'000));
   AllLegs(a, 100'000, 1.0);
   ASSERT_EQ(c.out.size(), 1u);
-  // Five legs report again; the sixth is still at the old time: nothing yet.
+  // Five legs report again; the sixth is still at the old time: nothing yet (its next reading
+  // may be nearer 110 ms than its 100 ms one).
   for (int k = 0; k < kNumLegs - 1; ++k) a.AddFt({110'000, k, WrenchOf(k, 2.0), 0});
   EXPECT_EQ(c.out.size(), 1u);
-  // Leg 0 reports twice more before the sixth arrives: its latest reading is used.
+  // Leg 0 reports again before the sixth does: the instant stays 110 ms, and leg 0's reading
+  // there is used, not its latest.
   a.AddFt({120'000, 0, WrenchOf(0, 3.0), 4});
   a.AddFt({112'000, kNumLegs - 1, WrenchOf(kNumLegs - 1, 2.0), 1});
   ASSERT_EQ(c.out.size(), 2u);
-  EXPECT_EQ(c.out[1].sample.utime, 120'000);
-  EXPECT_EQ(c.out[1].sample.wrench[0], WrenchOf(0, 3.0));
+  EXPECT_EQ(c.out[1].sample.utime, 110'000);
+  EXPECT_EQ(c.out[1].sample.wrench[0], WrenchOf(0, 2.0));
   EXPECT_EQ(c.out[1].sample.wrench[1], WrenchOf(1, 2.0));
-  EXPECT_EQ(c.out[1].flags, 4 | 1);  // OR of the readings used
+  EXPECT_EQ(c.out[1].flags, 1);  // OR of the readings used
+  // The 120 ms instant: leg 5's nearest is its 112 ms reading until one at or after 120 ms
+  // comes; 127 ms is nearer than 112 ms.
+  for (int k = 1; k < kNumLegs - 1; ++k) a.AddFt({121'000, k, WrenchOf(k, 4.0), 0});
+  EXPECT_EQ(c.out.size(), 2u);
+  a.AddFt({127'000, kNumLegs - 1, WrenchOf(kNumLegs - 1, 5.0), 0});
+  ASSERT_EQ(c.out.size(), 3u);
+  EXPECT_EQ(c.out[2].sample.utime, 120'000);
+  EXPECT_EQ(c.out[2].sample.wrench[0], WrenchOf(0, 3.0));
+  EXPECT_EQ(c.out[2].sample.wrench[kNumLegs - 1], WrenchOf(kNumLegs - 1, 5.0));
+  EXPECT_EQ(c.out[2].flags, 4);
+}
+
+// A transducer's readings come a datagram at a time, and the six legs' datagrams in any
+// order, on clocks up to 60 us apart (under half the 143 us period): the samples are those of the readings one at a time,
+// leg after leg, whichever order the batches arrive in.
+TEST(Aligner, BatchedLegsInAnyOrderGiveTheSamplesOfInterleavedReadings) {
+  auto reading = [](int k, int j) {
+    return FtInput{1'000'000 + 143 * j + 12 * k, k, WrenchOf(k, 0.5 * j), j % 5 == 0 ? 2 : 0};
+  };
+  constexpr int kBatch = 7, kBatches = 30;
+  auto run = [&](const std::vector<int>& order_of_batch, bool batched) {
+    Collect c;
+    Aligner a({}, c.cb());
+    a.AddServo(Servo(0, {0.1, 0.2, 0.3, 0.4, 0.5, 0.6}));
+    a.AddServo(Servo(2'000'000, {0.2, 0.2, 0.3, 0.4, 0.5, 0.6}));
+    a.AddMocap(LevelMocap(0));
+    a.AddMocap(LevelMocap(2'000'000));
+    for (int b = 0; b < kBatches; ++b) {
+      if (batched) {
+        for (int k : order_of_batch) {
+          for (int j = b * kBatch; j < (b + 1) * kBatch; ++j) a.AddFt(reading(k, j));
+        }
+      } else {
+        for (int j = b * kBatch; j < (b + 1) * kBatch; ++j) {
+          for (int k = 0; k < kNumLegs; ++k) a.AddFt(reading(k, j));
+        }
+      }
+    }
+    return c.out;
+  };
+  const auto one_at_a_time = run({}, false);
+  // Every pace-leg instant gives a sample (the other legs stamp later than leg 0).
+  ASSERT_EQ(one_at_a_time.size(), static_cast<size_t>(kBatch * kBatches));
+  for (size_t j = 0; j < one_at_a_time.size(); ++j) {
+    const AlignedSample& s = one_at_a_time[j];
+    EXPECT_EQ(s.sample.utime, reading(0, static_cast<int>(j)).utime);
+    for (int k = 0; k < kNumLegs; ++k) {
+      EXPECT_EQ(s.sample.wrench[k], reading(k, static_cast<int>(j)).wrench) << j << " " << k;
+    }
+  }
+  for (const std::vector<int>& order :
+       {std::vector<int>{0, 1, 2, 3, 4, 5}, {5, 4, 3, 2, 1, 0}, {3, 0, 5, 1, 4, 2}}) {
+    const auto batched = run(order, true);
+    ASSERT_EQ(batched.size(), one_at_a_time.size());
+    for (size_t j = 0; j < batched.size(); ++j) {
+      EXPECT_EQ(batched[j].sample.utime, one_at_a_time[j].sample.utime);
+      EXPECT_EQ(batched[j].flags, one_at_a_time[j].flags);
+      EXPECT_EQ(batched[j].sample.angle_rad, one_at_a_time[j].sample.angle_rad);
+      for (int k = 0; k < kNumLegs; ++k) {
+        EXPECT_EQ(batched[j].sample.wrench[k], one_at_a_time[j].sample.wrench[k]);
+      }
+    }
+  }
 }
 
 TEST(Aligner, HoldsTheNewestServoStateOnlyWithinItsMaxAgeAndNeverExtrapolates) {
@@ -177,14 +246,15 @@ TEST(Aligner, AttitudeIsOkOnlyWhenTrackedAndFreshAndMarkersFollowTheFrame) {
   const Mat3 R = RotationFromRollPitchYaw(0.1, -0.05, 0.0);
   a.AddServo(Servo(0, {}));
   a.AddServo(Servo(10'000'000, {}));
-  AllLegs(a, 100'000, 1.0);  // no mocap at all
-  a.AddMocap({110'000, true, R, false});
-  AllLegs(a, 120'000, 1.0);  // fresh, a marker missing
-  AllLegs(a, 150'000, 1.0);  // 40 ms old
-  a.AddMocap({160'000, false, Mat3::Identity(), false});
-  AllLegs(a, 170'000, 1.0);  // untracked
-  a.AddMocap({180'000, true, R, true});
-  AllLegs(a, 190'000, 1.0);  // all good
+  AllLegs(a, 100'000, 1.0);  // no frame comes within 30 ms of transducer time: none at all
+  AllLegs(a, 131'000, 1.0);
+  a.AddMocap({140'000, true, R, false});  // the nearest to 131 ms: fresh, a marker missing
+  AllLegs(a, 180'000, 1.0);
+  a.AddMocap({221'000, false, Mat3::Identity(), false});  // 180 ms: 140 is nearer, 40 ms old
+  AllLegs(a, 230'000, 1.0);                               // 230 ms: 221 is nearer, untracked
+  a.AddMocap({260'000, true, R, true});
+  AllLegs(a, 262'000, 1.0);  // all good
+  a.AddMocap({280'000, true, R, true});
   ASSERT_EQ(c.out.size(), 5u);
   EXPECT_FALSE(c.out[0].sample.attitude_ok);
   EXPECT_TRUE(c.out[0].sample.R_WC.isIdentity());

@@ -1,13 +1,14 @@
 // Stream alignment: six asynchronous transducer streams, the servo state and motion capture
 // into SyncSamples at the transducers' rate (the pose segmenter's and the calibrator's input).
 //
-// Rule. A sample is emitted when every leg has a reading newer than the last emitted time.
-// The sync time is the NEWEST of those six readings' times: it is the moment the set became
-// complete, so it never waits on a reading that has not arrived and it is strictly increasing
-// (a median would repeat a time when one leg runs ahead). Each leg contributes its latest
-// reading; the readings of one BigAnt frame are stamped within a millisecond of each other, so
-// no wrench is resampled (interpolating a wrench would smear the settling the segmenter looks
-// for).
+// Rule. A sample is taken at each reading time t of the pace leg (leg 0, HL), from every leg's
+// reading nearest t (the earlier of two as near), once every leg has a reading at or after t:
+// then no later reading can be nearer, so the sample does not depend on how the legs' messages
+// interleave on arrival (a transducer's records come a datagram at a time, and six datagrams
+// arrive in any order). The sync time is t; it is strictly increasing. The readings of one
+// instant are within half a sample period of each other; no wrench is resampled (interpolating
+// a wrench would smear the settling the segmenter looks for). While a leg is silent nothing is
+// emitted; each leg keeps at most kMaxQueued readings waiting (the oldest go first, counted).
 //
 // Shaft angles are interpolated linearly to the sync time between the two servo states that
 // bracket it, the later one unwrapped against the earlier (a step of more than pi between two
@@ -16,11 +17,15 @@
 // is (counted as servo_held) when that is within max_servo_age_s of the sync time, and is
 // dropped (stale_servo) otherwise. Angles are never extrapolated.
 //
-// Attitude: R_WC of the latest motion-capture frame received; attitude_ok is false when the
-// body was untracked or that frame is more than max_mocap_age_s from the sync time.
+// Attitude: R_WC of the motion-capture frame nearest the sync time (the earlier of two as
+// near), once a frame at or after it has arrived (or, none coming, after max_mocap_age_s of
+// transducer time: then the nearest of those received); attitude_ok is false when the body was
+// untracked or that frame is more than max_mocap_age_s from the sync time.
 //
-// Everything is keyed on the inputs' own utime stamps and their arrival order, never on a
-// clock, so the same input order gives the same output live and on replay. Inputs older than
+// Everything is keyed on the inputs' own utime stamps, never on a clock, and a sample is made
+// only once no input still to come could change it: the same streams give the same samples
+// whatever the order their messages interleave in, live or on replay (unless a servo state or
+// mocap frame comes more than its max age of transducer time late: then it is held, as said). Inputs older than
 // the previous one of their stream (per leg for the transducers) and non-finite inputs are
 // counted and dropped.
 #pragma once
@@ -134,6 +139,7 @@ struct AlignerCounters {
   int64_t servo_held = 0;    // emitted with the newest servo state held (no later state came)
   int64_t stale_servo = 0;   // dropped: no servo state within max_servo_age_s
   int64_t stale_mocap = 0;   // emitted with attitude_ok false (none, untracked or old)
+  int64_t unaligned = 0;     // readings dropped unused while another leg was silent
 };
 
 class Aligner {
@@ -158,16 +164,24 @@ class Aligner {
   // the wait for a later servo state.
   void Resolve(int64_t newest_ft_utime);
   void Emit(AlignedSample& out, const ServoHistory::Lookup& angles);
+  // The frame nearest `utime` among mocap_history_; nullptr when there is none.
+  const MocapInput* MocapNearest(int64_t utime) const;
 
   AlignerOptions options_;
   int64_t max_servo_age_us_;
   int64_t max_mocap_age_us_;
   Callback on_sample_;
-  std::array<std::optional<FtInput>, kNumLegs> latest_ft_;
+  // Forms the samples whose every leg has a reading at or after the pace leg's instant.
+  void FormSamples();
+
+  static constexpr size_t kMaxQueued = 4096;  // 0.6 s of a 7 kHz transducer
+  std::array<std::deque<FtInput>, kNumLegs> queue_;
+  std::array<int64_t, kNumLegs> last_ft_utime_;  // each leg's last accepted reading
   int64_t last_sync_utime_;
   int64_t newest_ft_utime_;
   ServoHistory servo_;
-  std::optional<MocapInput> mocap_;
+  std::optional<MocapInput> mocap_;  // the newest frame (AcceptMocap's order check)
+  std::deque<MocapInput> mocap_history_;  // the latest frames, for the nearest
   std::deque<Pending> pending_;
   AlignerCounters counters_;
 };
