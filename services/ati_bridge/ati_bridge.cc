@@ -735,8 +735,9 @@ void AtiBridge::HandleRecord(Transducer& t, const std::uint8_t* bytes) {
       }
     }
   }
-  t.ft_unwrapped = t.have_ft ? t.ft_unwrapped + static_cast<std::int32_t>(rec.ft_sequence - t.last_ft)
-                             : rec.ft_sequence;
+  t.ft_unwrapped = t.have_ft
+                       ? t.ft_unwrapped + static_cast<std::int32_t>(rec.ft_sequence - t.last_ft)
+                       : rec.ft_sequence;
   t.have_ft = true;
   t.last_ft = rec.ft_sequence;
 

@@ -8,12 +8,13 @@
 // calibration page (GET /netftapi2.xml); without them the bridge refuses to start. In buffered
 // mode the page's RDT buffer size (comrdtbsiz) must equal k, and k defaults to the page's output
 // rate (comrdtrate) / 1000, rounded, at least 1. The records of a datagram are published
-// together, as one ft_batch_t (one message per datagram, not per record). Every record is checked (length, sequence) before it is published: lost,
-// duplicated, late (reordered), stale and wrong-length records are counted and never
-// published; a published sample is always a record as the device sent it, converted. After
-// ~100 ms of silence the start is re-sent with a bounded back-off and the transducer is reported
-// down until records come back; when ft_sequence jumps backwards (the box rebooted) the
-// calibration page is read again. Stop (0x0000) is sent on shutdown.
+// together, as one ft_batch_t (one message per datagram, not per record). Every record is checked
+// (length, sequence) before it is published: lost, duplicated, late (reordered), stale and
+// wrong-length records are counted and never published; a published sample is always a record as
+// the device sent it, converted. After ~100 ms of silence the start is re-sent with a bounded
+// back-off and the transducer is reported down until records come back; when ft_sequence jumps
+// backwards (the box rebooted) the calibration page is read again. Stop (0x0000) is sent on
+// shutdown.
 //
 // Sample times: each record's place on the box's internal 7 kHz counter (ft_sequence), mapped
 // onto the host clock by a DeviceClock fitted to (the datagram's last counter, its kernel

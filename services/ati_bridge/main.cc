@@ -18,7 +18,8 @@ int main(int argc, char** argv) {
        "Streams the legs' ATI Net F/T transducers over RDT (UDP; a start command from an "
        "ephemeral port of this host, stop on exit; real-time, or buffered with the config's "
        "records_per_datagram, which must match the box's comrdtbsiz) and publishes every valid "
-       "datagram as one ft_batch_t on FT_<LEG>: per record counts, wrench [N; N*m] (counts per unit from the "
+       "datagram as one ft_batch_t on FT_<LEG>: per record counts, wrench [N; N*m] (counts per "
+       "unit from the "
        "config or the sensor's /netftapi2.xml, the config's sign applied), sequence numbers, "
        "status, gap and flags. Lost, duplicated, reordered and malformed records are counted, "
        "never published. Heartbeat counters per leg; DEGRADED while a transducer is silent.",

@@ -72,8 +72,7 @@ std::optional<FtLayout> FtLayoutOf(const void* data, int size, int leg) {
   if (p[kName + length - 1] != 0) return std::nullopt;
   const uint8_t* after = p + kName + length;
   const int n = static_cast<int16_t>(Be16(after));
-  if (n < 1 || n > kMaxFtRecords ||
-      size != kName + length + 2 + n * kFtAfterNamePerRecord) {
+  if (n < 1 || n > kMaxFtRecords || size != kName + length + 2 + n * kFtAfterNamePerRecord) {
     return std::nullopt;
   }
   return FtLayout{after + 2, n};
@@ -488,9 +487,9 @@ namespace {
 template <class Msg>
 void CheckBatchCount(const char* what, const Msg& msg, size_t arrays_of_n) {
   if (msg.n < 1 || msg.n > Msg::MAX_N || arrays_of_n < static_cast<size_t>(msg.n)) {
-    throw BadInput(std::string(what) + " count",
-                   std::to_string(msg.n) + " entries (arrays of " + std::to_string(arrays_of_n) +
-                       "), not 1.." + std::to_string(Msg::MAX_N));
+    throw BadInput(std::string(what) + " count", std::to_string(msg.n) + " entries (arrays of " +
+                                                     std::to_string(arrays_of_n) + "), not 1.." +
+                                                     std::to_string(Msg::MAX_N));
   }
 }
 

@@ -284,8 +284,8 @@ std::optional<Refusal> Check(const Schema& schema, const void* data, int size) {
       const int64_t cap = member_cap > 0 ? member_cap : kMaxLength;
       if (n > cap) {
         return Refusal{"length over cap", where() + ": dimension " + std::to_string(d) + " is " +
-                                              std::to_string(n) + " (cap " +
-                                              std::to_string(cap) + ")"};
+                                              std::to_string(n) + " (cap " + std::to_string(cap) +
+                                              ")"};
       }
       if (d + 1 < f.ndims) headers += count * static_cast<unsigned>(n);
       count *= static_cast<unsigned>(n);

@@ -27,9 +27,9 @@ CorrectorStage::CorrectorStage(const config::Config& config, Bus& bus, StateSink
                &st.Counter("drop_out_of_order"), &st.Counter("drop_non_finite"),
                &st.Counter("stale_outputs"),     &st.Counter("calibration_version")};
   const auto& ch = config.channels();
-  inputs_.Subscribe(
-      bus, {[this](const FtBatch& batch) { OnFt(batch); }, [this](const ServoInput& in) { OnServo(in); },
-            [this](const MocapInput& in) { OnMocap(in); }});
+  inputs_.Subscribe(bus, {[this](const FtBatch& batch) { OnFt(batch); },
+                          [this](const ServoInput& in) { OnServo(in); },
+                          [this](const MocapInput& in) { OnMocap(in); }});
   // A sample that waited in the receive queue longer than max_ft_age_s would only give a stale
   // wrench. Live, when the process falls behind (6 x 7 kHz on two busy cores did), it sheds
   // those instead of correcting its way through a standing queue: measured before, the wrenches

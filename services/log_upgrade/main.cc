@@ -29,8 +29,7 @@ int main(int argc, char** argv) {
   std::string old_path;
   std::string new_path;
   cli.add_option("OLD", old_path, "the older log")->required();
-  cli.add_option("NEW", new_path, "the upgraded log to write (replaced if it exists)")
-      ->required();
+  cli.add_option("NEW", new_path, "the upgraded log to write (replaced if it exists)")->required();
   if (auto rc = ftcal::ParseCommandLine(cli, argc, argv)) return *rc;
   try {
     const auto summary = ftcal::log_upgrade::UpgradeLog(old_path, new_path);

@@ -248,8 +248,9 @@ Summary UpgradeLog(const std::string& old_path, const std::string& new_path) {
   struct stat new_stat {};
   if (::stat(new_path.c_str(), &new_stat) == 0 && new_stat.st_dev == old_stat.st_dev &&
       new_stat.st_ino == old_stat.st_ino) {
-    throw std::invalid_argument("NEW '" + new_path + "' is OLD '" + old_path +
-                                "': write the upgraded log beside it (the older log is the record)");
+    throw std::invalid_argument(
+        "NEW '" + new_path + "' is OLD '" + old_path +
+        "': write the upgraded log beside it (the older log is the record)");
   }
   lcm::LogFile in(old_path, "r");
   if (!in.good()) throw std::runtime_error("cannot open '" + old_path + "' as an LCM log");

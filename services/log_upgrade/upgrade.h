@@ -75,9 +75,9 @@ ftcal::steady_pose_t FromLegacy(const ftcal_pre_scatter::steady_pose_t& old);
 ftcal::sequencer_control_t FromLegacy(const ftcal_pre_nonce::sequencer_control_t& old);
 
 struct ChannelCounts {
-  int64_t converted = 0;    // older versions written as the current type
-  int64_t copied = 0;       // written byte for byte
-  int64_t old_signed = 0;   // of `copied`: signed envelopes with an older inner type
+  int64_t converted = 0;   // older versions written as the current type
+  int64_t copied = 0;      // written byte for byte
+  int64_t old_signed = 0;  // of `copied`: signed envelopes with an older inner type
 };
 
 struct Summary {

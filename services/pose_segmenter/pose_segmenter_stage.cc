@@ -27,9 +27,9 @@ PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus, b
   PoseSegmenter check(segmenter_options_, nullptr);
 
   const auto& ch = config.channels();
-  inputs_.Subscribe(
-      bus, {[this](const FtBatch& batch) { OnFt(batch); }, [this](const ServoInput& in) { OnServo(in); },
-            [this](const MocapInput& in) { OnMocap(in); }});
+  inputs_.Subscribe(bus, {[this](const FtBatch& batch) { OnFt(batch); },
+                          [this](const ServoInput& in) { OnServo(in); },
+                          [this](const MocapInput& in) { OnMocap(in); }});
   // Markers repeat once a second while a phase runs: a live stage takes only fresh ones, so an
   // old session's start marker cannot open a phase here (offline, the window holds against the
   // recording's receive times; markers played to live stages from a recording are refused).

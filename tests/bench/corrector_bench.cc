@@ -1,8 +1,8 @@
 // Corrector throughput (the architecture issue's target: >= 3,000,000 leg-samples/s over a log,
 // log in -> log out, on 2 cores).
 //
-// A leg-sample is one FT_<LEG> sample (one record of a leg's ft_batch_t) turned into a corrected wrench:
-// in the stage, one CONTACT_WRENCH message (that leg's wrench) and a sixth of a
+// A leg-sample is one FT_<LEG> sample (one record of a leg's ft_batch_t) turned into a corrected
+// wrench: in the stage, one CONTACT_WRENCH message (that leg's wrench) and a sixth of a
 // CONTACT_WRENCH_SUM (the six legs' sum and residual) encoded and written to the output log.
 // Servo states and mocap frames are read and used but not counted. bytes_per_leg_sample is the
 // output log's size over the leg-samples: what a leg-sample costs on disk.

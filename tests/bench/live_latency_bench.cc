@@ -258,8 +258,8 @@ class Listener {
     const int k = LegOf(m.leg);
     if (k < 0) return;
     for (int i = 0; i < m.n; ++i) {
-      ft_[k].push_back({m.sample_utime[i], m.receipt_utime, rb->recv_utime, now,
-                        m.rdt_sequence[i]});
+      ft_[k].push_back(
+          {m.sample_utime[i], m.receipt_utime, rb->recv_utime, now, m.rdt_sequence[i]});
     }
   }
   void OnContact(const lcm::ReceiveBuffer* rb, const std::string&) {

@@ -348,8 +348,7 @@ class PipelineE2e : public ::testing::Test {
       }
     }
     WalkErrors e;
-    for (const LegWrench& m :
-         ReadLegWrenches(px->wrench_logs.at(name), ch.contact_wrench())) {
+    for (const LegWrench& m : ReadLegWrenches(px->wrench_logs.at(name), ch.contact_wrench())) {
       ++e.outputs;
       const int k = m.leg;
       EXPECT_TRUE(k >= 0 && k < kNumLegs) << name;
@@ -376,8 +375,7 @@ class PipelineE2e : public ::testing::Test {
     // The first sum whose six legs all carry frame i's samples (each leg's sample nearest the
     // sum's instant, as the corrector takes them, is of frame i): its total is frame i's.
     int64_t last_total_frame = -1;
-    for (const WrenchSum& s :
-         ReadWrenchSums(px->wrench_logs.at(name), ch.contact_wrench_sum())) {
+    for (const WrenchSum& s : ReadWrenchSums(px->wrench_logs.at(name), ch.contact_wrench_sum())) {
       if (s.flags != 0) continue;  // stale or saturated inputs: flagged, not compared
       int64_t i = -1;
       bool one_frame = true;

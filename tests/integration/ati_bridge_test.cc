@@ -127,8 +127,7 @@ double SpacingToleranceUs(std::int64_t dt_ticks) {
 //    always after the previous record) can only pull a datagram's records closer together, so
 //    a spacing never exceeds that distance; a datagram spaced by it throughout is counted.
 // Returns how many datagrams of `k` records were spaced by the counter throughout.
-int ExpectStampsByCounter(const std::vector<std::pair<std::uint32_t, FtRec>>& by_datagram,
-                          int k) {
+int ExpectStampsByCounter(const std::vector<std::pair<std::uint32_t, FtRec>>& by_datagram, int k) {
   std::map<std::uint32_t, std::vector<const FtRec*>> groups;
   std::map<std::int64_t, std::set<std::uint32_t>> datagrams_of_message;
   for (std::size_t i = 0; i < by_datagram.size(); ++i) {
@@ -144,8 +143,8 @@ int ExpectStampsByCounter(const std::vector<std::pair<std::uint32_t, FtRec>>& by
     datagrams_of_message[m.message].insert(by_datagram[i].first);
   }
   for (const auto& [message, datagrams] : datagrams_of_message) {
-    EXPECT_EQ(datagrams.size(), 1u) << "message " << message << " holds records of "
-                                    << datagrams.size() << " datagrams";
+    EXPECT_EQ(datagrams.size(), 1u)
+        << "message " << message << " holds records of " << datagrams.size() << " datagrams";
   }
   int by_counter = 0;
   for (const auto& [datagram, records] : groups) {
@@ -156,8 +155,8 @@ int ExpectStampsByCounter(const std::vector<std::pair<std::uint32_t, FtRec>>& by
     bool exact = static_cast<int>(records.size()) == k;
     for (std::size_t i = 0; i < records.size(); ++i) {
       const FtRec& m = *records[i];
-      EXPECT_EQ(m.message, first.message) << "datagram " << datagram << " split, rdt "
-                                          << m.rdt_sequence;
+      EXPECT_EQ(m.message, first.message)
+          << "datagram " << datagram << " split, rdt " << m.rdt_sequence;
       EXPECT_EQ(m.receipt_utime, first.receipt_utime) << "rdt " << m.rdt_sequence;
       EXPECT_EQ(m.index, static_cast<int>(i)) << "rdt " << m.rdt_sequence;
       if (i == 0) continue;
@@ -405,8 +404,8 @@ std::map<std::string, std::vector<FtRec>> ByLeg(const std::vector<Heard>& heard)
 // went missing before each. The listener itself may miss a message on a loaded machine (LCM over
 // UDP), so the gap is checked where the truth says nothing publishable was between two samples
 // heard. Returns the number of gaps checked.
-int ExpectInOrderWithGaps(const std::vector<FtRec>& samples,
-                          const std::vector<TruthRow>& truth, const std::string& leg) {
+int ExpectInOrderWithGaps(const std::vector<FtRec>& samples, const std::vector<TruthRow>& truth,
+                          const std::string& leg) {
   std::set<std::int64_t> publishable;
   for (const TruthRow& r : truth) {
     if (r.leg == leg && (r.fault == "none" || r.fault == "duplicate")) {

@@ -500,8 +500,8 @@ TEST_F(CalibratorTest, ASecondRunSkipsTheStandingSpanAndWritesTheSameCalibration
 // as one ft_batch_t. The session with each leg's records regrouped 7 to a message (sent when
 // its last record was, receipt = that record's time; a message ends early where the records'
 // rdt_sequence jumps, as a datagram holds consecutive records, and at a marker, as the twin's
-// log has no records between its phases) calibrates to the same calibration, number for number: the reader is indifferent
-// to how the records were batched.
+// log has no records between its phases) calibrates to the same calibration, number for number: the
+// reader is indifferent to how the records were batched.
 TEST_F(CalibratorTest, RecordsBatchedSevenToAMessageCalibrateTheSame) {
   constexpr int kPerMessage = 7;
   const auto& ch = fx->config.channels();
@@ -510,7 +510,7 @@ TEST_F(CalibratorTest, RecordsBatchedSevenToAMessageCalibrateTheSame) {
     if (e.channel.rfind(ch.ft_prefix(), 0) == 0) ++left[e.channel];
   }
   ASSERT_EQ(left.size(), static_cast<size_t>(kNumLegs));
-  std::map<std::string, ft_batch_t> open;  // per FT channel: the message being filled
+  std::map<std::string, ft_batch_t> open;   // per FT channel: the message being filled
   std::map<std::string, Event> open_event;  // per FT channel: the last record's event
   std::vector<Event> events;
   int64_t records_in = 0, records_out = 0, messages_out = 0;

@@ -37,8 +37,7 @@ struct Event {
 template <class Msg>
 std::vector<uint8_t> Bytes(const Msg& msg) {
   std::vector<uint8_t> out(static_cast<size_t>(msg.getEncodedSize()));
-  EXPECT_EQ(msg.encode(out.data(), 0, static_cast<int>(out.size())),
-            static_cast<int>(out.size()));
+  EXPECT_EQ(msg.encode(out.data(), 0, static_cast<int>(out.size())), static_cast<int>(out.size()));
   return out;
 }
 
@@ -253,12 +252,9 @@ TEST_F(LogUpgradeTest, LegacyVersionsKeepTheirFingerprints) {
             0x583de87b42d4afe3u);
   EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_batch::contact_wrench_sum_t::getHash()),
             0xa52d4535c7b5b8ecu);
-  EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_fixed6::servo_state_t::getHash()),
-            0xc2eb415f7e1dad57u);
-  EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_fixed6::sync_sample_t::getHash()),
-            0x164ced0cb4c0360eu);
-  EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_fixed6::steady_pose_t::getHash()),
-            0x174a56f0bf25af7eu);
+  EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_fixed6::servo_state_t::getHash()), 0xc2eb415f7e1dad57u);
+  EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_fixed6::sync_sample_t::getHash()), 0x164ced0cb4c0360eu);
+  EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_fixed6::steady_pose_t::getHash()), 0x174a56f0bf25af7eu);
   EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_scatter::steady_pose_t::getHash()),
             0xa6ac1ac62db8933du);
   EXPECT_EQ(static_cast<uint64_t>(ftcal_pre_nonce::sequencer_control_t::getHash()),
@@ -482,9 +478,8 @@ TEST_F(LogUpgradeTest, TheProgramExitsTwoOnARefusalAndZeroWhenDone) {
   EXPECT_FALSE(fs::exists(new_));
 
   WriteLog(old_, OldLog());
-  status = std::system((std::string(FTCAL_LOG_UPGRADE) + " '" + old_ + "' '" + new_ +
-                        "' >/dev/null")
-                           .c_str());
+  status = std::system(
+      (std::string(FTCAL_LOG_UPGRADE) + " '" + old_ + "' '" + new_ + "' >/dev/null").c_str());
   ASSERT_TRUE(WIFEXITED(status));
   EXPECT_EQ(WEXITSTATUS(status), 0);
   EXPECT_TRUE(fs::exists(new_));

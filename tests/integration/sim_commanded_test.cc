@@ -117,8 +117,8 @@ Recorded ReadLog(const std::string& path) {
       for (int j = 0; j < m.n; ++j) {
         Vec6 w;
         for (int i = 0; i < 6; ++i) w[i] = m.wrench[j][i];
-        const double before_last = static_cast<double>(m.sample_utime[m.n - 1] -
-                                                       m.sample_utime[j]) * 1e-6;
+        const double before_last =
+            static_cast<double>(m.sample_utime[m.n - 1] - m.sample_utime[j]) * 1e-6;
         r.ft.push_back({t - before_last, *k, w});
       }
     } else if (ch == "SERVO_STATE") {

@@ -314,8 +314,7 @@ TEST_F(StagesTest, CorrectorReplayGivesTheTwinsGroundWrenchesAndTakesANewCalibra
     // the legs corrected with the old one: no sum mixes the two (CheckSums below), and the sum
     // of the frame where v2 arrives is all v2 (the calibration arrives between frames).
     if (s.utime == kT0) {
-      EXPECT_EQ(s.flags,
-                kFlagStaleServo | kFlagStaleMocap);
+      EXPECT_EQ(s.flags, kFlagStaleServo | kFlagStaleMocap);
       EXPECT_TRUE(std::isnan(s.total_W[2]));
       continue;
     }
@@ -475,8 +474,7 @@ TEST_F(StagesTest, CorrectorStartsWithACalibrationFile) {
       << ReadFile(fx->dir + "/corrector_file.err");
   const auto wrenches = ReadLegWrenches(out, fx->config.channels().contact_wrench());
   ASSERT_EQ(wrenches.size(), fx->frames.size() * kNumLegs);
-  const auto sums =
-      ReadWrenchSums(out, fx->config.channels().contact_wrench_sum());
+  const auto sums = ReadWrenchSums(out, fx->config.channels().contact_wrench_sum());
   ASSERT_FALSE(sums.empty());
   EXPECT_EQ(sums.back().calibration_version, 5);
 

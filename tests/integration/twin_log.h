@@ -350,11 +350,10 @@ inline SumCheck CheckSums(const std::string& path, const std::string& leg_channe
         Vec6 total = Vec6::Zero();
         double oldest = 0.0;
         for (const auto& legs : seen) {
-          auto it = std::lower_bound(
-              legs.begin(), legs.end(), s.utime,
-              [](const LegWrench& w, int64_t t) { return w.utime < t; });
-          if (it == legs.end() || (it != legs.begin() && s.utime - std::prev(it)->utime <=
-                                                             it->utime - s.utime)) {
+          auto it = std::lower_bound(legs.begin(), legs.end(), s.utime,
+                                     [](const LegWrench& w, int64_t t) { return w.utime < t; });
+          if (it == legs.end() ||
+              (it != legs.begin() && s.utime - std::prev(it)->utime <= it->utime - s.utime)) {
             --it;
           }
           total += it->wrench_W;

@@ -312,7 +312,8 @@ Recording ReadRecording(const std::string& dir) {
         if (m.decode(e->data, 0, e->datalen) != e->datalen) continue;
         for (int i = 0; i < m.n; ++i) {
           const int64_t before_last = m.sample_utime[m.n - 1] - m.sample_utime[i];
-          rec.ft[e->channel].push_back({m.rdt_sequence[i], e->timestamp - before_last, f, m.gap[i]});
+          rec.ft[e->channel].push_back(
+              {m.rdt_sequence[i], e->timestamp - before_last, f, m.gap[i]});
         }
       } else if (e->channel == "EXPERIMENT") {
         if (rec.first_marker < 0) rec.first_marker = e->timestamp;

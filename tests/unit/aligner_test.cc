@@ -126,8 +126,8 @@ TEST(Aligner, ASampleTakesEachLegsReadingNearestThePaceLegsInstant) {
 }
 
 // A transducer's readings come a datagram at a time, and the six legs' datagrams in any
-// order, on clocks up to 60 us apart (under half the 143 us period): the samples are those of the readings one at a time,
-// leg after leg, whichever order the batches arrive in.
+// order, on clocks up to 60 us apart (under half the 143 us period): the samples are those of the
+// readings one at a time, leg after leg, whichever order the batches arrive in.
 TEST(Aligner, BatchedLegsInAnyOrderGiveTheSamplesOfInterleavedReadings) {
   auto reading = [](int k, int j) {
     return FtInput{1'000'000 + 143 * j + 12 * k, k, WrenchOf(k, 0.5 * j), j % 5 == 0 ? 2 : 0};

@@ -301,7 +301,9 @@ TEST(Corrector, ASilentLegIsNotWaitedForAndItsSumsAreFlaggedStale) {
     bool resumed = false;
     for (size_t i = 0; i < sums.size(); ++i) {
       const WrenchSum& s = sums[i];
-      if (i > 0) EXPECT_GT(s.utime, sums[i - 1].utime);
+      if (i > 0) {
+        EXPECT_GT(s.utime, sums[i - 1].utime);
+      }
       if (s.utime <= stop + silent) {
         EXPECT_EQ(s.flags & kFlagStaleFt, 0) << "at " << s.utime;
         continue;

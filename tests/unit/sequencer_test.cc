@@ -840,7 +840,8 @@ TEST(SequencerRun, ARecordBeyondTheRatedRangeInsideADatagramStopsTheRun) {
     if (t > 5.0) robot.Spike(2);
   });
   ASSERT_EQ(seq.state(), Sequencer::State::kStopped);
-  EXPECT_NE(seq.stop_reason().find("FT_FL Fz = 1e+04 is beyond the rated range 400"), std::string::npos)
+  EXPECT_NE(seq.stop_reason().find("FT_FL Fz = 1e+04 is beyond the rated range 400"),
+            std::string::npos)
       << seq.stop_reason();
   EXPECT_LT(robot.t(), 5.1);
 }

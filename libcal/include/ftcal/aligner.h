@@ -25,9 +25,9 @@
 // Everything is keyed on the inputs' own utime stamps, never on a clock, and a sample is made
 // only once no input still to come could change it: the same streams give the same samples
 // whatever the order their messages interleave in, live or on replay (unless a servo state or
-// mocap frame comes more than its max age of transducer time late: then it is held, as said). Inputs older than
-// the previous one of their stream (per leg for the transducers) and non-finite inputs are
-// counted and dropped.
+// mocap frame comes more than its max age of transducer time late: then it is held, as said).
+// Inputs older than the previous one of their stream (per leg for the transducers) and non-finite
+// inputs are counted and dropped.
 #pragma once
 
 #include <array>
@@ -180,7 +180,7 @@ class Aligner {
   int64_t last_sync_utime_;
   int64_t newest_ft_utime_;
   ServoHistory servo_;
-  std::optional<MocapInput> mocap_;  // the newest frame (AcceptMocap's order check)
+  std::optional<MocapInput> mocap_;       // the newest frame (AcceptMocap's order check)
   std::deque<MocapInput> mocap_history_;  // the latest frames, for the nearest
   std::deque<Pending> pending_;
   AlignerCounters counters_;

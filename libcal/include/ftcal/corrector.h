@@ -21,10 +21,11 @@
 // leg's samples arrive a datagram at a time, so "the latest of each leg" mixes moments up to a
 // datagram apart. A sum is taken instead at each sample instant t of the pace leg (the first
 // leg in config order that is not silent: its latest sample, or for a leg never seen the first
-// of any leg, within max_ft_age_s of the newest of any leg), from each leg's corrected sample nearest t (kept in a short history), once every
-// leg that is not silent has a sample at or after t; a silent leg is not waited for, and its
-// sample (or none) flags the sum kFlagStaleFt. So a sum's six wrenches are of the same moment
-// to within half a sample period, whatever the order the legs' messages arrive in.
+// of any leg, within max_ft_age_s of the newest of any leg), from each leg's corrected sample
+// nearest t (kept in a short history), once every leg that is not silent has a sample at or after
+// t; a silent leg is not waited for, and its sample (or none) flags the sum kFlagStaleFt. So a
+// sum's six wrenches are of the same moment to within half a sample period, whatever the order the
+// legs' messages arrive in.
 //
 // Speed: the per-leg constant transforms (R, p of X_C_ft,k, the offset, the weight, the CoM
 // curve) are precomputed when a calibration is set; a sample costs one leg's correction and a
