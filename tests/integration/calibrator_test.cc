@@ -37,6 +37,8 @@
 #include "ftcal/ft_batch_t.hpp"
 #include "ftcal/mocap_body_t.hpp"
 #include "ftcal/servo_state_t.hpp"
+#include "ftcal_pre_batch/ft_sample_t.hpp"
+#include "ftcal_pre_fixed6/servo_state_t.hpp"
 #include "sim/twin.h"
 #include "twin_log.h"
 
@@ -625,6 +627,89 @@ TEST_F(CalibratorTest, RecordsBatchedSevenToAMessageCalibrateTheSame) {
   b.clear_provenance();
   EXPECT_EQ(a.DebugString(), b.DebugString());
   EXPECT_EQ(ReadFile(ResidualsPathFor(one_out)), ReadFile(ResidualsPathFor(batched_out)));
+}
+
+// A session recorded before the batched FT message (ft_sample_t, one record a message) and
+// before the fixed-size arrays (servo_state_t with its num_servos), written here with those
+// versions' own generated encoders: the calibrator refuses it, naming the command that
+// converts it; converted by ftcal-log-upgrade, it calibrates to the current log's calibration,
+// number for number.
+TEST_F(CalibratorTest, AnOlderLogIsRefusedNamingTheUpgradeAndUpgradedCalibratesTheSame) {
+  const auto& ch = fx->config.channels();
+  std::vector<Event> events;
+  int64_t ft = 0, servo = 0;
+  for (const Event& e : fx->events) {
+    if (e.channel.rfind(ch.ft_prefix(), 0) == 0) {
+      ft_batch_t b;
+      ASSERT_EQ(b.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                static_cast<int>(e.data.size()));
+      for (size_t i = 0; i < static_cast<size_t>(b.n); ++i, ++ft) {
+        ftcal_pre_batch::ft_sample_t old{};
+        old.utime = b.sample_utime[i];
+        old.leg = b.leg;
+        old.rdt_sequence = b.rdt_sequence[i];
+        old.ft_sequence = b.ft_sequence[i];
+        old.status = b.status[i];
+        for (size_t j = 0; j < 6; ++j) {
+          old.counts[j] = b.counts[i][j];
+          old.wrench[j] = b.wrench[i][j];
+        }
+        old.gap = b.gap[i];
+        old.flags = b.flags[i];
+        events.push_back(Encode(e.utime, e.channel, old));
+      }
+    } else if (e.channel == ch.servo_state()) {
+      servo_state_t s;
+      ASSERT_EQ(s.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                static_cast<int>(e.data.size()));
+      ftcal_pre_fixed6::servo_state_t old{};
+      old.utime = s.utime;
+      old.num_servos = kNumLegs;
+      for (int k = 0; k < kNumLegs; ++k) {
+        old.leg.push_back(s.leg[k]);
+        old.id.push_back(s.id[k]);
+        old.angle_rad.push_back(s.angle_rad[k]);
+        old.velocity_rad_s.push_back(s.velocity_rad_s[k]);
+        old.current_a.push_back(s.current_a[k]);
+        old.hardware_error.push_back(s.hardware_error[k]);
+        old.device_tick_ms.push_back(s.device_tick_ms[k]);
+        old.flags.push_back(s.flags[k]);
+      }
+      events.push_back(Encode(e.utime, e.channel, old));
+      ++servo;
+    } else {
+      events.push_back(e);
+    }
+  }
+  ASSERT_GT(ft, 0);
+  ASSERT_GT(servo, 0);
+  const std::string old_log = fx->dir + "/older.lcmlog", new_log = fx->dir + "/upgraded.lcmlog";
+  WriteLog(old_log, events);
+
+  const Result refused =
+      Run({"--log", old_log, "--config", kConfig, "--out", fx->dir + "/cal-older.pbtxt"}, "older");
+  EXPECT_EQ(refused.exit_code, 2) << refused.err;
+  EXPECT_NE(refused.err.find("ftcal-log-upgrade"), std::string::npos) << refused.err;
+
+  Child upgrade({FTCAL_LOG_UPGRADE, old_log, new_log}, fx->dir + "/upgrade.out",
+                fx->dir + "/upgrade.err");
+  const auto status = upgrade.Wait(120);
+  ASSERT_TRUE(status && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+      << ReadFile(fx->dir + "/upgrade.err");
+
+  const std::string current_out = fx->dir + "/cal-current.pbtxt";
+  const std::string upgraded_out = fx->dir + "/cal-upgraded.pbtxt";
+  const Result r1 = Run({"--log", fx->log, "--config", kConfig, "--out", current_out}, "current");
+  const Result r2 = Run({"--log", new_log, "--config", kConfig, "--out", upgraded_out}, "upgraded");
+  ASSERT_EQ(r1.exit_code, 0) << r1.err;
+  ASSERT_EQ(r2.exit_code, 0) << r2.err;
+  calibration::Calibration a = ReadCalibrationFile(current_out);
+  calibration::Calibration b = ReadCalibrationFile(upgraded_out);
+  ASSERT_EQ(a.leg_size(), kNumLegs);
+  a.clear_provenance();
+  b.clear_provenance();
+  EXPECT_EQ(a.DebugString(), b.DebugString());
+  EXPECT_EQ(ReadFile(ResidualsPathFor(current_out)), ReadFile(ResidualsPathFor(upgraded_out)));
 }
 
 // A writer hands its log's digest over: the segmenter takes the poses log's SHA-256 as it
