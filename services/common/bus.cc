@@ -272,10 +272,17 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
         std::chrono::duration_cast<std::chrono::milliseconds>(next_tick - Clock::now()).count();
     const int wait_ms = static_cast<int>(std::clamp<int64_t>(until_tick + 1, 0, kMaxWaitMs));
     errno = 0;
-    if (HandleOnce(wait_ms) < 0 && !ShutdownRequested() && errno != EINTR) {
+    const int handled = HandleOnce(wait_ms);
+    if (handled < 0 && !ShutdownRequested() && errno != EINTR) {
       stats_.Error("lcm", std::string("handleTimeout failed: ") + std::strerror(errno));
       // Don't spin on a persistent failure.
       std::this_thread::sleep_for(std::chrono::milliseconds(kMaxWaitMs));
+    } else if (handled > 0 && gather_us_ > 0) {
+      // LCM's receive thread queues what comes meanwhile (kSubscriptionQueueCapacity per
+      // subscription); then all of it is handled without waiting.
+      std::this_thread::sleep_for(std::chrono::microseconds(gather_us_));
+      while (!ShutdownRequested() && HandleOnce(0) > 0) {
+      }
     }
     const auto now = Clock::now();
     if (now >= next_tick) {

@@ -53,12 +53,21 @@ int main(int argc, char** argv) {
   std::string out;
   bool increment = false;
   bool lock_memory = false;
+  double gather_ms = 10.0;
   app.cli().add_option("out", out, "the log file to write")->required();
   app.cli().add_flag("-i,--increment", increment,
                      "write to the first of OUT.00, OUT.01, ... that does not exist");
   app.cli().add_flag("--lock-memory", lock_memory,
                      "mlockall: no page fault stalls the recorder (needs CAP_IPC_LOCK or root)");
+  app.cli()
+      .add_option("--gather-ms", gather_ms,
+                  "once a message comes, wait this long for more and write them together "
+                  "(LCM queues them meanwhile): one wake-up a batch instead of one a message; "
+                  "0: every message at once")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 100.0));
   if (auto rc = app.Init(argc, argv)) return *rc;
+  app.bus().SetGatherUs(static_cast<int64_t>(gather_ms * 1000));
 
   const std::string path = OutputPath(out, increment);
   std::error_code ec;
