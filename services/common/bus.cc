@@ -280,8 +280,10 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
     } else if (handled > 0 && gather_us_ > 0) {
       // LCM's receive thread queues what comes meanwhile (kSubscriptionQueueCapacity per
       // subscription); then all of it is handled without waiting.
+      // Drained whatever the shutdown flag says: what was gathered was received, and a
+      // recorder stopping must not drop it.
       std::this_thread::sleep_for(std::chrono::microseconds(gather_us_));
-      while (!ShutdownRequested() && HandleOnce(0) > 0) {
+      while (HandleOnce(0) > 0) {
       }
     }
     const auto now = Clock::now();
@@ -289,6 +291,10 @@ void LcmBus::Run(const std::function<void()>& tick, int64_t tick_us) {
       Guarded("periodic work", tick);
       next_tick += period;
       if (next_tick <= now) next_tick = now + period;  // late: skip, don't burst
+    }
+  }
+  if (gather_us_ > 0) {
+    while (HandleOnce(0) > 0) {
     }
   }
 }
