@@ -62,7 +62,6 @@ Aligner::Aligner(const AlignerOptions& options, Callback on_sample)
       max_servo_age_us_(SecondsToUs(options.max_servo_age_s, "max_servo_age_s")),
       max_mocap_age_us_(SecondsToUs(options.max_mocap_age_s, "max_mocap_age_s")),
       on_sample_(std::move(on_sample)),
-      last_sync_utime_(INT64_MIN),
       newest_ft_utime_(INT64_MIN) {
   last_ft_utime_.fill(INT64_MIN);
 }
@@ -113,7 +112,6 @@ void Aligner::FormSamples() {
       p.out.flags |= use->flags;
     }
     pending_.push_back(p);
-    last_sync_utime_ = t;
     pace.pop_front();
   }
 }

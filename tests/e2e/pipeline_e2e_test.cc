@@ -52,6 +52,7 @@
 #include "ftcal/standing.h"
 #include "sim/log_writer.h"
 #include "twin_calibration.h"
+#include "twin_log.h"
 
 namespace ftcal {
 namespace {
@@ -60,6 +61,10 @@ using testing::Child;
 using testing::DescribeWaitStatus;
 using testing::ReadFile;
 using namespace testing_twin;  // NOLINT
+using twin_log::ReadChannel;
+using twin_log::ReadFtRecords;
+using twin_log::ReadLegWrenches;
+using twin_log::ReadWrenchSums;
 
 constexpr uint64_t kSeed = 1;
 constexpr int kAllPoses = 729;
@@ -86,47 +91,6 @@ constexpr double kNaiveMarginFactor = 2.0;
 
 double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
-}
-
-// Every event of `channel` in a log, decoded (with the log's event timestamp).
-template <class Msg>
-std::vector<Msg> ReadChannel(const std::string& path, const std::string& channel) {
-  std::vector<Msg> out;
-  lcm::LogFile log(path, "r");
-  EXPECT_TRUE(log.good()) << path;
-  if (!log.good()) return out;
-  while (const lcm::LogEvent* e = log.readNextEvent()) {
-    if (e->channel != channel) continue;
-    Msg m;
-    EXPECT_EQ(m.decode(e->data, 0, e->datalen), e->datalen) << path << " " << channel;
-    out.push_back(m);
-  }
-  return out;
-}
-
-// The batched messages of a channel, one element per sample.
-std::vector<FtRecord> ReadFtRecords(const std::string& path, const std::string& channel, int leg) {
-  std::vector<FtRecord> out;
-  FtBatch batch;
-  for (const ft_batch_t& m : ReadChannel<ft_batch_t>(path, channel)) {
-    FromLcm(m, leg, &batch);
-    out.insert(out.end(), batch.begin(), batch.end());
-  }
-  return out;
-}
-std::vector<LegWrench> ReadLegWrenches(const std::string& path, const std::string& channel) {
-  std::vector<LegWrench> out;
-  for (const contact_wrench_t& m : ReadChannel<contact_wrench_t>(path, channel)) {
-    for (const LegWrench& w : FromLcm(m)) out.push_back(w);
-  }
-  return out;
-}
-std::vector<WrenchSum> ReadWrenchSums(const std::string& path, const std::string& channel) {
-  std::vector<WrenchSum> out;
-  for (const contact_wrench_sum_t& m : ReadChannel<contact_wrench_sum_t>(path, channel)) {
-    for (const WrenchSum& s : FromLcm(m)) out.push_back(s);
-  }
-  return out;
 }
 
 // rms of the per-axis errors of a set of 3-vectors.

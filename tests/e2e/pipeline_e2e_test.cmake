@@ -4,7 +4,8 @@
 # its TESTs share one run of the pipeline (~1 GB of logs, about a minute), which one process per
 # TEST would repeat.
 add_executable(pipeline_e2e_test "${CMAKE_CURRENT_LIST_DIR}/pipeline_e2e_test.cc")
-target_include_directories(pipeline_e2e_test PRIVATE "${CMAKE_CURRENT_LIST_DIR}")
+target_include_directories(pipeline_e2e_test PRIVATE "${CMAKE_CURRENT_LIST_DIR}"
+  "${CMAKE_CURRENT_LIST_DIR}/../integration")
 target_link_libraries(pipeline_e2e_test PRIVATE
   ftcal_sim_log ftcal_twin ftcal_lcmtypes ftcal_messages ftcal_child_process
   GTest::gtest GTest::gtest_main Threads::Threads)

@@ -177,7 +177,6 @@ class Aligner {
   static constexpr size_t kMaxQueued = 4096;  // 0.6 s of a 7 kHz transducer
   std::array<std::deque<FtInput>, kNumLegs> queue_;
   std::array<int64_t, kNumLegs> last_ft_utime_;  // each leg's last accepted reading
-  int64_t last_sync_utime_;
   int64_t newest_ft_utime_;
   ServoHistory servo_;
   std::optional<MocapInput> mocap_;       // the newest frame (AcceptMocap's order check)
