@@ -2,6 +2,7 @@
 """Compares a calibration file with the twin's truth file, parameter class by parameter class.
 
     scripts/compare_calibration.py CAL.pbtxt TRUTH.pbtxt [--label NAME] [--bound-scale S]
+    scripts/compare_calibration.py CAL.pbtxt OTHER.pbtxt --equal TOL
 
 Prints each class's largest error beside its bound (the method issue's recovery bounds, for the
 report's whole experiment, times --bound-scale) and a PASS/FAIL verdict; exits 1 if any class
@@ -67,7 +68,62 @@ def quat_to_rot(q):
 
 
 def rotation_angle_deg(R):
-    return math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
+    # atan2 of the skew part's size against the trace part: acos of the trace alone loses half
+    # the digits near zero (two identical rotations read 1.2e-6 deg apart, and the 1e-6 bounds of
+    # scripts/experiment's live-vs-offline check failed on byte-identical calibrations).
+    skew = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return math.degrees(math.atan2(np.linalg.norm(skew) / 2, (np.trace(R) - 1) / 2))
+
+
+def differences(a, b, path=""):
+    """Every field where two messages differ, as (path, |a - b| relative to max(1, |b|)) for
+    numbers and (path, inf) for anything else that differs."""
+    from google.protobuf.descriptor import FieldDescriptor as F
+    out = []
+    for fd in a.DESCRIPTOR.fields:
+        where = f"{path}.{fd.name}" if path else fd.name
+        if fd.label == F.LABEL_REPEATED:
+            va, vb = list(getattr(a, fd.name)), list(getattr(b, fd.name))
+            if len(va) != len(vb):
+                out.append((f"{where} (count {len(va)} vs {len(vb)})", math.inf))
+                continue
+            pairs = [(f"{where}[{i}]", x, y) for i, (x, y) in enumerate(zip(va, vb))]
+        else:
+            if fd.type == F.TYPE_MESSAGE and a.HasField(fd.name) != b.HasField(fd.name):
+                out.append((f"{where} (present in one only)", math.inf))
+                continue
+            pairs = [(where, getattr(a, fd.name), getattr(b, fd.name))]
+        for w, x, y in pairs:
+            if fd.type == F.TYPE_MESSAGE:
+                out += differences(x, y, w)
+            elif fd.type in (F.TYPE_DOUBLE, F.TYPE_FLOAT):
+                d = abs(x - y) / max(1.0, abs(y)) if math.isfinite(x) and math.isfinite(y) else (
+                    0.0 if (math.isnan(x) and math.isnan(y)) or x == y else math.inf)
+                if d > 0:
+                    out.append((w, d))
+            elif x != y:
+                out.append((w, math.inf))
+    return out
+
+
+def compare_equal(cal, other, tol, label):
+    """Parameter by parameter: the provenance (times, inputs, command) is a run's own; everything
+    else must agree to tol (relative above 1, absolute below)."""
+    a, b = type(cal)(), type(other)()
+    a.CopyFrom(cal)
+    b.CopyFrom(other)
+    for m in (a, b):
+        m.ClearField("provenance")
+    diffs = differences(a, b)
+    worst = max(diffs, key=lambda x: x[1], default=("", 0.0))
+    ok = worst[1] <= tol
+    title = f" {label}" if label else ""
+    print(f"Every parameter{title}: largest difference {worst[1]:.3g}"
+          f"{' (' + worst[0] + ')' if worst[0] else ''}, tolerance {tol:g}: {'PASS' if ok else 'FAIL'}")
+    for w, d in sorted(diffs, key=lambda x: -x[1])[:10]:
+        if d > tol:
+            print(f"  {w}: {d:.3g}")
+    return 0 if ok else 1
 
 
 def main():
@@ -80,10 +136,16 @@ def main():
     ap.add_argument("--sigmas", type=float, default=0.0,
                     help="p~' also passes when every component is within this many of the "
                          "calibration's own sigma (a short experiment leaves p~' z loose)")
+    ap.add_argument("--equal", type=float, default=None, metavar="TOL",
+                    help="instead of the classes' bounds: every numeric field of the two files "
+                         "(the provenance aside) within TOL, relative above 1 "
+                         "and absolute below (two calibrations of the same data)")
     args = ap.parse_args()
     if not (args.bound_scale > 0 and math.isfinite(args.bound_scale)):
         sys.exit(f"compare_calibration: --bound-scale must be a positive number, got {args.bound_scale}")
     cal, truth = load(args.calibration), load(args.truth)
+    if args.equal is not None:
+        return compare_equal(cal, truth, args.equal, args.label)
 
     truth_legs = {l.name: l for l in truth.leg}
     if [l.name for l in cal.leg] != [l.name for l in truth.leg]:
