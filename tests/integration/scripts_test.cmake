@@ -24,3 +24,10 @@ add_test(NAME scripts_setup_waits_for_a_held_dpkg_lock
   COMMAND bash "${CMAKE_CURRENT_LIST_DIR}/setup_lock_test.sh" "${PROJECT_SOURCE_DIR}")
 set_tests_properties(scripts_setup_waits_for_a_held_dpkg_lock PROPERTIES
   LABELS integration.fast TIMEOUT 60)
+
+# scripts/compare_calibration.py (what scripts/experiment judges live against offline with)
+# against cases computed by hand; needs the generated calibration schema (ftcal_proto_py).
+add_test(NAME scripts_compare_calibration_cases
+  COMMAND bash "${CMAKE_CURRENT_LIST_DIR}/compare_calibration_test.sh" "${PROJECT_SOURCE_DIR}"
+          "${PROJECT_BINARY_DIR}")
+set_tests_properties(scripts_compare_calibration_cases PROPERTIES LABELS integration.fast TIMEOUT 60)
