@@ -204,7 +204,7 @@ bool Corrector::AddFt(const FtInput& in, bool saturated, ContactWrenches* out) {
   return true;
 }
 
-bool Corrector::NextSum(WrenchSum* out) {
+bool Corrector::NextSum(WrenchSum* out, bool input_ended) {
   if (!has_calibration_) return false;
   const auto max_age_us = static_cast<int64_t>(options_.max_ft_age_s * 1e6);
   // A leg never seen is waited for as long as a seen one: max_ft_age_s from the first sample.
@@ -223,7 +223,7 @@ bool Corrector::NextSum(WrenchSum* out) {
   if (i < first || ph.At(i).utime <= last_sum_utime_) return false;
   while (i > first && ph.At(i - 1).utime > last_sum_utime_) --i;
   const int64_t t = ph.At(i).utime;
-  for (int k = 0; k < kNumLegs; ++k) {
+  for (int k = 0; k < kNumLegs && !input_ended; ++k) {
     // Wait for its sample at or after t.
     if (!silent(k) && (!state_[k].seen || state_[k].utime < t)) return false;
   }

@@ -371,6 +371,9 @@ int ServiceApp::Run() {
     AddPeriodic(kHeartbeatPeriodS, [this] { PublishHeartbeat(); });
   }
   bus_->Run([this] { Tick(); }, kLoopTickUs);
+  if (!bus_->IsReplay() || static_cast<const LogReplayBus&>(*bus_).finished()) {
+    for (const auto& fn : at_input_end_) fn();
+  }
   state_ = service_status_t::STOPPING;
   if (!replaying()) sd_notify(0, "STOPPING=1");
   if (const auto& store = bus_->seen_store()) {

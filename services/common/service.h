@@ -92,6 +92,11 @@ class ServiceApp {
   // the loop's 100 ms tick.
   void AddPeriodic(double period_s, std::function<void()> fn);
 
+  // Runs `fn` once the input has ended (a replay read to its end, or a live shutdown), before
+  // the final status, while the bus still publishes: a stage publishes what it held back for
+  // input that will not come. Not after an interrupted replay (its output is not written).
+  void AtInputEnd(std::function<void()> fn) { at_input_end_.push_back(std::move(fn)); }
+
   // Runs until SIGINT/SIGTERM (or RequestShutdown()) live, or to the end of the input on
   // replay; then publishes a final STOPPING status and logs a summary. Returns the exit code:
   // 0, or 4 when a replay was interrupted or its output could not be written.
@@ -144,6 +149,7 @@ class ServiceApp {
   std::string config_path_;
   std::string lcm_url_;
   std::string log_level_;
+  std::vector<std::function<void()>> at_input_end_;
   std::string replay_in_;
   std::string replay_out_;
   std::string state_dir_;

@@ -169,6 +169,21 @@ void CorrectorStage::OnFt(const FtBatch& batch) {
   UpdateCounters();
 }
 
+void CorrectorStage::FinishSums() {
+  ClearLcm(corrector_.calibration_version(), &sum_msg_);
+  WrenchSum sum;
+  while (corrector_.NextSum(&sum, /*input_ended=*/true)) {
+    if (sum_msg_.n == contact_wrench_sum_t::MAX_N) {
+      PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
+      ClearLcm(corrector_.calibration_version(), &sum_msg_);
+    }
+    AppendLcm(sum, &sum_msg_);
+    ++sums_;
+  }
+  if (sum_msg_.n > 0) PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
+  UpdateCounters();
+}
+
 template <class Msg>
 void CorrectorStage::PublishReused(const std::string& channel, const Msg& msg) {
   const int size = msg.getEncodedSize();

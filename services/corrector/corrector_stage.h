@@ -47,6 +47,9 @@ class CorrectorStage {
   // Leg-samples published on CONTACT_WRENCH, and sums on CONTACT_WRENCH_SUM.
   int64_t leg_samples() const { return leg_samples_; }
   int64_t sums() const { return sums_; }
+  // At the end of the input (ServiceApp::AtInputEnd): the sums still waiting for a leg's next
+  // sample, which will not come, from the samples there are (Corrector::NextSum).
+  void FinishSums();
   // Says in the status (last error, DEGRADED) why nothing is published yet. Called once the
   // start-up calibration, if any, has been applied, so a --calibration start reports no error.
   void ReportWaitingForCalibration();

@@ -15,9 +15,11 @@ int main(int argc, char** argv) {
        "Publishes CONTACT_WRENCH (contact_wrench_t) for every transducer sample: that leg's "
        "ground-contact wrench in W about the CoM (docs/method.md eq. 3), the servo and mocap "
        "ages and stale/saturated flags (inputs older than corrector.max_*_age_s); and "
-       "CONTACT_WRENCH_SUM (contact_wrench_sum_t) once every leg has a new sample: the six legs' "
-       "sum, its residual against (0,0,G,0,0,0), the calibration version, the oldest sample's "
-       "age and the flags. A new CALIBRATION is "
+       "CONTACT_WRENCH_SUM (contact_wrench_sum_t) at each sample instant of the pace leg (the "
+       "first leg not silent), once every other leg has a sample at or after it: the six legs' "
+       "samples nearest that instant summed, the residual against (0,0,G,0,0,0), the "
+       "calibration version, the largest distance in time of a summed sample and the flags. "
+       "A new CALIBRATION is "
        "validated against the config and used without a restart; a bad one is refused and "
        "logged. Publishes nothing (state DEGRADED) until a calibration is in use.",
        /*replayable=*/true});
@@ -42,6 +44,7 @@ int main(int argc, char** argv) {
       }
     }
     stage.ReportWaitingForCalibration();
+    app.AtInputEnd([&stage] { stage.FinishSums(); });
     const int rc = app.Run();
     app.log().info("{} leg-samples corrected, {} sums published", stage.leg_samples(),
                    stage.sums());

@@ -271,6 +271,46 @@ TEST(Corrector, SumsAreOfOneInstantWhicheverOrderTheLegsBatchesArriveIn) {
   }
 }
 
+// At the end of the input the instants still waiting are summed: here leg 3 samples 20 us before
+// the pace leg, so the pace leg's last instant waits for a leg-3 sample that never comes (a
+// replay's last sums were lost so). With input_ended it is made from leg 3's last sample, once.
+TEST(Corrector, TheLastInstantsAreSummedWhenTheInputEnds) {
+  const RobotCalibration cal = MakeCalibration(10);
+  constexpr int kSamples = 20;
+  constexpr int64_t kPeriodUs = 1000, kT0 = 1'000'000;
+  auto sample = [](int k, int j) {
+    Vec6 w;
+    w << 1 + j, 2, 25 + k, 0.1 * k, 0.2, 0.3;
+    return FtInput{kT0 + j * kPeriodUs + (k == 3 ? -20 : 10 * k), k, w, 0};
+  };
+  Corrector c({});
+  c.SetCalibration(cal, 3);
+  c.AddServo({kT0 - 1000, Fill(0.2)});
+  c.AddMocap({kT0 - 1000, true, Mat3::Identity(), true});
+  std::array<std::array<Vec6, kSamples>, kNumLegs> corrected;
+  std::vector<WrenchSum> sums;
+  WrenchSum sum;
+  for (int j = 0; j < kSamples; ++j) {
+    for (int k = 0; k < kNumLegs; ++k) {
+      const auto out = c.AddFt(sample(k, j), false);
+      ASSERT_TRUE(out);
+      corrected[k][j] = LegWrenchOf(*out).wrench_W;
+      while (c.NextSum(&sum)) sums.push_back(sum);
+    }
+  }
+  ASSERT_EQ(sums.size(), static_cast<size_t>(kSamples - 1)) << "the last instant waits for leg 3";
+  while (c.NextSum(&sum, /*input_ended=*/true)) sums.push_back(sum);
+  ASSERT_EQ(sums.size(), static_cast<size_t>(kSamples));
+  const WrenchSum& last = sums.back();
+  EXPECT_EQ(last.utime, sample(0, kSamples - 1).utime);
+  Vec6 total = Vec6::Zero();
+  for (int k = 0; k < kNumLegs; ++k) total += corrected[k][kSamples - 1];
+  EXPECT_EQ(last.total_W, total);
+  EXPECT_NEAR(last.oldest_ft_age_s, 50e-6, 1e-12);  // leg 5, 50 us after leg 0
+  EXPECT_EQ(last.flags, 0);
+  EXPECT_FALSE(c.NextSum(&sum, /*input_ended=*/true)) << "each instant is summed once";
+}
+
 // A silent leg is not waited for: once its latest sample is max_ft_age_s older than the newest,
 // the sums go on without it, flagged stale; when leg 0 is the silent one, the next leg sets
 // the pace. Before that, no sum is made past the silent leg's last sample.

@@ -121,8 +121,10 @@ class Corrector {
   // Same without the optional (the hot path): false when there is no output.
   bool AddFt(const FtInput& in, bool saturated, ContactWrenches* out);
   // The next sum that is due (header comment), oldest first; false when none is yet. Call it
-  // until false after each AddFt.
-  bool NextSum(WrenchSum* out);
+  // until false after each AddFt. With `input_ended` (the end of a replay, a shutdown) a sum is
+  // not waited for: the instants still held back are summed from the samples there are, nearest
+  // first as always, so the last instants of a recording are not lost.
+  bool NextSum(WrenchSum* out, bool input_ended = false);
 
   const CorrectorCounters& counters() const { return counters_; }
 
