@@ -116,6 +116,23 @@ TEST(ServiceStatsTest, RepeatsAreLoggedOncePerPeriodWithTheirCount) {
   EXPECT_EQ(stats.last_error(), "");
 }
 
+// A failure that ends the process is said at once, whatever was logged of its kind before, and
+// counted and carried in the status like any error.
+TEST(ServiceStatsTest, AFatalErrorIsLoggedEvenAfterRepeatsOfItsKind) {
+  std::ostringstream out;
+  auto log = std::make_shared<spdlog::logger>(
+      "stats", std::make_shared<spdlog::sinks::ostream_sink_st>(out));
+  log->set_pattern("%l %v");
+  ServiceStats stats(log);
+  stats.Error("run", "first");
+  stats.Error("run", "second, held back as a repeat");
+  stats.Fatal("run", "the device is gone");
+  EXPECT_NE(out.str().find("critical run: the device is gone\n"), std::string::npos) << out.str();
+  EXPECT_EQ(stats.errors(), 3);
+  EXPECT_EQ(stats.kinds().at("run"), 3);
+  EXPECT_EQ(stats.last_error(), "run: the device is gone");
+}
+
 // ---- the LCM URL ----
 
 TEST(LcmUrlTest, TtlAboveZeroAndARecvBufferAboveTheKernelLimitAreNamed) {
