@@ -45,6 +45,13 @@ void ServiceStats::Error(const std::string& kind, const std::string& reason) {
   }
 }
 
+void ServiceStats::Fatal(const std::string& kind, const std::string& reason) {
+  ++errors_;
+  ++kinds_[kind];
+  last_error_ = kind + ": " + reason;
+  log_->critical("{}: {}", kind, reason);
+}
+
 void ServiceStats::LogSummary() const {
   log_->info("in {} out {} drops {} errors {}", msgs_in_, msgs_out_, drops_, errors_);
   for (const auto& [kind, count] : kinds_) {

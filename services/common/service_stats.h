@@ -30,6 +30,10 @@ class ServiceStats {
   void Drop(const std::string& kind, const std::string& reason);
   // Something went wrong that is not a single bad input (a handler failure, an I/O error).
   void Error(const std::string& kind, const std::string& reason);
+  // An error that ends the process: counted and carried in the status as Error() does, and
+  // logged at once, critical, whatever was logged of its kind before: the line that says why
+  // the process stopped is never held back as a repeat.
+  void Fatal(const std::string& kind, const std::string& reason);
   // A process-specific counter, created at zero on first use; published by name.
   int64_t& Counter(const std::string& name) { return counters_[name]; }
 

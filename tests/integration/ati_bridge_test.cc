@@ -764,15 +764,25 @@ TEST_F(AtiBridgeTest, ABoxOf35RecordsPerDatagramAt7000IsPublishedRecordForRecord
 }
 
 // The box's RDT buffer size is not what the config implies (35 against 7 for 7000 records/s): the
-// bridge refuses to start, naming the box and both values, with the config's exit code.
+// bridge refuses to start, naming the box and both values in its log and its last (FAILED)
+// heartbeat, with the config's exit code.
 TEST_F(AtiBridgeTest, RefusesABoxWhoseBufferSizeIsNotTheConfigs) {
   auto emulator = StartEmulator({"--legs", "HL", "--rate", "7000", "--records-per-datagram", "35"});
   ASSERT_FALSE(HasFailure());
+  Collector collector;
   auto bridge = StartBridge("bridge", {"--legs", "HL"});
   const auto status = bridge->Wait(10);
   ASSERT_TRUE(status.has_value()) << "the bridge streamed from a box set up otherwise";
   // docs/exit-codes.md: 3, config.
   EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 3) << DescribeWaitStatus(*status);
+  EXPECT_TRUE(WaitForHeartbeat(
+      collector, bridge->pid(),
+      [](const service_status_t& s) {
+        return s.state == service_status_t::FAILED &&
+               s.last_error.find("RDT buffer size (comrdtbsiz) 35") != std::string::npos;
+      },
+      5))
+      << "no FAILED heartbeat naming the box's buffer size";
   const std::string err = ReadFile(Path("bridge.err"));
   for (const char* part : {"leg HL", "127.0.1.1", "http://127.0.1.1:8080/netftapi2.xml",
                            "RDT buffer size (comrdtbsiz) 35",

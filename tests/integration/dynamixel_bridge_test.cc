@@ -864,6 +864,35 @@ class DynamixelBridgeProcesses : public ::testing::Test {
   Clock::time_point t0_;
 };
 
+// The bridge failing before its loop, quick enough for the fast tier: no emulator, no serial port.
+class DynamixelBridgeFailures : public DynamixelBridgeProcesses {};
+
+// A config that passes the config's own checks but not the bridge's (a reply timeout of a second
+// or more): what a supervisor hears is a last FAILED heartbeat naming the field, and the exit code
+// is the config's, 3 (docs/exit-codes.md).
+TEST_F(DynamixelBridgeFailures, ARefusedConfigEndsWithAFailedHeartbeatAndExit3) {
+  std::ofstream(config_path_) << TestConfigText(link_, 1.0, 1.5);
+  lcm::LCM lcm(kUrl);
+  ASSERT_TRUE(lcm.good());
+  testing::StatusWatch watch(lcm);  // subscribed before the bridge starts: nothing is missed
+  auto bridge = StartBridge("");
+  const auto status = bridge->Wait(30);
+  ASSERT_TRUE(status.has_value()) << "the bridge did not exit";
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 3)
+      << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(dir_ + "/bridge.err");
+  // Sent before the bridge exited: waiting in the socket, or on its way through loopback.
+  const auto failed = watch.Await(
+      bridge->pid(), [](const service_status_t& s) { return s.state == service_status_t::FAILED; },
+      5);
+  ASSERT_TRUE(failed.has_value()) << "no FAILED heartbeat\n"
+                                  << testing::ReadFile(dir_ + "/bridge.err");
+  EXPECT_EQ(failed->name, "ftcal-dynamixel-bridge");
+  EXPECT_NE(failed->last_error.find("dynamixel.reply_timeout_s"), std::string::npos)
+      << failed->last_error;
+  EXPECT_GE(failed->errors, 1);
+}
+
 TEST_F(DynamixelBridgeProcesses, TwinWalkWithFaultsPublishesOnlyTruthAndCountsEveryFault) {
   Listener listener(t0_);
   ASSERT_TRUE(listener.good());

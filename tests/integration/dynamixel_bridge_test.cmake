@@ -15,8 +15,8 @@ if(TARGET ftcal-emulate-dynamixel AND TARGET ftcal-dynamixel-bridge)
   set_target_properties(dynamixel_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   ftcal_gtest_discover(dynamixel_bridge_test KIND integration
-    # the emulator and the bridge on a pty in process: fast
-    FAST "DynamixelEmulator.*:DynamixelBridgePty.*"
+    # the emulator and the bridge on a pty in process, and the bridge failing at start: fast
+    FAST "DynamixelEmulator.*:DynamixelBridgePty.*:DynamixelBridgeFailures.*"
     PROPERTIES TIMEOUT 60
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)

@@ -26,6 +26,7 @@
 #include "ftcal/geometry.h"
 #include "natnet_bridge.h"
 #include "natnet_emulator.h"
+#include "test_helpers.h"
 
 namespace ftcal {
 namespace {
@@ -553,9 +554,14 @@ TEST(NatNetBridgeTest, BodyMissingIsReportedByName) {
 
 #ifdef FTCAL_NATNET_BRIDGE
 TEST(NatNetBridgeProcessTest, RefusesAConfigThatRunsTheQualisysBridge) {
+  ASSERT_TRUE(testing::InNetns());
   // The embedded default config selects QUALISYS: the NatNet bridge must not also publish.
   const std::string dir = testing::MakeTempDir();
-  testing::Child child({FTCAL_NATNET_BRIDGE}, dir + "/out", dir + "/err");
+  const std::string url = "udpm://239.255.76.67:7667?ttl=0";
+  lcm::LCM lcm(url);
+  ASSERT_TRUE(lcm.good());
+  testing::StatusWatch watch(lcm);  // subscribed before the bridge starts: nothing is missed
+  testing::Child child({FTCAL_NATNET_BRIDGE, "--lcm-url", url}, dir + "/out", dir + "/err");
   const auto status = child.Wait(10);
   ASSERT_TRUE(status.has_value());
   // 3: a bridge's own check of its config section (docs/exit-codes.md).
@@ -563,6 +569,12 @@ TEST(NatNetBridgeProcessTest, RefusesAConfigThatRunsTheQualisysBridge) {
       << testing::DescribeWaitStatus(*status);
   EXPECT_NE(testing::ReadFile(dir + "/err").find("mocap.system"), std::string::npos)
       << testing::ReadFile(dir + "/err");
+  // Its last heartbeat, sent before it exited, says so too.
+  const auto failed = watch.Await(
+      child.pid(), [](const service_status_t& s) { return s.state == service_status_t::FAILED; },
+      5);
+  ASSERT_TRUE(failed.has_value()) << "no FAILED heartbeat";
+  EXPECT_NE(failed->last_error.find("mocap.system"), std::string::npos) << failed->last_error;
   testing::RemoveTree(dir);
 }
 #endif

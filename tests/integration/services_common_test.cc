@@ -24,7 +24,10 @@
 #include "child_process.h"
 #include "test_helpers.h"
 #include "common/atomic_log.h"
+#include "common/bridge_main.h"
 #include "common/bus.h"
+#include "common/device.h"
+#include "common/exit_codes.h"
 #include "common/heartbeat.h"
 #include "common/service.h"
 #include "common/shutdown.h"
@@ -115,6 +118,100 @@ TEST(ServiceStatsTest, RepeatsAreLoggedOncePerPeriodWithTheirCount) {
   stats.ClearLastError();
   EXPECT_EQ(stats.last_error(), "");
 }
+
+// A failure that ends the process is said at once, whatever was logged of its kind before, and
+// counted and carried in the status like any error.
+TEST(ServiceStatsTest, AFatalErrorIsLoggedEvenAfterRepeatsOfItsKind) {
+  std::ostringstream out;
+  auto log = std::make_shared<spdlog::logger>(
+      "stats", std::make_shared<spdlog::sinks::ostream_sink_st>(out));
+  log->set_pattern("%l %v");
+  ServiceStats stats(log);
+  stats.Error("run", "first");
+  stats.Error("run", "second, held back as a repeat");
+  stats.Fatal("run", "the device is gone");
+  EXPECT_NE(out.str().find("critical run: the device is gone\n"), std::string::npos) << out.str();
+  EXPECT_EQ(stats.errors(), 3);
+  EXPECT_EQ(stats.kinds().at("run"), 3);
+  EXPECT_EQ(stats.last_error(), "run: the device is gone");
+}
+
+// ---- RunBridge: where a bridge fails gives its exit code (docs/exit-codes.md) ----
+
+// What a device throws when it refuses the configuration (as QTM refusing the protocol version).
+class RefusedByTheDevice : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// A device whose first deadline runs `on_deadline`.
+class ScriptedDevice : public Device {
+ public:
+  explicit ScriptedDevice(std::function<void()> on_deadline)
+      : on_deadline_(std::move(on_deadline)) {}
+  void AddPollFds(std::vector<pollfd>*) override {}
+  void OnPolled(const pollfd*, std::size_t) override {}
+  Clock::time_point NextDeadline() const override { return Clock::time_point{}; }  // now
+  void OnDeadline(Clock::time_point) override { on_deadline_(); }
+  bool Degraded(std::string*) override { return false; }
+
+ private:
+  std::function<void()> on_deadline_;
+};
+
+struct BridgeFailure {
+  const char* name;
+  BridgeStage stage;
+  std::function<void()> fail;  // throws
+  int exit_code;
+};
+
+class RunBridgeTest : public ::testing::TestWithParam<BridgeFailure> {};
+
+TEST_P(RunBridgeTest, EndsWithTheExitCodeOfWhereItFailed) {
+  const BridgeFailure& f = GetParam();
+  ClearShutdownRequest();  // the loop that does not fail ends on a request (below)
+  const std::string dir = testing::MakeTempDir();
+  BridgeSpec<ScriptedDevice> spec;
+  spec.service = {"ftcal-scripted-bridge", "a bridge that fails where the test says"};
+  spec.configure = [&f](ServiceApp&) {
+    if (f.stage == BridgeStage::kConfigure) f.fail();
+    return std::make_unique<ScriptedDevice>([&f] {
+      if (f.stage == BridgeStage::kRun) f.fail();
+      RequestShutdown();
+    });
+  };
+  spec.open = [&f](ScriptedDevice& device) -> Device& {
+    if (f.stage == BridgeStage::kOpen) f.fail();
+    return device;
+  };
+  spec.refuses_config = IsA<RefusedByTheDevice>;
+  std::vector<std::string> args = {
+      "ftcal-scripted-bridge", "--lcm-url", "memq://", "--log-level", "off", "--state-dir", dir};
+  std::vector<char*> argv;
+  for (std::string& a : args) argv.push_back(a.data());
+  EXPECT_EQ(RunBridge(static_cast<int>(argv.size()), argv.data(), spec), f.exit_code);
+  ClearShutdownRequest();
+  testing::RemoveTree(dir);
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Stages, RunBridgeTest,
+    ::testing::Values(
+        BridgeFailure{"ConfigChecks", BridgeStage::kConfigure,
+                      [] { throw std::invalid_argument("config: foo.rate_hz 0"); }, kExitConfig},
+        BridgeFailure{"Opening", BridgeStage::kOpen,
+                      [] { throw std::runtime_error("foo: connection refused"); }, kExitDeviceIo},
+        BridgeFailure{"OpeningRefusedByTheDevice", BridgeStage::kOpen,
+                      [] { throw RefusedByTheDevice("foo refuses version 2"); }, kExitConfig},
+        BridgeFailure{"Running", BridgeStage::kRun,
+                      [] { throw std::runtime_error("foo: hung up"); }, kExitDeviceIo},
+        BridgeFailure{"RunningRefusedByTheDevice", BridgeStage::kRun,
+                      [] { throw RefusedByTheDevice("foo refuses version 2"); }, kExitConfig},
+        BridgeFailure{"ABugWhileConfiguring", BridgeStage::kConfigure,
+                      [] { throw std::out_of_range("vector::_M_range_check"); }, kExitInternal},
+        BridgeFailure{"NoFailure", BridgeStage::kRun, [] {}, kExitDone}),
+    [](const ::testing::TestParamInfo<BridgeFailure>& info) { return info.param.name; });
 
 // ---- the LCM URL ----
 
