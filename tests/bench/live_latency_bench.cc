@@ -108,6 +108,11 @@
 // pvm_irq_enable. So on this machine the pipeline loses samples at 2/7 of the goal's rate,
 // fills the two cores at half of it, and its p99 misses 200 us already at a seventh of it;
 // ftcal's own code is not where the time goes.
+//
+// Measured 2026-12-06, a 10-minute soak (--record --routes --duration 600), six --realtime
+// bridges, 7 records a datagram, load average 1.5-1.9: in the window 25086056 records sent, as
+// many FT and CONTACT_WRENCH heard here (0 missing); bridges 0 lost; receipt -> CONTACT_WRENCH
+// p50 164 us, p99 924 us; CPU bridges 16.6 + corrector 14.4 + recorder 18.2 = 49.2 % of a core.
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <netinet/in.h>
