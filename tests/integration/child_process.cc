@@ -2,9 +2,7 @@
 
 #include <fcntl.h>
 #include <signal.h>
-#include <sched.h>
 #include <sys/prctl.h>
-#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -19,16 +17,6 @@
 #include <thread>
 
 namespace ftcal::testing {
-
-bool StandsInForADeviceOrBridgesOne(const std::string& program) {
-  const std::string name = std::filesystem::path(program).filename().string();
-  const auto ends_with = [&](const std::string& tail) {
-    return name.size() >= tail.size() &&
-           name.compare(name.size() - tail.size(), tail.size(), tail) == 0;
-  };
-  return name == "ftcal-sim" || name.rfind("ftcal-emulate-", 0) == 0 ||
-         (name.rfind("ftcal-", 0) == 0 && ends_with("-bridge"));
-}
 
 Child::Child(const std::vector<std::string>& argv, const std::string& stdout_path,
              const std::string& stderr_path) {
@@ -45,7 +33,6 @@ Child::Child(const std::vector<std::string>& argv, const std::string& stdout_pat
     throw std::runtime_error("Child: cannot open output files in " + stdout_path);
   }
   const pid_t parent = ::getpid();
-  const bool keeps_priority = StandsInForADeviceOrBridgesOne(argv[0]);
   pid_ = ::fork();
   if (pid_ == 0) {
     // Dies with the test: a test aborted by a sanitizer or a fatal signal runs no destructor,
@@ -61,12 +48,6 @@ Child::Child(const std::vector<std::string>& argv, const std::string& stdout_pat
     ::sigprocmask(SIG_SETMASK, &none, nullptr);
     ::signal(SIGINT, SIG_DFL);
     ::signal(SIGTERM, SIG_DFL);
-    if (!keeps_priority) {
-      // Back to the machine's normal share (the test may be ahead of it: AheadOfTheMachine).
-      sched_param normal{};
-      ::sched_setscheduler(0, SCHED_OTHER, &normal);
-      ::setpriority(PRIO_PROCESS, 0, 0);
-    }
     ::execv(args[0], args.data());
     const char msg[] = "Child: execv failed\n";
     (void)!::write(STDERR_FILENO, msg, sizeof(msg) - 1);

@@ -11,17 +11,6 @@
 
 namespace ftcal::testing {
 
-// Whether `program` (a path) stands in for a device with a processor of its own (the twin, the
-// emulators) or is a bridge, the process a lab runs --realtime beside its device. A Child of any
-// other program starts at the normal priority however the test runs (AheadOfTheMachine): the
-// stages' work is the machine's. A stage under SCHED_FIFO (a live calibrator solving, a replay)
-// holds its core against everything at the normal priority, the kernel's workers among them, and
-// the twin's pty bytes travel through one: the twin's Dynamixel thread was seen waiting 0.5 to
-// 1.7 s in flush_work while kworker/u8 (events_unbound) stood runnable, and the bridge rightly
-// stopped the plan. Scripts start at the normal priority too and set their own (scripts/experiment
-// runs the twin ahead and the bridges --realtime).
-bool StandsInForADeviceOrBridgesOne(const std::string& program);
-
 class Child {
  public:
   // Throws std::runtime_error when the process cannot be started.

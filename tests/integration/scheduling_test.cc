@@ -20,7 +20,6 @@
 #include <spdlog/sinks/ostream_sink.h>
 #include <spdlog/spdlog.h>
 
-#include "child_process.h"
 #include "common/scheduling.h"
 
 namespace ftcal {
@@ -152,40 +151,3 @@ TEST(Scheduling, OptionsOutOfRangeAreRefusedByName) {
 
 }  // namespace
 }  // namespace ftcal
-
-// A test ahead of the machine (SCHED_FIFO) starts the stand-ins of devices and the bridges with
-// its priority and every other program at the normal one (testing::Child): a stage under
-// SCHED_FIFO held its core against the kernel's worker that carries the twin's pty bytes.
-TEST(Scheduling, ATestAheadOfTheMachineStartsOnlyDevicesAndBridgesAhead) {
-  EXPECT_TRUE(ftcal::testing::StandsInForADeviceOrBridgesOne("/x/build/services/sim/ftcal-sim"));
-  EXPECT_TRUE(ftcal::testing::StandsInForADeviceOrBridgesOne("ftcal-emulate-dynamixel"));
-  EXPECT_TRUE(ftcal::testing::StandsInForADeviceOrBridgesOne("/b/ftcal-natnet-bridge"));
-  EXPECT_FALSE(ftcal::testing::StandsInForADeviceOrBridgesOne("/b/ftcal-calibrator"));
-  EXPECT_FALSE(ftcal::testing::StandsInForADeviceOrBridgesOne("/s/scripts/netns-exec"));
-  EXPECT_FALSE(ftcal::testing::StandsInForADeviceOrBridgesOne("/b/ftcal-bridge-tool"));
-
-  const std::string dir = ftcal::testing::MakeTempDir();
-  // The same program (sh, printing its policy from /proc) under a stage's name and a device's.
-  const std::string as_device = dir + "/ftcal-emulate-probe";
-  const std::string as_stage = dir + "/ftcal-stage-probe";
-  ASSERT_EQ(::symlink("/bin/sh", as_device.c_str()), 0);
-  ASSERT_EQ(::symlink("/bin/sh", as_stage.c_str()), 0);
-  std::string policies[2];
-  std::thread([&] {
-    sched_param fifo{};
-    fifo.sched_priority = 1;
-    if (::sched_setscheduler(0, SCHED_FIFO, &fifo) != 0) return;  // not granted: skipped below
-    int i = 0;
-    for (const std::string& program : {as_device, as_stage}) {
-      const std::string out = dir + "/out" + std::to_string(i);
-      ftcal::testing::Child child({program, "-c", "cut -d' ' -f41 /proc/$$/stat"}, out,
-                                  out + ".err");
-      child.Wait(10);
-      policies[i++] = ftcal::testing::ReadFile(out);
-    }
-  }).join();
-  ftcal::testing::RemoveTree(dir);
-  if (policies[0].empty()) GTEST_SKIP() << "SCHED_FIFO not granted here (needs root)";
-  EXPECT_EQ(policies[0], "1\n") << "a device stand-in keeps SCHED_FIFO";
-  EXPECT_EQ(policies[1], "0\n") << "any other program starts at SCHED_OTHER";
-}

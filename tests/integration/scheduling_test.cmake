@@ -2,7 +2,7 @@
 # kernel's own account of the thread's policy. No network: no namespace needed.
 add_executable(scheduling_test "${CMAKE_CURRENT_LIST_DIR}/scheduling_test.cc")
 target_link_libraries(scheduling_test PRIVATE
-  ftcal_common ftcal_child_process GTest::gtest GTest::gtest_main Threads::Threads)
+  ftcal_common GTest::gtest GTest::gtest_main Threads::Threads)
 ftcal_gtest_discover(scheduling_test KIND integration
   PROPERTIES TIMEOUT 30
   DISCOVERY_TIMEOUT 60 DISCOVERY_MODE PRE_TEST)

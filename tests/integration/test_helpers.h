@@ -184,10 +184,9 @@ class StatusWatch {
   std::map<pid_t, service_status_t> latest_;
 };
 
-// Runs this test, and the twin, emulators and bridges it starts from here on (Child keeps their
-// inherited priority and puts every other program back at the normal one: child_process.h), ahead
-// of whatever else the machine runs: builds, other tests, CI's busy neighbours. The twin stands in
-// for devices that have processors of their own, and a lab runs its group with priority (the
+// Runs this test and everything it starts from here on (children inherit it) ahead of whatever
+// else the machine runs: builds, other tests, CI's busy neighbours. The twin stands in for
+// devices that have processors of their own, and a lab runs its group with priority (the
 // bridges' --realtime). SCHED_FIFO at the lowest real-time priority: beside two busy loops on
 // this 2-core VM the twin's Dynamixel thread, even at nice -10, went unanswered for half a second
 // at a time (every servo lost mid-plan), and under SCHED_FIFO not once; the kernel's real-time
