@@ -371,7 +371,8 @@ int ServiceApp::Run() {
     AddPeriodic(kHeartbeatPeriodS, [this] { PublishHeartbeat(); });
   }
   bus_->Run([this] { Tick(); }, kLoopTickUs);
-  if (!bus_->IsReplay() || static_cast<const LogReplayBus&>(*bus_).finished()) {
+  auto* replay = dynamic_cast<LogReplayBus*>(bus_.get());
+  if (replay == nullptr || replay->finished()) {
     for (const auto& fn : at_input_end_) fn();
   }
   state_ = service_status_t::STOPPING;
@@ -382,7 +383,7 @@ int ServiceApp::Run() {
   }
 
   int rc = 0;
-  if (auto* replay = dynamic_cast<LogReplayBus*>(bus_.get())) {
+  if (replay != nullptr) {
     if (!replay->finished()) {
       rc = kExitDeviceIo;  // interrupted: the output log is not written
     } else {

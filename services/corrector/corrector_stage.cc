@@ -154,14 +154,7 @@ void CorrectorStage::OnFt(const FtBatch& batch) {
     if (out_.flags & (kFlagStaleFt | kFlagStaleServo | kFlagStaleMocap)) ++stale_;
     AppendLcm(LegWrenchOf(out_), &wrench_msg_);
     ++leg_samples_;
-    while (corrector_.NextSum(&sum)) {
-      if (sum_msg_.n == contact_wrench_sum_t::MAX_N) {
-        PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
-        ClearLcm(corrector_.calibration_version(), &sum_msg_);
-      }
-      AppendLcm(sum, &sum_msg_);
-      ++sums_;
-    }
+    while (corrector_.NextSum(&sum)) AppendSum(sum);
   }
   // One CONTACT_WRENCH per FT message (its samples, corrected), then the sums it completed.
   if (wrench_msg_.n > 0) PublishReused(config_.channels().contact_wrench(), wrench_msg_);
@@ -172,16 +165,18 @@ void CorrectorStage::OnFt(const FtBatch& batch) {
 void CorrectorStage::FinishSums() {
   ClearLcm(corrector_.calibration_version(), &sum_msg_);
   WrenchSum sum;
-  while (corrector_.NextSum(&sum, /*input_ended=*/true)) {
-    if (sum_msg_.n == contact_wrench_sum_t::MAX_N) {
-      PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
-      ClearLcm(corrector_.calibration_version(), &sum_msg_);
-    }
-    AppendLcm(sum, &sum_msg_);
-    ++sums_;
-  }
+  while (corrector_.NextSum(&sum, /*input_ended=*/true)) AppendSum(sum);
   if (sum_msg_.n > 0) PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
   UpdateCounters();
+}
+
+void CorrectorStage::AppendSum(const WrenchSum& sum) {
+  if (sum_msg_.n == contact_wrench_sum_t::MAX_N) {
+    PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
+    ClearLcm(corrector_.calibration_version(), &sum_msg_);
+  }
+  AppendLcm(sum, &sum_msg_);
+  ++sums_;
 }
 
 template <class Msg>

@@ -60,6 +60,8 @@ class CorrectorStage {
   void OnMocap(const MocapInput& in);
   void OnCalibration(const MessageInfo& info, const calibration_t& msg);
   void UpdateCounters();
+  // Adds a sum to sum_msg_, publishing it first when full (contact_wrench_sum_t::MAX_N).
+  void AppendSum(const WrenchSum& sum);
   // Encodes into buffer_ (Bus::Publish's buffer is per thread; this one is per stage) and
   // publishes: the hot path allocates nothing.
   template <class Msg>
