@@ -111,7 +111,7 @@ OffsetReestimate ReestimateOffsets(const RobotCalibration& cal,
   int rank = 0;
   while (rank < sv.size() && sv[rank] > cutoff) ++rank;
   out.rank = rank;
-  const Eigen::MatrixXd V = svd.matrixV();
+  const Eigen::MatrixXd& V = svd.matrixV();
   const Eigen::MatrixXd V_r = V.leftCols(rank);
   const Eigen::MatrixXd V_null = V.rightCols(V.cols() - rank);
   const Eigen::VectorXd inv_s = sv.head(rank).cwiseInverse();

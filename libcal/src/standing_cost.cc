@@ -395,7 +395,6 @@ std::vector<Vec6> ResidualsOfPoses(const Prepared& prep, const StandingFit& fit,
 
 using standing_detail::OwningPoseCost;
 using standing_detail::Prepare;
-using standing_detail::SharedTranslation;
 
 std::unique_ptr<ceres::CostFunction> StandingPoseCostForCheck(const RobotCalibration& step1,
                                                               const StandingPose& pose,

@@ -2,6 +2,8 @@
 // every program with the same code, and each program's --help prints the table.
 #pragma once
 
+#include <cstdio>
+#include <exception>
 #include <optional>
 #include <string>
 #include <vector>
@@ -54,6 +56,20 @@ inline std::optional<int> ParseCommandLine(CLI::App& cli, int argc, char** argv)
     return rc == 0 ? kExitDone : kExitUsage;
   }
   return std::nullopt;
+}
+
+// The handler of main's function-try-block, `int main(...) try {...} catch (...) { return
+// ftcal::ExitOnEscapedException("ftcal-x"); }`: an exception nothing else caught (a bug) ends the
+// program with its message and kExitInternal, not with std::terminate's abort.
+inline int ExitOnEscapedException(const char* program) noexcept {
+  try {
+    throw;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "%s: internal error (please report it): %s\n", program, e.what());
+  } catch (...) {
+    std::fprintf(stderr, "%s: internal error (please report it): an unknown exception\n", program);
+  }
+  return kExitInternal;
 }
 
 }  // namespace ftcal

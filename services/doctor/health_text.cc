@@ -156,7 +156,7 @@ void LogExaminer::Judge(HealthReport& r) const {
           {"", "no STEADY_POSE events recorded: the calibrator segments the poses itself"});
     }
     std::string optional;
-    for (int code :
+    for (const int8_t code :
          {experiment_marker_t::TARE, experiment_marker_t::TRIPOD, experiment_marker_t::WALKING}) {
       if (std::none_of(r.phases.begin(), r.phases.end(),
                        [&](const PhaseHealth& p) { return p.code == code; })) {

@@ -16,11 +16,12 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "common/envelope.h"
+#include "common/exit_codes.h"
 #include "common/user_errors.h"
 #include "common/wire_guard.h"
 #include "ftcal/config.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Prints every signed envelope (SERVO_CMD, EXPERIMENT, CALIBRATION) in an LCM log: "
       "signer, sequence, signing time, signature verdict and the inner message's fields.",
@@ -87,4 +88,6 @@ int main(int argc, char** argv) {
     std::cerr << "ftcal-envelopes: " << ftcal::UserText(e, "reading the envelopes") << "\n";
     return ftcal::ExitCodeFor(e, 2);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-envelopes");
 }

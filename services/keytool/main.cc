@@ -22,6 +22,7 @@
 #include <CLI/CLI.hpp>
 
 #include "common/envelope.h"
+#include "common/exit_codes.h"
 #include "common/user_errors.h"
 
 namespace {
@@ -61,7 +62,7 @@ int WriteSeed(const std::string& path) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Makes an Ed25519 signing key for a publisher of ftcal's signed channels "
       "(SERVO_CMD, EXPERIMENT, CALIBRATION) and prints its public key, 64 hex digits, "
@@ -87,4 +88,6 @@ int main(int argc, char** argv) {
     std::cerr << "ftcal-keygen: " << ftcal::UserText(e, "making the key pair") << "\n";
     return ftcal::ExitCodeFor(e, 2);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-keygen");
 }

@@ -6,7 +6,7 @@
 #include "common/exit_codes.h"
 #include "launcher/launcher.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Launches the config's launch groups (launch.group) on their hosts: writes each host's "
       "supervisord.conf and the group's [program:x] sections under the host's run dir, starts "
@@ -78,4 +78,6 @@ int main(int argc, char** argv) {
   if (*status) return launcher.Status();
   if (*systemd) return launcher.ExportSystemd();
   return ftcal::kExitUsage;
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-launch");
 }
