@@ -15,7 +15,7 @@
 #include <string>
 #include <vector>
 
-#include "calibrator/collector.h"
+#include "session/collector.h"
 #include "calibrator/outputs.h"
 #include "ftcal/calibrate.h"
 #include "ftcal/offset_reestimation.h"

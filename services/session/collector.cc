@@ -1,5 +1,5 @@
 // CalibrationCollector: the bus's messages into what Calibrate() consumes (calibrator.h).
-#include "calibrator/collector.h"
+#include "session/collector.h"
 
 #include <sys/mman.h>
 #include <unistd.h>

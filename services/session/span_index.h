@@ -16,7 +16,7 @@
 #include <spdlog/logger.h>
 
 #include "ftcal/digest_cache.h"
-#include "calibrator/collector.h"
+#include "session/collector.h"
 #include "proto/config.pb.h"
 
 namespace ftcal {
