@@ -1,7 +1,7 @@
 // ftcal-calibrator's work, offline from a recording (--log) or live on the bus: the experiment
 // in, the calibration file out (and, with --reestimate-offsets, offsets re-estimated on a base).
-// The collector (collector.h) gathers the data from the bus; this file checks it and calibrates;
-// outputs.h writes what goes beside the calibration.
+// The collector (session/collector.h) gathers the data from the bus; this file checks it and
+// calibrates; outputs.h writes what goes beside the calibration.
 //
 // RunCalibration() checks what was collected (every series, markers present, the config's legs
 // are the log's FT_* channels, no damaged bytes), runs Calibrate() and fills provenance. Every
@@ -15,12 +15,12 @@
 #include <string>
 #include <vector>
 
-#include "calibrator/collector.h"
 #include "calibrator/outputs.h"
 #include "ftcal/calibrate.h"
 #include "ftcal/offset_reestimation.h"
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
+#include "session/collector.h"
 
 namespace ftcal {
 

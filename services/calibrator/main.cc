@@ -449,8 +449,8 @@ int main(int argc, char** argv) {
 
   // Offline, the calibrator is a batch run: read, calibrate, write, exit (common/batch_memory.h).
   // Live, it keeps malloc's defaults.
-  ftcal::BatchMemoryGranted memory;
-  if (!args.logs.empty()) memory = ftcal::UseBatchMemory();
+  ftcal::BatchMemory::Granted memory;
+  if (!args.logs.empty()) memory = ftcal::BatchMemory::UseForProcess();
   spdlog::set_default_logger(spdlog::stderr_color_mt("ftcal-calibrator"));
   spdlog::cfg::load_env_levels();
   if (!args.log_level.empty()) spdlog::set_level(spdlog::level::from_str(args.log_level));

@@ -6,11 +6,13 @@
 
 #include <cstdint>
 #include <cstdlib>
+#include <system_error>
+#include <utility>
 
 namespace ftcal {
 
-BatchMemoryGranted UseBatchMemory(size_t heap_bytes) {
-  BatchMemoryGranted granted;
+BatchMemory::Granted BatchMemory::UseForProcess(size_t heap_bytes) {
+  Granted granted;
   // glibc's upper bound for the mmap threshold on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX); blocks
   // larger than that are rare here and keep their own mappings.
   constexpr int kMmapThreshold = 32 << 20;
@@ -41,6 +43,37 @@ BatchMemoryGranted UseBatchMemory(size_t heap_bytes) {
   }
 #endif
   return granted;
+}
+
+void BatchMemory::FaultInAhead() {
+  Wait();
+  std::vector<Room> rooms = std::move(rooms_);
+  rooms_.clear();
+  try {
+    prefault_ = std::async(std::launch::async, Prefault, std::move(rooms));
+  } catch (const std::system_error&) {
+    // No thread to spare: the pages are faulted in as they are written.
+  }
+}
+
+void BatchMemory::Prefault(const std::vector<Room>& rooms) {
+#ifdef MADV_POPULATE_WRITE
+  constexpr int kSlices = 16;
+  const auto page = static_cast<uintptr_t>(::sysconf(_SC_PAGESIZE));
+  for (int s = 0; s < kSlices; ++s) {
+    for (const Room& r : rooms) {
+      const auto at = reinterpret_cast<uintptr_t>(r.data);
+      const uintptr_t begin = (at + r.bytes * s / kSlices + page - 1) & ~(page - 1);
+      const uintptr_t end = (at + r.bytes * (s + 1) / kSlices) & ~(page - 1);
+      if (end > begin &&
+          ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_POPULATE_WRITE) != 0) {
+        return;
+      }
+    }
+  }
+#else
+  (void)rooms;
+#endif
 }
 
 }  // namespace ftcal

@@ -6,9 +6,9 @@
 #include <system_error>
 
 #include "common/exit_codes.h"
-#include "calibrator/span_index.h"
 #include "common/service.h"
 #include "pose_segmenter/pose_segmenter_stage.h"
+#include "session/span_index.h"
 
 int main(int argc, char** argv) {
   ftcal::ServiceApp app(

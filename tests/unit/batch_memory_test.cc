@@ -1,5 +1,6 @@
-// UseBatchMemory (common/batch_memory.h): what it says it granted, checked against glibc's own
-// accounting (mallinfo2) and the kernel's view of the mappings (/proc/self/smaps).
+// BatchMemory (common/batch_memory.h): what UseForProcess says it granted, checked against glibc's
+// own accounting (mallinfo2) and the kernel's view of the mappings (/proc/self/smaps); the room
+// Reserve and FaultInAhead give.
 #include "common/batch_memory.h"
 
 #include <malloc.h>
@@ -11,6 +12,7 @@
 #include <regex>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -49,7 +51,7 @@ TEST(BatchMemory, LargeBlocksComeFromTheAdvisedHeapAndStayThere) {
 #if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
   GTEST_SKIP() << "the sanitizer's allocator, not glibc's, serves malloc here";
 #endif
-  const BatchMemoryGranted granted = UseBatchMemory();
+  const BatchMemory::Granted granted = BatchMemory::UseForProcess();
   ASSERT_TRUE(granted.thresholds);
   // 4 MiB is far above malloc's default 128 KiB mmap threshold: its own mapping, unless the
   // thresholds took.
@@ -75,6 +77,29 @@ TEST(BatchMemory, LargeBlocksComeFromTheAdvisedHeapAndStayThere) {
   EXPECT_TRUE(std::regex_search(smaps, std::regex("THPeligible:\\s+1\\n"))) << smaps;
   EXPECT_NE(smaps.find(" hg"), std::string::npos) << "VmFlags without hg (MADV_HUGEPAGE):\n"
                                                   << smaps;
+}
+
+// The pages faulted in ahead are the vectors' own, written while the thread runs: what the
+// caller writes is what it reads back.
+TEST(BatchMemory, RoomFaultedInAheadHoldsWhatIsWritten) {
+  std::vector<double> a;
+  std::vector<int64_t> b;
+  constexpr size_t kN = size_t{1} << 18;  // 2 MiB of doubles: many pages, several slices
+  {
+    BatchMemory memory;
+    memory.Reserve(a, kN);
+    memory.Reserve(b, kN / 2);
+    ASSERT_GE(a.capacity(), kN);
+    ASSERT_GE(b.capacity(), kN / 2);
+    const double* const a_room = a.data();
+    memory.FaultInAhead();
+    for (size_t i = 0; i < kN; ++i) a.push_back(0.5 * static_cast<double>(i));
+    for (size_t i = 0; i < kN / 2; ++i) b.push_back(static_cast<int64_t>(i) - 7);
+    memory.Wait();
+    EXPECT_EQ(a.data(), a_room) << "the reserved room was not enough: the vector moved";
+  }
+  for (size_t i = 0; i < kN; ++i) ASSERT_EQ(a[i], 0.5 * static_cast<double>(i)) << i;
+  for (size_t i = 0; i < kN / 2; ++i) ASSERT_EQ(b[i], static_cast<int64_t>(i) - 7) << i;
 }
 
 }  // namespace

@@ -1,4 +1,4 @@
-#include "calibrator/span_index.h"
+#include "session/span_index.h"
 
 #include <time.h>
 #include <unistd.h>

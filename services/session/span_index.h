@@ -1,8 +1,8 @@
 // The span index of a session log made by a process that reads the log before the calibrator
 // does: ftcal-pose-segmenter's --replay, on a thread of its own beside the replay. The first
 // calibration of a new session log then skips what only a later one could (the STANDING
-// phase's records, counted, not read: three quarters of a report-scale log), instead of
-// reading it to make the index itself.
+// phase's records, counted, not read: most of a report-scale log, docs/performance.md), instead
+// of reading it to make the index itself.
 //
 // The index is the calibrator's own (CalibrationCollector::SetIndexOnly, the same counting
 // rules and the same rules string), stored beside the log's digest in the digest cache under
@@ -16,7 +16,7 @@
 #include <spdlog/logger.h>
 
 #include "ftcal/digest_cache.h"
-#include "calibrator/collector.h"
+#include "session/collector.h"
 #include "proto/config.pb.h"
 
 namespace ftcal {

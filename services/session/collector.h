@@ -1,4 +1,9 @@
-// ftcal-calibrator's collector.
+// The collector: a session's phases into the datasets the calibration takes. ftcal-calibrator
+// calibrates from what it collects; ftcal-pose-segmenter runs one in index-only mode to make the
+// span index (span_index.h). Its jobs, each in a file of its own: reading the bus
+// (collector.cc, collector_inputs.cc), the phases' starts and ends (collector_phases.cc), what
+// the phases keep and hand over (collector_results.cc), and the span index
+// (collector_spans.cc, span_noting.h).
 //
 // CalibrationCollector listens on a Bus (a LogReplayBus per input log, or live LCM) and turns
 // FT_<LEG>, SERVO_STATE, MOCAP_BODY, EXPERIMENT and STEADY_POSE into what Calibrate() consumes:
@@ -19,7 +24,6 @@
 #include <array>
 #include <cstdint>
 #include <functional>
-#include <future>
 #include <map>
 #include <memory>
 #include <optional>
@@ -32,6 +36,7 @@
 #include <spdlog/logger.h>
 #include <spdlog/spdlog.h>
 
+#include "common/batch_memory.h"
 #include "common/bus.h"
 #include "common/messages.h"
 #include "ftcal/aligner.h"
@@ -45,6 +50,8 @@
 #include "proto/calibration.pb.h"
 #include "proto/config.pb.h"
 #include "proto/log_index.pb.h"
+#include "session/deferred_tail.h"
+#include "session/span_noting.h"
 
 namespace ftcal {
 
@@ -114,8 +121,8 @@ class CalibrationCollector {
   }
   // Offline, with the poses log read before the session: a STANDING phase whose session's
   // STEADY_POSE events were all read already, each with its within-pose scatter, is not
-  // segmented again (that was half the calibrator's time on a report-scale log). Live, the
-  // poses arrive during the phase, so the collector always segments it (the live calibrator
+  // segmented again (that was a large share of the calibrator's time: docs/performance.md). Live,
+  // the poses arrive during the phase, so the collector always segments it (the live calibrator
   // waits for the segmenter's last pose by comparing the two counts).
   void SetSkipSegmentingLoggedSessions(bool skip) { skip_logged_sessions_ = skip; }
   // Whether TRIPOD phases are segmented into steady stances (unloaded_samples()): what offset
@@ -153,8 +160,8 @@ class CalibrationCollector {
   size_t segmented_pose_count() const { return segmented_poses_.size(); }
 
   // What was collected. Throws CalibratorInputError naming what is missing or inconsistent.
-  // The four series in HangSeries order, by reference: at the report's scale they are tens of
-  // MB, and a copy cost more than the hanging step's fit.
+  // The four series in HangSeries order, by reference: a copy of them at the report's scale is
+  // dear (docs/performance.md).
   const std::vector<HangingRecording>& HangingRecordings() const;
   std::vector<StandingPose> StandingPoses() const;
   // Throws CalibratorInputError when there were no EXPERIMENT markers (`phases`: what cannot be
@@ -182,18 +189,57 @@ class CalibrationCollector {
   const std::string& standing_session() const { return standing_session_; }
 
  private:
+  static bool IsHangPhase(int phase) { return HangSeriesOfPhase(phase).has_value(); }
+  // Records arriving a little out of order (two sockets, a busy receiver) are not lost: a
+  // number up to this far below the highest seen fills a gap counted before.
+  static constexpr int64_t kReorderWindow = 64;
+  // Room for a first hanging series before any is known: the report's ten 20 s cycles at 100
+  // aligned samples a second, and more.
+  static constexpr size_t kFirstHangReserve = size_t{1} << 15;
+
+  // The bus's messages (collector_inputs.cc).
   void OnFtRaw(int k, const MessageInfo& info, const void* data, int size);
   void OnServoRaw(const MessageInfo& info, const void* data, int size);
   void OnMocapRaw(const MessageInfo& info, const void* data, int size);
   // Whether a servo state or mocap frame may wait in a DeferredTail (deferred_ below).
   bool Deferring() const { return counting_only_ && aligner_.pending() == 0; }
   void FlushDeferred();
+  void CountRecord(int k, int64_t sequence);
+  void NoteChannel(const MessageInfo& info);
   void OnExperiment(const experiment_marker_t& msg);
+
+  // The phases, each started and ended by its own step (collector_phases.cc).
+  void StartPhase(const MarkedPhase& phase, const experiment_marker_t& msg);
+  // Each Start* returns whether the phase's start is still to be logged.
+  bool StartHanging(const MarkedPhase& phase, const experiment_marker_t& msg);
+  void ReserveHangingRoom();
+  bool StartStanding(const MarkedPhase& phase);
+  void StartTare();
+  bool StartTripod(const MarkedPhase& phase);
+  void StartWalking();
+  void StartSpanNoting(const MarkedPhase& phase);
+  void EndPhase(const MarkedPhase& phase, bool completed);
+  void EndCountingOnly(const MarkedPhase& phase, bool completed);
+  SegmenterCounters EndSegmenting();
+  void EndHanging(bool completed);
+  void EndStanding(const MarkedPhase& phase, bool completed, bool not_segmented);
+  void EndTare(const MarkedPhase& phase, bool completed);
+  void EndTripod(const MarkedPhase& phase, bool completed, bool not_segmented,
+                 const SegmenterCounters& segmented);
+  void EndWalking(const MarkedPhase& phase, bool completed);
+
+  // What the phases keep (collector_results.cc).
   void OnSteadyPose(const steady_pose_t& msg);
   void OnAligned(const AlignedSample& a);
   void OnTripodStance(const SteadyPoseOut& p);
-  void StartPhase(const MarkedPhase& phase, const experiment_marker_t& msg);
-  void EndPhase(const MarkedPhase& phase, bool completed);
+
+  // The span index (collector_spans.cc): the counts of the phase in progress, noted while a
+  // phase is read whole, taken back where a span is skipped.
+  CountState Counts() const;
+  void SetCounts(const CountState& c);
+  void NoteSpanEvent(const MessageInfo& info, bool barrier);
+  void EndSpanNoting(const std::string& session, int phase);
+  void ArmSkip(const std::string& session, int phase);
 
   const config::Config& config_;
   // EXPERIMENT is a signed channel (common/envelope.h).
@@ -231,11 +277,10 @@ class CalibrationCollector {
   std::string standing_session_;
   std::set<std::string> ft_channels_seen_;
   std::set<std::string> channels_seen_;  // every channel, to name them when the config's are absent
-  // This runs for every event (4 M at report scale), where a set lookup cost a tenth of the
-  // reading: on replay the bus's channel ids (reset per bus) answer with no compare at all;
-  // live, channels_seen_ does.
+  // This runs for every event, where a set lookup was a noticeable share of the reading
+  // (docs/performance.md): on replay the bus's channel ids (reset per bus) answer with no
+  // compare at all; live, channels_seen_ does.
   std::vector<bool> channel_ids_noted_;
-  void NoteChannel(const MessageInfo& info);
   // The FT subscription's pattern, as the bus matches it (every FT_* channel, not just the
   // config's).
   std::regex ft_pattern_{config_.channels().ft_prefix() + ".*", std::regex::extended};
@@ -244,78 +289,10 @@ class CalibrationCollector {
   std::array<int64_t, kMaxFtRecords> sequences_{};
   servo_state_t servo_scratch_;
   mocap_body_t mocap_scratch_;
-  // Over a STANDING phase not segmented again no transducer sample goes to the aligner, so of
-  // its servo states and mocap frames only the last few shape what the aligner holds when the
-  // phase ends (ServoHistory keeps 16 states, the mocap input 1 frame). Those are checked by
-  // the wire guard as they come (a damaged log is still refused) but decoded only at the
-  // phase's end, from this ring of their bytes: decoding the others (a million at report
-  // scale) went nowhere. The ring is deeper than the aligner's history so that states it
-  // would refuse (not newer, not finite) and other bodies' frames still leave it full.
-  class DeferredTail {
-   public:
-    static constexpr size_t kDepth = 64;
-    void Push(const void* data, int size);
-    // Calls fn(data, size) on each message held, oldest first, and empties the ring.
-    template <class Fn>
-    void Drain(Fn&& fn) {
-      const size_t first = count_ < kDepth ? 0 : next_;
-      for (size_t i = 0; i < std::min(count_, kDepth); ++i) {
-        const std::vector<uint8_t>& m = ring_[(first + i) % kDepth];
-        fn(m.data(), static_cast<int>(m.size()));
-      }
-      count_ = next_ = 0;
-    }
-    bool empty() const { return count_ == 0; }
-
-   private:
-    std::array<std::vector<uint8_t>, kDepth> ring_;
-    size_t next_ = 0, count_ = 0;
-  };
+  // Over a phase read only for its counts, the last servo states and mocap frames as bytes
+  // (deferred_tail.h).
   DeferredTail deferred_servo_, deferred_mocap_;
 
-  // The span index: the counts of the phase in progress (the state CountRecord() changes).
-  struct CountState {
-    std::array<int64_t, kNumLegs> received{}, lost{}, restarts{}, last_sequence{};
-    bool operator==(const CountState& o) const {
-      return received == o.received && lost == o.lost && restarts == o.restarts &&
-             last_sequence == o.last_sequence;
-    }
-  };
-  CountState Counts() const;
-  void SetCounts(const CountState& c);
-  static void CountsToProto(const CountState& c,
-                            google::protobuf::RepeatedPtrField<logindex::LegCount>* out);
-  static CountState CountsFromProto(
-      const google::protobuf::RepeatedPtrField<logindex::LegCount>& legs);
-  // Noting a span while reading a not-segmented STANDING phase whole: where the events began
-  // from which each one only counted or kept (clean_from), and the offsets of the last
-  // DeferredTail::kDepth servo states and mocap frames kept, each with the counts before it.
-  struct Mark {
-    int64_t offset = -1;
-    int64_t events = 0;  // events of the span before this one
-    CountState counts;
-  };
-  struct MarkRing {
-    std::array<Mark, DeferredTail::kDepth> marks;
-    size_t next = 0, count = 0;
-    void Push(const Mark& m) {
-      marks[next] = m;
-      next = (next + 1) % marks.size();
-      ++count;
-    }
-    // The oldest mark at or after `offset`: of the kept messages, the first a skip must not pass.
-    const Mark* FirstFrom(int64_t offset) const;
-  };
-  struct SpanNoting {
-    bool active = false;
-    bool barrier = true;  // the event now handled changed more than the counts and kept ones
-    int64_t prev_end = -1, offset = -1, events = 0;
-    Mark clean;  // where the span begins
-    MarkRing servo, mocap;
-  };
-  void NoteSpanEvent(const MessageInfo& info, bool barrier);
-  void EndSpanNoting(const std::string& session, int phase);
-  void ArmSkip(const std::string& session, int phase);
   SpanNoting noting_;
   logindex::LogIndex produced_;
   const logindex::LogIndex* use_index_ = nullptr;
@@ -323,7 +300,6 @@ class CalibrationCollector {
   int64_t event_end_ = -1;                 // the end of the event being handled (replay)
   std::vector<bool> channel_ids_barrier_;  // by channel id: a channel that is not only counted
 
-  void CountRecord(int k, int64_t sequence);
   PhaseGaps current_gaps_;
   std::array<int64_t, kNumLegs> last_sequence_{};  // 0: none yet in this phase
   std::vector<PhaseGaps> phase_gaps_;
@@ -337,12 +313,10 @@ class CalibrationCollector {
   }
   CollectorCounters counters_;
 
-  // The hanging series' room faulted in on another thread while this one fills it (StartPhase).
-  // Last: destroyed, so waited for, before the buffers it touches are freed.
-  void WaitPrefault() {
-    if (prefault_.valid()) prefault_.wait();
-  }
-  std::future<void> prefault_;
+  // The hanging series' room, faulted in on another thread while this one fills it
+  // (ReserveHangingRoom). Last: destroyed, so waited for, before the buffers it touches are
+  // freed.
+  BatchMemory hang_memory_;
 };
 
 }  // namespace ftcal
