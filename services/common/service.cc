@@ -18,6 +18,8 @@
 
 #include "common/default_config.h"
 #include "common/exit_codes.h"
+#include "common/lcm_bus.h"
+#include "common/log_replay_bus.h"
 #include "common/shutdown.h"
 #include "common/written_digest.h"
 #include "ftcal/config.h"

@@ -38,6 +38,7 @@
 
 namespace ftcal {
 
+class LogReplayBus;
 class WrittenDigest;
 
 // What a careful operator should hear about an LCM URL: a multicast ttl > 0 (traffic leaves
