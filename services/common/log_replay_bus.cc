@@ -289,123 +289,149 @@ void LogReplayBus::TransportPublish(const std::string& channel, const void* data
 }
 
 void LogReplayBus::Run(const std::function<void()>& tick, int64_t tick_us) {
-  struct stat st {};
-  if (::fstat(in_fd_, &st) != 0) {
-    throw std::runtime_error("replay input '" + in_path_ + "': " + std::strerror(errno));
-  }
-  const int64_t file_bytes = st.st_size;
-  in_bytes_ = file_bytes;
-  chunk_bytes_ = 0;
-  // The rules of LCM's reader (lcm_eventlog_read_next_event), kept so a log reads as it always
-  // did: an event starts at a sync word, and is followed by another sync word or by fewer
-  // than four bytes before the end. LCM's reader skips to the next sync word without saying
-  // so and allocates whatever length a damaged header claims; here each header's lengths are
-  // checked against the file first, and every byte not returned as an event is reported (as
-  // the span it covers) instead of silently lost.
-  int64_t damage_from = -1;
-  auto damaged = [&](int64_t at) {
-    if (damage_from < 0) damage_from = at;
-  };
-  auto report_damage = [&](int64_t to) {
-    if (damage_from < 0) return;
-    stats_.Error("replay input damaged",
-                 in_path_ + ": skipped " + std::to_string(to - damage_from) +
-                     " unreadable bytes at offset " + std::to_string(damage_from));
-    damage_from = -1;
-  };
-  bool ticking = false;
-  int64_t next_tick = 0;
-  int64_t pos = 0;
-  while (true) {
+  StartReading();
+  for (int64_t pos = 0;;) {
     if (ShutdownRequested()) {
       stats_.log().warn("replay interrupted after {} events; output not written", events_read_);
       return;
     }
-    if (skip_ && pos >= skip_->from) {
-      Skip skip = std::move(*skip_);
-      skip_.reset();
-      // Only at the event it names, forward, and inside what the file had when Run() began.
-      if (pos == skip.from && skip.to > pos && skip.to <= file_bytes && skip.at_from()) {
-        skipped_bytes_ += skip.to - pos;
-        pos = skip.to;
-        ticking = false;  // no periodic work for the skipped time: one tick, at the next event
-      }
-    }
-    const int64_t sync = FindSyncWord(pos);
-    if (sync < 0) {
-      if (pos < file_bytes) damaged(pos);
-      break;
-    }
-    if (sync > pos) damaged(pos);
-    const uint8_t* header = InputBytes(sync, kHeaderBytes);
-    const int64_t channel_bytes = header ? static_cast<int32_t>(Be32(header + 20)) : -1;
-    const int64_t data_bytes = header ? static_cast<int32_t>(Be32(header + 24)) : -1;
-    const int64_t end = sync + kHeaderBytes + channel_bytes + data_bytes;
-    bool good = header != nullptr && channel_bytes > 0 && data_bytes >= 0 && end <= file_bytes;
-    if (good && file_bytes - end >= 4) {
-      const uint8_t* next = InputBytes(end, 4);
-      good = next != nullptr && Be32(next) == kSyncWord;
-    }
-    const uint8_t* event = good ? InputBytes(sync, end - sync) : nullptr;
-    if (event == nullptr) {
-      damaged(sync);
-      pos = sync + 1;
-      continue;
-    }
-    report_damage(sync);
-    pos = end;
-    ++events_read_;
-    const int64_t timestamp = static_cast<int64_t>(Be64(event + 12));
-    const char* channel_at = reinterpret_cast<const char*>(event + kHeaderBytes);
-    const uint8_t* data = event + kHeaderBytes + channel_bytes;
-
-    // Periodic work on the log's clock, as it would have run live between these events; the
-    // first tick is at the first event, as a live loop's is at its start.
-    // Only on a plausible clock: a damaged or forged event's timestamp near the int64 limits
-    // overflowed the arithmetic below (found by logreader_fuzz); such an event is delivered but
-    // runs no periodic work. [0, 2^62) us is the epoch to the year 148 000.
-    constexpr int64_t kMaxPlausibleUtime = int64_t{1} << 62;
-    const bool plausible = timestamp >= 0 && timestamp < kMaxPlausibleUtime;
-    if (plausible && !ticking) {
-      ticking = true;
-      next_tick = timestamp;
-    } else if (plausible && timestamp - next_tick > 1000 * tick_us) {
-      next_tick = timestamp - (timestamp - next_tick) % tick_us;  // a long gap
-    }
-    while (plausible && timestamp >= next_tick) {
-      now_utime_ = next_tick;
-      Guarded("periodic work", tick);
-      next_tick += tick_us;
-    }
-    now_utime_ = timestamp;
-    // In subscription order, as a regex match per subscription would give; a handler that
-    // subscribes (the cached list goes stale) sees its new subscription from this event on.
-    // (After the ticks: periodic work may subscribe.)
-    const auto size = static_cast<size_t>(channel_bytes);
-    const KnownChannel* known = FindChannel(channel_at, size);
-    if (known == nullptr) channel_.assign(channel_at, size);
-    const std::string& channel = known != nullptr ? known->name : channel_;
-    const int channel_id = known != nullptr ? static_cast<int>(known - known_channels_.data()) : -1;
-    const std::vector<size_t>* handlers =
-        known != nullptr ? known->handlers : &HandlersFor(channel);
-    for (size_t j = 0; j < handlers->size(); ++j) {
-      const size_t i = (*handlers)[j];
-      const uint64_t generation = subscription_generation();
-      Dispatch(i, channel, timestamp, data, static_cast<int>(data_bytes), channel_id, sync, end);
-      if (subscription_generation() != generation) {
-        handlers = &HandlersFor(channel);
-        j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -
-                                handlers->begin()) -
-            1;
-      }
-    }
+    SkipIfAt(&pos);
+    Event event;
+    const Read read = ReadEvent(&pos, &event);
+    if (read == Read::kEnd) break;
+    if (read == Read::kDamaged) continue;
+    TickBefore(event.timestamp, tick, tick_us);
+    Deliver(event);
   }
-  report_damage(file_bytes);
-  if (events_read_ == 0 && file_bytes > 0) {
-    stats_.Error("replay input", in_path_ + ": no LCM log events in " + std::to_string(file_bytes) +
+  ReportDamage(in_bytes_);
+  if (events_read_ == 0 && in_bytes_ > 0) {
+    stats_.Error("replay input", in_path_ + ": no LCM log events in " + std::to_string(in_bytes_) +
                                      " bytes (not an LCM log?)");
   }
   finished_ = true;
+}
+
+void LogReplayBus::StartReading() {
+  struct stat st {};
+  if (::fstat(in_fd_, &st) != 0) {
+    throw std::runtime_error("replay input '" + in_path_ + "': " + std::strerror(errno));
+  }
+  in_bytes_ = st.st_size;
+  chunk_bytes_ = 0;
+  damage_from_ = -1;
+  ticking_ = false;
+  next_tick_ = 0;
+}
+
+void LogReplayBus::SkipIfAt(int64_t* pos) {
+  if (!skip_ || *pos < skip_->from) return;
+  Skip skip = std::move(*skip_);
+  skip_.reset();
+  // Only at the event it names, forward, and inside what the file had when Run() began.
+  if (*pos == skip.from && skip.to > *pos && skip.to <= in_bytes_ && skip.at_from()) {
+    skipped_bytes_ += skip.to - *pos;
+    *pos = skip.to;
+    ticking_ = false;  // no periodic work for the skipped time: one tick, at the next event
+  }
+}
+
+// The rules of LCM's reader (lcm_eventlog_read_next_event), kept so a log reads as it always
+// did: an event starts at a sync word, and is followed by another sync word or by fewer than
+// four bytes before the end. LCM's reader skips to the next sync word without saying so and
+// allocates whatever length a damaged header claims; here each header's lengths are checked
+// against the file first, and every byte not returned as an event is reported (as the span it
+// covers) instead of silently lost.
+LogReplayBus::Read LogReplayBus::ReadEvent(int64_t* pos, Event* event) {
+  const int64_t sync = FindSyncWord(*pos);
+  if (sync < 0) {
+    if (*pos < in_bytes_) NoteDamage(*pos);
+    return Read::kEnd;
+  }
+  if (sync > *pos) NoteDamage(*pos);
+  const uint8_t* header = InputBytes(sync, kHeaderBytes);
+  const int64_t channel_bytes = header ? static_cast<int32_t>(Be32(header + 20)) : -1;
+  const int64_t data_bytes = header ? static_cast<int32_t>(Be32(header + 24)) : -1;
+  const int64_t end = sync + kHeaderBytes + channel_bytes + data_bytes;
+  bool good = header != nullptr && channel_bytes > 0 && data_bytes >= 0 && end <= in_bytes_;
+  if (good && in_bytes_ - end >= 4) {
+    const uint8_t* next = InputBytes(end, 4);
+    good = next != nullptr && Be32(next) == kSyncWord;
+  }
+  const uint8_t* bytes = good ? InputBytes(sync, end - sync) : nullptr;
+  if (bytes == nullptr) {
+    NoteDamage(sync);
+    *pos = sync + 1;
+    return Read::kDamaged;
+  }
+  ReportDamage(sync);
+  *pos = end;
+  ++events_read_;
+  event->offset = sync;
+  event->end = end;
+  event->timestamp = static_cast<int64_t>(Be64(bytes + 12));
+  event->channel = reinterpret_cast<const char*>(bytes + kHeaderBytes);
+  event->channel_bytes = static_cast<size_t>(channel_bytes);
+  event->data = bytes + kHeaderBytes + channel_bytes;
+  event->data_bytes = static_cast<int>(data_bytes);
+  return Read::kEvent;
+}
+
+void LogReplayBus::NoteDamage(int64_t at) {
+  if (damage_from_ < 0) damage_from_ = at;
+}
+
+void LogReplayBus::ReportDamage(int64_t to) {
+  if (damage_from_ < 0) return;
+  stats_.Error("replay input damaged", in_path_ + ": skipped " + std::to_string(to - damage_from_) +
+                                           " unreadable bytes at offset " +
+                                           std::to_string(damage_from_));
+  damage_from_ = -1;
+}
+
+// Periodic work on the log's clock, as it would have run live between these events; the first
+// tick is at the first event, as a live loop's is at its start. Only on a plausible clock: a
+// damaged or forged event's timestamp near the int64 limits overflowed the arithmetic below
+// (found by logreader_fuzz); such an event is delivered but runs no periodic work. [0, 2^62) us
+// is the epoch to the year 148 000.
+void LogReplayBus::TickBefore(int64_t timestamp, const std::function<void()>& tick,
+                              int64_t tick_us) {
+  constexpr int64_t kMaxPlausibleUtime = int64_t{1} << 62;
+  if (timestamp < 0 || timestamp >= kMaxPlausibleUtime) return;
+  if (!ticking_) {
+    ticking_ = true;
+    next_tick_ = timestamp;
+  } else if (timestamp - next_tick_ > 1000 * tick_us) {
+    next_tick_ = timestamp - (timestamp - next_tick_) % tick_us;  // a long gap
+  }
+  while (timestamp >= next_tick_) {
+    now_utime_ = next_tick_;
+    Guarded("periodic work", tick);
+    next_tick_ += tick_us;
+  }
+}
+
+// In subscription order, as a regex match per subscription would give; a handler that
+// subscribes (the cached list goes stale) sees its new subscription from this event on. (After
+// the ticks: periodic work may subscribe.)
+void LogReplayBus::Deliver(const Event& event) {
+  now_utime_ = event.timestamp;
+  const KnownChannel* known = FindChannel(event.channel, event.channel_bytes);
+  if (known == nullptr) channel_.assign(event.channel, event.channel_bytes);
+  const std::string& channel = known != nullptr ? known->name : channel_;
+  const int channel_id = known != nullptr ? static_cast<int>(known - known_channels_.data()) : -1;
+  const std::vector<size_t>* handlers = known != nullptr ? known->handlers : &HandlersFor(channel);
+  for (size_t j = 0; j < handlers->size(); ++j) {
+    const size_t i = (*handlers)[j];
+    const uint64_t generation = subscription_generation();
+    Dispatch(i, channel, event.timestamp, event.data, event.data_bytes, channel_id, event.offset,
+             event.end);
+    if (subscription_generation() != generation) {
+      handlers = &HandlersFor(channel);
+      j = static_cast<size_t>(std::upper_bound(handlers->begin(), handlers->end(), i) -
+                              handlers->begin()) -
+          1;
+    }
+  }
 }
 
 void LogReplayBus::Commit() { out_->Commit(); }

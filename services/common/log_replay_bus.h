@@ -77,6 +77,33 @@ class LogReplayBus : public Bus {
   // Offset of the next sync word of LCM's log format at or after `from`, or -1.
   int64_t FindSyncWord(int64_t from);
 
+  // Run()'s steps, in the order it takes them for each event.
+  // One event of the input, its bytes in chunk_ (valid until the next read).
+  struct Event {
+    int64_t offset, end;  // [offset, end) in the input
+    int64_t timestamp;    // us, as logged
+    const char* channel;
+    size_t channel_bytes;
+    const uint8_t* data;
+    int data_bytes;
+  };
+  enum class Read { kEvent, kDamaged, kEnd };
+  // Readies the input for a reading from its first byte (its size now is where it ends).
+  void StartReading();
+  // The armed skip (SkipAt) when reading has reached its offset: moves *pos to its end when it
+  // is at that event and its caller agrees.
+  void SkipIfAt(int64_t* pos);
+  // The next event from *pos under the rules of LCM's reader, *pos moved past it: kEvent, or
+  // kDamaged when the bytes at the next sync word are not one (*pos moved one past it), or
+  // kEnd. Unreadable bytes are noted and reported (NoteDamage, ReportDamage).
+  Read ReadEvent(int64_t* pos, Event* event);
+  void NoteDamage(int64_t at);
+  void ReportDamage(int64_t to);
+  // The periodic work due on the log's clock before an event stamped `timestamp`.
+  void TickBefore(int64_t timestamp, const std::function<void()>& tick, int64_t tick_us);
+  // The event to its channel's handlers, in subscription order.
+  void Deliver(const Event& event);
+
   std::string in_path_;
   int in_fd_ = -1;
   int64_t in_bytes_ = 0;  // the input's size when opened
@@ -99,6 +126,9 @@ class LogReplayBus : public Bus {
   };
   std::optional<Skip> skip_;
   int64_t skipped_bytes_ = 0;
+  int64_t damage_from_ = -1;  // the first unreadable byte not yet reported; -1: none
+  bool ticking_ = false;      // the log's clock is known (a first plausible timestamp)
+  int64_t next_tick_ = 0;
   // The channels seen so far with their handlers, found through a small table indexed by a
   // cheap hash of the name (its length and last two bytes, where FT_HL .. FT_FR differ): an
   // event's channel costs one compare instead of a copy into a string and a hash lookup,
