@@ -75,12 +75,17 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
   hang_gaps_index_.fill(-1);
 }
 
+void CalibrationCollector::Attach(LogReplayBus& bus) {
+  Attach(static_cast<Bus&>(bus));
+  replay_ = &bus;
+}
+
 void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   // Each input log's signers count their sequences afresh: logs may be given in any order.
   unsigned_markers_ += verifier_.unsigned_seen();
   verifier_ = auth::Verifier::FromConfig(config_);
-  bus_ = &bus;
+  replay_ = nullptr;
   event_end_ = -1;
   noting_.active = false;
   produced_.Clear();
@@ -229,7 +234,7 @@ void CalibrationCollector::EndSpanNoting(const std::string& session, int phase) 
 
 // At the start of a phase read only for its counts: the first span of the index in it, if any.
 void CalibrationCollector::ArmSkip(const std::string& session, int phase) {
-  if (use_index_ == nullptr || bus_ == nullptr || event_end_ < 0) return;
+  if (use_index_ == nullptr || replay_ == nullptr || event_end_ < 0) return;
   const logindex::SkippableSpan* best = nullptr;
   for (const logindex::SkippableSpan& s : use_index_->span()) {
     if (s.session() != session || s.phase() != phase || s.from_offset() < event_end_ ||
@@ -242,7 +247,7 @@ void CalibrationCollector::ArmSkip(const std::string& session, int phase) {
   if (best == nullptr) return;
   const CountState from = CountsFromProto(best->at_from()), to = CountsFromProto(best->at_to());
   const int64_t events = best->events(), bytes = best->to_offset() - best->from_offset();
-  bus_->SkipAt(best->from_offset(), best->to_offset(), [=] {
+  replay_->SkipAt(best->from_offset(), best->to_offset(), [=] {
     // Every event of the span would only have been counted or kept: the same phase, no sample
     // waiting in the aligner (so no servo state or mocap frame goes to it), the same counts.
     if (!counting_only_ || current_gaps_.phase != phase || current_gaps_.session != session ||

@@ -134,14 +134,6 @@ class Bus {
   // Handles at most one message per route, waiting up to `timeout_ms` for the first; returns
   // >0 handled, 0 timeout, <0 error (-1 on replay).
   virtual int HandleOnce(int /*timeout_ms*/) { return -1; }
-  // Replay: when reading reaches the event at input offset `from` (MessageInfo::log_offset),
-  // calls `at_from` and, when it returns true, reads on at offset `to` (> from), the events
-  // between unread. One skip at a time; a new one replaces it. The caller vouches that those
-  // events would have changed nothing it cannot account for (the calibrator's span index). False
-  // when the bus cannot skip: live, or while the whole input must be read (ConsumeInput).
-  virtual bool SkipAt(int64_t /*from*/, int64_t /*to*/, std::function<bool()> /*at_from*/) {
-    return false;
-  }
 
   ServiceStats& stats() { return stats_; }
 

@@ -59,7 +59,12 @@ class LogReplayBus : public Bus {
   // Run() began (Run() finished, nothing skipped, no exception), and is not running any more.
   bool InputConsumedWhole();
   int64_t events_read() const { return events_read_; }
-  bool SkipAt(int64_t from, int64_t to, std::function<bool()> at_from) override;
+  // When reading reaches the event at input offset `from` (MessageInfo::log_offset), calls
+  // `at_from` and, when it returns true, reads on at offset `to` (> from), the events between
+  // unread. One skip at a time; a new one replaces it. The caller vouches that those events
+  // would have changed nothing it cannot account for (the calibrator's span index). False when
+  // the bus cannot skip: while the whole input must be read (ConsumeInput).
+  bool SkipAt(int64_t from, int64_t to, std::function<bool()> at_from);
   // Bytes of the input not read because of SkipAt().
   int64_t skipped_bytes() const { return skipped_bytes_; }
 
