@@ -23,7 +23,8 @@
 
 #include "calibrator/calibrator.h"
 #include "common/batch_memory.h"
-#include "common/bus.h"
+#include "common/lcm_bus.h"
+#include "common/log_replay_bus.h"
 #include "common/default_config.h"
 #include "common/exit_codes.h"
 #include "common/heartbeat.h"

@@ -18,6 +18,8 @@
 
 #include "common/default_config.h"
 #include "common/exit_codes.h"
+#include "common/lcm_bus.h"
+#include "common/log_replay_bus.h"
 #include "common/shutdown.h"
 #include "common/written_digest.h"
 #include "ftcal/config.h"
@@ -162,6 +164,7 @@ std::optional<int> ServiceApp::Init(int argc, char** argv) {
         output_digest_ = std::make_unique<WrittenDigest>();
         replay->TapOutput(output_digest_->Tap());
       }
+      replay_ = replay.get();
       bus_ = std::move(replay);
     } else {
       bus_ = std::make_unique<LcmBus>(lcm_url_, *stats_, RoutesOf(config_));
@@ -371,8 +374,7 @@ int ServiceApp::Run() {
     AddPeriodic(kHeartbeatPeriodS, [this] { PublishHeartbeat(); });
   }
   bus_->Run([this] { Tick(); }, kLoopTickUs);
-  auto* replay = dynamic_cast<LogReplayBus*>(bus_.get());
-  if (replay == nullptr || replay->finished()) {
+  if (replay_ == nullptr || replay_->finished()) {
     for (const auto& fn : at_input_end_) fn();
   }
   state_ = service_status_t::STOPPING;
@@ -383,16 +385,16 @@ int ServiceApp::Run() {
   }
 
   int rc = 0;
-  if (replay != nullptr) {
-    if (!replay->finished()) {
+  if (replay_ != nullptr) {
+    if (!replay_->finished()) {
       rc = kExitDeviceIo;  // interrupted: the output log is not written
     } else {
       try {
         PublishStatus();
-        replay->Commit();
-        log_->info("replayed {} events from {} into {}", replay->events_read(), replay_in_,
+        replay_->Commit();
+        log_->info("replayed {} events from {} into {}", replay_->events_read(), replay_in_,
                    replay_out_);
-        HandOverOutputDigest(*replay);
+        HandOverOutputDigest(*replay_);
       } catch (const std::exception& e) {
         log_->critical("{}", UserText(e, "writing the replay's output"));
         rc = ExitCodeFor(e, kExitDeviceIo);

@@ -38,6 +38,7 @@
 
 namespace ftcal {
 
+class LogReplayBus;
 class WrittenDigest;
 
 // What a careful operator should hear about an LCM URL: a multicast ttl > 0 (traffic leaves
@@ -74,9 +75,12 @@ class ServiceApp {
   const config::Config& config() const { return config_; }
   const std::string& config_path() const { return config_path_; }
   Bus& bus() { return *bus_; }
+  // The bus as the replay it is on --replay (what only a replay does: its counts, skipping a
+  // span of the input); null live.
+  LogReplayBus* ReplayBus() { return replay_; }
   ServiceStats& stats() { return *stats_; }
   spdlog::logger& log() { return *log_; }
-  bool replaying() const { return bus_ && bus_->IsReplay(); }
+  bool replaying() const { return replay_ != nullptr; }
   // The --replay input's path (empty live).
   const std::string& replay_input() const { return replay_in_; }
 
@@ -162,6 +166,7 @@ class ServiceApp {
   std::unique_ptr<ServiceStats> stats_;
   config::Config config_;
   std::unique_ptr<Bus> bus_;
+  LogReplayBus* replay_ = nullptr;                // bus_ when it is a replay (ReplayBus())
   std::unique_ptr<WrittenDigest> output_digest_;  // spec_.digest_replay_output, when replaying
   int8_t state_;
   std::vector<Periodic> periodic_;

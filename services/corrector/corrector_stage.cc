@@ -157,8 +157,8 @@ void CorrectorStage::OnFt(const FtBatch& batch) {
     while (corrector_.NextSum(&sum)) AppendSum(sum);
   }
   // One CONTACT_WRENCH per FT message (its samples, corrected), then the sums it completed.
-  if (wrench_msg_.n > 0) PublishReused(config_.channels().contact_wrench(), wrench_msg_);
-  if (sum_msg_.n > 0) PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
+  if (wrench_msg_.n > 0) bus_.Publish(config_.channels().contact_wrench(), wrench_msg_, buffer_);
+  if (sum_msg_.n > 0) bus_.Publish(config_.channels().contact_wrench_sum(), sum_msg_, buffer_);
   UpdateCounters();
 }
 
@@ -166,28 +166,17 @@ void CorrectorStage::FinishSums() {
   ClearLcm(corrector_.calibration_version(), &sum_msg_);
   WrenchSum sum;
   while (corrector_.NextSum(&sum, /*input_ended=*/true)) AppendSum(sum);
-  if (sum_msg_.n > 0) PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
+  if (sum_msg_.n > 0) bus_.Publish(config_.channels().contact_wrench_sum(), sum_msg_, buffer_);
   UpdateCounters();
 }
 
 void CorrectorStage::AppendSum(const WrenchSum& sum) {
   if (sum_msg_.n == contact_wrench_sum_t::MAX_N) {
-    PublishReused(config_.channels().contact_wrench_sum(), sum_msg_);
+    bus_.Publish(config_.channels().contact_wrench_sum(), sum_msg_, buffer_);
     ClearLcm(corrector_.calibration_version(), &sum_msg_);
   }
   AppendLcm(sum, &sum_msg_);
   ++sums_;
-}
-
-template <class Msg>
-void CorrectorStage::PublishReused(const std::string& channel, const Msg& msg) {
-  const int size = msg.getEncodedSize();
-  if (buffer_.size() < static_cast<size_t>(size)) buffer_.resize(static_cast<size_t>(size));
-  if (msg.encode(buffer_.data(), 0, size) != size) {
-    bus_.stats().Error(std::string("encode ") + Msg::getTypeName(), "message did not encode");
-    return;
-  }
-  bus_.PublishRaw(channel, buffer_.data(), size);
 }
 
 void CorrectorStage::UpdateCounters() {

@@ -62,10 +62,6 @@ class CorrectorStage {
   void UpdateCounters();
   // Adds a sum to sum_msg_, publishing it first when full (contact_wrench_sum_t::MAX_N).
   void AppendSum(const WrenchSum& sum);
-  // Encodes into buffer_ (Bus::Publish's buffer is per thread; this one is per stage) and
-  // publishes: the hot path allocates nothing.
-  template <class Msg>
-  void PublishReused(const std::string& channel, const Msg& msg);
 
   const config::Config& config_;
   // CALIBRATION is a signed channel (common/envelope.h).
@@ -81,6 +77,8 @@ class CorrectorStage {
   ContactWrenches out_;
   contact_wrench_t wrench_msg_;   // reused: its vectors keep their capacity
   contact_wrench_sum_t sum_msg_;  // reused too
+  // What the outputs are encoded into (Bus::Publish with a buffer): the hot path allocates
+  // nothing.
   std::vector<uint8_t> buffer_;
   struct Counters {
     int64_t *corrected, *no_calibration, *calibrations, *calibrations_refused, *drop_out_of_order,

@@ -21,7 +21,7 @@
 #include <spdlog/sinks/stdout_sinks.h>
 #include <spdlog/spdlog.h>
 
-#include "common/bus.h"
+#include "common/log_replay_bus.h"
 #include "common/default_config.h"
 #include "common/envelope.h"
 #include "common/exit_codes.h"

@@ -11,7 +11,7 @@
 #include <optional>
 #include <string>
 
-#include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/service_stats.h"
 #include "ftcal/service_status_t.hpp"
 #include "proto/config.pb.h"

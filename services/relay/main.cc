@@ -17,6 +17,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/default_config.h"
 #include "common/exit_codes.h"
 #include "common/shutdown.h"

@@ -14,12 +14,17 @@ CalibrationCollector::CalibrationCollector(const config::Config& config)
   hang_gaps_index_.fill(-1);
 }
 
+void CalibrationCollector::Attach(LogReplayBus& bus) {
+  Attach(static_cast<Bus&>(bus));
+  replay_ = &bus;
+}
+
 void CalibrationCollector::Attach(Bus& bus) {
   const auto& ch = config_.channels();
   // Each input log's signers count their sequences afresh: logs may be given in any order.
   unsigned_markers_ += verifier_.unsigned_seen();
   verifier_ = auth::Verifier::FromConfig(config_);
-  bus_ = &bus;
+  replay_ = nullptr;
   event_end_ = -1;
   noting_.active = false;
   produced_.Clear();

@@ -38,6 +38,7 @@
 
 #include "common/batch_memory.h"
 #include "common/bus.h"
+#include "common/log_replay_bus.h"
 #include "common/messages.h"
 #include "ftcal/aligner.h"
 #include "ftcal/calibrate.h"
@@ -101,8 +102,10 @@ class CalibrationCollector {
   explicit CalibrationCollector(const config::Config& config);
 
   // Subscribes the handlers on `bus` (call once per bus; several logs = several buses, fed in
-  // order).
+  // order). On a LogReplayBus the collector may skip spans of its log (SetSpanIndex); on any
+  // other bus it reads everything.
   void Attach(Bus& bus);
+  void Attach(LogReplayBus& bus);
   // Ends a phase in progress (its samples are kept only if its stop marker came).
   void Flush();
 
@@ -296,7 +299,7 @@ class CalibrationCollector {
   SpanNoting noting_;
   logindex::LogIndex produced_;
   const logindex::LogIndex* use_index_ = nullptr;
-  Bus* bus_ = nullptr;                     // the bus attached last
+  LogReplayBus* replay_ = nullptr;         // the bus attached last, when a replay (SkipAt)
   int64_t event_end_ = -1;                 // the end of the event being handled (replay)
   std::vector<bool> channel_ids_barrier_;  // by channel id: a channel that is not only counted
 

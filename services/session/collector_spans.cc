@@ -64,7 +64,7 @@ void CalibrationCollector::EndSpanNoting(const std::string& session, int phase) 
 
 // At the start of a phase read only for its counts: the first span of the index in it, if any.
 void CalibrationCollector::ArmSkip(const std::string& session, int phase) {
-  if (use_index_ == nullptr || bus_ == nullptr || event_end_ < 0) return;
+  if (use_index_ == nullptr || replay_ == nullptr || event_end_ < 0) return;
   const logindex::SkippableSpan* best = nullptr;
   for (const logindex::SkippableSpan& s : use_index_->span()) {
     if (s.session() != session || s.phase() != phase || s.from_offset() < event_end_ ||
@@ -77,7 +77,7 @@ void CalibrationCollector::ArmSkip(const std::string& session, int phase) {
   if (best == nullptr) return;
   const CountState from = CountsFromProto(best->at_from()), to = CountsFromProto(best->at_to());
   const int64_t events = best->events(), bytes = best->to_offset() - best->from_offset();
-  bus_->SkipAt(best->from_offset(), best->to_offset(), [=] {
+  replay_->SkipAt(best->from_offset(), best->to_offset(), [=] {
     // Every event of the span would only have been counted or kept: the same phase, no sample
     // waiting in the aligner (so no servo state or mocap frame goes to it), the same counts.
     if (!counting_only_ || current_gaps_.phase != phase || current_gaps_.session != session ||

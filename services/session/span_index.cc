@@ -9,7 +9,7 @@
 
 #include <google/protobuf/text_format.h>
 
-#include "common/bus.h"
+#include "common/log_replay_bus.h"
 #include "common/service_stats.h"
 #include "common/user_errors.h"
 

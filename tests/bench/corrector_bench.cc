@@ -33,7 +33,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
-#include "common/bus.h"
+#include "common/log_replay_bus.h"
 #include "corrector/corrector_stage.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"

@@ -149,7 +149,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
-#include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "ftcal/config.h"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/ft_batch_t.hpp"

@@ -24,7 +24,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
-#include "common/bus.h"
+#include "common/log_replay_bus.h"
 #include "ftcal/aligner.h"
 #include "ftcal/config.h"
 #include "ftcal/segmenter.h"

@@ -1,7 +1,7 @@
 // libFuzzer target: arbitrary bytes as an LCM log through LogReplayBus, the reader every
-// offline stage and the calibrator use (services/common/bus.cc: it frames events itself,
-// because LCM's reader allocates whatever length a damaged header claims). Invariants beyond
-// "no crash": the events it dispatches, written again with LCM's own log writer
+// offline stage and the calibrator use (services/common/log_replay_bus.cc: it frames events
+// itself, because LCM's reader allocates whatever length a damaged header claims). Invariants
+// beyond "no crash": the events it dispatches, written again with LCM's own log writer
 // (lcm_eventlog_write_event) and read back, are the same events, in order, with no damage
 // reported; and the events returned never add up to more bytes than the input.
 #include <stdlib.h>
@@ -18,6 +18,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/bus.h"
+#include "common/log_replay_bus.h"
 
 namespace {
 

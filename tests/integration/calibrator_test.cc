@@ -28,6 +28,8 @@
 #include "calibrator/calibrator.h"
 #include "child_process.h"
 #include "common/bus.h"
+#include "common/lcm_bus.h"
+#include "common/log_replay_bus.h"
 #include "common/service_stats.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/calibration_io.h"

@@ -21,6 +21,7 @@
 
 #include "child_process.h"
 #include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/envelope.h"
 #include "signed_commander.h"
 #include "ftcal/experiment_marker_t.hpp"

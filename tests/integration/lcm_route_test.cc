@@ -18,6 +18,7 @@
 
 #include "child_process.h"
 #include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "ftcal/config.h"
 #include "test_helpers.h"
 

@@ -37,6 +37,7 @@
 #include "child_process.h"
 #include "test_helpers.h"
 #include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/service_stats.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"

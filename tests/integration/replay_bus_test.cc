@@ -18,6 +18,7 @@
 
 #include "common/atomic_log.h"
 #include "common/bus.h"
+#include "common/log_replay_bus.h"
 #include "ftcal/config.h"
 
 namespace ftcal {

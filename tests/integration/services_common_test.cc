@@ -26,6 +26,7 @@
 #include "common/atomic_log.h"
 #include "common/bridge_main.h"
 #include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/device.h"
 #include "common/exit_codes.h"
 #include "common/heartbeat.h"

@@ -10,7 +10,7 @@
 #include <spdlog/sinks/null_sink.h>
 #include <spdlog/spdlog.h>
 
-#include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/envelope.h"
 #include "signed_commander.h"
 #include "corrector/corrector_stage.h"

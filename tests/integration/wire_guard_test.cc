@@ -16,6 +16,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/bus.h"
+#include "common/lcm_bus.h"
 #include "common/wire_guard.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/contact_wrench_sum_t.hpp"

@@ -18,6 +18,7 @@
 #include <spdlog/sinks/null_sink.h>
 
 #include "ftcal/config.h"
+#include "common/log_replay_bus.h"
 #include "common/wire_guard.h"
 #include "ftcal/geometry.h"
 
