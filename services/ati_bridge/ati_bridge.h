@@ -5,11 +5,11 @@
 // sent, so the box streams back to it (§1.2): real-time (0x0002, one record per datagram) when
 // the config's records_per_datagram k is 1, buffered (0x0003, k records per datagram) when it is
 // 2..40, count 0 either way. Counts per unit come from the config or else from the box's
-// calibration page (GET /netftapi2.xml); without them the bridge refuses to start. In buffered
-// mode the page's RDT buffer size (comrdtbsiz) must equal k, and k defaults to the page's output
-// rate (comrdtrate) / 1000, rounded, at least 1. The records of a datagram are published
-// together, as one ft_batch_t (one message per datagram, not per record). Every record is checked
-// (length, sequence) before it is published: lost, duplicated, late (reordered), stale and
+// calibration page (GET /netftapi2.xml, netft_config.h); without them the bridge refuses to start.
+// In buffered mode the page's RDT buffer size (comrdtbsiz) must equal k, and k defaults to the
+// page's output rate (comrdtrate) / 1000, rounded, at least 1. The records of a datagram are
+// published together, as one ft_batch_t (one message per datagram, not per record). Every record is
+// checked (length, sequence) before it is published: lost, duplicated, late (reordered), stale and
 // wrong-length records are counted and never published; a published sample is always a record as
 // the device sent it, converted. After ~100 ms of silence the start is re-sent with a bounded
 // back-off and the transducer is reported down until records come back; when ft_sequence jumps
@@ -40,24 +40,13 @@
 #include "common/device.h"
 #include "common/service_stats.h"
 #include "ftcal/ft_batch_t.hpp"
+#include "netft_config.h"
 #include "proto/config.pb.h"
 #include "rdt_codec.h"
 
 namespace ftcal {
 
-// The bridge cannot run as configured (no calibration page, a bad address, a socket error);
-// the message names the transducer and the URL or address.
-class AtiBridgeError : public std::runtime_error {
- public:
-  using std::runtime_error::runtime_error;
-};
-
-// The box is set up otherwise than the config says (its RDT buffer size is not the config's
-// records_per_datagram): a config error (exit 3), the message names the box and both values.
-class AtiBoxMismatchError : public AtiBridgeError {
- public:
-  using AtiBridgeError::AtiBridgeError;
-};
+// AtiBridgeError and AtiBoxMismatchError, which the bridge throws, are in netft_config.h.
 
 struct AtiBridgeOptions {
   double silence_timeout_s = 0.1;  // no record for this long: re-send the start command
@@ -172,17 +161,17 @@ class AtiBridge : public Device {
   std::vector<std::pair<std::string, std::int64_t>> CounterTable() const;
 
  private:
-  struct Transducer;
+  struct Transducer;  // ati_transducer.h
+  // The receive path (ati_receive.cc): drains t's socket in batches of datagrams.
   void HandleSocket(Transducer& t);
   // Checks a record and, when it is to be published, appends it to t's batch.
   void HandleRecord(Transducer& t, const std::uint8_t* bytes);
   // Stamps the batch's records (the clock map) and publishes it as one message.
   void PublishBatch(Transducer& t, std::int64_t kernel_ns, std::int64_t user_ns, bool held);
   void SendRequest(Transducer& t, rdt::Command command);
+  // Reads t's calibration page and takes what the config does not give (NetFtSettings).
+  // Throws AtiBridgeError, AtiBoxMismatchError.
   void ReadCalibration(Transducer& t);
-  // Resolves the default records per datagram from the page's rate and checks a buffered
-  // stream's k against the box's buffer size. Throws AtiBoxMismatchError.
-  void CheckRdtSettings(Transducer& t, const rdt::NetFtConfig& page);
   static rdt::Command StartCommand(const Transducer& t);
   double SilenceTimeoutS(const Transducer& t) const;
   void Service(Transducer& t, std::chrono::steady_clock::time_point now);

@@ -1,3 +1,4 @@
+// One file over 600 lines: every LCM <-> libcal conversion in one place (messages.h).
 #include "common/messages.h"
 
 #include <cmath>

@@ -14,26 +14,11 @@
 // once per kind; a port that vanishes is reopened with back-off. Nothing a servo did not say
 // is ever published as a value.
 //
-// Operating Mode (dynamixel.operating_mode): each servo's address 11 is read when it is first
-// found (at start, after a reopen, after a lost servo answers again) and written, with torque
-// off, when it differs (it is EEPROM: the servo keeps it). A servo whose mode cannot be set
-// (torque on, which switching would drop, or a refused write) is logged and its goals are
-// refused until the bridge restarts. In Extended Position mode Present Position is multi-turn,
-// so the published shaft angle is unbounded (a turn is 2 pi, never wrapped); goals stay within
-// the configured angle limits either way, and within the mode's count range.
-//
-// The servos' own limits (docs/device-protocols.md §2.7), when a servo is found, after its
-// mode: Acceleration and Velocity Limit (EEPROM) from dynamixel.max_acceleration_rad_s2 and
-// max_velocity_rad_s, Min/Max Position Limit from the angle limits in Position mode (Extended
-// Position mode ignores them: there the bridge's clamp is the only position limit), then
-// Profile Acceleration and Velocity (RAM, at most the limits) and the Bus Watchdog
-// (dynamixel.bus_watchdog_s). Each is read first and written only when it differs, EEPROM
-// only with torque off (a servo holding its leg is not dropped to rewrite it), and all are
-// read back: a servo whose limits are not what the config says blocks arming, with the
-// servo, the register and the values named (ArmBlocker, Degraded). The bridge's every cycle
-// feeds the watchdog; a servo found with it expired (the bridge hung, or the port was gone
-// longer than it) is cleared (0, the goal set to where it stopped, then the watchdog again)
-// and reported once (TakeWatchdogExpiry), so that the gate holds until a new ARM.
+// The servo set-up (servo_setup.h: model, Return Delay Time, Operating Mode, the servos' own
+// limits and Bus Watchdog) is done when a servo is found (at start, after a reopen, after a lost
+// servo answers again), before it takes a goal; a servo whose mode or limits are not as
+// configured has its goals refused or blocks arming, and an expired Bus Watchdog found is
+// cleared and reported once (TakeWatchdogExpiry), so that the gate holds until a new ARM.
 #pragma once
 
 #include <chrono>
@@ -50,6 +35,7 @@
 #include "proto/config.pb.h"
 #include "protocol2.h"
 #include "serial_port.h"
+#include "servo_setup.h"
 
 namespace ftcal {
 
@@ -62,7 +48,7 @@ struct DynamixelBridgeOptions {
   double reopen_max_s = 2.0;
 };
 
-class DynamixelBridge {
+class DynamixelBridge : private ServoSetup::Link {
  public:
   using Publisher = std::function<void(const servo_state_t&)>;
   using Clock = std::chrono::steady_clock;
@@ -93,32 +79,28 @@ class DynamixelBridge {
   bool Degraded(std::string* why = nullptr) const;
   // Why arming must wait, empty when it need not: a servo whose limits are not yet written and
   // read back, or read back different from the config.
-  std::string ArmBlocker() const;
+  std::string ArmBlocker() const { return setup_->ArmBlocker(); }
   // A servo's Bus Watchdog was found expired and cleared since the last call: what happened.
-  std::optional<std::string> TakeWatchdogExpiry();
+  std::optional<std::string> TakeWatchdogExpiry() { return setup_->TakeWatchdogExpiry(); }
   // Servos currently lost (left out of the reads, re-probed now and then).
   std::vector<std::uint8_t> lost() const;
   // Ids that did not answer the start-up PING.
   const std::vector<std::uint8_t>& missing_at_start() const { return missing_at_start_; }
   std::int64_t cycles() const { return cycles_; }
   // Servos whose Operating Mode is checked and not the configured one (their goals are refused).
-  std::vector<std::uint8_t> wrong_mode() const;
+  std::vector<std::uint8_t> wrong_mode() const { return setup_->wrong_mode(); }
 
  private:
-  struct ServoSlot {
-    std::string leg;
-    std::uint8_t id = 0;
-    std::int32_t zero_count = 2048;
-    int direction = 1;
-    double min_angle_rad = 0, max_angle_rad = 0;
+  // A servo: who it is and what its set-up found (SetupServo), and what the run loop keeps.
+  struct ServoSlot : SetupServo {
+    explicit ServoSlot(SetupServo who) : SetupServo(std::move(who)) {}
     // Last good values.
     bool ever_read = false;
     double angle_rad = 0, velocity_rad_s = 0, current_a = 0;
     dxl::TickUnwrapper ticks;
     std::int64_t tick_ms = 0;
     std::uint16_t last_raw_tick = 0;
-    bool tick_known = false;         // last_raw_tick is from this port session and this find
-    double return_delay_s = 500e-6;  // factory default until read from the servo
+    bool tick_known = false;  // last_raw_tick is from this port session and this find
     std::int32_t hardware_error = 0;
     int torque_enable = -1;  // -1 unknown
     bool alert = false;
@@ -130,22 +112,7 @@ class DynamixelBridge {
     // Pending from SERVO_CMD.
     std::optional<bool> pending_torque;
     std::optional<std::int32_t> goal_count;
-    // Operating Mode: checked since this servo was last found; and whether it is the configured.
-    bool mode_checked = false;
-    bool mode_ok = false;
-    int mode = -1;  // as read, -1 unknown
-    // Its limits (ServoLimits): written and read back since it was last found; what differs.
-    bool limits_checked = false;
-    std::string limits_error;
     bool watchdog_expired = false;  // seen in the error block: cleared at the end of the cycle
-  };
-  // One register the bridge sets in every servo; the value comes from the config.
-  struct LimitItem {
-    const char* name;
-    std::uint16_t address;
-    int size;
-    bool eeprom;
-    std::uint32_t value;
   };
 
   // Sends `packet` and collects one status per servo in `slots` (indices into servos_) until
@@ -162,25 +129,13 @@ class DynamixelBridge {
   // The slots not lost, and their ids.
   std::vector<std::size_t> ActiveSlots() const;
   std::vector<std::uint8_t> IdsOf(const std::vector<std::size_t>& slots) const;
-  void ReadReturnDelays(const std::vector<std::size_t>& slots);
-  // Reads (and when needed writes) the Operating Mode of each of `slots` not yet checked.
-  void CheckOperatingModes(const std::vector<std::size_t>& slots);
-  // The registers for slot i, in the order they are written (EEPROM limits before the profile
-  // values they bound, the watchdog last).
-  std::vector<LimitItem> LimitsFor(std::size_t i) const;
-  // Reads, writes where they differ, and reads back slot i's limits (and clears an expired
-  // watchdog); sets limits_checked and limits_error.
-  void CheckLimits(std::size_t i);
-  // Clears slot i's expired Bus Watchdog: 0, the goal at its present position, the value.
-  // Returns false when the servo refused or did not answer.
-  bool ClearWatchdog(std::size_t i, std::string* why);
-  std::optional<std::vector<std::uint8_t>> ReadBlock(std::size_t i, std::uint16_t address,
-                                                     std::uint16_t length);
-  // WRITE to slot i; the status error byte, or nullopt without an answer.
-  std::optional<std::uint8_t> WriteItem(std::size_t i, std::uint16_t address, std::uint32_t value,
-                                        int size);
-  // One byte of slot i's control table; nullopt when it did not answer or answered an error.
-  std::optional<std::uint8_t> ReadByte(std::size_t i, std::uint16_t address);
+  // ServoSetup::Link: the servos, and Transact to one of them.
+  std::size_t size() const override { return servos_.size(); }
+  SetupServo& servo(std::size_t i) override { return servos_[i]; }
+  std::vector<std::size_t> active() const override { return ActiveSlots(); }
+  bool Request(std::size_t i, const std::vector<std::uint8_t>& packet, std::size_t reply_params,
+               const std::function<bool(const dxl::StatusPacket&)>& on_reply) override;
+  bool port_open() const override { return port_ != nullptr; }
   // Sends a PING to at most one lost servo whose probe is due (without waiting for it).
   void Reprobe();
   // True when `status` answers an outstanding probe: that servo is found (read again).
@@ -204,12 +159,7 @@ class DynamixelBridge {
   std::string device_;
   std::uint32_t baud_;
   double reply_timeout_s_;
-  std::uint8_t operating_mode_;                        // dynamixel.operating_mode's code
-  std::int32_t min_goal_count_, max_goal_count_;       // the mode's range
-  std::uint32_t velocity_limit_, acceleration_limit_;  // register units
-  std::uint8_t watchdog_units_;
-  double watchdog_s_;
-  std::optional<std::string> watchdog_expiry_;
+  std::optional<ServoSetup> setup_;   // made once the config's checks before it passed
   Clock::time_point last_traffic_{};  // the last instruction packet sent
 
   std::unique_ptr<dxl::SerialPort> port_;

@@ -1,3 +1,4 @@
+// One file over 600 lines: one physics model, whose helpers and seeded draws every scenario shares.
 #include "sim/twin.h"
 
 #include <algorithm>

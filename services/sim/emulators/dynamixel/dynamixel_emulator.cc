@@ -1,3 +1,4 @@
+// One file over 600 lines: the servos' control table, motion and faults are one device.
 #include "dynamixel_emulator.h"
 
 #include <fcntl.h>
