@@ -113,7 +113,7 @@ class AtiBridge : public Device {
   // AtiBridgeError for an unknown leg, a leg without `ati`, or a bad address or sign.
   AtiBridge(const config::Config& config, const std::vector<std::string>& legs, Publisher publish,
             std::shared_ptr<spdlog::logger> log, AtiBridgeOptions options = {});
-  ~AtiBridge();
+  ~AtiBridge() override;
   AtiBridge(const AtiBridge&) = delete;
   AtiBridge& operator=(const AtiBridge&) = delete;
 

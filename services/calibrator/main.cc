@@ -78,6 +78,7 @@ int RunReport(const std::string& cal, const std::string& residuals, const std::s
     argv.push_back(walking);
   }
   std::vector<char*> cargv;
+  cargv.reserve(argv.size() + 1);
   for (auto& a : argv) cargv.push_back(a.data());
   cargv.push_back(nullptr);
   const pid_t pid = ::fork();
@@ -397,7 +398,7 @@ int Live(const ftcal::config::Config& config, const Args& args) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   Args args;
   for (int i = 0; i < argc; ++i) args.command_line += (i ? " " : "") + std::string(argv[i]);
   CLI::App cli(
@@ -493,4 +494,6 @@ int main(int argc, char** argv) {
     spdlog::critical("{}", ftcal::UserText(e, "calibrating"));
     return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-calibrator");
 }

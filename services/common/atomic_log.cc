@@ -202,9 +202,8 @@ void AtomicLogFile::Write(int64_t utime, const std::string& channel, const void*
   EncodeLcmEventHeader(head, event_number_, utime, static_cast<uint32_t>(channel.size()),
                        static_cast<uint32_t>(size));
   // An LCM event's channel is length-prefixed, not NUL-terminated.
-  std::memcpy(head + kLcmEventHeaderBytes,
-              channel.data(),  // NOLINT(bugprone-not-null-terminated-result)
-              channel.size());
+  // NOLINTNEXTLINE(bugprone-not-null-terminated-result)
+  std::memcpy(head + kLcmEventHeaderBytes, channel.data(), channel.size());
   if (size > 0) std::memcpy(head + head_bytes, data, static_cast<size_t>(size));
   ++event_number_;
   if (fill_bytes_ >= kBufferBytes) HandOff();

@@ -38,6 +38,8 @@ BatchMemory::Granted BatchMemory::UseForProcess(size_t heap_bytes) {
   const uintptr_t end = after & ~(kHugePage - 1);
   // No growth (brk refused, malloc fell back to a mapping, or another allocator): nothing to
   // advise.
+  // madvise takes page-aligned addresses, computed here as integers.
+  // NOLINTNEXTLINE(performance-no-int-to-ptr)
   if (end > begin && ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_HUGEPAGE) == 0) {
     granted.huge_bytes = end - begin;
   }
@@ -66,7 +68,8 @@ void BatchMemory::Prefault(const std::vector<Room>& rooms) {
       const uintptr_t begin = (at + r.bytes * s / kSlices + page - 1) & ~(page - 1);
       const uintptr_t end = (at + r.bytes * (s + 1) / kSlices) & ~(page - 1);
       if (end > begin &&
-          ::madvise(reinterpret_cast<void*>(begin), end - begin, MADV_POPULATE_WRITE) != 0) {
+          ::madvise(reinterpret_cast<void*>(begin),  // NOLINT(performance-no-int-to-ptr)
+                    end - begin, MADV_POPULATE_WRITE) != 0) {
         return;
       }
     }

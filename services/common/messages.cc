@@ -504,7 +504,7 @@ LegWrench LegWrenchAt(const contact_wrench_t& msg, int i) {
   for (size_t j = 0; j < 6; ++j) w.wrench_W[static_cast<int>(j)] = msg.wrench_w[at][j];
   w.servo_age_s = msg.servo_age_s[at];
   w.mocap_age_s = msg.mocap_age_s[at];
-  w.flags = msg.flags[at];
+  w.flags = static_cast<uint8_t>(msg.flags[at]);  // a bit mask: no sign extension
   return w;
 }
 
@@ -565,7 +565,7 @@ WrenchSum WrenchSumAt(const contact_wrench_sum_t& msg, int i) {
   }
   s.calibration_version = msg.calibration_version;
   s.oldest_ft_age_s = msg.oldest_ft_age_s[at];
-  s.flags = msg.flags[at];
+  s.flags = static_cast<uint8_t>(msg.flags[at]);  // a bit mask: no sign extension
   return s;
 }
 
@@ -654,7 +654,7 @@ std::optional<MocapInput> DeviceInputs::FromMocap(const mocap_body_t& msg) const
 
 // Each message read in place when it can be (Peek*), else decoded as a typed subscription
 // would (one message object per subscription, decoded into again).
-void DeviceInputs::Subscribe(Bus& bus, Handlers h) const {
+void DeviceInputs::Subscribe(Bus& bus, const Handlers& h) const {
   if (h.ft) {
     for (int k = 0; k < kNumLegs; ++k) {
       bus.SubscribeRaw(ft_channel_[k], [this, k, f = h.ft, scratch = std::make_shared<ft_batch_t>(),

@@ -220,7 +220,7 @@ class DeviceInputs {
     std::function<void(const ServoInput&)> servo;
     std::function<void(const MocapInput&)> mocap;
   };
-  void Subscribe(Bus& bus, Handlers handlers) const;
+  void Subscribe(Bus& bus, const Handlers& handlers) const;
 
  private:
   const config::Channels channels_;

@@ -112,7 +112,7 @@ Runs RunsOf(const Schema& schema) {
       continue;
     }
     const int64_t elems = f.ndims == 0 ? 1 : f.dims[0].fixed;
-    const auto next = static_cast<size_t>(i + 1);
+    const size_t next = static_cast<size_t>(i) + 1;
     const bool joins = r.end[next] > i + 1;  // the next field starts a run: extend it
     r.end[static_cast<size_t>(i)] = joins ? r.end[next] : i + 1;
     r.bytes[static_cast<size_t>(i)] = elems * WireBytes(f.type) + (joins ? r.bytes[next] : 0);

@@ -8,7 +8,7 @@
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   ftcal::ServiceApp app(
       {"ftcal-corrector",
        "Reads FT_<LEG> (ft_batch_t), SERVO_STATE, MOCAP_BODY and CALIBRATION (calibration_t). "
@@ -53,4 +53,6 @@ int main(int argc, char** argv) {
     app.log().critical("config: {}", ftcal::UserText(e, "starting the corrector"));
     return ftcal::ExitCodeFor(e, ftcal::kExitConfig);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-corrector");
 }

@@ -29,7 +29,7 @@
 #include "common/user_errors.h"
 #include "doctor/log_health.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "A recording's health before calibrating it: rates, gaps, stalls, clocks, phases and a "
       "verdict (exit 0 calibratable, 6 with warnings, 2 not calibratable).",
@@ -69,4 +69,6 @@ int main(int argc, char** argv) {
     std::cerr << "ftcal-doctor: " << ftcal::UserText(e, "examining the recording") << "\n";
     return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-doctor");
 }

@@ -72,6 +72,7 @@ std::vector<std::size_t> DynamixelBridge::ActiveSlots() const {
 
 std::vector<std::uint8_t> DynamixelBridge::IdsOf(const std::vector<std::size_t>& slots) const {
   std::vector<std::uint8_t> ids;
+  ids.reserve(slots.size());
   for (const std::size_t i : slots) ids.push_back(servos_[i].id);
   return ids;
 }

@@ -202,6 +202,7 @@ std::optional<std::vector<std::uint8_t>> ServoSetup::ReadBlock(std::size_t i, st
 std::optional<std::uint8_t> ServoSetup::WriteItem(std::size_t i, std::uint16_t address,
                                                   std::uint32_t value, int size) {
   std::vector<std::uint8_t> data;
+  data.reserve(static_cast<std::size_t>(size));
   for (int k = 0; k < size; ++k) data.push_back(static_cast<std::uint8_t>(value >> (8 * k)));
   std::optional<std::uint8_t> error;
   link_.Request(i, dxl::BuildWrite(link_.servo(i).id, address, data), 0,

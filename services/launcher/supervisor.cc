@@ -45,6 +45,7 @@ CommandResult RunShell(const std::vector<std::string>& shell, const std::string&
   if (argv.empty()) argv = {"/bin/sh", "-c"};
   argv.push_back(line);
   std::vector<char*> args;
+  args.reserve(argv.size() + 1);
   for (auto& a : argv) args.push_back(a.data());
   args.push_back(nullptr);
 

@@ -18,7 +18,7 @@
 #include "common/user_errors.h"
 #include "log_upgrade/upgrade.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Rewrites an LCM log recorded with older versions of ftcal's message types (the "
       "fixed-array change d2866c5, the scatter of bb8ed83, the nonce of 27d4812, ft_batch_t of "
@@ -49,4 +49,6 @@ int main(int argc, char** argv) {
     std::cerr << "ftcal-log-upgrade: " << ftcal::UserText(e, "upgrading the log") << "\n";
     return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-log-upgrade");
 }

@@ -58,7 +58,7 @@ class MocapBridge : public Device {
 
   MocapBridge(MocapBridgeOptions options, ServiceStats& stats, PublishFn publish,
               ClockFn now_utime);
-  ~MocapBridge();
+  ~MocapBridge() override;
   MocapBridge(const MocapBridge&) = delete;
   MocapBridge& operator=(const MocapBridge&) = delete;
 

@@ -98,7 +98,7 @@ class NatNetBridge : public Device {
 
   NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, PublishFn publish,
                ClockFn now_utime);
-  ~NatNetBridge();
+  ~NatNetBridge() override;
   NatNetBridge(const NatNetBridge&) = delete;
   NatNetBridge& operator=(const NatNetBridge&) = delete;
 

@@ -23,7 +23,7 @@
 #include "common/shutdown.h"
 #include "common/user_errors.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli("Republishes channels of a routed LCM bus (config lcm_route) onto one URL.",
                "ftcal-relay");
   cli.footer(ftcal::ExitCodeTable());
@@ -61,4 +61,6 @@ int main(int argc, char** argv) {
     log->critical("{}", ftcal::UserText(e, "relaying"));
     return ftcal::ExitCodeFor(e, ftcal::kExitDeviceIo);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-relay");
 }

@@ -31,7 +31,7 @@ int64_t CounterOf(const ftcal::service_status_t& st, const std::string& name, in
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   ftcal::ServiceApp app(
       {"ftcal-sequencer-control",
        "Publishes one SEQUENCER_CONTROL (sequencer_control_t) to a running ftcal-sequencer: "
@@ -115,4 +115,6 @@ int main(int argc, char** argv) {
   }
   app.log().info("{} sent on {}{}", action, channel, signing_key.empty() ? " (unsigned)" : "");
   return 0;
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-sequencer-control");
 }

@@ -6,6 +6,7 @@
 #include <string>
 #include <thread>
 
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "common/shutdown.h"
 #include "sequencer/sequencer.h"
@@ -20,7 +21,7 @@ constexpr int kBadPlan = 3;
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   ftcal::ServiceApp app(
       {"ftcal-sequencer",
        "Runs an experiment plan (config `plan`, docs/architecture.md): publishes SERVO_CMD "
@@ -99,4 +100,6 @@ int main(int argc, char** argv) {
   app.log().error("plan '{}' stopped at step {}: {}", seq->schedule().plan_name, seq->step_index(),
                   seq->stop_reason());
   return kStopped;
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-sequencer");
 }

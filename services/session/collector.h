@@ -206,6 +206,11 @@ class CalibrationCollector {
   void OnMocapRaw(const MessageInfo& info, const void* data, int size);
   // Whether a servo state or mocap frame may wait in a DeferredTail (deferred_ below).
   bool Deferring() const { return counting_only_ && aligner_.pending() == 0; }
+  // While deferring: checks the message and keeps it in `tail` (its mark in `marks` when a span
+  // is being noted) instead of aligning it. Returns whether it was kept.
+  template <class Msg>
+  bool Defer(const MessageInfo& info, const void* data, int size, DeferredTail& tail,
+             MarkRing& marks);
   void FlushDeferred();
   void CountRecord(int k, int64_t sequence);
   void NoteChannel(const MessageInfo& info);

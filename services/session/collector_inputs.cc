@@ -55,30 +55,27 @@ void CalibrationCollector::OnFtRaw(int k, const MessageInfo& info, const void* d
   }
 }
 
+template <class Msg>
+bool CalibrationCollector::Defer(const MessageInfo& info, const void* data, int size,
+                                 DeferredTail& tail, MarkRing& marks) {
+  if (!Deferring()) return false;
+  const bool barrier = noting_.barrier;
+  noting_.barrier = true;  // unless kept
+  CheckOrThrow<Msg>(info, data, size);
+  tail.Push(data, size);
+  if (noting_.active) marks.Push(SpanMark{info.log_offset, noting_.events - 1, Counts()});
+  noting_.barrier = barrier;
+  return true;
+}
+
 void CalibrationCollector::OnServoRaw(const MessageInfo& info, const void* data, int size) {
-  if (Deferring()) {
-    const bool barrier = noting_.barrier;
-    noting_.barrier = true;  // unless kept
-    CheckOrThrow<servo_state_t>(info, data, size);
-    deferred_servo_.Push(data, size);
-    if (noting_.active) noting_.servo.Push(SpanMark{info.log_offset, noting_.events - 1, Counts()});
-    noting_.barrier = barrier;
-    return;
-  }
+  if (Defer<servo_state_t>(info, data, size, deferred_servo_, noting_.servo)) return;
   noting_.barrier = true;  // into the aligner
   aligner_.AddServo(inputs_.ServoOf(info, data, size, &servo_scratch_));
 }
 
 void CalibrationCollector::OnMocapRaw(const MessageInfo& info, const void* data, int size) {
-  if (Deferring()) {
-    const bool barrier = noting_.barrier;
-    noting_.barrier = true;  // unless kept
-    CheckOrThrow<mocap_body_t>(info, data, size);
-    deferred_mocap_.Push(data, size);
-    if (noting_.active) noting_.mocap.Push(SpanMark{info.log_offset, noting_.events - 1, Counts()});
-    noting_.barrier = barrier;
-    return;
-  }
+  if (Defer<mocap_body_t>(info, data, size, deferred_mocap_, noting_.mocap)) return;
   noting_.barrier = true;  // into the aligner
   if (const auto in = inputs_.MocapOf(info, data, size, &mocap_scratch_)) aligner_.AddMocap(*in);
 }

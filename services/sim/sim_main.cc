@@ -31,6 +31,7 @@
 #include <CLI/CLI.hpp>
 
 #include "common/default_config.h"
+#include "common/exit_codes.h"
 #include "common/service.h"
 #include "ftcal/config.h"
 #include "ftcal/calibration_io.h"
@@ -169,7 +170,7 @@ int RunLive(const ftcal::config::Config& config, LiveFlags flags) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli{"ftcal-sim: the BigAnt twin (truth model) as a program."};
   cli.require_subcommand(1);
   // --config may come before or after the subcommand.
@@ -316,4 +317,6 @@ int main(int argc, char** argv) {
                  ftcal::UserText(e, "writing the twin's log").c_str());
     return 1;
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-sim");
 }

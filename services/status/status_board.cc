@@ -21,8 +21,9 @@ std::string FormatDuration(double s) {
   if (!std::isfinite(s) || s < 0) return "?";
   if (s < 60) return Printf("%.1fs", s);
   const auto total = static_cast<int64_t>(s);
-  if (s < 3600) return std::to_string(total / 60) + "m" + Printf("%02.0fs", double(total % 60));
-  return std::to_string(total / 3600) + "h" + Printf("%02.0fm", double(total % 3600 / 60));
+  const auto two_digits = [](int64_t v) { return (v < 10 ? "0" : "") + std::to_string(v); };
+  if (s < 3600) return std::to_string(total / 60) + "m" + two_digits(total % 60) + "s";
+  return std::to_string(total / 3600) + "h" + two_digits(total % 3600 / 60) + "m";
 }
 
 std::string Counters(const service_status_t& status) {

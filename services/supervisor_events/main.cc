@@ -13,7 +13,7 @@
 #include "common/exit_codes.h"
 #include "supervisor_events/event_listener.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "supervisor event listener: publishes PROCESS_STATE events of --group as "
       "process_state_t on --channel. Run by supervisord, not by hand.",
@@ -77,4 +77,6 @@ int main(int argc, char** argv) {
     }
     std::cout << "RESULT 2\nOK" << std::flush;
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-supervisor-events");
 }

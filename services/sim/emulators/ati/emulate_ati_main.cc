@@ -70,7 +70,7 @@ void WriteAtomically(const std::string& path, const std::string& text) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Emulates the BigAnt twin's ATI Net F/T boxes: per leg an RDT endpoint (UDP) at the "
       "config's address and rdt_port and its calibration page (GET /netftapi2.xml) at "
@@ -216,6 +216,7 @@ int main(int argc, char** argv) {
                  boxes.empty() ? 0 : boxes.front()->options().rdt_buffer_size);
 
     std::vector<pollfd> fds;
+    fds.reserve(boxes.size());
     for (const auto& b : boxes) fds.push_back({b->fd(), POLLIN, 0});
     const auto start = AtiEmulator::Clock::now();
     bool ended = false;
@@ -257,4 +258,6 @@ int main(int argc, char** argv) {
     return 1;
   }
   return 0;
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-emulate-ati");
 }

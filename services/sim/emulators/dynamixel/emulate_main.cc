@@ -69,7 +69,7 @@ void WriteTruth(const std::string& path, const std::vector<ftcal::sim::DxlReplyR
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Emulates the BigAnt Dynamixel bus (six MX-106, Protocol 2.0) on a pseudo-terminal "
       "linked at --link. Writes every reply the servos produced to --truth (CSV).",
@@ -270,4 +270,6 @@ int main(int argc, char** argv) {
     return 2;
   }
   return 0;
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-emulate-dynamixel");
 }

@@ -38,7 +38,7 @@ ftcal::sim::TickWindow ParseWindow(const std::string& text, double rate_hz, cons
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "Qualisys QTM real-time server emulator (little-endian binary protocol) serving the "
       "BigAnt twin's chassis pose and markers in real time, with fault injection. Writes the "
@@ -181,4 +181,6 @@ int main(int argc, char** argv) {
     return 2;
   }
   return 0;
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-emulate-qtm");
 }
