@@ -172,7 +172,9 @@ TEST_F(BigMessageTest, A250MBCommandCostsTheLockedBridgeItsSizeOnlyAndFitsItsShi
   ASSERT_TRUE(running) << BridgeLog();
   const bool locked = BridgeLog().find("memory locked") != std::string::npos;
   // As root (CI) the bridge is granted mlockall, and the lone fragment below is the point.
-  if (::geteuid() == 0) EXPECT_TRUE(locked) << BridgeLog();
+  if (::geteuid() == 0) {
+    EXPECT_TRUE(locked) << BridgeLog();
+  }
   const double rss0 = ProcStatusMiB(pid, "VmRSS");
   ASSERT_GT(rss0, 0);
 
@@ -193,14 +195,30 @@ TEST_F(BigMessageTest, A250MBCommandCostsTheLockedBridgeItsSizeOnlyAndFitsItsShi
             << " MiB after a lone fragment announcing 250 MB\n";
   EXPECT_LT(rss_first - rss0, 16) << "a lone fragment made the announced size resident";
 
-  // The whole message, paced so that the receiver's socket buffer keeps every fragment.
+  // The whole message, paced so that the receiver's socket buffer keeps every fragment. UDP
+  // gives no back-pressure, and the receiver's pace is the machine's (each fragment's pages
+  // faulted in as they are written, on a VM where a fault is dear): a lost fragment loses the
+  // message, which then proves nothing about its cost. So it is sent again, slower, with a new
+  // sequence number (LCM drops the partial one), until one arrives whole; the attempts are
+  // printed. What is asserted is the cost of the message that arrived.
   RawSender whole;
-  ASSERT_TRUE(whole.SendFragments("SERVO_CMD", 7, kBigBytes, 60000, 0xffff,
-                                  std::chrono::microseconds(150)));
-  auto after_whole = heartbeats.Await(
-      pid, [&](const service_status_t& s) { return RefusedOnServoCmd(s, after_first->drops); }, 30);
-  ASSERT_TRUE(after_whole) << "the 250 MB message was not refused (fragments lost?)\n"
+  std::optional<service_status_t> after_whole;
+  int attempts = 0;
+  for (const int pace_us : {150, 500, 1500}) {
+    ++attempts;
+    ASSERT_TRUE(whole.SendFragments("SERVO_CMD", 6 + static_cast<uint32_t>(attempts), kBigBytes,
+                                    60000, 0xffff, std::chrono::microseconds(pace_us)));
+    after_whole = heartbeats.Await(
+        pid, [&](const service_status_t& s) { return RefusedOnServoCmd(s, after_first->drops); },
+        10);
+    if (after_whole) break;
+    std::cout << "the 250 MB message paced at " << pace_us
+              << " us a fragment did not arrive whole: sent again, slower\n";
+  }
+  ASSERT_TRUE(after_whole) << "the 250 MB message was not refused after " << attempts
+                           << " sends (fragments lost each time?)\n"
                            << BridgeLog();
+  std::cout << "the whole message arrived at send " << attempts << "\n";
   const double hwm = ProcStatusMiB(pid, "VmHWM");
   std::cout << "Dynamixel bridge: high-water RSS " << hwm << " MiB after a whole 250 MB message "
             << "(" << kBigBytes / kMiB << " MiB); shipped MemoryMax " << limit_mib << " MiB\n";
