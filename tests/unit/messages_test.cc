@@ -676,6 +676,26 @@ TEST(Messages, ContactWrenchSumRoundTrip) {
   EXPECT_EQ(bytes.size(), 8u + 8 + 2 + 109 * in.size());
 }
 
+// The flags travel as int8_t; a mask with bit 7 set arrives as a negative number and must be
+// read as the bits it carries (0x80 = 128), not sign-extended to -128 (0xffffff80), which
+// would set every higher bit of the int32_t mask.
+TEST(Messages, FlagsWithBit7AreReadAsTheirBitsNotSignExtended) {
+  contact_wrench_t leg_msg;
+  ClearLcm(1, 5, &leg_msg);
+  LegWrench w;
+  w.utime = 7;
+  w.leg = 1;
+  AppendLcm(w, &leg_msg);
+  leg_msg.flags[0] = static_cast<int8_t>(0x80 | kFlagSaturated);
+  EXPECT_EQ(FromLcm(leg_msg).at(0).flags, 0x88);
+
+  contact_wrench_sum_t sum_msg;
+  ClearLcm(3, &sum_msg);
+  AppendLcm(WrenchSum{}, &sum_msg);
+  sum_msg.flags[0] = static_cast<int8_t>(0x80);
+  EXPECT_EQ(FromLcm(sum_msg).at(0).flags, 128);
+}
+
 // LCM 1.3's coretypes move doubles and floats through int64_t* and int32_t*
 // (lcm_coretypes.h), which C++'s aliasing rule does not allow: with strict aliasing, GCC served
 // a value-initialised message's zeros instead of the doubles its inlined decode had just
