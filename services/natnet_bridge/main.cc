@@ -17,7 +17,8 @@ int main(int argc, char** argv) {
       "tracked=false, utime the mid-exposure time on the host clock. Reconnects with "
       "back-off when Motive is gone; waits while Motive is up but not streaming; DEGRADED "
       "meanwhile. Exits 3 (config) when the config does not select OPTITRACK "
-      "(mocap.system) or Motive streams NatNet older than 3.0. Reads nothing from LCM."};
+      "(mocap.system) or Motive streams NatNet older than 3.0; 4 when a socket cannot be opened, "
+      "bound or joined to the multicast group. Reads nothing from LCM."};
   spec.configure = [](ftcal::ServiceApp& app) {
     return std::make_unique<ftcal::NatNetBridge>(
         ftcal::NatNetBridgeOptionsFromConfig(app.config().mocap()), app.stats(),
@@ -25,6 +26,10 @@ int main(int argc, char** argv) {
           app.bus().Publish(app.config().channels().mocap_body(), msg);
         },
         [&app] { return app.bus().NowUtime(); });
+  };
+  spec.open = [](ftcal::NatNetBridge& bridge) -> ftcal::Device& {
+    bridge.Open();  // a socket the host refuses: exit 4, not the config's fault
+    return bridge;
   };
   // Motive streaming a NatNet older than 3.0, which the bridge learns from its SERVERINFO.
   spec.refuses_config = ftcal::IsA<ftcal::NatNetConfigError>;

@@ -120,7 +120,6 @@ NatNetBridge::NatNetBridge(NatNetBridgeOptions options, ServiceStats& stats, Pub
   }
   server_ip_ = Ipv4(options_.address, "mocap.natnet.server_address");
   buffer_.resize(65536);
-  OpenSockets();
 }
 
 NatNetBridge::~NatNetBridge() { CloseSockets(); }
@@ -148,9 +147,9 @@ NatNetBridge::Clock::time_point NatNetBridge::After(double s) const {
          std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
 }
 
-void NatNetBridge::OpenSockets() {
+void NatNetBridge::Open() {
   command_fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
-  if (command_fd_ < 0) throw NatNetConfigError(std::string("socket: ") + std::strerror(errno));
+  if (command_fd_ < 0) throw NatNetSocketError(std::string("socket: ") + std::strerror(errno));
   // Unicast frames arrive here too (§2.5): room for a burst of large frames.
   const int rcvbuf = 1 << 20;
   ::setsockopt(command_fd_, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
@@ -158,11 +157,11 @@ void NatNetBridge::OpenSockets() {
   any.sin_family = AF_INET;
   any.sin_addr.s_addr = htonl(INADDR_ANY);
   if (::bind(command_fd_, reinterpret_cast<sockaddr*>(&any), sizeof any) != 0) {
-    throw NatNetConfigError(std::string("binding the command socket: ") + std::strerror(errno));
+    throw NatNetSocketError(std::string("binding the command socket: ") + std::strerror(errno));
   }
   if (!options_.multicast) return;
   data_fd_ = ::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
-  if (data_fd_ < 0) throw NatNetConfigError(std::string("socket: ") + std::strerror(errno));
+  if (data_fd_ < 0) throw NatNetSocketError(std::string("socket: ") + std::strerror(errno));
   const int one = 1;
   ::setsockopt(data_fd_, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);  // clients share 1511
   ::setsockopt(data_fd_, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
@@ -173,14 +172,14 @@ void NatNetBridge::OpenSockets() {
   data.sin_addr.s_addr = htonl(INADDR_ANY);
   data.sin_port = htons(options_.data_port);
   if (::bind(data_fd_, reinterpret_cast<sockaddr*>(&data), sizeof data) != 0) {
-    throw NatNetConfigError("binding the data socket to port " +
+    throw NatNetSocketError("binding the data socket to port " +
                             std::to_string(options_.data_port) + ": " + std::strerror(errno));
   }
   ip_mreq m{};
   m.imr_multiaddr.s_addr = Ipv4(options_.multicast_group, "mocap.natnet.multicast_group");
   m.imr_interface.s_addr = Ipv4(options_.local_interface, "mocap.natnet.local_interface");
   if (::setsockopt(data_fd_, IPPROTO_IP, IP_ADD_MEMBERSHIP, &m, sizeof m) != 0) {
-    throw NatNetConfigError("joining " + options_.multicast_group + " on " +
+    throw NatNetSocketError("joining " + options_.multicast_group + " on " +
                             options_.local_interface + ": " + std::strerror(errno));
   }
 }

@@ -40,6 +40,13 @@ class NatNetConfigError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// A socket the bridge cannot open, bind or join to its group: the host's network, not the
+// config's values (exit 4, docs/exit-codes.md).
+class NatNetSocketError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
 // Motive's frames and units -> ftcal's, in one place (docs/natnet-protocol.md §5).
 //
 // G is ftcal's mocap global frame: right-handed, z up (as QTM's). Motive streams Y-up by
@@ -102,10 +109,13 @@ class NatNetBridge : public Device {
   NatNetBridge(const NatNetBridge&) = delete;
   NatNetBridge& operator=(const NatNetBridge&) = delete;
 
+  // Opens the command socket and, in multicast, the data socket joined to the group; before
+  // any other call. Throws NatNetSocketError when the host refuses one of them.
+  void Open();
+
   // The Device a ServiceApp's loop waits on (Device::Step is one turn by hand): the command
   // socket and, in multicast, the data socket; the deadline is the timers'; degraded while not
-  // healthy(). Throws NatNetConfigError for a server older than NatNet 3.0 or a socket that
-  // cannot be set up as configured.
+  // healthy(). Throws NatNetConfigError for a server older than NatNet 3.0.
   void AddPollFds(std::vector<pollfd>* fds) override;
   void OnPolled(const pollfd* fds, std::size_t n) override;
   Clock::time_point NextDeadline() const override;
@@ -131,7 +141,6 @@ class NatNetBridge : public Device {
   void HandleDatagram(const uint8_t* data, size_t size, bool from_server);
 
  private:
-  void OpenSockets();
   void CloseSockets();
   void SendToServer(uint16_t id, const std::vector<uint8_t>& payload);
   void SendConnect();

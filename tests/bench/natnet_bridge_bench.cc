@@ -99,6 +99,7 @@ Result RunAt(double rate_hz, bool multicast, double seconds, lcm::LCM& lcm) {
                    std::chrono::system_clock::now().time_since_epoch())
             .count();
       });
+  bridge.Open();
   const double bridge_cpu_s = ftcal::bench::StepUntilDoneAndDrain(bridge, done);
   const double wall_s = std::chrono::duration<double>(Clock::now() - t0).count();
   server.join();

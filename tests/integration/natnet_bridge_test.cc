@@ -7,13 +7,18 @@
 // which the emulator turned into Motive's Y-up axes and the rigid body's pivot frame; the
 // bridge must undo both to within f32 rounding. Its utime is compared with the instant the
 // emulator stamped as mid-exposure on the host clock.
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <fstream>
 #include <map>
+#include <regex>
 #include <set>
 #include <thread>
 
@@ -106,6 +111,7 @@ PairRun RunWithBridge(sim::NatNetEmulatorOptions eo, int64_t ticks, NatNetBridge
   run.stats = std::make_unique<ServiceStats>(testing::QuietLogger("natnet_bridge_test"));
   NatNetBridge bridge(
       bo, *run.stats, [&run](const mocap_body_t& m) { run.published.push_back(m); }, WallUtime);
+  bridge.Open();
   std::atomic<bool> done{false};
   std::thread server([&] {
     emulator.Run(ticks);
@@ -575,6 +581,50 @@ TEST(NatNetBridgeProcessTest, RefusesAConfigThatRunsTheQualisysBridge) {
       5);
   ASSERT_TRUE(failed.has_value()) << "no FAILED heartbeat";
   EXPECT_NE(failed->last_error.find("mocap.system"), std::string::npos) << failed->last_error;
+  testing::RemoveTree(dir);
+}
+
+// A socket the host refuses is the host's network, not the config: exit 4 (docs/exit-codes.md),
+// with the port named in the line and in the last heartbeat.
+TEST(NatNetBridgeProcessTest, ADataPortHeldByAnotherProgramEndsWithExit4NamingThePort) {
+  ASSERT_TRUE(testing::InNetns());
+  // Held without SO_REUSEADDR: the bridge's bind to the same port is refused (EADDRINUSE).
+  const int holder = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+  ASSERT_GE(holder, 0);
+  sockaddr_in any{};
+  any.sin_family = AF_INET;
+  any.sin_addr.s_addr = htonl(INADDR_ANY);
+  ASSERT_EQ(::bind(holder, reinterpret_cast<sockaddr*>(&any), sizeof any), 0);
+  socklen_t len = sizeof any;
+  ASSERT_EQ(::getsockname(holder, reinterpret_cast<sockaddr*>(&any), &len), 0);
+  const int port = ntohs(any.sin_port);
+
+  const std::string dir = testing::MakeTempDir();
+  std::string config = testing::ReadFile(std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt");
+  config = std::regex_replace(config, std::regex("system: QUALISYS"), "system: OPTITRACK");
+  config = std::regex_replace(config, std::regex("data_port: 1511"),
+                              "data_port: " + std::to_string(port));
+  std::ofstream(dir + "/config.pbtxt") << config;
+  const std::string url = "udpm://239.255.76.67:7667?ttl=0";
+  lcm::LCM lcm(url);
+  ASSERT_TRUE(lcm.good());
+  testing::StatusWatch watch(lcm);
+  testing::Child child({FTCAL_NATNET_BRIDGE, "--config", dir + "/config.pbtxt", "--lcm-url", url},
+                       dir + "/out", dir + "/err");
+  const auto status = child.Wait(10);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_TRUE(WIFEXITED(*status) && WEXITSTATUS(*status) == 4)
+      << testing::DescribeWaitStatus(*status) << "\n"
+      << testing::ReadFile(dir + "/err");
+  const std::string named = "binding the data socket to port " + std::to_string(port);
+  EXPECT_NE(testing::ReadFile(dir + "/err").find(named), std::string::npos)
+      << testing::ReadFile(dir + "/err");
+  const auto failed = watch.Await(
+      child.pid(), [](const service_status_t& s) { return s.state == service_status_t::FAILED; },
+      5);
+  ASSERT_TRUE(failed.has_value()) << "no FAILED heartbeat";
+  EXPECT_NE(failed->last_error.find(named), std::string::npos) << failed->last_error;
+  ::close(holder);
   testing::RemoveTree(dir);
 }
 #endif

@@ -5,7 +5,8 @@ if(TARGET ftcal-natnet-bridge AND TARGET ftcal_natnet_emulator)
   target_link_libraries(natnet_bridge_test PRIVATE ftcal_natnet_bridge ftcal_natnet_emulator
     ftcal_child_process GTest::gtest GTest::gtest_main Threads::Threads)
   target_compile_definitions(natnet_bridge_test PRIVATE
-    FTCAL_NATNET_BRIDGE="$<TARGET_FILE:ftcal-natnet-bridge>")
+    FTCAL_NATNET_BRIDGE="$<TARGET_FILE:ftcal-natnet-bridge>"
+    FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}")
   add_dependencies(natnet_bridge_test ftcal-natnet-bridge)
   set_target_properties(natnet_bridge_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
