@@ -36,28 +36,28 @@ DynamixelBridge::DynamixelBridge(const config::Config& config, DynamixelBridgeOp
       now_utime_(std::move(now_utime)),
       parser_(1024),
       reopen_delay_s_(options_.reopen_min_s) {
-  if (!config_.has_dynamixel()) throw std::invalid_argument("config: no dynamixel section");
+  if (!config_.has_dynamixel()) throw std::invalid_argument("the config has no dynamixel section");
   device_ = options_.device.empty() ? config_.dynamixel().device() : options_.device;
-  if (device_.empty()) throw std::invalid_argument("config: dynamixel.device is empty");
+  if (device_.empty()) throw std::invalid_argument("dynamixel.device is empty");
   baud_ = config_.dynamixel().baud();
   reply_timeout_s_ = config_.dynamixel().reply_timeout_s();
   if (!(reply_timeout_s_ > 0 && reply_timeout_s_ < 1)) {
-    throw std::invalid_argument("config: dynamixel.reply_timeout_s must be in (0, 1) s");
+    throw std::invalid_argument("dynamixel.reply_timeout_s must be in (0, 1) s");
   }
   if (options_.hardware_error_every < 1) {
     throw std::invalid_argument("hardware_error_every must be >= 1");
   }
   if (options_.lost_after_misses < 1) throw std::invalid_argument("lost_after_misses must be >= 1");
   if (!(options_.reprobe_every_s > 0)) throw std::invalid_argument("reprobe_every_s must be > 0");
-  if (baud_ == 0) throw std::invalid_argument("config: dynamixel.baud is 0");
+  if (baud_ == 0) throw std::invalid_argument("dynamixel.baud is 0");
   // Throws for a bad operating mode or watchdog.
   setup_.emplace(config_, stats_, static_cast<ServoSetup::Link&>(*this));
   for (SetupServo& who : ServosFromConfig(config_)) servos_.emplace_back(std::move(who));
   // SERVO_STATE carries exactly six servos (lcmtypes/servo_state_t.lcm: one per leg).
   constexpr std::size_t kServos = std::extent_v<decltype(servo_state_t::id)>;
   if (servos_.size() != kServos) {
-    throw std::invalid_argument("config: " + std::to_string(servos_.size()) +
-                                " legs with servos; SERVO_STATE carries exactly " +
+    throw std::invalid_argument("the config's legs: " + std::to_string(servos_.size()) +
+                                " have servos; SERVO_STATE carries exactly " +
                                 std::to_string(kServos));
   }
 }

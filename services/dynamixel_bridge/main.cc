@@ -27,8 +27,7 @@ double SteadyS() { return std::chrono::duration<double>(Clock::now().time_since_
 double RateHz(const ftcal::config::Config& config) {
   const double rate_hz = config.dynamixel().rate_hz();
   if (!(rate_hz > 0 && rate_hz <= 1000)) {
-    throw std::invalid_argument(
-        fmt::format("config: dynamixel.rate_hz {} outside (0, 1000]", rate_hz));
+    throw std::invalid_argument(fmt::format("dynamixel.rate_hz {} outside (0, 1000]", rate_hz));
   }
   return rate_hz;
 }

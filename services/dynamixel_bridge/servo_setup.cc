@@ -38,7 +38,7 @@ ServoSetup::ServoSetup(const config::Config& config, ServiceStats& stats, Link& 
       max_goal_count_ = dxl::kExtendedModeMaxCount;
       break;
     default:
-      throw std::invalid_argument("config: dynamixel.operating_mode " +
+      throw std::invalid_argument("dynamixel.operating_mode " +
                                   std::to_string(dxl_config.operating_mode()) +
                                   " is not POSITION_MODE or EXTENDED_POSITION_MODE");
   }
@@ -56,7 +56,7 @@ ServoSetup::ServoSetup(const config::Config& config, ServiceStats& stats, Link& 
   watchdog_s_ = dxl_config.bus_watchdog_s();
   const double units = std::round(watchdog_s_ / dxl::kBusWatchdogUnitS);
   if (!(units >= 1 && units <= 127)) {
-    throw std::invalid_argument("config: dynamixel.bus_watchdog_s " + std::to_string(watchdog_s_) +
+    throw std::invalid_argument("dynamixel.bus_watchdog_s " + std::to_string(watchdog_s_) +
                                 " is not 1-127 units of 20 ms");
   }
   watchdog_units_ = static_cast<std::uint8_t>(units);
@@ -71,7 +71,7 @@ std::vector<SetupServo> ServosFromConfig(const config::Config& config) {
     s.zero_count = leg.servo().zero_count();
     s.direction = leg.servo().direction();
     if (s.direction != 1 && s.direction != -1) {
-      throw std::invalid_argument("config: leg " + s.leg + " servo direction must be +1 or -1");
+      throw std::invalid_argument("leg " + s.leg + " servo direction must be +1 or -1");
     }
     s.min_angle_rad = leg.servo().min_angle_rad();
     s.max_angle_rad = leg.servo().max_angle_rad();

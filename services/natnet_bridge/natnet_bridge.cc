@@ -31,7 +31,7 @@ constexpr char kClientName[] = "ftcal-natnet-bridge";
 uint32_t Ipv4(const std::string& text, const std::string& field) {
   in_addr a{};
   if (::inet_pton(AF_INET, text.c_str(), &a) != 1) {
-    throw NatNetConfigError("config " + field + " '" + text + "' is not an IPv4 address");
+    throw NatNetConfigError(field + " '" + text + "' is not an IPv4 address");
   }
   return a.s_addr;
 }
@@ -45,15 +45,15 @@ NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap) {
   NatNetBridgeOptions o;
   if (mocap.system() != config::OPTITRACK) {
     throw NatNetConfigError(
-        "config mocap.system is not OPTITRACK: this config runs "
+        "mocap.system is not OPTITRACK: this config runs "
         "ftcal-mocap-bridge (Qualisys), not ftcal-natnet-bridge");
   }
   o.address = n.server_address();
-  if (o.address.empty()) throw NatNetConfigError("config mocap.natnet.server_address is empty");
+  if (o.address.empty()) throw NatNetConfigError("mocap.natnet.server_address is empty");
   Ipv4(o.address, "mocap.natnet.server_address");
   auto port = [](uint32_t p, const std::string& field) {
     if (p == 0 || p > 65535) {
-      throw NatNetConfigError("config " + field + " " + std::to_string(p) + " is not a UDP port");
+      throw NatNetConfigError(field + " " + std::to_string(p) + " is not a UDP port");
     }
     return static_cast<uint16_t>(p);
   };
@@ -65,7 +65,7 @@ NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap) {
   if (o.multicast) {
     const uint32_t group = ntohl(Ipv4(o.multicast_group, "mocap.natnet.multicast_group"));
     if ((group >> 28) != 0xE) {
-      throw NatNetConfigError("config mocap.natnet.multicast_group '" + o.multicast_group +
+      throw NatNetConfigError("mocap.natnet.multicast_group '" + o.multicast_group +
                               "' is not a multicast (class D) address");
     }
     Ipv4(o.local_interface, "mocap.natnet.local_interface");
@@ -73,23 +73,23 @@ NatNetBridgeOptions NatNetBridgeOptionsFromConfig(const config::Mocap& mocap) {
   if (!n.bitstream_version().empty()) {
     const auto v = natnet::ParseVersion(n.bitstream_version());
     if (!v || !natnet::Supported(*v)) {
-      throw NatNetConfigError("config mocap.natnet.bitstream_version '" + n.bitstream_version() +
+      throw NatNetConfigError("mocap.natnet.bitstream_version '" + n.bitstream_version() +
                               "': the bridge reads NatNet 3.x and 4.x");
     }
     if (o.multicast) {
       throw NatNetConfigError(
-          "config mocap.natnet.bitstream_version: only a unicast client can "
+          "mocap.natnet.bitstream_version: only a unicast client can "
           "choose the bitstream (set multicast: false or leave it empty)");
     }
     o.bitstream = v;
   }
   o.body_name = mocap.body_name();
-  if (o.body_name.empty()) throw NatNetConfigError("config mocap.body_name is empty");
+  if (o.body_name.empty()) throw NatNetConfigError("mocap.body_name is empty");
   const MotiveFrames frames = MotiveFrames::FromConfig(n);
   o.up_axis = n.up_axis() == "Z" ? MotiveFrames::UpAxis::kZ : MotiveFrames::UpAxis::kY;
   if (n.has_x_pivot_chassis()) o.X_PC = ToPose3(n.x_pivot_chassis());
   if (!(n.keepalive_s() > 0) || !(n.silence_s() > 0)) {
-    throw NatNetConfigError("config mocap.natnet.keepalive_s and silence_s must be positive");
+    throw NatNetConfigError("mocap.natnet.keepalive_s and silence_s must be positive");
   }
   o.keepalive_s = n.keepalive_s();
   o.silence_s = n.silence_s();

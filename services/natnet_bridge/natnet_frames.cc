@@ -45,7 +45,7 @@ MotiveFrames MotiveFrames::FromConfig(const config::NatNet& n) {
   } else if (n.up_axis() == "Z") {
     up = UpAxis::kZ;
   } else {
-    throw NatNetConfigError("config mocap.natnet.up_axis '" + n.up_axis() + "' is not Y or Z");
+    throw NatNetConfigError("mocap.natnet.up_axis '" + n.up_axis() + "' is not Y or Z");
   }
   return MotiveFrames(up, n.has_x_pivot_chassis() ? ToPose3(n.x_pivot_chassis()) : Pose3());
 }

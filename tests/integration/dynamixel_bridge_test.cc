@@ -888,7 +888,8 @@ TEST_F(DynamixelBridgeFailures, ARefusedConfigEndsWithAFailedHeartbeatAndExit3) 
   ASSERT_TRUE(failed.has_value()) << "no FAILED heartbeat\n"
                                   << testing::ReadFile(dir_ + "/bridge.err");
   EXPECT_EQ(failed->name, "ftcal-dynamixel-bridge");
-  EXPECT_NE(failed->last_error.find("dynamixel.reply_timeout_s"), std::string::npos)
+  // The kind, then the field: "configuration: dynamixel.reply_timeout_s ...", said once.
+  EXPECT_EQ(failed->last_error.rfind("configuration: dynamixel.reply_timeout_s", 0), 0u)
       << failed->last_error;
   EXPECT_GE(failed->errors, 1);
 }
