@@ -729,8 +729,8 @@ struct Heard {
 class Listener {
  public:
   explicit Listener(Clock::time_point t0) : lcm_(kUrl), t0_(t0) {
-    lcm_.subscribe("SERVO_STATE", &Listener::OnState, this);
-    lcm_.subscribe("FTCAL_STATUS", &Listener::OnStatus, this);
+    lcm_.subscribe("SERVO_STATE", &Listener::OnState, this)->setQueueCapacity(100000);
+    lcm_.subscribe("FTCAL_STATUS", &Listener::OnStatus, this)->setQueueCapacity(10000);
     thread_ = std::thread([this] {
       while (!stop_) lcm_.handleTimeout(50);
     });

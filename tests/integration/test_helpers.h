@@ -147,6 +147,7 @@ class StatusWatch {
  public:
   explicit StatusWatch(lcm::LCM& lcm) : lcm_(lcm) {
     sub_ = lcm_.subscribe("FTCAL_STATUS", &StatusWatch::On, this);
+    sub_->setQueueCapacity(10000);
   }
   ~StatusWatch() { lcm_.unsubscribe(sub_); }
   StatusWatch(const StatusWatch&) = delete;
