@@ -61,8 +61,14 @@ Aligner::Aligner(const AlignerOptions& options, Callback on_sample)
     : options_(options),
       max_servo_age_us_(SecondsToUs(options.max_servo_age_s, "max_servo_age_s")),
       max_mocap_age_us_(SecondsToUs(options.max_mocap_age_s, "max_mocap_age_s")),
+      servo_delay_us_(std::llround(options.servo_delay_s * 1e6)),
       on_sample_(std::move(on_sample)),
       newest_ft_utime_(INT64_MIN) {
+  if (!(std::abs(options.servo_delay_s) < options.max_servo_age_s)) {
+    throw std::invalid_argument("Aligner: servo_delay_s " + std::to_string(options.servo_delay_s) +
+                                " s: its magnitude must be below max_servo_age_s " +
+                                std::to_string(options.max_servo_age_s) + " s");
+  }
   last_ft_utime_.fill(INT64_MIN);
 }
 
@@ -117,7 +123,10 @@ void Aligner::FormSamples() {
 }
 
 bool Aligner::AddServo(const ServoInput& in) {
-  if (!AcceptServo(in, &servo_, &counters_)) return false;
+  // On the transducers' time base: the state describes the shaft servo_delay_s before its stamp.
+  ServoInput shifted = in;
+  shifted.utime -= servo_delay_us_;
+  if (!AcceptServo(shifted, &servo_, &counters_)) return false;
   Resolve(newest_ft_utime_);
   return true;
 }

@@ -13,6 +13,7 @@
 
 #include "ftcal/config.h"
 #include "ftcal/geometry.h"
+#include "ftcal/latency.h"
 
 namespace ftcal {
 
@@ -257,8 +258,15 @@ CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
   HangingResult step1;
   HangingOptions hanging_options = HangingOptionsFromConfig(config.calibrator(), config.mocap());
   SetRatedRanges(config.robot(), &hanging_options);
+  // The servo stream's delay first (docs/method.md "Latencies"): when the data selects it, step 1
+  // pairs each transducer sample with the shaft angle of its own instant.
+  ServoDelayEstimate delay;
+  const bool estimate_delay = config.calibrator().profile() != config::REPORT;
   try {
-    step1 = RunHanging(hanging, NominalTransducerPoses(config.robot()), hanging_options);
+    if (estimate_delay) delay = EstimateServoDelay(hanging);
+    const double applied = delay.selected ? delay.delay_s : 0.0;
+    step1 = RunHanging(applied != 0.0 ? ShiftServoAngles(hanging, applied) : hanging,
+                       NominalTransducerPoses(config.robot()), hanging_options);
   } catch (const std::invalid_argument& e) {
     throw CalibrationStageError(std::string("step 1 (hanging): ") + e.what());
   }
@@ -290,6 +298,27 @@ CalibrationRun Calibrate(const std::vector<HangingRecording>& hanging,
   }
   CalibrationRun run = CalibrateFromHanging(
       step1, kept, config, StandingOptionsFromConfig(config.calibrator()), options);
+  run.servo_delay = delay;
+  run.calibration.servo_delay_s = delay.selected ? delay.delay_s : 0.0;
+  {
+    calibration::Latencies* l = run.proto.mutable_latencies();
+    l->set_applied_servo_delay_s(run.calibration.servo_delay_s);
+    l->set_servo_delay_selected(delay.selected);
+    if (!estimate_delay) {
+      l->set_servo_delay_source("not estimated (REPORT profile)");
+    } else if (!delay.estimated) {
+      l->set_servo_delay_source("not estimated: too few hanging samples");
+    } else {
+      l->mutable_servo_delay_s()->set_value(delay.delay_s);
+      l->mutable_servo_delay_s()->set_sigma(delay.sigma_s);
+      l->set_servo_delay_delta_bic(delay.delta_bic);
+      l->set_servo_delay_sigma_covariance_s(delay.sigma_covariance_s);
+      l->set_servo_delay_sigma_spread_s(delay.sigma_spread_s);
+      l->set_servo_delay_residuals(static_cast<uint64_t>(delay.residuals));
+      l->set_servo_delay_source(delay.selected ? "selected by the data (BIC)"
+                                               : "rejected by the data (BIC)");
+    }
+  }
   {
     calibration::LegMapCheck* m = run.proto.mutable_leg_map_check();
     m->set_poses(static_cast<uint32_t>(leg_map.poses));

@@ -112,6 +112,10 @@ void FillCalibrationValues(const RobotCalibration& cal, calibration::Calibration
   out->set_g0_m_s2(cal.g0);
   out->set_total_mass_kg(cal.total_mass_kg);
   SetVec3(cal.p_C_B, out->mutable_p_c_b_m());
+  // Only a delay that is applied is written: a file without one reads as no delay.
+  if (cal.servo_delay_s != 0.0 || out->has_latencies()) {
+    out->mutable_latencies()->set_applied_servo_delay_s(cal.servo_delay_s);
+  }
   for (int k = 0; k < kNumLegs; ++k) {
     const LegCalibration& l = cal.leg[k];
     calibration::LegCalibration* leg = out->mutable_leg(k);
@@ -203,6 +207,16 @@ RobotCalibration CalibrationFromProto(const calibration::Calibration& proto,
   cal.total_mass_kg = proto.has_total_mass_kg()
                           ? R::Scalar("total_mass_kg", true, proto.total_mass_kg())
                           : robot.total_mass_kg();
+  if (proto.has_latencies() && proto.latencies().has_applied_servo_delay_s()) {
+    cal.servo_delay_s = R::Scalar("latencies.applied_servo_delay_s", true,
+                                  proto.latencies().applied_servo_delay_s());
+    // Beyond the aligner's wait for a servo state (50 ms by default) no pairing could use it;
+    // a second is no servo bus's latency but a unit error.
+    if (!(std::abs(cal.servo_delay_s) <= kMaxServoDelayS)) {
+      R::Fail("latencies.applied_servo_delay_s",
+              "|" + Num(cal.servo_delay_s) + "| s is beyond " + Num(kMaxServoDelayS) + " s");
+    }
+  }
   if (!(cal.g0 > 0.0)) R::Fail("g0_m_s2", "must be > 0, got " + Num(cal.g0));
   if (!(cal.total_mass_kg > 0.0)) {
     R::Fail("total_mass_kg", "must be > 0, got " + Num(cal.total_mass_kg));

@@ -57,12 +57,21 @@ void Corrector::SetCalibration(const RobotCalibration& cal, int64_t version) {
     }
     leg[k] = {X.R, X.p, l.offset, l.weight_n, l.com};
   }
+  if (!(std::abs(cal.servo_delay_s) < options_.max_servo_age_s)) {
+    throw std::invalid_argument("Corrector: servo delay " + std::to_string(cal.servo_delay_s) +
+                                " s: its magnitude must be below max_servo_age_s " +
+                                std::to_string(options_.max_servo_age_s) + " s");
+  }
   if (!(cal.TotalWeightN() > 0) || !std::isfinite(cal.TotalWeightN())) {
     throw std::invalid_argument("Corrector: total weight must be finite and > 0, got " +
                                 std::to_string(cal.TotalWeightN()) + " N");
   }
   leg_ = leg;
   weight_total_n_ = cal.TotalWeightN();
+  const int64_t delay_us = std::llround(cal.servo_delay_s * 1e6);
+  // The states held were shifted by the old delay: mixed with new ones they could run backwards.
+  if (delay_us != servo_delay_us_) servo_ = ServoHistory();
+  servo_delay_us_ = delay_us;
   version_ = version;
   has_calibration_ = true;
   // Wrenches corrected with the previous calibration must not be summed with new ones.
@@ -75,7 +84,11 @@ void Corrector::SetCalibration(const RobotCalibration& cal, int64_t version) {
 }
 
 bool Corrector::AddServo(const ServoInput& in) {
-  if (!AcceptServo(in, &servo_, &counters_)) return false;
+  // On the transducers' time base (docs/method.md "Latencies"): the state describes the shaft
+  // servo_delay_s before its stamp.
+  ServoInput shifted = in;
+  shifted.utime -= servo_delay_us_;
+  if (!AcceptServo(shifted, &servo_, &counters_)) return false;
   return true;
 }
 

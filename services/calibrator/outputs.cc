@@ -90,6 +90,17 @@ std::string SummaryTable(const CalibrationRun& run) {
       m.profile(), m.solver(), m.exact_hanging_rotations() ? "exact" : "first-order (report)",
       m.hanging_gravity_prior() ? "on" : "off", m.leg_aware_com() ? "leg-aware" : "fixed (report)",
       m.com_model_source());
+  if (c.has_latencies()) {
+    const calibration::Latencies& l = c.latencies();
+    o += l.has_servo_delay_s()
+             ? fmt::format(
+                   "Servo delay vs transducers: {:.2f} +- {:.2f} ms, dBIC {:.1f}: {}; applied "
+                   "{:.2f} ms\n",
+                   1e3 * l.servo_delay_s().value(), 1e3 * l.servo_delay_s().sigma(),
+                   l.servo_delay_delta_bic(), l.servo_delay_source(),
+                   1e3 * l.applied_servo_delay_s())
+             : fmt::format("Servo delay vs transducers: {}\n", l.servo_delay_source());
+  }
   if (c.has_mass_check()) {
     const calibration::MassCheck& mc = c.mass_check();
     o += fmt::format(

@@ -3,10 +3,13 @@
 #include <exception>
 #include <future>
 #include <memory>
+#include <stdexcept>
+#include <string>
 #include <system_error>
 
 #include "common/exit_codes.h"
 #include "common/service.h"
+#include "ftcal/calibration_io.h"
 #include "pose_segmenter/pose_segmenter_stage.h"
 #include "session/span_index.h"
 
@@ -28,10 +31,25 @@ int main(int argc, char** argv) {
       "replay writes the poses log the calibrator reads: STEADY_POSE and this process's status, "
       "0.5 MB for the report's experiment instead of 243 MB of SYNC_SAMPLE that nothing "
       "reads from a file. Live, SYNC_SAMPLE is always published");
+  std::string calibration_path;
+  app.cli().add_option("--calibration", calibration_path,
+                       "a calibration file whose servo delay (latencies.applied_servo_delay_s) "
+                       "to apply before aligning: servo stamps moved back by it");
   if (auto rc = app.Init(argc, argv)) return *rc;
   try {
+    double servo_delay_s = 0.0;
+    if (!calibration_path.empty()) {
+      try {
+        servo_delay_s = ftcal::CalibrationFromProto(ftcal::ReadCalibrationFile(calibration_path),
+                                                    app.config().robot())
+                            .servo_delay_s;
+      } catch (const std::runtime_error& e) {
+        throw std::invalid_argument("--calibration '" + calibration_path + "': " + e.what());
+      }
+    }
     ftcal::PoseSegmenterStage stage(app.config(), app.bus(),
-                                    /*publish_sync=*/!app.replaying() || sync_samples);
+                                    /*publish_sync=*/!app.replaying() || sync_samples,
+                                    servo_delay_s);
     // A replayed session is read by the calibrator next: its span index, made on the other
     // core while this one segments, spares the first calibration the STANDING phase's bytes.
     std::future<ftcal::SpanIndexPass> index;

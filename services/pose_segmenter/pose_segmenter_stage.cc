@@ -4,13 +4,24 @@
 
 namespace ftcal {
 
-PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus, bool publish_sync)
+namespace {
+
+AlignerOptions WithServoDelay(AlignerOptions o, double servo_delay_s) {
+  o.servo_delay_s = servo_delay_s;
+  return o;
+}
+
+}  // namespace
+
+PoseSegmenterStage::PoseSegmenterStage(const config::Config& config, Bus& bus, bool publish_sync,
+                                       double servo_delay_s)
     : config_(config),
       bus_(bus),
       publish_sync_(publish_sync),
       inputs_(config),
       segmenter_options_(SegmenterOptionsFromConfig(config.segmenter())),
-      aligner_(AlignerOptionsFromConfig(config), [this](const AlignedSample& s) { OnAligned(s); }) {
+      aligner_(WithServoDelay(AlignerOptionsFromConfig(config), servo_delay_s),
+               [this](const AlignedSample& s) { OnAligned(s); }) {
   ServiceStats& st = bus.stats();
   counters_ = {&st.Counter("sync_samples"),
                &st.Counter("standing_samples"),

@@ -32,7 +32,10 @@ class PoseSegmenterStage {
   // Subscribes its handlers on `bus`. Throws std::invalid_argument for a config it cannot use.
   // publish_sync = false: SYNC_SAMPLE is counted but not encoded or published (a replay that
   // writes only the poses log).
-  PoseSegmenterStage(const config::Config& config, Bus& bus, bool publish_sync = true);
+  // servo_delay_s: the servo stream's delay a calibration applies (latencies.applied_servo_delay_s,
+  // docs/method.md "Latencies"); servo stamps are moved back by it before alignment.
+  PoseSegmenterStage(const config::Config& config, Bus& bus, bool publish_sync = true,
+                     double servo_delay_s = 0.0);
 
   int64_t poses_published() const { return poses_published_; }
   const AlignerCounters& aligner_counters() const { return aligner_.counters(); }

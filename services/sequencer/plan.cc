@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "ftcal/config.h"
+#include "ftcal/latency.h"
 #include "ftcal/experiment_marker_t.hpp"
 
 namespace ftcal::sequencer {
@@ -171,9 +172,11 @@ class Builder {
                  Num(g[2]) + ") (" + config::HangOrientation_Name(p.orientation()) +
                  " of the transducers), then confirm.",
              Precheck::kAirborne, zero);
-        const double rate = 2.0 * M_PI / p.cycle_s();
+        // The sweep's speed varies (HangSweepAngle, docs/method.md "Latencies"): its peak
+        // is what the servos must reach.
+        const double rate = HangSweepPeakRate(p.cycle_s());
         if (rate > seq_.max_velocity_rad_s()) {
-          Fail(i, "cycle_s " + Num(p.cycle_s()) + " s turns the shafts at " + Num(rate) +
+          Fail(i, "cycle_s " + Num(p.cycle_s()) + " s turns the shafts at up to " + Num(rate) +
                       " rad/s, above sequencer.max_velocity_rad_s " +
                       Num(seq_.max_velocity_rad_s()));
         }
@@ -356,11 +359,12 @@ Angles GoalAt(const Step& step, double t) {
       for (int k = 0; k < kNumLegs; ++k) a[k] = step.from[k] + (step.to[k] - step.from[k]) * b;
       break;
     }
-    case StepKind::kTurn:
-      for (int k = 0; k < kNumLegs; ++k) {
-        a[k] = step.from[k] + step.direction[k] * 2.0 * M_PI * tc / step.cycle_s;
-      }
+    case StepKind::kTurn: {
+      const int cycles = static_cast<int>(std::lround(d / step.cycle_s));
+      const double turned = HangSweepAngle(tc, step.cycle_s, cycles);
+      for (int k = 0; k < kNumLegs; ++k) a[k] = step.from[k] + step.direction[k] * turned;
       break;
+    }
     case StepKind::kWalk:
       for (int k = 0; k < kNumLegs; ++k) {
         const double leg_clock = step.clock_hz * tc + 0.5 * kTripodOf[k];

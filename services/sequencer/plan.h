@@ -33,7 +33,7 @@ enum class StepKind {
   kMarkerStop,   // ... and its stop marker
   kMove,         // from `from` to `to` along a smooth blend in duration_s
   kHold,         // hold `to` for duration_s (counted from arrival)
-  kTurn,         // every leg turns at a constant rate: from + dir * 2 pi t / cycle_s
+  kTurn,         // every leg turns: from + dir * HangSweepAngle(t, cycle_s, cycles) (varying speed)
   kWalk,         // the Buehler-clock tripod gait for duration_s
 };
 

@@ -76,6 +76,10 @@ struct CollectorCounters {
   int64_t tripod_stances = 0;          // steady tripod stances with a leg unloaded, kept
   int64_t tripod_stances_dropped = 0;  // steady, but no leg lifted
   int64_t span_events_skipped = 0;     // events of STANDING spans not read (the span index)
+  // Aligned inside a hanging series but stamped before its start marker: the previous phase's
+  // last instant, which the aligner completes only when the next readings arrive. Left out: its
+  // reading belongs to another attitude, and one such sample weighs on step 1 as thousands.
+  int64_t hanging_before_start = 0;
 };
 
 // One completed phase's transducer records per leg, counted by the devices' RDT sequence
@@ -260,6 +264,7 @@ class CalibrationCollector {
 
   PhaseTracker phases_;  // the phase in progress
   HangingRecording current_hang_;
+  int64_t hang_start_utime_ = 0;  // the open hanging series' start marker
   std::vector<StandingPose> current_poses_;
   std::vector<SyncSample> current_walk_;
   std::vector<SyncSample> walking_;

@@ -33,6 +33,7 @@ bool CalibrationCollector::StartHanging(const MarkedPhase& phase, const experime
   hang_memory_.Wait();  // before the room it touches is freed
   current_hang_ = HangingRecording();
   current_hang_.series = *HangSeriesOfPhase(phase.code);
+  hang_start_utime_ = msg.utime;
   current_hang_.gravity_b = Vec3(msg.gravity_b[0], msg.gravity_b[1], msg.gravity_b[2]);
   if (index_only_) return false;  // nothing kept: no room
   ReserveHangingRoom();

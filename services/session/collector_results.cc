@@ -32,6 +32,10 @@ void CalibrationCollector::OnAligned(const AlignedSample& a) {
   const SyncSample& s = a.sample;
   const int phase = phases_.current().code;
   if (IsHangPhase(phase)) {
+    if (s.utime < hang_start_utime_) {
+      ++counters_.hanging_before_start;
+      return;
+    }
     ++counters_.hanging_samples;
     const double t_s = 1e-6 * static_cast<double>(s.utime);
     for (int k = 0; k < kNumLegs; ++k) {

@@ -11,6 +11,7 @@
 #include <cstring>
 #include <functional>
 #include <stdexcept>
+#include <utility>
 
 #include "ftcal/geometry.h"
 
@@ -52,6 +53,15 @@ SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_
                            const SimLogOptions& options)
     : options_(options), log_(out_path, "sim log"), rng_(options.seed ^ 0x51D106ULL) {
   log_.SetTap(digest_.Tap());
+  const std::pair<const char*, double> delays[] = {{"ft_delay_s", options.ft_delay_s},
+                                                   {"servo_delay_s", options.servo_delay_s},
+                                                   {"mocap_delay_s", options.mocap_delay_s}};
+  for (const auto& [name, value] : delays) {
+    if (!(value >= 0.0 && value <= 1.0)) {
+      throw std::invalid_argument(std::string("sim log options: ") + name +
+                                  " must be in [0, 1] s, got " + std::to_string(value));
+    }
+  }
   if (config.robot().leg_size() != kNumLegs) {
     throw std::invalid_argument("config: robot.leg: " + std::to_string(kNumLegs) +
                                 " legs expected, got " + std::to_string(config.robot().leg_size()));
@@ -117,6 +127,28 @@ int64_t SimLogWriter::Utime(double t_s) const {
   return options_.t0_utime + std::llround(t_s * 1e6);
 }
 
+double SimLogWriter::MeanLatencyS(int slot) const {
+  if (slot >= 0 && slot < kNumLegs) {
+    return ft_latency_s_[static_cast<size_t>(slot)] + 0.5 * kFtJitterS + options_.ft_delay_s;
+  }
+  if (slot == kServoSlot) return kServoLatencyS + 0.5 * kServoJitterS + options_.servo_delay_s;
+  if (slot == kMocapSlot) return kMocapLatencyS + 0.5 * kMocapJitterS + options_.mocap_delay_s;
+  throw std::invalid_argument("sim log: no device slot " + std::to_string(slot));
+}
+
+bool SimLogWriter::HeldLater(const Held& a, const Held& b) {
+  return a.utime != b.utime ? a.utime > b.utime : a.order > b.order;
+}
+
+void SimLogWriter::FlushHeld(int64_t utime) {
+  while (!held_.empty() && held_.front().utime <= utime) {
+    std::pop_heap(held_.begin(), held_.end(), HeldLater);
+    Held& h = held_.back();
+    Write(h.utime, *h.channel, h.bytes, static_cast<int>(h.bytes.size()));
+    held_.pop_back();
+  }
+}
+
 template <class Msg>
 int SimLogWriter::EncodeInto(const Msg& msg, std::vector<uint8_t>* buffer) {
   const int size = msg.getEncodedSize();
@@ -150,7 +182,8 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
 
   for (int k = 0; k < kNumLegs; ++k) {
     ft_batch_t& m = ft_[k];
-    const int64_t utime = t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform()) * 1e6);
+    const int64_t utime =
+        t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform() + options_.ft_delay_s) * 1e6);
     m.receipt_utime = utime;
     m.sample_utime[0] = utime;
     ++m.rdt_sequence[0];  // 1 for the first record of the stream
@@ -167,7 +200,8 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   // Consecutive frames 10 ms apart give a velocity; after a gap (a new scenario) the legs are
   // at rest.
   const bool consecutive = have_previous_ && f.t_s - previous_t_s_ < 1.5 / kFrameRateHz;
-  const int64_t servo_utime = t + std::llround((kServoLatencyS + kServoJitterS * Uniform()) * 1e6);
+  const int64_t servo_utime =
+      t + std::llround((kServoLatencyS + kServoJitterS * Uniform() + options_.servo_delay_s) * 1e6);
   servo_.utime = servo_utime;
   for (int k = 0; k < kNumLegs; ++k) {
     // The MX-106 reports whole counts; the bridge maps them back with zero_count/direction.
@@ -188,7 +222,8 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   size_[kServoSlot] = EncodeInto(servo_, &buffer_[kServoSlot]);
   pending[kServoSlot] = {servo_utime, kServoSlot};
 
-  const int64_t mocap_utime = t + std::llround((kMocapLatencyS + kMocapJitterS * Uniform()) * 1e6);
+  const int64_t mocap_utime =
+      t + std::llround((kMocapLatencyS + kMocapJitterS * Uniform() + options_.mocap_delay_s) * 1e6);
   mocap_.utime = mocap_utime;
   mocap_.frame_number = 1 + std::llround(f.t_s * kFrameRateHz);
   mocap_.device_utime = std::llround(f.t_s * 1e6);
@@ -214,6 +249,11 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   // Stable: equal stamps keep the FT, servo, mocap order.
   std::stable_sort(pending.begin(), pending.end(),
                    [](const Pending& a, const Pending& b) { return a.utime < b.utime; });
+  const bool hold =
+      options_.ft_delay_s > 0.0 || options_.servo_delay_s > 0.0 || options_.mocap_delay_s > 0.0;
+  // Every event of this frame and the later ones is stamped at or after t: the held ones
+  // stamped before it can go.
+  if (hold) FlushHeld(t - 1);
   if (pending.front().utime < last_utime_) {
     throw std::invalid_argument("sim log: frame at t = " + std::to_string(f.t_s) +
                                 " s would be stamped before the previous event");
@@ -222,7 +262,14 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
     const std::string& channel = p.slot < kNumLegs      ? ft_channel_[p.slot]
                                  : p.slot == kServoSlot ? servo_channel_
                                                         : mocap_channel_;
-    Write(p.utime, channel, buffer_[p.slot], size_[p.slot]);
+    if (!hold) {
+      Write(p.utime, channel, buffer_[p.slot], size_[p.slot]);
+      continue;
+    }
+    const auto begin = buffer_[p.slot].begin();
+    held_.push_back(
+        Held{p.utime, held_order_++, &channel, std::vector<uint8_t>(begin, begin + size_[p.slot])});
+    std::push_heap(held_.begin(), held_.end(), HeldLater);
   }
   for (int k = 0; k < kNumLegs; ++k) ++counts_.ft[k];
   ++counts_.servo;
@@ -239,6 +286,7 @@ void SimLogWriter::WriteMarker(int64_t utime, ExperimentPhase phase, bool start,
     throw std::invalid_argument("sim log: marker at utime " + std::to_string(utime) +
                                 " precedes the last event at " + std::to_string(last_utime_));
   }
+  FlushHeld(utime);  // the events stamped up to the marker go before it
   marker_.utime = utime;
   marker_.phase = static_cast<int8_t>(phase);
   marker_.start = start;
@@ -250,6 +298,7 @@ void SimLogWriter::WriteMarker(int64_t utime, ExperimentPhase phase, bool start,
 }
 
 std::string SimLogWriter::Commit() {
+  FlushHeld(std::numeric_limits<int64_t>::max());
   log_.Commit();
   return digest_.HandOver(log_.path(), log_.committed_stat());
 }

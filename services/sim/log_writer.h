@@ -5,7 +5,11 @@
 // timestamp is the twin time plus a small seeded latency (FT 0.5-1.8 ms, servo sync read
 // 2-3.5 ms, mocap 4-5.5 ms), so the aligner has real work yet every event of frame i lies
 // before every event of frame i+1 (frames are 10 ms apart): sorting each frame's eight events
-// is enough to keep the whole log in order. Device conventions follow the emulators/bridges:
+// is enough to keep the whole log in order. With a constant extra delay per device
+// (SimLogOptions::ft_delay_s, ...) a device's events pass later frames': they are then held in
+// stamp order until no later frame can be stamped before them (every event of a frame at t is
+// stamped at or after t), and markers and Commit() write the held ones stamped before them. Device
+// conventions follow the emulators/bridges:
 //   FT_<LEG>     rdt_sequence 1, 2, ... per leg; ft_sequence a seeded power-up count + 70 per
 //                record (7000 Hz internal / 100 Hz), u32; status 0; counts and wrench from
 //                the twin's reading (sign +1, as config/sim.pbtxt).
@@ -50,6 +54,14 @@ struct SimLogOptions {
   int64_t t0_utime = kSimLogT0Utime;
   uint64_t seed = 1;  // timestamp jitter and device counters
   double mocap_residual_m = 0.0005;
+  // A constant extra delay per device on top of the seeded latency, s (>= 0): a USB-serial
+  // adapter's latency timer on the servo bus, a Net F/T's filter, a mocap pipeline. The device
+  // clocks (ft_sequence, device_tick_ms, device_utime) keep the sample instant; the host stamps
+  // (and FT_<LEG>'s sample_utime, which the bridge takes from it) move. Events are then written
+  // in stamp order across frames.
+  double ft_delay_s = 0.0;
+  double servo_delay_s = 0.0;
+  double mocap_delay_s = 0.0;
 };
 
 // Events written per channel kind.
@@ -81,6 +93,10 @@ class SimLogWriter {
                    const std::string& note);
   // Host time of twin time t (no latency).
   int64_t Utime(double t_s) const;
+  // The mean of a device's host stamp minus its sample instant, s: seeded latency plus the
+  // extra delay. slot 0-5 the legs' transducers, 6 the servo bus, 7 motion capture. A test's
+  // truth for the servo-vs-transducer delay.
+  double MeanLatencyS(int slot) const;
   // The newest timestamp written so far, and the twin time of the last frame.
   int64_t last_utime() const { return last_utime_; }
   double last_frame_t_s() const { return previous_t_s_; }
@@ -96,6 +112,17 @@ class SimLogWriter {
     int64_t utime;
     int slot;  // 0-5 FT legs, 6 servo, 7 mocap
   };
+  // An encoded event held until no later frame's event can be stamped before it (the extra
+  // delays let one device's events pass the next frame's).
+  struct Held {
+    int64_t utime;
+    int64_t order;  // ties keep the order they were made in
+    const std::string* channel;
+    std::vector<uint8_t> bytes;
+  };
+  // Writes the held events stamped at or before `utime` (all of them with INT64_MAX), in order.
+  void FlushHeld(int64_t utime);
+  static bool HeldLater(const Held& a, const Held& b);  // the heap's order: later first out
   double Uniform();  // [0, 1), portable across standard libraries (unlike the distributions)
   void Write(int64_t utime, const std::string& channel, const std::vector<uint8_t>& bytes,
              int size);
@@ -130,6 +157,8 @@ class SimLogWriter {
   double previous_t_s_ = 0.0;
   std::array<double, kNumLegs> previous_angle_{};
   int64_t last_utime_ = std::numeric_limits<int64_t>::min();
+  std::vector<Held> held_;  // a min-heap on (utime, order); empty without extra delays
+  int64_t held_order_ = 0;
   SimLogCounts counts_;
 };
 

@@ -249,6 +249,17 @@ int main(int argc, char** argv) try {
   log->add_option("--gap-s", plan.gap_s, "silence between scenarios, s")
       ->capture_default_str()
       ->check(CLI::Range(0.05, 3600.0));
+  double ft_delay_ms = 0.0, servo_delay_ms = 0.0, mocap_delay_ms = 0.0;
+  log->add_option("--ft-delay-ms", ft_delay_ms,
+                  "constant extra delay of every transducer's host stamp (a filter's group delay)")
+      ->check(CLI::Range(0.0, 1000.0));
+  log->add_option("--servo-delay-ms", servo_delay_ms,
+                  "constant extra delay of SERVO_STATE's host stamp (a USB-serial adapter's "
+                  "latency timer: 16 ms on FTDI's default)")
+      ->check(CLI::Range(0.0, 1000.0));
+  log->add_option("--mocap-delay-ms", mocap_delay_ms,
+                  "constant extra delay of MOCAP_BODY's host stamp (a mocap pipeline)")
+      ->check(CLI::Range(0.0, 1000.0));
 
   CLI::App* live = cli.add_subcommand(
       "live",
@@ -298,6 +309,9 @@ int main(int argc, char** argv) try {
     log_options.seed = seed;
     log_options.session_id = session_id.empty() ? "sim-" + std::to_string(seed) : session_id;
     log_options.mocap_residual_m = twin_options.marker_noise_m;
+    log_options.ft_delay_s = 1e-3 * ft_delay_ms;
+    log_options.servo_delay_s = 1e-3 * servo_delay_ms;
+    log_options.mocap_delay_s = 1e-3 * mocap_delay_ms;
     if (truth_path.empty()) truth_path = DefaultTruthPath(out_path);
     const bool drift = std::isfinite(plan.drift_at_s);
     if (!drifted_truth_path.empty() && !drift) {

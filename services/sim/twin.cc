@@ -10,6 +10,7 @@
 
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
+#include "ftcal/latency.h"
 #include "ftcal/segmenter.h"
 
 namespace ftcal {
@@ -549,7 +550,9 @@ double BigAntTwin::Hanging(HangSeries series, const RunOptions& run, const Frame
   std::array<double, kNumLegs> angle{};
   for (long i = 0; i < n; ++i) {
     const double tau = i * gen.Dt();
-    angle.fill(2.0 * M_PI * tau / o.hang_cycle_s);
+    // The sequencer's sweep: its speed varies from cycle to cycle so that a servo delay can be
+    // told from an encoder offset (docs/method.md "Latencies").
+    angle.fill(HangSweepAngle(tau, o.hang_cycle_s, o.hang_cycles));
     gen.Emit(run.t0_s + tau, phase, s, true, angle, HangingState(series, angle), HangingPositionG(),
              yaw0_rad_);
   }

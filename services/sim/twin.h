@@ -91,7 +91,8 @@ struct TwinOptions {
 
   // Naive tare phase (upright, feet in the air, shaft angles 0).
   double tare_s = 2.0;
-  // Hanging: ten slow leg cycles.
+  // Hanging: ten slow leg cycles, at the sequencer's varying speed (HangSweepAngle: 0.5-1.5x
+  // the mean, different from cycle to cycle, so that a servo delay is identifiable).
   double hang_cycle_s = 20.0;
   int hang_cycles = 10;
   // Standing poses: {-a, 0, +a}^6, servo motion, then dwell; a damped oscillation after each

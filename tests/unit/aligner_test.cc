@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <random>
+#include <stdexcept>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -327,6 +328,41 @@ TEST(Aligner, SameInputOrderGivesIdenticalOutput) {
       ASSERT_GT(x.utime, first[i - 1].sample.utime);
     }
   }
+}
+
+}  // namespace
+}  // namespace ftcal
+
+namespace ftcal {
+namespace {
+
+// A servo bus 16 ms late (docs/method.md "Latencies"): with servo_delay_s set, a transducer
+// sample takes the angle the servo stream reports 16 ms after it, hand-computed; an option at or
+// beyond the wait for a servo state is refused.
+TEST(Aligner, ServoDelayTakesTheAngleReportedThatMuchLater) {
+  AlignerOptions options;
+  options.servo_delay_s = 0.016;
+  Collect c;
+  Aligner a(options, c.cb());
+  // The shaft turns 1 rad/s; the servo stamps it 16 ms late: the state stamped u + 16 ms holds
+  // the angle of instant u.
+  for (int i = 0; i <= 10; ++i) {
+    const int64_t instant = 1'000'000 + 10'000 * i;
+    std::array<double, kNumLegs> angle;
+    angle.fill(1e-6 * static_cast<double>(instant - 1'000'000));
+    ASSERT_TRUE(a.AddServo(Servo(instant + 16'000, angle)));
+    ASSERT_TRUE(a.AddMocap(LevelMocap(instant)));
+  }
+  AllLegs(a, 1'025'000, 1.0);
+  AllLegs(a, 1'055'000, 2.0);
+  AllLegs(a, 1'200'000, 3.0);  // moves the transducers' clock past every wait
+  ASSERT_GE(c.out.size(), 2u);
+  EXPECT_NEAR(c.out[0].sample.angle_rad[0], 0.025, 1e-12);
+  EXPECT_NEAR(c.out[1].sample.angle_rad[3], 0.055, 1e-12);
+
+  AlignerOptions too_late;
+  too_late.servo_delay_s = 0.05;
+  EXPECT_THROW(Aligner(too_late, nullptr), std::invalid_argument);
 }
 
 }  // namespace

@@ -289,3 +289,30 @@ TEST(CalibrationIo, ReadErrorsHaveLineAndColumn) {
 
 }  // namespace
 }  // namespace ftcal
+
+namespace ftcal {
+namespace {
+
+// The servo delay (calibration.proto Latencies): written when applied, read back; a file
+// without it (every file before it existed) applies none; an absurd one is refused by name.
+TEST(CalibrationIo, ServoDelayRoundTripsAndIsZeroWhenAbsent) {
+  const config::Robot robot = SimRobot();
+  std::mt19937 rng(8);
+  RobotCalibration cal = RandomCalibration(rng, robot);
+  calibration::Calibration proto;
+  FillCalibrationValues(cal, &proto);
+  EXPECT_FALSE(proto.has_latencies()) << "no delay, no field: the file reads as before";
+  EXPECT_EQ(CalibrationFromProto(proto, robot).servo_delay_s, 0.0);
+
+  cal.servo_delay_s = 0.0157;
+  FillCalibrationValues(cal, &proto);
+  EXPECT_EQ(proto.latencies().applied_servo_delay_s(), 0.0157);
+  EXPECT_EQ(CalibrationFromProto(proto, robot).servo_delay_s, 0.0157);
+
+  proto.mutable_latencies()->set_applied_servo_delay_s(16.0);  // ms taken for s
+  EXPECT_CONTAINS(ErrorOf([&] { CalibrationFromProto(proto, robot); }),
+                  "latencies.applied_servo_delay_s");
+}
+
+}  // namespace
+}  // namespace ftcal

@@ -385,3 +385,43 @@ TEST(Corrector, RefusesANonFiniteCalibrationAndKeepsTheOldOne) {
 
 }  // namespace
 }  // namespace ftcal
+
+namespace ftcal {
+namespace {
+
+// The calibration's servo delay (docs/method.md "Latencies"): servo states stamped 16 ms late
+// correct the readings exactly once the calibration says so, and not without it.
+TEST(Corrector, AppliesTheCalibrationsServoDelay) {
+  RobotCalibration cal = testdata::MakeTruth(7, testdata::Mounting::kFull);
+  cal.g0 = 9.80665;
+  std::mt19937_64 rng(5);
+  auto worst_error = [&](double delay_s) {
+    cal.servo_delay_s = delay_s;
+    Corrector c({});
+    c.SetCalibration(cal, 1);
+    double worst = 0.0;
+    for (int frame = 0; frame < 100; ++frame) {
+      const int64_t t = 2'000'000 + 10'000 * static_cast<int64_t>(frame);
+      const double angle = 3.0 * 1e-6 * static_cast<double>(t - 2'000'000);  // 3 rad/s
+      std::array<double, kNumLegs> a;
+      a.fill(angle);
+      c.AddServo({t + 16'000, a});  // reported 16 ms after its instant
+      c.AddMocap({t, true, Mat3::Identity(), true});
+      if (frame < 5) continue;
+      // A transducer sample 5 ms after instant `t`: its angle is between two states.
+      const int64_t ts = t - 45'000;
+      const double at = 3.0 * 1e-6 * static_cast<double>(ts - 2'000'000);
+      const Vec6 w_C = RandomGroundWrenchC(rng);
+      const Vec6 reading = TransducerReading(cal, 0, w_C, at, Mat3::Identity());
+      const auto out = c.AddFt({ts, 0, reading, 0}, false);
+      if (!out) continue;
+      worst = std::max(worst, (out->wrench_W[0] - w_C).cwiseAbs().maxCoeff());
+    }
+    return worst;
+  };
+  EXPECT_LT(worst_error(0.016), 1e-9);
+  EXPECT_GT(worst_error(0.0), 1e-4);  // the same stream read without the delay is wrong
+}
+
+}  // namespace
+}  // namespace ftcal

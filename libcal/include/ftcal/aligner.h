@@ -90,6 +90,10 @@ class ServoHistory {
 struct AlignerOptions {
   double max_servo_age_s = 0.05;
   double max_mocap_age_s = 0.05;
+  // The servo stream's delay relative to the transducers' (a calibration's
+  // latencies.applied_servo_delay_s, docs/method.md "Latencies"): a servo state stamped u is
+  // taken as the shaft at u - servo_delay_s. |servo_delay_s| must stay below max_servo_age_s.
+  double servo_delay_s = 0.0;
 };
 
 struct AlignedSample {
@@ -170,6 +174,7 @@ class Aligner {
   AlignerOptions options_;
   int64_t max_servo_age_us_;
   int64_t max_mocap_age_us_;
+  int64_t servo_delay_us_;
   Callback on_sample_;
   // Forms the samples whose every leg has a reading at or after the pace leg's instant.
   void FormSamples();

@@ -21,6 +21,7 @@
 
 #include "ftcal/dataset.h"
 #include "ftcal/hanging.h"
+#include "ftcal/latency.h"
 #include "ftcal/sensing_model.h"
 #include "ftcal/standing.h"
 #include "proto/calibration.pb.h"
@@ -94,7 +95,10 @@ struct CalibrationRun {
   RobotCalibration step1;   // nominal robot + step 1 (R~ = I, p~' = 0)
   StandingResult standing;  // the four fits, Table I, residuals
   bool has_alternating = false;
-  StandingFit alternating;         // the report's scheme on the selected model
+  StandingFit alternating;  // the report's scheme on the selected model
+  // The servo stream's delay (Calibrate only; not estimated under the REPORT profile); the
+  // calibration applies it when selected (calibration.servo_delay_s).
+  ServoDelayEstimate servo_delay;
   RobotCalibration calibration;    // step 1 + the selected model: the parameters of eq. 3
   calibration::Calibration proto;  // everything, as written to the calibration file
   // What the user should know (also proto.warning): e.g. the gravity prior skipped.

@@ -13,6 +13,9 @@ namespace ftcal {
 // offsets, leg weights, CoM fits, mounting (quaternion, rotation vector, p~', p~), p^C_B.
 void FillCalibrationValues(const RobotCalibration& cal, calibration::Calibration* out);
 
+// The largest servo delay a calibration file may apply (latencies.applied_servo_delay_s), s.
+constexpr double kMaxServoDelayS = 1.0;
+
 // The parameters of eq. 3 from a calibration file and the config that supplies the nominal
 // transducer poses. Throws std::runtime_error naming the field when the file does not match
 // the config (leg names, count) or a value is missing or not finite.

@@ -146,6 +146,7 @@ class Corrector {
   double weight_total_n_ = 0.0;
   std::array<LegConst, kNumLegs> leg_;
   ServoHistory servo_;
+  int64_t servo_delay_us_ = 0;  // the calibration's servo delay, subtracted from servo stamps
   std::optional<MocapInput> mocap_;
   struct LegState {
     bool seen = false;

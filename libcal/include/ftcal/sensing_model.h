@@ -54,6 +54,9 @@ struct RobotCalibration {
   Vec3 p_C_B = Vec3::Zero();  // body origin -> CoM, m (informational for correction)
   double g0 = 9.80665;        // m/s^2
   double total_mass_kg = 0.0;
+  // The servo stream's delay relative to the transducers' (calibration.proto Latencies): the
+  // corrector reads a servo state stamped u as the shaft at u - servo_delay_s.
+  double servo_delay_s = 0.0;
 
   double TotalWeightN() const { return total_mass_kg * g0; }
   // X_C_ft for leg k (the mounted transducer in the CoM frame).
