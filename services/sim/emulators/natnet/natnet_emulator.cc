@@ -117,7 +117,8 @@ double NatNetEmulator::Seconds() const { return SteadySeconds() - start_s_; }
 
 uint64_t NatNetEmulator::Ticks() const {
   // Motive had been up a second before the first frame: mid-exposure never goes below zero.
-  return static_cast<uint64_t>((Seconds() + 1.0) * static_cast<double>(options_.clock_hz));
+  return static_cast<uint64_t>((Seconds() * (1.0 + 1e-6 * options_.clock_rate_ppm) + 1.0) *
+                               static_cast<double>(options_.clock_hz));
 }
 
 natnet::Version NatNetEmulator::VersionFor(const sockaddr_in& from) const {
