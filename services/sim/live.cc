@@ -344,6 +344,7 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     no.multicast_group = n.multicast_group();
     no.version = options_.natnet_version;
     no.clock_rate_ppm = options_.clocks.mocap.rate_ppm;
+    no.clock_offset_s = options_.clocks.mocap.offset_s;
     no.rate_hz = options_.natnet_rate_hz;
     no.body_name = config.mocap().body_name();
     no.z_up = n.up_axis() == "Z";
