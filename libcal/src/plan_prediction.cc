@@ -82,10 +82,9 @@ Eigen::MatrixXd HangingLegCovariance(const RobotCalibration& nominal, int k,
                                      const DeviceNoise& noise) {
   const LegCalibration& l = nominal.leg[k];
   const LegComModel& c = l.com;
-  std::array<double, kLegBlock> leg = {l.offset[0], l.offset[1], l.offset[2], l.offset[3],
-                                       l.offset[4], l.offset[5], l.weight_n,  c.x.a,
-                                       c.x.c,       c.x.d,       c.y,         c.z.a,
-                                       c.z.c,       c.z.d};
+  std::array<double, kLegBlock> leg = {
+      l.offset[0], l.offset[1], l.offset[2], l.offset[3], l.offset[4], l.offset[5], l.weight_n,
+      c.x.a,       c.x.c,       c.x.d,       c.y,         c.z.a,       c.z.c,       c.z.d};
   std::vector<std::array<double, 3>> s(series.size(), std::array<double, 3>{0.0, 0.0, 0.0});
   ceres::Problem problem;
   problem.AddParameterBlock(leg.data(), kLegBlock);
@@ -117,17 +116,19 @@ Eigen::MatrixXd HangingLegCovariance(const RobotCalibration& nominal, int k,
 
 void AddHanging(const RobotCalibration& nominal, const PlanDesign& design, int bins,
                 const DeviceNoise& noise, PlanPrediction* out,
-                std::array<double, kNumLegs>* force_offset_sigma) {
+                std::array<double, kNumLegs>* force_offset_sigma,
+                std::array<Eigen::MatrixXd, kNumLegs>* leg_covariance) {
   const char* axes[3] = {"x", "y", "z"};
   const char* com_names[7] = {"CoM x a", "CoM x c", "CoM x d", "CoM y",
                               "CoM z a", "CoM z c", "CoM z d"};
   for (int k = 0; k < kNumLegs; ++k) {
     const Eigen::MatrixXd C = HangingLegCovariance(nominal, k, design.hanging, bins, noise);
+    (*leg_covariance)[k] = C;
     const std::string leg = std::string(kLegNames[k]) + " ";
     double fo = 0.0;
     for (int i = 0; i < kLegBlock; ++i) {
       PredictedSigma p;
-      p.sigma = p.bound = p.reported = std::sqrt(std::max(0.0, C(i, i)));
+      p.sigma = p.bound = p.reported = p.with_step1 = std::sqrt(std::max(0.0, C(i, i)));
       if (i < 3) {
         p.name = leg + "f_o " + axes[i];
         p.klass = "force offset";
@@ -176,7 +177,8 @@ Mat6 PoseResidualCovariance(const RobotCalibration& nominal, const PlannedPose& 
       const double h = 1e-3;
       StandingPose q = pp.pose;
       q.wrench[k][i] += h;
-      add((PoseResidual(nominal, q, options, fit) - r0) / h, i < 3 ? noise.force_n : noise.torque_nm);
+      add((PoseResidual(nominal, q, options, fit) - r0) / h,
+          i < 3 ? noise.force_n : noise.torque_nm);
     }
     if (noise.shaft_angle_rad > 0.0) {
       const double h = 1e-6;
@@ -198,6 +200,28 @@ Mat6 PoseResidualCovariance(const RobotCalibration& nominal, const PlannedPose& 
         noise.attitude_rad);
   }
   return S;
+}
+
+// Step 1's leg parameter i (HangingLegCovariance's order) of leg k, for perturbing it.
+double& LegParameter(RobotCalibration* cal, int k, int i) {
+  LegCalibration& l = cal->leg[k];
+  if (i < 6) return l.offset[i];
+  double* com[7] = {&l.com.x.a, &l.com.x.c, &l.com.x.d, &l.com.y,
+                    &l.com.z.a, &l.com.z.c, &l.com.z.d};
+  return i == 6 ? l.weight_n : *com[i - 7];
+}
+
+// The K-weighted residuals of every pose, stacked, at `fit` with step 1 as in `step1`.
+Eigen::VectorXd StackedResiduals(const RobotCalibration& step1,
+                                 const std::vector<StandingPose>& poses, StandingOptions options,
+                                 const StandingFit& fit) {
+  options.gravity_prior.clear();
+  const standing_detail::Prepared prep = standing_detail::Prepare(step1, poses, options);
+  const std::vector<Vec6> r =
+      standing_detail::ResidualsOfPoses(prep, fit, standing_detail::AllIds(poses.size()));
+  Eigen::VectorXd out(6 * r.size());
+  for (size_t p = 0; p < r.size(); ++p) out.segment<6>(6 * p) = r[p].cwiseProduct(prep.sqrt_k);
+  return out;
 }
 
 // The gravity directions the hanging series would give each leg, with the sigma they would
@@ -228,10 +252,11 @@ std::vector<HangingGravityObservation> PredictedGravityPrior(
 
 void AddStanding(const RobotCalibration& nominal, const PlanDesign& design,
                  const DeviceNoise& noise, const StandingOptions& options_in,
-                 const std::array<double, kNumLegs>& force_offset_sigma, PlanPrediction* out) {
+                 const std::array<double, kNumLegs>& force_offset_sigma,
+                 const std::array<Eigen::MatrixXd, kNumLegs>* leg_covariance, PlanPrediction* out) {
   using namespace standing_detail;  // NOLINT
   StandingOptions options = options_in;
-  options.leg_aware_com = false;
+  options.leg_aware_com = design.leg_aware_com;
   options.robust_loss = StandingLoss::kNone;
   options.gravity_prior.clear();
   if (design.gravity_prior && !design.hanging.empty())
@@ -271,6 +296,7 @@ void AddStanding(const RobotCalibration& nominal, const PlanDesign& design,
   Vec6 s2c = Vec6::Zero();
   for (const Mat6& s : S) s2c += s.diagonal();
   s2c /= static_cast<double>(poses.size());
+  out->residual_rms = s2c.cwiseSqrt().cwiseQuotient(prep.sqrt_k);
   Eigen::MatrixXd Mrep = M;
   for (size_t p = 0; p < poses.size(); ++p) {
     const auto Jp = J.middleRows(6 * static_cast<int>(p), 6);
@@ -290,6 +316,28 @@ void AddStanding(const RobotCalibration& nominal, const PlanDesign& design,
   const Eigen::MatrixXd C = Hinv * M * Hinv;
   const Eigen::MatrixXd Crep = Hinv * Mrep * Hinv;
   const Eigen::MatrixXd Cb = Inverse(Info, "standing poses (information bound)");
+  // Step 1's errors through step 2: d(theta2) = -H^-1 J^T (dr/d(theta1)) d(theta1); the
+  // residuals are linear in the offsets and leg weights, smooth in the CoM curves.
+  Eigen::MatrixXd C1 = C;
+  if (leg_covariance != nullptr) {
+    Eigen::MatrixXd D = Eigen::MatrixXd::Zero(pose_rows, kNumLegs * kLegBlock);
+    for (int k = 0; k < kNumLegs; ++k) {
+      for (int i = 0; i < kLegBlock; ++i) {
+        const double h = 1e-6;
+        RobotCalibration a = nominal, b = nominal;
+        LegParameter(&a, k, i) += h;
+        LegParameter(&b, k, i) -= h;
+        D.col(kLegBlock * k + i) =
+            (StackedResiduals(a, poses, options, fit) - StackedResiduals(b, poses, options, fit)) /
+            (2 * h);
+      }
+    }
+    const Eigen::MatrixXd A = Hinv * J.topRows(pose_rows).transpose() * D;
+    Eigen::MatrixXd C1s = Eigen::MatrixXd::Zero(D.cols(), D.cols());
+    for (int k = 0; k < kNumLegs; ++k)
+      C1s.block(kLegBlock * k, kLegBlock * k, kLegBlock, kLegBlock) = (*leg_covariance)[k];
+    C1 = C + A * C1s * A.transpose();
+  }
   const char* axes[3] = {"x", "y", "z"};
   auto sd = [](const Eigen::MatrixXd& m, int j) { return std::sqrt(std::max(0.0, m(j, j))); };
   for (int j = 0; j < n; ++j) {
@@ -299,6 +347,7 @@ void AddStanding(const RobotCalibration& nominal, const PlanDesign& design,
     p.sigma = scale * sd(C, j);
     p.reported = scale * sd(Crep, j);
     p.bound = scale * sd(Cb, j);
+    p.with_step1 = scale * sd(C1, j);
     if (j < 18) {
       p.name = std::string(kLegNames[k]) + " R~ " + axes[i];
       p.klass = i == 2 ? "rotation z" : "rotation x,y";
@@ -315,6 +364,7 @@ void AddStanding(const RobotCalibration& nominal, const PlanDesign& design,
   out->common_p_z.sigma = std::sqrt(a.dot(C * a));
   out->common_p_z.reported = std::sqrt(a.dot(Crep * a));
   out->common_p_z.bound = std::sqrt(a.dot(Cb * a));
+  out->common_p_z.with_step1 = std::sqrt(a.dot(C1 * a));
   out->standing_poses = static_cast<int>(poses.size());
 }
 
@@ -326,10 +376,10 @@ std::vector<ClassSummary> SummariseClasses(const std::vector<PredictedSigma>& pa
     const char* unit;
     double scale;
   };
-  const Unit units[] = {{"force offset", "N", 1.0},        {"torque offset", "mN m", 1e3},
-                        {"leg weight", "N", 1.0},          {"leg CoM", "mm", 1e3},
-                        {"leg CoM phase", "mrad", 1e3},    {"rotation x,y", "deg", 1.0},
-                        {"rotation z", "deg", 1.0},        {"p~'", "mm", 1e3},
+  const Unit units[] = {{"force offset", "N", 1.0},     {"torque offset", "mN m", 1e3},
+                        {"leg weight", "N", 1.0},       {"leg CoM", "mm", 1e3},
+                        {"leg CoM phase", "mrad", 1e3}, {"rotation x,y", "deg", 1.0},
+                        {"rotation z", "deg", 1.0},     {"p~'", "mm", 1e3},
                         {"p~'_z common", "mm", 1e3}};
   std::vector<ClassSummary> out;
   for (const Unit& u : units) {
@@ -377,17 +427,19 @@ PlanPrediction PredictPlan(const RobotCalibration& nominal, const PlanDesign& de
   }
   PlanPrediction out;
   std::array<double, kNumLegs> force_offset_sigma{};
+  std::array<Eigen::MatrixXd, kNumLegs> leg_covariance;
   if (!design.hanging.empty()) {
     Require(design.hanging.size() == kNumHangSeries,
             "step 1 needs all four hanging series, the plan has " +
                 std::to_string(design.hanging.size()));
     AddHanging(nominal, design, std::max(8, hanging_options.phase_bins), noise, &out,
-               &force_offset_sigma);
+               &force_offset_sigma, &leg_covariance);
     for (const PlannedHangSeries& s : design.hanging)
       out.hanging_samples += s.cycles * s.samples_per_cycle;
   }
   if (!design.poses.empty())
-    AddStanding(nominal, design, noise, standing_options, force_offset_sigma, &out);
+    AddStanding(nominal, design, noise, standing_options, force_offset_sigma,
+                design.hanging.empty() ? nullptr : &leg_covariance, &out);
   std::vector<PredictedSigma> all = out.parameters;
   if (!design.poses.empty()) all.push_back(out.common_p_z);
   out.classes = SummariseClasses(all);

@@ -24,11 +24,16 @@ void RequireField(double v, bool positive, const std::string& field) {
 
 HangSeries SeriesOf(config::HangOrientation o) {
   switch (o) {
-    case config::HANG_X_POS: return HangSeries::kXPos;
-    case config::HANG_X_NEG: return HangSeries::kXNeg;
-    case config::HANG_Z_POS: return HangSeries::kZPos;
-    case config::HANG_Z_NEG: return HangSeries::kZNeg;
-    default: break;
+    case config::HANG_X_POS:
+      return HangSeries::kXPos;
+    case config::HANG_X_NEG:
+      return HangSeries::kXNeg;
+    case config::HANG_Z_POS:
+      return HangSeries::kZPos;
+    case config::HANG_Z_NEG:
+      return HangSeries::kZNeg;
+    default:
+      break;
   }
   throw std::invalid_argument("hanging phase without an orientation");
 }
@@ -92,22 +97,23 @@ PlanDesign DesignOfPlan(const config::Config& config, const std::string& plan_na
       const StanceState st = twin.Equilibrium(s.to, all, internal);
       PlannedPose pp;
       for (int k = 0; k < kNumLegs; ++k) {
-        pp.pose.wrench[k] =
-            TransducerReading(*nominal, k, st.ground_w_C[k], s.to[k], st.R_WC);
+        pp.pose.wrench[k] = TransducerReading(*nominal, k, st.ground_w_C[k], s.to[k], st.R_WC);
         pp.pose.angle_rad[k] = s.to[k];
       }
       pp.pose.R_WC = st.R_WC;
       pp.samples = (s.duration_s - p.settle_s()) * rate;
       if (pp.samples < 1.0) {
-        throw std::invalid_argument("plan '" + schedule.plan_name + "', phase " +
-                                    std::to_string(s.phase + 1) + ": dwell_s " +
-                                    std::to_string(s.duration_s) +
-                                    " leaves no steady sample after planner.settle_s " +
-                                    std::to_string(p.settle_s()));
+        throw std::invalid_argument(
+            "plan '" + schedule.plan_name + "', phase " + std::to_string(s.phase + 1) +
+            ": dwell_s " + std::to_string(s.duration_s) +
+            " leaves no steady sample after planner.settle_s " + std::to_string(p.settle_s()));
       }
       d.poses.push_back(pp);
     }
   }
+  // COM_BY_DATA predicts the report's fixed C, whose residual step 1 enters only through the
+  // readings' offsets and the legs' gravity.
+  d.leg_aware_com = config.calibrator().com_model() == config::COM_LEG_AWARE;
   d.gravity_prior = config.calibrator().hanging_gravity_prior() &&
                     config.calibrator().profile() != config::REPORT;
   return d;

@@ -59,22 +59,29 @@ struct PlanDesign {
   std::vector<PlannedHangSeries> hanging;  // the four series (or none: no step-1 prediction)
   std::vector<PlannedPose> poses;
   bool gravity_prior = true;  // the hanging series carry motion capture
+  // Step 2's robot-CoM target: the report's fixed C, or the leg-aware CoM (through which step
+  // 1's CoM curves and leg weights enter step 2's residual).
+  bool leg_aware_com = false;
 };
 
 // The sigma of one parameter three ways (see the opening comment).
 struct PredictedSigma {
-  std::string name;    // "HL f_o x", "ML p~' z", ...
-  std::string klass;   // "force offset", "rotation x,y", ...
-  double sigma = 0.0;  // the calibrator's estimator, true noise (sandwich, full pose covariance)
-  double bound = 0.0;  // information bound (J^T S^-1 J)^-1
+  std::string name;       // "HL f_o x", "ML p~' z", ...
+  std::string klass;      // "force offset", "rotation x,y", ...
+  double sigma = 0.0;     // the calibrator's estimator, true noise (sandwich, full pose covariance)
+  double bound = 0.0;     // information bound (J^T S^-1 J)^-1
   double reported = 0.0;  // what the calibrator's covariance would say (per-component variances)
+  // `sigma` with step 1's own errors carried into step 2 (step 2 holds step 1's offsets, leg
+  // weights and CoM curves fixed, so its covariance leaves them out): sigma^2 + A C1 A^T with
+  // A the step-2 estimate's derivative by step 1's parameters. Equal to sigma for step 1.
+  double with_step1 = 0.0;
 };
 
 struct ClassSummary {
   std::string klass;
-  std::string unit;          // of the numbers below, as printed
-  double scale = 1.0;        // SI -> unit
-  double median_sigma = 0.0; // SI
+  std::string unit;           // of the numbers below, as printed
+  double scale = 1.0;         // SI -> unit
+  double median_sigma = 0.0;  // SI
   double median_reported = 0.0;
   double worst_sigma = 0.0;
   std::string worst_name;
@@ -87,6 +94,9 @@ struct PlanPrediction {
   // deviations from the mean), m: what the chassis tilt and the legs' loads each show.
   PredictedSigma common_p_z;
   int standing_poses = 0;
+  // The rms over poses of each residual component [fx fy fz tx ty tz] (N, N m, unweighted) the
+  // noise alone leaves: what the calibrator's residual should show if the noise were all.
+  Vec6 residual_rms = Vec6::Zero();
   double hanging_samples = 0.0;  // over the four series, per leg
 };
 
