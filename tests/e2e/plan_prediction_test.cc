@@ -5,6 +5,13 @@
 // configured with. The truth is the calibrator's own reported sigma (it comes from the data's
 // scatter: the spread over leg cycles in step 1, the residuals in step 2), so a prediction that
 // mis-counts samples, mis-propagates a noise or drops a parameter fails here.
+//
+// Environment knobs for the investigation of issue 41 (numbers in docs/method.md): the number
+// of seeds (FTCAL_PLAN_SEEDS), the report's whole experiment (FTCAL_PLAN_FULL), the CoM moving
+// with the legs (FTCAL_PLAN_MOVING_COM), the prediction linearised at the true mounting
+// (FTCAL_PLAN_AT_TRUTH), the twin's noise scaled (FTCAL_PLAN_NOISE_SCALE, or only the
+// attitude's FTCAL_PLAN_ATTITUDE_SCALE, only the readings' FTCAL_PLAN_READING_SCALE). With any
+// of them set, step 2 is also run from the true step 1. Without them it is the fast-tier check.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -38,6 +45,21 @@ TwinOptions TwinOf(const SmallPlan& plan, uint64_t seed) {
   o.pose_dwell_s = plan.dwell_s;
   // FTCAL_PLAN_MOVING_COM: the CoM moves with the legs (the leg-aware target).
   o.physical_com = std::getenv("FTCAL_PLAN_MOVING_COM") != nullptr;
+  // FTCAL_PLAN_NOISE_SCALE: every noise scaled (small: what is left of an error is a bias).
+  if (const char* scale = std::getenv("FTCAL_PLAN_NOISE_SCALE")) {
+    const double f = std::atof(scale);
+    o.force_noise_n *= f;
+    o.torque_noise_nm *= f;
+    o.attitude_noise_deg *= f;
+    o.marker_noise_m *= f;
+  }
+  // ... or only the attitude's (FTCAL_PLAN_ATTITUDE_SCALE), only the readings' (_READING_).
+  if (const char* scale = std::getenv("FTCAL_PLAN_ATTITUDE_SCALE"))
+    o.attitude_noise_deg *= std::atof(scale);
+  if (const char* scale = std::getenv("FTCAL_PLAN_READING_SCALE")) {
+    o.force_noise_n *= std::atof(scale);
+    o.torque_noise_nm *= std::atof(scale);
+  }
   return o;
 }
 
@@ -189,6 +211,8 @@ SeedResult RunSeed(const config::Config& config, const SmallPlan& plan, uint64_t
     r.by_parameter[p.name.substr(3)].push_back(p.reported / it->second);
   }
   r.common_error = CommonPzError(run.standing.fit, twin.Truth());
+  std::printf("plan prediction: seed %llu: selected %s\n", static_cast<unsigned long long>(seed),
+              CandidateName(run.standing.fit.model, run.standing.selected_leg_aware_com).c_str());
   Vec6 ms = Vec6::Zero();
   for (const Vec6& v : run.standing.residual_full) ms += v.cwiseAbs2();
   const Vec6 rms = (ms / run.standing.residual_full.size()).cwiseSqrt();
