@@ -134,12 +134,17 @@ int64_t SimLogWriter::Utime(double t_s) const {
 }
 
 double SimLogWriter::MeanLatencyS(int slot) const {
-  if (slot >= 0 && slot < kNumLegs) {
-    return ft_latency_s_[static_cast<size_t>(slot)] + 0.5 * kFtJitterS + options_.ft_delay_s;
+  if (slot < 0 || slot >= static_cast<int>(latency_sum_us_.size())) {
+    throw std::invalid_argument("sim log: no device slot " + std::to_string(slot));
   }
-  if (slot == kServoSlot) return kServoLatencyS + 0.5 * kServoJitterS + options_.servo_delay_s;
-  if (slot == kMocapSlot) return kMocapLatencyS + 0.5 * kMocapJitterS + options_.mocap_delay_s;
-  throw std::invalid_argument("sim log: no device slot " + std::to_string(slot));
+  const auto i = static_cast<size_t>(slot);
+  return latency_n_[i] > 0 ? 1e-6 * latency_sum_us_[i] / static_cast<double>(latency_n_[i]) : 0.0;
+}
+
+void SimLogWriter::NoteLatency(int slot, int64_t sample_utime, int64_t true_utime) {
+  const auto i = static_cast<size_t>(slot);
+  latency_sum_us_[i] += static_cast<double>(sample_utime - true_utime);
+  ++latency_n_[i];
 }
 
 bool SimLogWriter::HeldLater(const Held& a, const Held& b) {
@@ -188,11 +193,12 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
 
   for (int k = 0; k < kNumLegs; ++k) {
     ft_batch_t& m = ft_[k];
-    const int64_t utime =
-        stamps_->HostStamp(t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform() + options_.ft_delay_s) * 1e6));
+    const int64_t utime = stamps_->HostStamp(
+        t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform() + options_.ft_delay_s) * 1e6));
     const TwinDeviceStamps::Ft clock = stamps_->FtSample(k, f.t_s, utime);
     m.receipt_utime = utime;
     m.sample_utime[0] = clock.sample_utime;
+    NoteLatency(k, clock.sample_utime, t);
     ++m.rdt_sequence[0];  // 1 for the first record of the stream
     m.ft_sequence[0] = static_cast<uint32_t>(clock.counter);  // the wire's 32 bits
     for (size_t i = 0; i < 6; ++i) {
@@ -206,11 +212,13 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   // Consecutive frames 10 ms apart give a velocity; after a gap (a new scenario) the legs are
   // at rest.
   const bool consecutive = have_previous_ && f.t_s - previous_t_s_ < 1.5 / kFrameRateHz;
-  const int64_t servo_utime =
-      stamps_->HostStamp(t + std::llround((kServoLatencyS + kServoJitterS * Uniform() + options_.servo_delay_s) * 1e6));
+  const int64_t servo_utime = stamps_->HostStamp(
+      t +
+      std::llround((kServoLatencyS + kServoJitterS * Uniform() + options_.servo_delay_s) * 1e6));
   const TwinDeviceStamps::Servo& ticks = stamps_->ServoSample(f.t_s, servo_utime);
   servo_.utime = servo_utime;
   servo_.sample_utime = ticks.sample_utime;
+  NoteLatency(kServoSlot, ticks.sample_utime, t);
   for (int k = 0; k < kNumLegs; ++k) {
     // The MX-106 reports whole counts; the bridge maps them back with zero_count/direction.
     const double count =
@@ -230,13 +238,15 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   size_[kServoSlot] = EncodeInto(servo_, &buffer_[kServoSlot]);
   pending[kServoSlot] = {servo_utime, kServoSlot};
 
-  const int64_t mocap_utime =
-      stamps_->HostStamp(t + std::llround((kMocapLatencyS + kMocapJitterS * Uniform() + options_.mocap_delay_s) * 1e6));
+  const int64_t mocap_utime = stamps_->HostStamp(
+      t +
+      std::llround((kMocapLatencyS + kMocapJitterS * Uniform() + options_.mocap_delay_s) * 1e6));
   const TwinDeviceStamps::Mocap frame_clock = stamps_->MocapSample(f.t_s, mocap_utime);
   mocap_.utime = mocap_utime;
   mocap_.frame_number = 1 + std::llround(f.t_s * kFrameRateHz);
   mocap_.device_utime = frame_clock.device_utime;
   mocap_.sample_utime = frame_clock.sample_utime;
+  NoteLatency(kMocapSlot, frame_clock.sample_utime, t);
   mocap_.tracked = true;
   const Eigen::Vector4d q_gc = RotationToQuaternion(f.R_GC);
   const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(f.R_GC));

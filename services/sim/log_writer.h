@@ -63,8 +63,9 @@ struct SimLogOptions {
   // A constant extra delay per device on top of the seeded latency, s (>= 0): a USB-serial
   // adapter's latency timer on the servo bus, a Net F/T's filter, a mocap pipeline. The device
   // clocks (ft_sequence, device_tick_ms, device_utime) keep the sample instant; the host stamps
-  // (and FT_<LEG>'s sample_utime, which the bridge takes from it) move. Events are then written
-  // in stamp order across frames.
+  // move, and every sample_utime with them: a clock map cannot tell a constant delay from the
+  // clock's offset (docs/method.md, "Clocks and delays"). Events are then written in stamp
+  // order across frames.
   double ft_delay_s = 0.0;
   double servo_delay_s = 0.0;
   double mocap_delay_s = 0.0;
@@ -102,9 +103,11 @@ class SimLogWriter {
                    const std::string& note);
   // Host time of twin time t (no latency).
   int64_t Utime(double t_s) const;
-  // The mean of a device's host stamp minus its sample instant, s: seeded latency plus the
-  // extra delay. slot 0-5 the legs' transducers, 6 the servo bus, 7 motion capture. A test's
-  // truth for the servo-vs-transducer delay.
+  // The mean, over the frames written so far, of a device's sample time as the log carries it
+  // (sample_utime: its clock mapped as its bridge maps it, what every reader aligns by) minus
+  // the true sample instant, s. slot 0-5 the legs' transducers, 6 the servo bus, 7 motion
+  // capture. A test's truth for the servo-vs-transducer delay: measured on what the readers
+  // get, the clock maps' least delays included, not derived from the configured latencies.
   double MeanLatencyS(int slot) const;
   // The newest timestamp written so far, and the twin time of the last frame.
   int64_t last_utime() const { return last_utime_; }
@@ -155,6 +158,9 @@ class SimLogWriter {
   std::array<uint32_t, kNumLegs> ft_sequence0_{};  // power-up counter at the first record
   std::array<int64_t, kNumLegs> tick0_ms_{};
   std::unique_ptr<TwinDeviceStamps> stamps_;
+  std::array<double, kNumLegs + 2> latency_sum_us_{};  // MeanLatencyS's, per device slot
+  std::array<int64_t, kNumLegs + 2> latency_n_{};
+  void NoteLatency(int slot, int64_t sample_utime, int64_t true_utime);
 
   // Messages and encode buffers reused for every frame (no allocation per event).
   std::array<ft_batch_t, kNumLegs> ft_;

@@ -84,7 +84,7 @@ struct Delays {
 
 struct Collected {
   std::vector<HangingRecording> hanging;
-  double true_delay_s = 0.0;  // servo's mean stamp latency minus the pace leg's transducer's
+  double true_delay_s = 0.0;  // servo's mean sample-time latency minus the pace leg's transducer's
 };
 
 // The twin's hanging series through a sim log with `delays`, read back by the collector.
