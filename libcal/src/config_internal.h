@@ -149,6 +149,7 @@ Mat3 RowMajor(const config::Pose& pose);
 void ValidateRobot(const Node& node, const config::Robot& robot);
 void ValidateMocap(const Node& node, const config::Mocap& mocap);
 void ValidateDynamixel(const Node& node, const config::DynamixelBus& bus);
+void ValidateDrift(const Node& node, const config::Drift& drift);
 
 // Every section of a parsed config, each error with its file:line:column and field path
 // (config_validate.cc).

@@ -519,6 +519,7 @@ void Validate(const config::Config& config, const ParseInfoTree* tree, const std
   ValidateSegmenter(root.Child("segmenter", config.segmenter()), config.segmenter());
   ValidateCalibrator(root.Child("calibrator", config.calibrator()), config.calibrator());
   ValidateCorrector(root.Child("corrector", config.corrector()), config.corrector());
+  ValidateDrift(root.Child("drift", config.drift()), config.drift());
   ValidateChannels(root.Child("channels", config.channels()), config.channels());
   if (config.lcm_url().empty()) root.Error("lcm_url", "must not be empty");
   ValidateRoutes(root, config);

@@ -284,6 +284,7 @@ double WriteExperiment(const BigAntTwin& twin, const ExperimentPlan& plan, SimLo
     RunOptions options;
     options.t0_s = t;
     options.drift_from_s = plan.drift_at_s;
+    options.offset_change = plan.offset_change;
     const double end = scenario(options);
     writer->WriteMarker(
         std::max(writer->last_utime(), writer->Utime(writer->last_frame_t_s()) + 9000), phase,

@@ -21,6 +21,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <limits>
 #include <memory>
 #include <random>
@@ -147,6 +148,8 @@ struct ExperimentPlan {
   double walk_s = 120.0;
   double gap_s = 2.0;
   double drift_at_s = std::numeric_limits<double>::infinity();  // twin time
+  // Offsets moving during the session (RunOptions::offset_change, sim/offset_drift.h).
+  std::function<Vec6(int leg, double t_s)> offset_change;
 };
 
 // Runs the plan on the twin into the writer (not committed). Returns the twin time at the end.

@@ -40,6 +40,7 @@
 #include "sim/live_flags.h"
 #include "sim/operator_fifo.h"
 #include "sim/log_writer.h"
+#include "sim/offset_drift.h"
 #include "sim/twin.h"
 
 namespace {
@@ -223,6 +224,25 @@ int main(int argc, char** argv) try {
                   "truth file, <truth stem>.drifted.pbtxt)");
   log->add_option("--drift-at-s", plan.drift_at_s,
                   "twin time (s from the first frame) from which the transducer offsets drift");
+  std::vector<std::string> drift_steps, drift_ramps, drift_warmups;
+  std::string drift_csv_path;
+  double drift_csv_period_s = 1.0;
+  log->add_option("--drift-step", drift_steps,
+                  "offsets that jump during the session (a leg knocks something), repeatable: "
+                  "LEG:AT_S:fx,fy,fz,tx,ty,tz (N, N*m; LEG a leg name or all; twin time)");
+  log->add_option("--drift-ramp", drift_ramps,
+                  "offsets that creep linearly, repeatable: LEG:FROM_S:UNTIL_S:fx,fy,fz,tx,ty,tz "
+                  "(the whole change, held after UNTIL_S)");
+  log->add_option("--drift-warmup", drift_warmups,
+                  "offsets that settle after power-up, repeatable: "
+                  "LEG:FROM_S:TAU_S:fx,fy,fz,tx,ty,tz (change * (1 - exp(-(t - FROM_S)/TAU_S)))");
+  log->add_option("--drift-truth-csv", drift_csv_path,
+                  "with --drift-*: the drifted offsets over time, per leg and axis (default: next "
+                  "to the log, <log stem>.drift.csv)");
+  log->add_option("--drift-truth-period-s", drift_csv_period_s,
+                  "row spacing of --drift-truth-csv in twin time (steps get rows at both sides)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.001, 3600.0));
   log->add_option("--walk-s", plan.walk_s, "walking duration, s")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
@@ -289,11 +309,39 @@ int main(int argc, char** argv) try {
       drifted_truth_path = BesidePath(truth_path, ".drifted.pbtxt");
     }
 
+    ftcal::OffsetDrift moving;
+    for (const std::string& v : drift_steps)
+      moving.AddFlag(ftcal::OffsetDriftTerm::Shape::kStep, v, "--drift-step");
+    for (const std::string& v : drift_ramps)
+      moving.AddFlag(ftcal::OffsetDriftTerm::Shape::kRamp, v, "--drift-ramp");
+    for (const std::string& v : drift_warmups)
+      moving.AddFlag(ftcal::OffsetDriftTerm::Shape::kWarmup, v, "--drift-warmup");
+    if (!drift_csv_path.empty() && moving.empty()) {
+      throw std::invalid_argument(
+          "--drift-truth-csv needs --drift-step, --drift-ramp or "
+          "--drift-warmup (no moving offsets, nothing to write)");
+    }
+    if (!moving.empty()) {
+      plan.offset_change = [&moving](int k, double t) { return moving.OffsetChange(k, t); };
+      if (drift_csv_path.empty()) drift_csv_path = BesidePath(out_path, ".drift.csv");
+    }
+
     const auto started = std::chrono::steady_clock::now();
     ftcal::SimLogWriter writer(config, out_path, log_options);
     const double end_s = ftcal::WriteExperiment(twin, plan, &writer);
     twin.WriteTruthFile(truth_path);
     if (drift) twin.WriteTruthFile(drifted_truth_path, /*drifted=*/true);
+    if (!moving.empty()) {
+      const double drift_at = plan.drift_at_s;
+      ftcal::WriteFileAtomic(
+          drift_csv_path,
+          ftcal::DriftTruthCsv(
+              moving, twin.Truth(),
+              [&twin, drift_at](double t) -> const ftcal::RobotCalibration& {
+                return t >= drift_at ? twin.DriftedTruth() : twin.Truth();
+              },
+              [&writer](double t) { return writer.Utime(t); }, end_s, drift_csv_period_s));
+    }
     const std::string digest = writer.Commit();
     const double wall_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
@@ -311,6 +359,9 @@ int main(int argc, char** argv) try {
     if (drift)
       std::printf("ftcal-sim log: offsets drift from %.1f s; drifted truth %s\n", plan.drift_at_s,
                   drifted_truth_path.c_str());
+    if (!moving.empty())
+      std::printf("ftcal-sim log: %zu moving offset terms; the drifted truth over time %s\n",
+                  moving.terms().size(), drift_csv_path.c_str());
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "ftcal-sim log: %s\n",

@@ -203,6 +203,8 @@ class BigAntTwin::Generator {
     f.com_shift_C = state.com_shift_C;
     for (int k = 0; k < kNumLegs; ++k) {
       Vec6 w = TransducerReading(cal, k, state.ground_w_C[k], angle_rad[k], state.R_WC);
+      f.offset_change[k] = run_.offset_change ? run_.offset_change(k, t_s) : Vec6::Zero();
+      w += f.offset_change[k];
       for (int i = 0; i < 6; ++i) {
         const bool force = i < 3;
         w[i] += (force ? o.force_noise_n : o.torque_noise_nm) * rng_.Normal();

@@ -138,6 +138,8 @@ struct TwinFrame {
   std::array<Vec6, kNumLegs> ground_w_C;  // ground on foot k, in C about C's origin
   Vec3 com_shift_C = Vec3::Zero();        // actual CoM - C (zero with a fixed CoM)
   bool drifted = false;                   // offsets are the drifted ones
+  // What RunOptions::offset_change added to each leg's offsets at this frame (zero without).
+  std::array<Vec6, kNumLegs> offset_change;
 };
 
 using FrameSink = std::function<void(const TwinFrame&)>;
@@ -146,6 +148,9 @@ struct RunOptions {
   double t0_s = 0.0;
   // From this time on the transducer offsets are the drifted ones (DriftedTruth()).
   double drift_from_s = std::numeric_limits<double>::infinity();
+  // Offsets that move during the run (sim/offset_drift.h): added to leg k's offsets at twin
+  // time t, on top of the truth's (or the drifted truth's). Empty: none.
+  std::function<Vec6(int leg, double t_s)> offset_change;
 };
 
 // The quasi-static state of the robot standing on the feet in `contact`.

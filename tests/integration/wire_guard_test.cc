@@ -27,6 +27,7 @@
 #include "ftcal/process_state_t.hpp"
 #include "ftcal/service_status_t.hpp"
 #include "ftcal/sequencer_control_t.hpp"
+#include "ftcal/drift_t.hpp"
 #include "ftcal/servo_command_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
@@ -101,12 +102,37 @@ TEST(WireSchemaTest, EveryMessageTypeHasASchemaWithLcmGensFingerprint) {
   ExpectSchemaMatches<contact_wrench_sum_t>();
   ExpectSchemaMatches<sequencer_control_t>();
   ExpectSchemaMatches<process_state_t>();
+  ExpectSchemaMatches<drift_t>();
   ExpectSchemaMatches<ftcal_test::crafted_t>();
   // One schema per .lcm file, none left over: a type the guard does not know is refused.
-  EXPECT_EQ(wire::FtcalSchemas().size(), 14u);
+  EXPECT_EQ(wire::FtcalSchemas().size(), 15u);
 }
 
 // ---- well-formed messages pass, and decode to what was sent ----
+
+// DRIFT is all fixed-size arrays: its bound is its exact size. One byte short or over is refused
+// before the decoder runs.
+TEST(WireGuardTest, DriftHasExactlyItsFixedSize) {
+  drift_t d{};
+  d.utime = 1'700'000'000'000'000;
+  d.status = drift_t::WARN;
+  d.offset_change[4][5] = 0.05;
+  d.warn_mask[4] = 63;
+  d.balance_force_rms_n[0] = std::numeric_limits<double>::quiet_NaN();
+  auto bytes = Encode(d);
+  drift_t got;
+  ASSERT_FALSE(wire::Decode(bytes.data(), static_cast<int>(bytes.size()), &got));
+  EXPECT_EQ(got.offset_change[4][5], 0.05);
+  EXPECT_EQ(got.warn_mask[4], 63);
+  EXPECT_TRUE(std::isnan(got.balance_force_rms_n[0]));
+  const auto short_by_one = wire::Decode(bytes.data(), static_cast<int>(bytes.size()) - 1, &got);
+  ASSERT_TRUE(short_by_one);
+  EXPECT_EQ(short_by_one->kind, "array past the end");
+  bytes.push_back(0);
+  const auto over_by_one = wire::Decode(bytes.data(), static_cast<int>(bytes.size()), &got);
+  ASSERT_TRUE(over_by_one);
+  EXPECT_EQ(over_by_one->kind, "trailing bytes");
+}
 
 mocap_body_t Mocap(int markers) {
   mocap_body_t m{};
