@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
+#include <limits>
 #include <stdexcept>
 #include <string>
 
@@ -16,6 +18,16 @@ constexpr double kRefitEveryS = 0.5;
 constexpr double kYoungRefitEveryS = 0.05;
 constexpr double kYoungS = 10.0;
 constexpr size_t kSlicesPerEpoch = 4;
+// SyncReadClock: the window over which the least bound on the bus time is taken (long enough for
+// the servos' millisecond edges to fall close to many reads' instants, short enough to follow a
+// change of the bus's timing), and how far outside the intervals' intersection an estimate may
+// fall (the maps' own error, tens of us) before the intersection's middle is preferred.
+constexpr double kBoundWindowS = 30.0;
+constexpr double kBoundSlackUs = 250.0;
+// A map's rate is known to a ppm only once its fit spans this much: a tick resolves a
+// millisecond, so a younger map extrapolates early or late by hundreds of us, and one early
+// bound would hold for the whole window.
+constexpr double kMatureSpanS = 30.0;
 
 // > 0 when o -> a -> b turns counter-clockwise (b above the line through o and a).
 double Cross(double ox, double oy, double ax, double ay, double bx, double by) {
@@ -181,6 +193,71 @@ int64_t DeviceClock::Observe(int64_t ticks, int64_t receipt_us) {
 int64_t DeviceClock::Map(int64_t ticks) const {
   const double x = static_cast<double>(ticks - origin_ticks_) / options_.nominal_hz;
   return origin_us_ + std::llround(LineAt(x) * 1e6);
+}
+
+SyncReadClock::SyncReadClock(int servos, DeviceClockOptions options) : options_(options) {
+  if (servos < 1) {
+    throw std::invalid_argument("sync read clock: " + std::to_string(servos) + " servos");
+  }
+  options_.nominal_hz = 1000.0;  // the Realtime Tick counts milliseconds
+  for (int i = 0; i < servos; ++i) clocks_.push_back(std::make_unique<DeviceClock>(options_));
+}
+
+void SyncReadClock::Reset(int servo) {
+  clocks_.at(static_cast<size_t>(servo)) = std::make_unique<DeviceClock>(options_);
+}
+
+int64_t SyncReadClock::Observe(const int64_t* ticks, const bool* answered, int64_t completion_us,
+                               int64_t request_us) {
+  double lo = -std::numeric_limits<double>::infinity();
+  double hi = std::numeric_limits<double>::infinity();
+  intervals_.clear();
+  mature_highs_.clear();
+  middles_.clear();
+  for (size_t i = 0; i < clocks_.size(); ++i) {
+    if (!answered[i]) continue;
+    DeviceClock& c = *clocks_[i];
+    c.Observe(ticks[i], completion_us);
+    const auto a = static_cast<double>(c.Map(ticks[i]));
+    const auto b = static_cast<double>(c.Map(ticks[i] + 1));
+    lo = std::max(lo, a);
+    hi = std::min(hi, b);
+    intervals_.emplace_back(a, b);
+    if (c.fit_span_s() >= kMatureSpanS) mature_highs_.push_back(b);
+    middles_.push_back(0.5 * (a + b));
+  }
+  if (middles_.empty()) return completion_us;
+  if (request_us != kNoRequest && !mature_highs_.empty()) {
+    // A host clock stepped back: bounds from before say nothing now.
+    if (!bounds_.empty() && request_us < bounds_.back().first) bounds_.clear();
+    // The second lowest upper edge when there are three or more: one map that slipped early
+    // (its rate misjudged over a short span) must not pull the bound for a whole window.
+    std::sort(mature_highs_.begin(), mature_highs_.end());
+    const double high = mature_highs_[mature_highs_.size() >= 3 ? 1 : 0];
+    const double bound = high - static_cast<double>(request_us);
+    while (!bounds_.empty() && bounds_.back().second >= bound) bounds_.pop_back();
+    bounds_.emplace_back(request_us, bound);
+    while (bounds_.front().first < request_us - std::llround(kBoundWindowS * 1e6)) {
+      bounds_.pop_front();
+    }
+    // Used when most of this read's intervals hold it (within the maps' own error): else the
+    // bound has gone stale (the bus's timing changed) and the intervals decide.
+    const double t = static_cast<double>(request_us) + bounds_.front().second;
+    size_t holding = 0;
+    for (const auto& [a, b] : intervals_) {
+      holding += t >= a - kBoundSlackUs && t <= b + kBoundSlackUs;
+    }
+    if (2 * holding > intervals_.size()) {
+      return std::min(completion_us, static_cast<int64_t>(std::llround(t)));
+    }
+  }
+  double t = 0.5 * (lo + hi);
+  if (!(lo <= hi)) {
+    const auto mid = middles_.begin() + static_cast<std::ptrdiff_t>(middles_.size() / 2);
+    std::nth_element(middles_.begin(), mid, middles_.end());
+    t = *mid;
+  }
+  return std::min(completion_us, static_cast<int64_t>(std::llround(t)));
 }
 
 }  // namespace ftcal

@@ -189,7 +189,8 @@ FtBatch BatchOf(const FtInput& in, int64_t receipt_utime) {
 
 ServoInput FromLcm(const servo_state_t& msg) {
   ServoInput in;
-  in.utime = msg.utime;
+  // The sampling instant, not the completion: a reply can wait a USB adapter's latency timer.
+  in.utime = msg.sample_utime;
   std::array<bool, kNumLegs> seen{};
   for (int i = 0; i < kNumLegs; ++i) {
     const auto k = LegIndex(msg.leg[i]);
@@ -215,8 +216,8 @@ ServoInput FromLcm(const servo_state_t& msg) {
 
 std::optional<ServoInput> PeekServoState(const void* data, int size) {
   // After the six names: id[6] (int32), angle_rad, velocity_rad_s, current_a (double[6]),
-  // hardware_error[6] (int32), device_tick_ms[6] (int64), flags[6] (int32).
-  constexpr int kAfterLegs = 6 * 4 + 3 * 6 * 8 + 6 * 4 + 6 * 8 + 6 * 4, kAngles = 6 * 4;
+  // hardware_error[6] (int32), device_tick_ms[6] (int64), flags[6] (int32), sample_utime (int64).
+  constexpr int kAfterLegs = 6 * 4 + 3 * 6 * 8 + 6 * 4 + 6 * 8 + 6 * 4 + 8, kAngles = 6 * 4;
   const auto* p = static_cast<const uint8_t*>(data);
   if (size < 16 || Int64At(p) != servo_state_t::getHash()) return std::nullopt;
   std::array<int, kNumLegs> leg_of{};
@@ -237,14 +238,14 @@ std::optional<ServoInput> PeekServoState(const void* data, int size) {
   }
   if (size != at + kAfterLegs) return std::nullopt;
   ServoInput in;
-  in.utime = Int64At(p + 8);
+  in.utime = Int64At(p + size - 8);  // sample_utime, the last member
   for (int i = 0; i < kNumLegs; ++i) in.angle_rad[leg_of[i]] = DoubleAt(p + at + kAngles + 8 * i);
   return in;
 }
 
 servo_state_t ToLcm(const ServoInput& in) {
   servo_state_t msg{};
-  msg.utime = in.utime;
+  msg.utime = msg.sample_utime = in.utime;
   for (int k = 0; k < kNumLegs; ++k) {
     msg.leg[k] = kLegNames[k];
     msg.angle_rad[k] = in.angle_rad[k];
@@ -278,16 +279,16 @@ MocapInput MocapInputOf(int64_t utime, bool tracked, const double q_wc[4], bool 
 MocapInput FromLcm(const mocap_body_t& msg, int chassis_markers) {
   bool all = msg.tracked && msg.num_markers >= chassis_markers;
   for (int i = 0; all && i < msg.num_markers; ++i) all = msg.marker_tracked[i];
-  return MocapInputOf(msg.utime, msg.tracked, msg.q_wc, all);
+  return MocapInputOf(msg.sample_utime, msg.tracked, msg.q_wc, all);
 }
 
 std::optional<MocapInput> PeekMocapBody(const void* data, int size, std::string_view body,
                                         int chassis_markers) {
   // The body's name is at 32, after utime, frame_number, device_utime; after it: tracked
   // (boolean), q_wc[4], q_gc[4], position_m[3], yaw_rad, residual_m (double), num_markers
-  // (int32), marker_m[n][3] (double), marker_tracked[n] (boolean).
+  // (int32), marker_m[n][3] (double), marker_tracked[n] (boolean), sample_utime (int64).
   constexpr int kName = 32, kQwc = 1, kMarkers = 1 + 8 * (4 + 4 + 3 + 1 + 1);
-  constexpr int kAfterName = kMarkers + 4;
+  constexpr int kAfterName = kMarkers + 4 + 8;
   // Few markers only: the wire guard's bound on the decoded size then cannot refuse it.
   constexpr int kMaxMarkers = 16;
   const auto* p = static_cast<const uint8_t*>(data);
@@ -304,7 +305,7 @@ std::optional<MocapInput> PeekMocapBody(const void* data, int size, std::string_
       after[0] > 1) {
     return std::nullopt;
   }
-  const uint8_t* marker_tracked = after + kAfterName + 24 * n;
+  const uint8_t* marker_tracked = after + kMarkers + 4 + 24 * n;
   bool all = after[0] == 1 && n >= chassis_markers;
   for (int i = 0; i < n; ++i) {
     if (marker_tracked[i] > 1) return std::nullopt;
@@ -312,12 +313,12 @@ std::optional<MocapInput> PeekMocapBody(const void* data, int size, std::string_
   }
   double q_wc[4];
   for (int i = 0; i < 4; ++i) q_wc[i] = DoubleAt(after + kQwc + 8 * i);
-  return MocapInputOf(Int64At(p + 8), after[0] == 1, q_wc, all);
+  return MocapInputOf(Int64At(p + size - 8), after[0] == 1, q_wc, all);
 }
 
 mocap_body_t ToLcm(const MocapInput& in, const std::string& body, int chassis_markers) {
   mocap_body_t msg{};
-  msg.utime = in.utime;
+  msg.utime = msg.sample_utime = in.utime;
   msg.body = body;
   msg.tracked = in.tracked;
   if (in.tracked) {

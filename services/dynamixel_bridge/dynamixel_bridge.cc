@@ -116,6 +116,7 @@ bool DynamixelBridge::Connect() {
     // A new port session: the ticks seen before it say nothing about the next one (the outage
     // may have been longer than a wrap, or the servos rebooted).
     s.ticks.Reset();
+    sample_clock_.Reset(static_cast<int>(i));
     s.tick_known = false;
     s.lost = false;
     s.probe_outstanding = false;
@@ -327,6 +328,8 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
   fresh->assign(servos_.size(), false);
   const std::vector<std::size_t> slots = ActiveSlots();
   std::vector<bool> repeated(servos_.size(), false);
+  // The servos sample a constant bus time after the request: the read's instant (Publish).
+  read_request_utime_ = now_utime_();
   const std::vector<bool> got =
       slots.empty()
           ? std::vector<bool>{}
@@ -348,6 +351,7 @@ void DynamixelBridge::ReadPresent(std::vector<bool>* fresh) {
                       now - s.last_read > std::chrono::duration_cast<Clock::duration>(
                                               std::chrono::duration<double>(kTickUnwrapMaxGapS))) {
                     s.ticks.Reset();
+                    sample_clock_.Reset(static_cast<int>(i));
                     s.tick_known = false;
                   }
                   // Protocol 2.0 has no sequence number: under load a reply that missed its
@@ -490,29 +494,6 @@ void DynamixelBridge::Cycle() {
   if (!port_) return;  // lost during the cycle: nothing trustworthy to publish
   last_fresh_ = fresh;
   Publish(now_utime_(), fresh);
-}
-
-void DynamixelBridge::Publish(std::int64_t utime, const std::vector<bool>& fresh) {
-  servo_state_t msg;
-  msg.utime = utime;
-  const double nan = std::numeric_limits<double>::quiet_NaN();
-  for (std::size_t i = 0; i < servos_.size(); ++i) {  // six: checked at construction
-    const ServoSlot& s = servos_[i];
-    msg.leg[i] = s.leg;
-    msg.id[i] = s.id;
-    msg.angle_rad[i] = s.ever_read ? s.angle_rad : nan;
-    msg.velocity_rad_s[i] = s.ever_read ? s.velocity_rad_s : nan;
-    msg.current_a[i] = s.ever_read ? s.current_a : nan;
-    msg.hardware_error[i] = s.hardware_error;
-    msg.device_tick_ms[i] = s.tick_ms;
-    int32_t flags = 0;
-    if (!fresh[i]) flags |= servo_state_t::FLAG_STALE;
-    if (s.lost) flags |= servo_state_t::FLAG_LOST;
-    if (s.hardware_error != 0 || s.alert) flags |= servo_state_t::FLAG_HW_ERROR;
-    if (s.torque_enable == 0) flags |= servo_state_t::FLAG_TORQUE_OFF;
-    msg.flags[i] = flags;
-  }
-  publish_(msg);
 }
 
 void DynamixelBridge::DrainLate() {

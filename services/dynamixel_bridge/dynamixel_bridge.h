@@ -30,6 +30,8 @@
 #include <vector>
 
 #include "common/service_stats.h"
+#include "ftcal/device_clock.h"
+#include "ftcal/legs.h"
 #include "ftcal/servo_command_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "proto/config.pb.h"
@@ -156,6 +158,10 @@ class DynamixelBridge : private ServoSetup::Link {
   ServiceStats& stats_;
   Publisher publish_;
   std::function<int64_t()> now_utime_;
+  // Each servo's Realtime Tick mapped onto the host clock, one instant per read (SERVO_STATE's
+  // sample_utime; docs/method.md, "Clocks and delays").
+  SyncReadClock sample_clock_{kNumLegs, DeviceClockOptions{}};
+  std::int64_t read_request_utime_ = SyncReadClock::kNoRequest;  // this cycle's Sync Read sent
   std::string device_;
   std::uint32_t baud_;
   double reply_timeout_s_;

@@ -157,7 +157,48 @@ ftcal::servo_state_t FromLegacy(const ftcal_pre_fixed6::servo_state_t& old) {
   CopyExactly(old.hardware_error, s.hardware_error, "hardware_error");
   CopyExactly(old.device_tick_ms, s.device_tick_ms, "device_tick_ms");
   CopyExactly(old.flags, s.flags, "flags");
+  s.sample_utime = old.utime;  // what every reader aligned by then
   return s;
+}
+
+ftcal::servo_state_t FromLegacy(const ftcal_pre_sample_time::servo_state_t& old) {
+  ftcal::servo_state_t s{};
+  s.utime = old.utime;
+  for (int i = 0; i < 6; ++i) {
+    s.leg[i] = old.leg[i];
+    s.id[i] = old.id[i];
+    s.angle_rad[i] = old.angle_rad[i];
+    s.velocity_rad_s[i] = old.velocity_rad_s[i];
+    s.current_a[i] = old.current_a[i];
+    s.hardware_error[i] = old.hardware_error[i];
+    s.device_tick_ms[i] = old.device_tick_ms[i];
+    s.flags[i] = old.flags[i];
+  }
+  // The completion time stood for the sample's then; mapping the ticks afresh would change
+  // what an older log calibrates to.
+  s.sample_utime = old.utime;
+  return s;
+}
+
+ftcal::mocap_body_t FromLegacy(const ftcal_pre_sample_time::mocap_body_t& old) {
+  ftcal::mocap_body_t m{};
+  m.utime = old.utime;
+  m.frame_number = old.frame_number;
+  m.device_utime = old.device_utime;
+  m.body = old.body;
+  m.tracked = old.tracked;
+  for (int i = 0; i < 4; ++i) {
+    m.q_wc[i] = old.q_wc[i];
+    m.q_gc[i] = old.q_gc[i];
+  }
+  for (int i = 0; i < 3; ++i) m.position_m[i] = old.position_m[i];
+  m.yaw_rad = old.yaw_rad;
+  m.residual_m = old.residual_m;
+  m.num_markers = old.num_markers;
+  m.marker_m = old.marker_m;
+  m.marker_tracked = old.marker_tracked;
+  m.sample_utime = old.utime;  // the receipt stood for the frame's instant then
+  return m;
 }
 
 ftcal::sync_sample_t FromLegacy(const ftcal_pre_fixed6::sync_sample_t& old) {
@@ -221,6 +262,12 @@ std::vector<uint8_t> ConvertMessage(const void* data, int size, std::string* ver
   }
   if (fp == ftcal_pre_fixed6::servo_state_t::getHash()) {
     return Convert<ftcal_pre_fixed6::servo_state_t>(data, size);
+  }
+  if (fp == ftcal_pre_sample_time::servo_state_t::getHash()) {
+    return Convert<ftcal_pre_sample_time::servo_state_t>(data, size);
+  }
+  if (fp == ftcal_pre_sample_time::mocap_body_t::getHash()) {
+    return Convert<ftcal_pre_sample_time::mocap_body_t>(data, size);
   }
   if (fp == ftcal_pre_fixed6::sync_sample_t::getHash()) {
     return Convert<ftcal_pre_fixed6::sync_sample_t>(data, size);

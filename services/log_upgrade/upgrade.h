@@ -26,6 +26,7 @@
 #include "ftcal/contact_wrench_sum_t.hpp"
 #include "ftcal/contact_wrench_t.hpp"
 #include "ftcal/ft_batch_t.hpp"
+#include "ftcal/mocap_body_t.hpp"
 #include "ftcal/sequencer_control_t.hpp"
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal/steady_pose_t.hpp"
@@ -37,6 +38,8 @@
 #include "ftcal_pre_fixed6/steady_pose_t.hpp"
 #include "ftcal_pre_fixed6/sync_sample_t.hpp"
 #include "ftcal_pre_nonce/sequencer_control_t.hpp"
+#include "ftcal_pre_sample_time/mocap_body_t.hpp"
+#include "ftcal_pre_sample_time/servo_state_t.hpp"
 #include "ftcal_pre_scatter/steady_pose_t.hpp"
 
 namespace ftcal::log_upgrade {
@@ -65,6 +68,11 @@ ftcal::contact_wrench_sum_t FromLegacy(const ftcal_pre_batch::contact_wrench_sum
 // num_servos / num_legs must be six (the current arrays are fixed at six): else
 // std::invalid_argument naming the count.
 ftcal::servo_state_t FromLegacy(const ftcal_pre_fixed6::servo_state_t& old);
+// Before the mapped sample times: sample_utime = the old utime (the completion of the sync
+// read, the receipt of the mocap frame), what every reader aligned by then, so an upgraded log
+// calibrates as it did.
+ftcal::servo_state_t FromLegacy(const ftcal_pre_sample_time::servo_state_t& old);
+ftcal::mocap_body_t FromLegacy(const ftcal_pre_sample_time::mocap_body_t& old);
 ftcal::sync_sample_t FromLegacy(const ftcal_pre_fixed6::sync_sample_t& old);
 // Without the within-pose scatter: wrench_sem and attitude_sem_rad NaN ("not computed", the
 // current definition's word for it; the calibrator then takes the pose without its scatter).

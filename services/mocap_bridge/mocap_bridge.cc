@@ -566,6 +566,7 @@ void MocapBridge::HandleData(const qtm::Packet& packet) {
   msg.utime = now_utime_();
   msg.frame_number = frame.frame_number;
   msg.device_utime = frame.timestamp_us;
+  msg.sample_utime = frame_clock_.Observe(frame.timestamp_us, msg.utime);
   msg.body = options_.body_name;
   msg.tracked = tracked;
   const double nan = std::numeric_limits<double>::quiet_NaN();

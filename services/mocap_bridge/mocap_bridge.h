@@ -20,6 +20,7 @@
 
 #include "common/device.h"
 #include "common/service_stats.h"
+#include "ftcal/device_clock.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "proto/config.pb.h"
 #include "qtm_protocol.h"
@@ -107,6 +108,9 @@ class MocapBridge : public Device {
   ServiceStats& stats_;
   PublishFn publish_;
   ClockFn now_utime_;
+  // QTM's frame timestamp (us) mapped onto the host clock (docs/method.md, "Clocks and delays");
+  // a timestamp that falls (a new measurement) starts the map afresh.
+  DeviceClock frame_clock_{DeviceClockOptions{1e6}};
 
   int fd_ = -1;
   bool polled_fd_ = false;        // AddPollFds appended fd_

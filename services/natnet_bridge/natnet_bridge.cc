@@ -404,7 +404,7 @@ void NatNetBridge::HandleServerInfo(const natnet::Packet& p) {
                       info.multicast ? "multicast" : "unicast",
                       options_.multicast ? "multicast" : "unicast");
   }
-  offset_window_.clear();
+  motive_clock_.reset();
   link_ = Link::kAwaitDescriptions;
   next_keepalive_ = After(options_.keepalive_s);
   if (options_.bitstream) SendToServer(natnet::kRequest, natnet::EncodeString("Bitstream"));
@@ -492,7 +492,7 @@ void NatNetBridge::ResetSession() {
   server_up_not_streaming_ = false;
   got_frame_ = false;
   edit_mode_ = false;
-  offset_window_.clear();
+  motive_clock_.reset();
 }
 
 void NatNetBridge::OnTimer() {

@@ -17,7 +17,7 @@
 
 #include <chrono>
 #include <cstdint>
-#include <deque>
+#include <memory>
 #include <functional>
 #include <optional>
 #include <stdexcept>
@@ -27,6 +27,7 @@
 #include "common/device.h"
 #include "common/service_stats.h"
 #include "frame_sequence.h"
+#include "ftcal/device_clock.h"
 #include "ftcal/geometry.h"
 #include "ftcal/mocap_body_t.hpp"
 #include "natnet_protocol.h"
@@ -90,7 +91,6 @@ struct NatNetBridgeOptions {
   // An unanswered NAT_CONNECT is sent again this often: a restarted Motive streams to a unicast
   // client only once it connects again, so the client must not wait out a reply timeout.
   double connect_repeat_s = 0.05;
-  double clock_window_s = 5.0;  // the minimum-transit window of the clock offset
 };
 
 // From the config's mocap section (body_name, natnet). Throws NatNetConfigError naming the field.
@@ -133,9 +133,8 @@ class NatNetBridge : public Device {
   std::string health_reason() const;
   static std::string LinkName(Link link);
   natnet::Version version() const { return version_; }
-  // Motive's clock mapped to the host's: host_us = ticks / f * 1e6 + offset (nullopt before
-  // the first frame of this session).
-  std::optional<double> clock_offset_us() const;
+  // Motive's clock mapped onto the host's (null before the first frame of this session).
+  const DeviceClock* motive_clock() const { return motive_clock_.get(); }
 
   // Handles one datagram as if it had arrived from `from_server` (tests, benchmarks).
   void HandleDatagram(const uint8_t* data, size_t size, bool from_server);
@@ -188,9 +187,10 @@ class NatNetBridge : public Device {
   std::optional<Clock::time_point> retry_descriptions_at_;
 
   natnet::FrameSequence sequence_;
-  // Sliding minimum of (receipt - transmit) over clock_window_s: the clock offset plus the
-  // smallest transit seen, Motive's clock mapped onto the host's without echoes (§5.3).
-  std::deque<std::pair<int64_t, double>> offset_window_;
+  // Motive's high-resolution clock mapped onto the host's by the lower envelope of (transmit
+  // ticks, receipt) (§5.3; docs/method.md, "Clocks and delays"): its offset plus the smallest
+  // transit, and its rate, without echoes. Made afresh with each SERVERINFO (its frequency).
+  std::unique_ptr<DeviceClock> motive_clock_;
   std::vector<uint8_t> buffer_;
 };
 

@@ -65,11 +65,6 @@ Pose3 MotiveFrames::Chassis(const natnet::Vec3f& p, const natnet::Quatf& q) cons
 
 // ---- Frames ----
 
-std::optional<double> NatNetBridge::clock_offset_us() const {
-  if (offset_window_.empty()) return std::nullopt;
-  return offset_window_.front().second;
-}
-
 int64_t NatNetBridge::SampleUtime(const natnet::FrameOfData& f, int64_t receive_us) {
   const double hz = static_cast<double>(server_.clock_frequency_hz);
   if (!(hz > 0) || f.transmit_ticks == 0) {
@@ -78,23 +73,20 @@ int64_t NatNetBridge::SampleUtime(const natnet::FrameOfData& f, int64_t receive_
   }
   const auto us = [hz](uint64_t ticks) { return static_cast<double>(ticks) / hz * 1e6; };
   const double transmit_us = us(f.transmit_ticks);
-  const double d = static_cast<double>(receive_us) - transmit_us;
-  // Sliding minimum: the deque holds increasing values, oldest first.
-  while (!offset_window_.empty() && offset_window_.back().second >= d) offset_window_.pop_back();
-  offset_window_.emplace_back(receive_us, d);
-  const double window_us = options_.clock_window_s * 1e6;
-  while (offset_window_.front().first < receive_us - static_cast<int64_t>(window_us)) {
-    offset_window_.pop_front();
-  }
-  const double offset = offset_window_.front().second;
+  if (!motive_clock_) motive_clock_ = std::make_unique<DeviceClock>(DeviceClockOptions{hz});
+  // The transmit stamp against the receipt: the lower envelope is Motive's clock plus the least
+  // transit. A clock beyond int64 ticks is no clock Motive has.
+  const auto transmit = static_cast<int64_t>(std::min<uint64_t>(f.transmit_ticks, INT64_MAX));
+  const int64_t transmit_host_us = motive_clock_->Observe(transmit, receive_us);
   // Mid-exposure is the sample time (the photons' average age, §5.3); 0 when Motive does not
   // know it (USB cameras, playback): the camera data's arrival, else the transmit time.
   const uint64_t sample_ticks = f.mid_exposure_ticks != 0    ? f.mid_exposure_ticks
                                 : f.data_received_ticks != 0 ? f.data_received_ticks
                                                              : f.transmit_ticks;
-  const double sample_us = us(sample_ticks) + offset;
+  const auto sample_us = static_cast<double>(
+      motive_clock_->Map(static_cast<int64_t>(std::min<uint64_t>(sample_ticks, INT64_MAX))));
   stats_.Counter("system_latency_us") = std::llround(transmit_us - us(sample_ticks));
-  stats_.Counter("transit_us") = std::llround(d - offset);
+  stats_.Counter("transit_us") = receive_us - transmit_host_us;
   const double age = static_cast<double>(receive_us) - sample_us;
   if (!(age > -kMaxFutureUs && age < kMaxLatencyUs)) {
     ++stats_.Counter("clock_fallbacks");
@@ -154,7 +146,7 @@ void NatNetBridge::HandleFrame(const natnet::Packet& p, int64_t receive_us) {
       // Motive restarted (or a take was rewound): its clock and maybe its ids changed.
       stats_.log().info("Motive restarted: {} after frame {}", where, newest.value_or(0));
       ++stats_.Counter("clock_resyncs");
-      offset_window_.clear();
+      motive_clock_.reset();
       if (!descriptions_pending_) RequestDescriptions();
       break;
     case natnet::FrameSequence::Verdict::kNext:
@@ -206,7 +198,8 @@ void NatNetBridge::HandleFrame(const natnet::Packet& p, int64_t receive_us) {
   }
 
   mocap_body_t msg;
-  msg.utime = SampleUtime(f, receive_us);
+  msg.utime = receive_us;
+  msg.sample_utime = SampleUtime(f, receive_us);
   msg.frame_number = f.frame_number;
   msg.device_utime = std::llround(f.timestamp_s * 1e6);
   msg.body = options_.body_name;

@@ -253,6 +253,7 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
       for (int i = 0; i < 6; ++i) o.rated_range[i] = leg.ati().rated_range(i);
     }
     o.rdt_rate_hz = options_.ati_rate_hz;
+    o.counter_rate_ppm = options_.clocks.ft[k].rate_ppm;
     // The box's RDT buffer size as the config names it, else the default of its rate: what
     // the bridge, reading the same config, expects.
     o.rdt_buffer_size = static_cast<int>(leg.ati().records_per_datagram());
@@ -296,6 +297,10 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     leg_of_id[servo.id()] = k;
   }
   dxl_options.rates = options_.dxl_rates;
+  for (int k = 0; k < kNumLegs; ++k) {
+    dxl_options.tick_rate_ppm.push_back(options_.clocks.servo[k].rate_ppm);
+    dxl_options.tick_phase_ms.push_back(1e3 * options_.clocks.servo[k].offset_s);
+  }
   dxl_options.events = options_.dxl_events;
   if (commanded_) {
     dxl_options.time_constant_s = options_.servo_time_constant_s;
@@ -338,6 +343,8 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     no.multicast = options_.natnet_multicast >= 0 ? options_.natnet_multicast != 0 : n.multicast();
     no.multicast_group = n.multicast_group();
     no.version = options_.natnet_version;
+    no.clock_rate_ppm = options_.clocks.mocap.rate_ppm;
+    no.clock_offset_s = options_.clocks.mocap.offset_s;
     no.rate_hz = options_.natnet_rate_hz;
     no.body_name = config.mocap().body_name();
     no.z_up = n.up_axis() == "Z";
@@ -369,6 +376,8 @@ LiveSim::LiveSim(const config::Config& config, const LiveOptions& options) : opt
     qo.port = static_cast<std::uint16_t>(options_.qtm_port >= 0 ? options_.qtm_port
                                                                 : int(config.mocap().port()));
     qo.rate_hz = options_.qtm_rate_hz;
+    qo.clock_rate_ppm = options_.clocks.mocap.rate_ppm;
+    qo.clock_offset_s = options_.clocks.mocap.offset_s;
     qo.body_name = config.mocap().body_name();
     for (const auto& m : twin_->MarkersB()) qo.body_points_m.push_back(m);
     qo.labels = DefaultQtmLabels(kNumChassisMarkers);

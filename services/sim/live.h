@@ -43,6 +43,7 @@
 #include "proto/config.pb.h"
 #include "qtm_emulator.h"
 #include "sim/flags.h"
+#include "sim/sim_clocks.h"
 #include "sim/twin.h"
 
 namespace ftcal::sim {
@@ -108,6 +109,9 @@ std::string NatNetTruthCsv(const std::vector<NatNetSentFrame>& frames);
 struct LiveOptions {
   std::string scenario = "walk";
   std::uint64_t seed = 1;
+  // The devices' clocks: each box's counter, each servo's tick and the mocap clock at its own
+  // rate (a lab's by default). The host's stalls are this machine's own, not injected.
+  SimClocks clocks = SimClocks::Lab();
   // The twin's robot CoM: moving with the legs (TwinOptions::physical_com) or fixed.
   bool physical_com = false;
   // Length of the generated scenario before it repeats.

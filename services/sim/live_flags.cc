@@ -44,6 +44,9 @@ void AddLiveFlags(CLI::App* live, LiveFlags* f) {
   live->add_option("--loop-s", o.loop_s, "scenario length before it repeats, s")
       ->check(CLI::Range(1.0, 3600.0))
       ->capture_default_str();
+  live->add_flag_callback(
+      "--ideal-clocks", [&o] { o.clocks = ftcal::SimClocks::Ideal(); },
+      "every device clock exact (default: a lab's, tens of ppm off, services/sim/sim_clocks.h)");
   live->add_option("--duration", f->duration_s, "seconds to run (default: until SIGINT/SIGTERM)")
       ->check(CLI::NonNegativeNumber);
   live->add_option("--truth-dir", f->truth_dir,

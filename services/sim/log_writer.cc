@@ -88,6 +88,12 @@ SimLogWriter::SimLogWriter(const config::Config& config, const std::string& out_
     m.gap.assign(1, 0);
     m.flags.assign(1, 0);
   }
+  {
+    std::array<int64_t, kNumLegs> count0{};
+    for (int k = 0; k < kNumLegs; ++k) count0[k] = ft_sequence0_[k];
+    stamps_ = std::make_unique<TwinDeviceStamps>(options_.clocks, options_.seed, options_.t0_utime,
+                                                 count0, tick0_ms_);
+  }
   servo_channel_ = ch.servo_state();
   mocap_channel_ = ch.mocap_body();
   experiment_channel_ = ch.experiment();
@@ -150,12 +156,13 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
 
   for (int k = 0; k < kNumLegs; ++k) {
     ft_batch_t& m = ft_[k];
-    const int64_t utime = t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform()) * 1e6);
+    const int64_t utime =
+        stamps_->HostStamp(t + std::llround((ft_latency_s_[k] + kFtJitterS * Uniform()) * 1e6));
+    const TwinDeviceStamps::Ft clock = stamps_->FtSample(k, f.t_s, utime);
     m.receipt_utime = utime;
-    m.sample_utime[0] = utime;
+    m.sample_utime[0] = clock.sample_utime;
     ++m.rdt_sequence[0];  // 1 for the first record of the stream
-    m.ft_sequence[0] = static_cast<uint32_t>(ft_sequence0_[k] +
-                                             static_cast<uint32_t>(70 * (m.rdt_sequence[0] - 1)));
+    m.ft_sequence[0] = static_cast<uint32_t>(clock.counter);  // the wire's 32 bits
     for (size_t i = 0; i < 6; ++i) {
       m.counts[0][i] = f.counts[k][i];
       m.wrench[0][i] = f.reading[k][i];
@@ -167,8 +174,11 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
   // Consecutive frames 10 ms apart give a velocity; after a gap (a new scenario) the legs are
   // at rest.
   const bool consecutive = have_previous_ && f.t_s - previous_t_s_ < 1.5 / kFrameRateHz;
-  const int64_t servo_utime = t + std::llround((kServoLatencyS + kServoJitterS * Uniform()) * 1e6);
+  const int64_t servo_utime =
+      stamps_->HostStamp(t + std::llround((kServoLatencyS + kServoJitterS * Uniform()) * 1e6));
+  const TwinDeviceStamps::Servo& ticks = stamps_->ServoSample(f.t_s, servo_utime);
   servo_.utime = servo_utime;
+  servo_.sample_utime = ticks.sample_utime;
   for (int k = 0; k < kNumLegs; ++k) {
     // The MX-106 reports whole counts; the bridge maps them back with zero_count/direction.
     const double count =
@@ -182,16 +192,19 @@ void SimLogWriter::WriteFrame(const TwinFrame& f) {
     // Same stand-in as the bus emulator: current follows velocity, not a motor model.
     servo_.current_a[k] =
         direction_[k] * 0.5 * std::tanh(units * 0.229 / 60.0 * kCountsPerRev / 100.0);
-    servo_.device_tick_ms[k] = tick0_ms_[k] + std::llround(f.t_s * 1e3);
+    servo_.device_tick_ms[k] = ticks.tick_ms[static_cast<size_t>(k)];
     previous_angle_[k] = f.angle_rad[k];
   }
   size_[kServoSlot] = EncodeInto(servo_, &buffer_[kServoSlot]);
   pending[kServoSlot] = {servo_utime, kServoSlot};
 
-  const int64_t mocap_utime = t + std::llround((kMocapLatencyS + kMocapJitterS * Uniform()) * 1e6);
+  const int64_t mocap_utime =
+      stamps_->HostStamp(t + std::llround((kMocapLatencyS + kMocapJitterS * Uniform()) * 1e6));
+  const TwinDeviceStamps::Mocap frame_clock = stamps_->MocapSample(f.t_s, mocap_utime);
   mocap_.utime = mocap_utime;
   mocap_.frame_number = 1 + std::llround(f.t_s * kFrameRateHz);
-  mocap_.device_utime = std::llround(f.t_s * 1e6);
+  mocap_.device_utime = frame_clock.device_utime;
+  mocap_.sample_utime = frame_clock.sample_utime;
   mocap_.tracked = true;
   const Eigen::Vector4d q_gc = RotationToQuaternion(f.R_GC);
   const Eigen::Vector4d q_wc = RotationToQuaternion(RemoveHeading(f.R_GC));

@@ -7,15 +7,19 @@
 // before every event of frame i+1 (frames are 10 ms apart): sorting each frame's eight events
 // is enough to keep the whole log in order. Device conventions follow the emulators/bridges:
 //   FT_<LEG>     rdt_sequence 1, 2, ... per leg; ft_sequence a seeded power-up count + 70 per
-//                record (7000 Hz internal / 100 Hz), u32; status 0; counts and wrench from
-//                the twin's reading (sign +1, as config/sim.pbtxt).
+//                the box's clock's 7000 Hz count at the sample (SimLogOptions::clocks), u32;
+//                status 0; counts and wrench from the twin's reading (sign +1, as
+//                config/sim.pbtxt); sample time: the counter mapped as the ATI bridge maps it.
 //   SERVO_STATE  all six servos in config order with the config's ids; angle as the MX-106
 //                reports it (Present Position in whole counts around zero_count, direction
 //                applied), wrapped to (-pi, pi]; velocity from consecutive frames in the
-//                device's 0.229 rpm unit; device tick = seeded start + twin ms.
-//   MOCAP_BODY   frame number 1 + round(t * 100), device time = t; q_gc, q_wc = R_GC with
+//                device's 0.229 rpm unit; device tick = seeded start + the servo's clock in
+//                ms; sample time: the ticks mapped as the Dynamixel bridge maps them.
+//   MOCAP_BODY   frame number 1 + round(t * 100), device time = the mocap clock at t, sample
+//                time that clock mapped as the mocap bridges map it; q_gc, q_wc = R_GC with
 //                the heading removed (RemoveHeading), yaw, position, residual = the twin's
 //                marker noise; markers with their tracked flags (NaN when untracked).
+// Every host stamp is also taken late while the host stalls (SimClocks' bursts).
 // Output is atomic: a temporary file beside the log, renamed onto it by Commit().
 #pragma once
 
@@ -37,6 +41,8 @@
 #include "common/atomic_log.h"
 #include "common/written_digest.h"
 #include "proto/config.pb.h"
+#include "sim/device_stamps.h"
+#include "sim/sim_clocks.h"
 #include "sim/twin.h"
 
 namespace ftcal {
@@ -50,6 +56,9 @@ struct SimLogOptions {
   int64_t t0_utime = kSimLogT0Utime;
   uint64_t seed = 1;  // timestamp jitter and device counters
   double mocap_residual_m = 0.0005;
+  // Each device's clock rate and offset and the host's stalls (sim/sim_clocks.h); a lab's by
+  // default. The sample times in the log are these clocks mapped as the bridges map them.
+  SimClocks clocks = SimClocks::Lab();
 };
 
 // Events written per channel kind.
@@ -85,6 +94,8 @@ class SimLogWriter {
   int64_t last_utime() const { return last_utime_; }
   double last_frame_t_s() const { return previous_t_s_; }
   const SimLogCounts& counts() const { return counts_; }
+  // The devices' clocks, the host's stamps and the maps the bridges would have made of them.
+  const TwinDeviceStamps& stamps() const { return *stamps_; }
 
   // fsync, close, rename onto the final name, and the log's SHA-256 (taken as it was written)
   // handed to the digest cache. Returns that digest when the cache took it, else "". Throws
@@ -116,6 +127,7 @@ class SimLogWriter {
   std::array<double, kNumLegs> ft_latency_s_{};    // per-leg fixed part
   std::array<uint32_t, kNumLegs> ft_sequence0_{};  // power-up counter at the first record
   std::array<int64_t, kNumLegs> tick0_ms_{};
+  std::unique_ptr<TwinDeviceStamps> stamps_;
 
   // Messages and encode buffers reused for every frame (no allocation per event).
   std::array<ft_batch_t, kNumLegs> ft_;

@@ -249,6 +249,24 @@ int main(int argc, char** argv) try {
   log->add_option("--gap-s", plan.gap_s, "silence between scenarios, s")
       ->capture_default_str()
       ->check(CLI::Range(0.05, 3600.0));
+  const ftcal::SimClocks lab_clocks = ftcal::SimClocks::Lab();
+  bool ideal_clocks = false;
+  double clock_ppm_scale = 1.0, stall_every_s = lab_clocks.stall_every_s,
+         stall_max_ms = 1e3 * lab_clocks.stall_max_s;
+  log->add_flag("--ideal-clocks", ideal_clocks,
+                "every device clock exact and no host stalls (the twin before its lab clocks)");
+  log->add_option("--clock-ppm-scale", clock_ppm_scale,
+                  "multiplies every device clock's rate error (a lab's: tens of ppm, each "
+                  "device its own; services/sim/sim_clocks.h)")
+      ->capture_default_str()
+      ->check(CLI::Range(-10.0, 10.0));
+  log->add_option("--stall-every-s", stall_every_s,
+                  "mean interval between host stalls, s (0: none)")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1e6));
+  log->add_option("--stall-max-ms", stall_max_ms, "longest host stall, ms")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1e3 * ftcal::kMaxStallS));
 
   CLI::App* live = cli.add_subcommand(
       "live",
@@ -298,6 +316,15 @@ int main(int argc, char** argv) try {
     log_options.seed = seed;
     log_options.session_id = session_id.empty() ? "sim-" + std::to_string(seed) : session_id;
     log_options.mocap_residual_m = twin_options.marker_noise_m;
+    if (ideal_clocks) {
+      log_options.clocks = ftcal::SimClocks::Ideal();
+    } else {
+      for (auto& c : log_options.clocks.ft) c.rate_ppm *= clock_ppm_scale;
+      for (auto& c : log_options.clocks.servo) c.rate_ppm *= clock_ppm_scale;
+      log_options.clocks.mocap.rate_ppm *= clock_ppm_scale;
+      log_options.clocks.stall_every_s = stall_every_s;
+      log_options.clocks.stall_max_s = 1e-3 * stall_max_ms;
+    }
     if (truth_path.empty()) truth_path = DefaultTruthPath(out_path);
     const bool drift = std::isfinite(plan.drift_at_s);
     if (!drifted_truth_path.empty() && !drift) {

@@ -71,7 +71,7 @@ struct Data {
     for (const TwinFrame& f : frames) {
       const int64_t t = Utime(f);
       servo_state_t s{};
-      s.utime = t;
+      s.utime = s.sample_utime = t;
       for (int k = 0; k < kNumLegs; ++k) {
         s.leg[k] = std::string(kLegNames[k]);
         s.id[k] = k + 1;
@@ -84,7 +84,7 @@ struct Data {
       }
       write(t, config.channels().servo_state(), s);
       mocap_body_t b{};
-      b.utime = t;
+      b.utime = b.sample_utime = t;
       b.body = config.mocap().body_name();
       b.tracked = true;
       const Eigen::Vector4d q = RotationToQuaternion(RemoveHeading(f.R_GC));

@@ -41,6 +41,8 @@
 #include "ftcal/servo_state_t.hpp"
 #include "ftcal_pre_batch/ft_sample_t.hpp"
 #include "ftcal_pre_fixed6/servo_state_t.hpp"
+#include "ftcal_pre_sample_time/mocap_body_t.hpp"
+#include "ftcal_pre_sample_time/servo_state_t.hpp"
 #include "sim/twin.h"
 #include "twin_log.h"
 
@@ -631,15 +633,17 @@ TEST_F(CalibratorTest, RecordsBatchedSevenToAMessageCalibrateTheSame) {
   EXPECT_EQ(ReadFile(ResidualsPathFor(one_out)), ReadFile(ResidualsPathFor(batched_out)));
 }
 
-// A session recorded before the batched FT message (ft_sample_t, one record a message) and
-// before the fixed-size arrays (servo_state_t with its num_servos), written here with those
-// versions' own generated encoders: the calibrator refuses it, naming the command that
-// converts it; converted by ftcal-log-upgrade, it calibrates to the current log's calibration,
-// number for number.
+// A session recorded before the batched FT message (ft_sample_t, one record a message), before
+// the fixed-size arrays (servo_state_t with its num_servos) and before the mapped sample times
+// (servo_state_t and mocap_body_t without sample_utime; every other servo message of one
+// version, every other of the next), written here with those versions' own generated encoders:
+// the calibrator refuses it, naming the command that converts it; converted by
+// ftcal-log-upgrade, it calibrates to the current log's calibration, number for number (the
+// fixture's log carries sample_utime = utime, what every reader aligned by before).
 TEST_F(CalibratorTest, AnOlderLogIsRefusedNamingTheUpgradeAndUpgradedCalibratesTheSame) {
   const auto& ch = fx->config.channels();
   std::vector<Event> events;
-  int64_t ft = 0, servo = 0;
+  int64_t ft = 0, servo = 0, mocap = 0;
   for (const Event& e : fx->events) {
     if (e.channel.rfind(ch.ft_prefix(), 0) == 0) {
       ft_batch_t b;
@@ -664,6 +668,23 @@ TEST_F(CalibratorTest, AnOlderLogIsRefusedNamingTheUpgradeAndUpgradedCalibratesT
       servo_state_t s;
       ASSERT_EQ(s.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
                 static_cast<int>(e.data.size()));
+      ASSERT_EQ(s.sample_utime, s.utime);
+      if (servo++ % 2 == 1) {
+        ftcal_pre_sample_time::servo_state_t old{};
+        old.utime = s.utime;
+        for (int k = 0; k < kNumLegs; ++k) {
+          old.leg[k] = s.leg[k];
+          old.id[k] = s.id[k];
+          old.angle_rad[k] = s.angle_rad[k];
+          old.velocity_rad_s[k] = s.velocity_rad_s[k];
+          old.current_a[k] = s.current_a[k];
+          old.hardware_error[k] = s.hardware_error[k];
+          old.device_tick_ms[k] = s.device_tick_ms[k];
+          old.flags[k] = s.flags[k];
+        }
+        events.push_back(Encode(e.utime, e.channel, old));
+        continue;
+      }
       ftcal_pre_fixed6::servo_state_t old{};
       old.utime = s.utime;
       old.num_servos = kNumLegs;
@@ -678,13 +699,36 @@ TEST_F(CalibratorTest, AnOlderLogIsRefusedNamingTheUpgradeAndUpgradedCalibratesT
         old.flags.push_back(s.flags[k]);
       }
       events.push_back(Encode(e.utime, e.channel, old));
-      ++servo;
+    } else if (e.channel == ch.mocap_body()) {
+      mocap_body_t m;
+      ASSERT_EQ(m.decode(e.data.data(), 0, static_cast<int>(e.data.size())),
+                static_cast<int>(e.data.size()));
+      ASSERT_EQ(m.sample_utime, m.utime);
+      ftcal_pre_sample_time::mocap_body_t old{};
+      old.utime = m.utime;
+      old.frame_number = m.frame_number;
+      old.device_utime = m.device_utime;
+      old.body = m.body;
+      old.tracked = m.tracked;
+      for (int i = 0; i < 4; ++i) {
+        old.q_wc[i] = m.q_wc[i];
+        old.q_gc[i] = m.q_gc[i];
+      }
+      for (int i = 0; i < 3; ++i) old.position_m[i] = m.position_m[i];
+      old.yaw_rad = m.yaw_rad;
+      old.residual_m = m.residual_m;
+      old.num_markers = m.num_markers;
+      old.marker_m = m.marker_m;
+      old.marker_tracked = m.marker_tracked;
+      events.push_back(Encode(e.utime, e.channel, old));
+      ++mocap;
     } else {
       events.push_back(e);
     }
   }
   ASSERT_GT(ft, 0);
-  ASSERT_GT(servo, 0);
+  ASSERT_GT(servo, 1);
+  ASSERT_GT(mocap, 0);
   const std::string old_log = fx->dir + "/older.lcmlog", new_log = fx->dir + "/upgraded.lcmlog";
   WriteLog(old_log, events);
 

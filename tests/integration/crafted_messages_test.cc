@@ -100,8 +100,8 @@ TEST(CraftedMessages, ALiveServiceRefusesThemInBoundedMemoryAndKeepsItsHeartbeat
   mocap_body_t mocap{};
   mocap.body = "chassis";
   auto mocap_4e8 = Encode(mocap);
-  PutBe32(mocap_4e8, mocap_4e8.size() - 4, 400'000'000);
-  ASSERT_EQ(mocap_4e8.size(), 153u);
+  PutBe32(mocap_4e8, mocap_4e8.size() - 12, 400'000'000);  // num_markers, before sample_utime
+  ASSERT_EQ(mocap_4e8.size(), 161u);                       // issue 12's 153 bytes, and sample_utime
   servo_state_t servo{};
   auto servo_minus1 = Encode(servo);
   servo_minus1.resize(20);
@@ -132,6 +132,7 @@ TEST(CraftedMessages, ALiveServiceRefusesThemInBoundedMemoryAndKeepsItsHeartbeat
     good.utime = std::chrono::duration_cast<std::chrono::microseconds>(
                      std::chrono::system_clock::now().time_since_epoch())
                      .count();
+    good.sample_utime = good.utime;
     lcm.publish("MOCAP_BODY", &good);
     ++good_sent;
     std::this_thread::sleep_for(std::chrono::milliseconds(5));

@@ -5,7 +5,7 @@
 //
 // The truth is what generated the data: the emulator's source poses, in ftcal's z-up frame,
 // which the emulator turned into Motive's Y-up axes and the rigid body's pivot frame; the
-// bridge must undo both to within f32 rounding. Its utime is compared with the instant the
+// bridge must undo both to within f32 rounding. Its sample_utime is compared with the instant the
 // emulator stamped as mid-exposure on the host clock.
 #include <arpa/inet.h>
 #include <netinet/in.h>
@@ -195,7 +195,7 @@ TEST_P(NatNetBridgeTransportTest, PublishesEveryFrameAsGeneratedWithTheExposureT
     const auto it = by_frame.find(static_cast<int32_t>(m.frame_number));
     ASSERT_NE(it, by_frame.end()) << Name(t) << ": frame " << m.frame_number << " was never sent";
     ExpectMatchesTruth(m, *it->second, Name(t) + " frame " + std::to_string(m.frame_number));
-    residual_us.push_back(static_cast<double>(m.utime - it->second->exposure_utime));
+    residual_us.push_back(static_cast<double>(m.sample_utime - it->second->exposure_utime));
     untracked += !m.tracked;
   }
   EXPECT_EQ(untracked, 20) << Name(t);
@@ -256,7 +256,8 @@ TEST(NatNetBridgeTest, WithoutMidExposureTheCameraDataTimeIsUsed) {
   for (const auto& s : run.sent) by_frame[s.frame_number] = &s;
   std::vector<double> residual_us;
   for (const auto& m : run.published) {
-    residual_us.push_back(double(m.utime - by_frame.at(int32_t(m.frame_number))->exposure_utime));
+    residual_us.push_back(
+        double(m.sample_utime - by_frame.at(int32_t(m.frame_number))->exposure_utime));
   }
   ASSERT_GE(residual_us.size(), 100u);
   std::sort(residual_us.begin(), residual_us.end());
@@ -368,7 +369,8 @@ TEST(NatNetBridgeTest, ReconnectsAfterMotiveRestarts) {
   int matched = 0;
   for (const auto& m : run.published) {
     for (const auto* s : restarted) {
-      if (s->frame_number == m.frame_number && m.utime > restarted.front()->exposure_utime - 1000) {
+      if (s->frame_number == m.frame_number &&
+          m.sample_utime > restarted.front()->exposure_utime - 1000) {
         ExpectMatchesTruth(m, *s, "after restart, frame " + std::to_string(m.frame_number));
         ++matched;
       }
@@ -496,7 +498,8 @@ TEST(NatNetBridgeTest, UnicastClientRejoinsARestartedMotiveWithin100Ms) {
   }
   ASSERT_GT(restart_at, 0u) << "nothing published after the restart";
   const auto& m = run.published[restart_at];
-  const double published_ms = 1e-3 * double(m.utime + 2000 - run.emulator.restart_utime);
+  // utime: the frame's receipt, when it was published.
+  const double published_ms = 1e-3 * double(m.utime - run.emulator.restart_utime);
   std::printf("[ rejoin   ] first frame published %.1f ms after Motive came back\n", published_ms);
   EXPECT_LT(published_ms, 100.0);
   // Its pose under the renumbered body is right.

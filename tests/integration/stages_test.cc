@@ -151,12 +151,12 @@ class StagesTest : public ::testing::Test {
     bad.push_back(Encode(t100 - 4, ch.ft_prefix() + "HR", ToLcm(BatchOf(in, t100 - 4))));
     bad.push_back(Event{t100 - 4, ch.ft_prefix() + "FR", {1, 2, 3, 4, 5}});  // undecodable
     servo_state_t servo{};
-    servo.utime = t100 - 3;
+    servo.utime = servo.sample_utime = t100 - 3;
     servo.leg[0] = "HL";
     servo.id[0] = 1;
     bad.push_back(Encode(t100 - 3, ch.servo_state(), servo));  // five legs without a name
     mocap_body_t body{};
-    body.utime = t100 - 2;
+    body.utime = body.sample_utime = t100 - 2;
     body.body = fx->config.mocap().body_name();
     body.tracked = true;
     body.q_wc[0] = 2.0;  // not a unit quaternion

@@ -135,7 +135,7 @@ inline void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vect
     events->push_back(Encode(t, ch.ft_prefix() + m.leg, m));
   }
   servo_state_t s{};
-  s.utime = t;
+  s.utime = s.sample_utime = t;
   for (int k = 0; k < kNumLegs; ++k) {
     s.leg[k] = std::string(kLegNames[k]);
     s.id[k] = static_cast<int32_t>(cfg.robot().leg(k).servo().id());
@@ -148,7 +148,7 @@ inline void AppendFrame(const TwinFrame& f, const config::Config& cfg, std::vect
   }
   events->push_back(Encode(t, ch.servo_state(), s));
   mocap_body_t b{};
-  b.utime = t;
+  b.utime = b.sample_utime = t;
   b.frame_number = std::llround(f.t_s * 100);
   b.device_utime = std::llround(f.t_s * 1e6);
   b.body = cfg.mocap().body_name();

@@ -226,17 +226,17 @@ TEST(WireGuardTest, WellFormedMessagesPassAndDecodeAsSent) {
 
 // ---- the crafted messages of issue 12 ----
 
-// 153 bytes claiming 4e8 markers: the decoder resized marker_m to 4e8 vectors (8.8 GB, a
-// minute) before finding the bytes missing.
+// 153 bytes claiming 4e8 markers (161 since sample_utime follows the markers): the decoder
+// resized marker_m to 4e8 vectors (8.8 GB, a minute) before finding the bytes missing.
 std::vector<uint8_t> MocapClaiming4e8Markers() {
   auto bytes = Encode(Mocap(0));
-  PutBe32(bytes, bytes.size() - 4, 400'000'000);  // num_markers is the last field
+  PutBe32(bytes, bytes.size() - 12, 400'000'000);  // num_markers, before sample_utime
   return bytes;
 }
 
-TEST(WireGuardTest, The153ByteMocapClaiming400MillionMarkersIsRefusedInBoundedTimeAndMemory) {
+TEST(WireGuardTest, A161ByteMocapClaiming400MillionMarkersIsRefusedInBoundedTimeAndMemory) {
   const auto bytes = MocapClaiming4e8Markers();
-  ASSERT_EQ(bytes.size(), 153u);
+  ASSERT_EQ(bytes.size(), 161u);
   ServiceStats stats(QuietLogger());
   LcmBus bus("memq://", stats);
   int delivered = 0;
@@ -354,7 +354,7 @@ TEST(WireGuardTest, WrongFingerprintTrailingBytesBadBooleansAndMissingNulAreRefu
   EXPECT_EQ(Guard<mocap_body_t>(bytes)->kind, "trailing bytes");
 
   bytes = Encode(Mocap(1));
-  bytes.back() = 7;  // marker_tracked[0]
+  bytes[bytes.size() - 9] = 7;  // marker_tracked[0], before sample_utime
   EXPECT_EQ(Guard<mocap_body_t>(bytes)->kind, "bad boolean");
 
   experiment_marker_t m{};

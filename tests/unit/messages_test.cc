@@ -226,6 +226,7 @@ servo_state_t SomeServoState() {
   Distinct d;
   servo_state_t msg{};
   msg.utime = 42;
+  msg.sample_utime = 37;  // the read's instant, before its completion
   for (int i = 0; i < kNumLegs; ++i) {
     msg.leg[i] = std::string(kLegNames[static_cast<size_t>(kNumLegs - 1 - i)]);  // bus order
     msg.id[i] = i + 1;
@@ -239,6 +240,7 @@ servo_state_t SomeServoState() {
 
 mocap_body_t SomeMocapBody(const std::string& body, int markers, bool all_tracked) {
   mocap_body_t msg = ToLcm(MocapInput{77, true, SomeRotation(), true}, body, markers);
+  msg.utime = 81;  // received after the frame's instant (77)
   msg.frame_number = 9;
   msg.device_utime = 1234;
   if (!all_tracked && markers > 0) msg.marker_tracked[static_cast<size_t>(markers - 1)] = false;
@@ -276,6 +278,7 @@ TEST(Messages, PeekServoStateGivesWhatTheDecoderGives) {
   const std::optional<ServoInput> peek = PeekServoState(b.data(), size);
   ASSERT_TRUE(peek.has_value());
   ExpectSame(*peek, *DecodedServo(b));
+  EXPECT_EQ(peek->utime, 37);  // aligned by the read's instant, not its completion
   EXPECT_EQ(peek->angle_rad[kNumLegs - 1], SomeServoState().angle_rad[0]);  // by name
   EXPECT_FALSE(PeekServoState(b.data(), size - 1));
   servo_state_t dup = SomeServoState();
@@ -296,6 +299,7 @@ TEST(Messages, PeekMocapBodyGivesWhatTheDecoderGives) {
       const std::optional<MocapInput> peek = PeekMocapBody(b.data(), size, "chassis", 4);
       ASSERT_TRUE(peek.has_value()) << markers;
       ExpectSame(*peek, *DecodedMocap(b, 4));
+      EXPECT_EQ(peek->utime, 77);  // aligned by the frame's instant, not its receipt
       EXPECT_EQ(peek->markers_ok, markers >= 4 && all_tracked);
       EXPECT_FALSE(PeekMocapBody(b.data(), size, "other", 4));
       EXPECT_FALSE(PeekMocapBody(b.data(), size - 1, "chassis", 4));

@@ -565,7 +565,7 @@ class Robot {
         bus_.Deliver("FT_" + std::string(kLegNames[k]), ToLcm(batch));
       }
       mocap_body_t m{};
-      m.utime = bus_.NowUtime();
+      m.utime = m.sample_utime = bus_.NowUtime();
       m.body = config_.mocap().body_name();
       m.tracked = true;
       const Eigen::Vector4d q = RotationToQuaternion(f.R_WC);
@@ -573,7 +573,7 @@ class Robot {
       m.num_markers = 0;
       bus_.Deliver("MOCAP_BODY", m);
       servo_state_t s{};
-      s.utime = bus_.NowUtime();
+      s.utime = s.sample_utime = bus_.NowUtime();
       for (int k = 0; k < kNumLegs; ++k) {
         s.leg[k] = std::string(kLegNames[k]);
         s.id[k] = k + 1;

@@ -33,6 +33,9 @@ namespace {
 
 const std::string kConfig = std::string(FTCAL_SOURCE_DIR) + "/config/sim.pbtxt";
 constexpr uint64_t kSeed = 7;
+// The log's clocks: SimLogOptions' default, a lab's; a host stall delays a stamp by this at most.
+const SimClocks kClocks = SimClocks::Lab();
+const int64_t kStallUs = std::llround(kClocks.stall_max_s * 1e6);
 
 std::string TempDir() {
   char tmpl[] = "/tmp/sim_log_test.XXXXXX";
@@ -236,20 +239,29 @@ TEST_F(SimLogTest, FtSamplesAreTheTwinReadingsWithDeviceCounters) {
       ASSERT_EQ(m.n, 1) << kLegNames[k] << " message " << i;
       ASSERT_EQ(m.rdt_sequence[0], static_cast<int64_t>(i) + 1);
       if (i > 0) {
-        ASSERT_EQ(
-            (m.ft_sequence[0] - ft[i - 1].ft_sequence[0] + (int64_t{1} << 32)) % (int64_t{1} << 32),
-            70);
+        // The box's own clock (a lab's, SimClocks::Lab(): tens of ppm off) between the samples.
+        const double counts =
+            7000.0 * (1.0 + 1e-6 * kClocks.ft[k].rate_ppm) * (frames[i].t_s - frames[i - 1].t_s);
+        ASSERT_NEAR(
+            static_cast<double>((m.ft_sequence[0] - ft[i - 1].ft_sequence[0] + (int64_t{1} << 32)) %
+                                (int64_t{1} << 32)),
+            counts, 1.0);
       }
       ASSERT_GE(m.ft_sequence[0], 0);
       ASSERT_LT(m.ft_sequence[0], int64_t{1} << 32);
       ASSERT_EQ(m.status[0], 0);
       ASSERT_EQ(m.flags[0], 0);
       ASSERT_EQ(m.gap[0], 0);
-      // The record is stamped with its receipt: the host time, a device latency after the frame.
-      ASSERT_EQ(m.sample_utime[0], m.receipt_utime) << i;
-      const int64_t latency = m.sample_utime[0] - Utime(frames[i].t_s);
+      // The receipt: the host time, a device latency after the frame, later in a host stall.
+      const int64_t latency = m.receipt_utime - Utime(frames[i].t_s);
       ASSERT_GE(latency, 500) << i;
-      ASSERT_LE(latency, 1800) << i;
+      ASSERT_LE(latency, 1800 + kStallUs) << i;
+      // The sample time: the counter mapped as the ATI bridge maps it, the frame's instant plus
+      // the least latency (500-800 us), never after the receipt.
+      ASSERT_LE(m.sample_utime[0], m.receipt_utime) << i;
+      const int64_t mapped = m.sample_utime[0] - Utime(frames[i].t_s);
+      ASSERT_GE(mapped, 300) << kLegNames[k] << " " << i;
+      ASSERT_LE(mapped, 1800) << kLegNames[k] << " " << i;
       ASSERT_EQ(m.wrench[0].size(), 6u);
       ASSERT_EQ(m.counts[0].size(), 6u);
       for (int a = 0; a < 6; ++a) {
@@ -286,6 +298,12 @@ TEST_F(SimLogTest, ServoStateIsWhatTheBridgeReports) {
       }
     }
     latency_us.push_back(static_cast<double>(s.utime - Utime(frames[i].t_s)));
+    ASSERT_LE(s.sample_utime, s.utime) << i;
+    // The ticks mapped as the Dynamixel bridge maps them: the read's instant plus the least
+    // latency (2 ms), within the millisecond the ticks resolve.
+    const int64_t mapped = s.sample_utime - Utime(frames[i].t_s);
+    ASSERT_GE(mapped, 1500) << i;
+    ASSERT_LE(mapped, 3500) << i;
   }
   // The walk turns the legs right round: wrapped angles must appear.
   bool wrapped = false;
@@ -294,7 +312,7 @@ TEST_F(SimLogTest, ServoStateIsWhatTheBridgeReports) {
   EXPECT_TRUE(wrapped);
   for (double l : latency_us) {
     ASSERT_GE(l, 2000);
-    ASSERT_LE(l, 3500);
+    ASSERT_LE(l, 3500 + kStallUs);
   }
   // Jitter, not a constant delay.
   const auto [lo, hi] = std::minmax_element(latency_us.begin(), latency_us.end());
@@ -316,7 +334,7 @@ TEST_F(SimLogTest, MocapCarriesTheTwinAttitudeWithHeadingRemoved) {
     ASSERT_EQ(b.body, config_->mocap().body_name());
     ASSERT_TRUE(b.tracked);
     ASSERT_EQ(b.frame_number, 1 + std::llround(f.t_s * 100));
-    ASSERT_EQ(b.device_utime, std::llround(f.t_s * 1e6));
+    ASSERT_EQ(b.device_utime, std::llround(1e6 * kClocks.mocap.DeviceSeconds(f.t_s)));
     const Eigen::Vector4d q_wc(b.q_wc[0], b.q_wc[1], b.q_wc[2], b.q_wc[3]);
     const Eigen::Vector4d q_gc(b.q_gc[0], b.q_gc[1], b.q_gc[2], b.q_gc[3]);
     ASSERT_LT((QuaternionToRotation(q_gc) - f.R_GC).norm(), 1e-12);
@@ -340,7 +358,11 @@ TEST_F(SimLogTest, MocapCarriesTheTwinAttitudeWithHeadingRemoved) {
     }
     const int64_t latency = b.utime - Utime(f.t_s);
     ASSERT_GE(latency, 4000);
-    ASSERT_LE(latency, 5500);
+    ASSERT_LE(latency, 5500 + kStallUs);
+    ASSERT_LE(b.sample_utime, b.utime);
+    const int64_t mapped = b.sample_utime - Utime(f.t_s);
+    ASSERT_GE(mapped, 3800) << i;
+    ASSERT_LE(mapped, 5500) << i;
   }
   EXPECT_GT(untracked_markers, 0);
 }

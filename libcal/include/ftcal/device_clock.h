@@ -30,6 +30,8 @@
 
 #include <cstdint>
 #include <deque>
+#include <memory>
+#include <utility>
 #include <vector>
 
 namespace ftcal {
@@ -97,6 +99,53 @@ class DeviceClock {
   double next_refit_x_ = 0;
   double late_since_x_ = -1;  // device time of the first of a run of samples over step_s late
   int64_t restarts_ = 0;
+};
+
+// The instant one Sync Read sampled a bus of servos, on the host clock (docs/method.md, "Clocks
+// and delays"). Each servo's Realtime Tick (ms) is its own crystal, so each has its own
+// DeviceClock against the read's completion. A tick says only which millisecond of its clock
+// the servo read in: its map gives the interval [map(tick), map(tick + 1)). The servos of one
+// read answer within one bus transaction (well under a millisecond apart at 1 Mbit/s and
+// more), and their millisecond edges fall at unrelated instants, so the intervals' intersection
+// is a fraction of a millisecond wide, but only as narrow as the six edges happen to fall: when
+// they bunch (each servo's crystal drifts against the others) it widens to most of a ms.
+//
+// So the bridge also stamps the instant it sent the read (host clock, before the write): the
+// servos sample a constant bus time c after it, plus a small one-sided USB scheduling delay.
+// Every read's interval bounds c from above (c <= hi - request, strictly, whatever the
+// queuing), and over a window of reads the least of these bounds comes down to c: the read's
+// instant is then request + c, to within the USB delay's jitter. Only maps that span 30 s give
+// bounds (a younger one's rate is not known to the ppm a millisecond tick needs), and each read
+// gives its second lowest (one map gone early must not hold the bound down for a window). Without a
+// request stamp, or before a bound is known, the middle of the intersection stands in (where the
+// intervals do not meet, a map young or just restarted, the median of their middles). Never later
+// than the completion.
+class SyncReadClock {
+ public:
+  // `servos` clocks of ticks in ms (options.nominal_hz is set to 1000).
+  SyncReadClock(int servos, DeviceClockOptions options);
+
+  // ticks[i] is servo i's unwrapped Realtime Tick, answered[i] whether it answered this read
+  // (a silent servo's tick says nothing about this one). Returns the host time (us) of the
+  // read's instant; with no servo answering, the completion itself.
+  // request_us: the host time the read was sent (kNoRequest: not known).
+  static constexpr int64_t kNoRequest = INT64_MIN;
+  int64_t Observe(const int64_t* ticks, const bool* answered, int64_t completion_us,
+                  int64_t request_us = kNoRequest);
+  // Servo i's tick started afresh (its port reopened, the servo rebooted): a new map.
+  void Reset(int servo);
+  const DeviceClock& clock(int servo) const { return *clocks_[static_cast<size_t>(servo)]; }
+  int servos() const { return static_cast<int>(clocks_.size()); }
+
+ private:
+  DeviceClockOptions options_;
+  std::vector<std::unique_ptr<DeviceClock>> clocks_;
+  // Scratch: this read's intervals, the upper edges of the mature maps, the middles.
+  std::vector<std::pair<double, double>> intervals_;
+  std::vector<double> mature_highs_, middles_;
+  // Sliding minimum of (hi - request) over the last kBoundWindowS of requests: (request, bound),
+  // bounds rising, oldest first.
+  std::deque<std::pair<int64_t, double>> bounds_;
 };
 
 }  // namespace ftcal

@@ -274,8 +274,9 @@ void AtiEmulator::EmitDue(Clock::time_point now) {
                                        std::llround(stream_records_ * period_ns)));
     if (t < power_up_) continue;  // cannot happen after a start, kept for safety
 
-    const auto ft_index = static_cast<std::uint64_t>(
-        std::chrono::duration<double>(t - power_up_).count() * kInternalRateHz);
+    const auto ft_index =
+        static_cast<std::uint64_t>(std::chrono::duration<double>(t - power_up_).count() *
+                                   kInternalRateHz * (1.0 + 1e-6 * options_.counter_rate_ppm));
     AtiEmitted e;
     e.t_s = Seconds(t);
     e.stream = stream_;

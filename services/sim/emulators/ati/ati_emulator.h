@@ -91,7 +91,8 @@ struct AtiEmulatorOptions {
   double counts_per_force = 1e6;
   double counts_per_torque = 1e6;
   std::array<double, 6> rated_range{130, 130, 400, 10, 10, 10};
-  int rdt_rate_hz = 7000;  // comrdtrate, 1..7000
+  int rdt_rate_hz = 7000;         // comrdtrate, 1..7000
+  double counter_rate_ppm = 0.0;  // the box's crystal: its 7 kHz counter runs this fast
   // comrdtbsiz, records per datagram in buffered mode, 1..40; 0: rdt::DefaultRecordsPerDatagram
   // of the rate (what ftcal's config assumes when it does not say).
   int rdt_buffer_size = 0;

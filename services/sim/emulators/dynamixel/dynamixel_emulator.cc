@@ -173,6 +173,8 @@ DynamixelBusEmulator::DynamixelBusEmulator(DxlEmulatorOptions options)
     }
     s.position = initial;
     s.tick_base_ms = options_.initial_tick_ms & 0x7FFF;
+    if (i < options_.tick_rate_ppm.size()) s.tick_rate = 1.0 + 1e-6 * options_.tick_rate_ppm[i];
+    if (i < options_.tick_phase_ms.size()) s.tick_phase_ms = options_.tick_phase_ms[i];
     servos_.push_back(std::move(s));
   }
   for (const auto& e : options_.events) {
@@ -243,7 +245,8 @@ bool DynamixelBusEmulator::Silent(double now_s) const {
 
 void DynamixelBusEmulator::UpdateTable(Servo& s, double now_s) {
   auto& t = s.table;
-  const double since_boot_ms = std::max(0.0, (now_s - s.tick_zero_s) * 1000.0);
+  const double since_boot_ms =
+      std::max(0.0, (now_s - s.tick_zero_s) * 1000.0 * s.tick_rate + s.tick_phase_ms);
   const auto tick = static_cast<std::uint32_t>(
       (s.tick_base_ms + static_cast<std::uint64_t>(std::floor(since_boot_ms))) % 32768);
   PutLe(t, kAddrTick, tick, 2);

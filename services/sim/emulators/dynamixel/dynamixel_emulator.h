@@ -66,8 +66,13 @@ struct DxlIgnoredWrite {
 
 struct DxlEmulatorOptions {
   std::vector<std::uint8_t> ids = {1, 2, 3, 4, 5, 6};
-  double time_constant_s = 0.05;         // first-order response to Goal Position
-  std::uint16_t initial_tick_ms = 0;     // Realtime Tick at t = 0 (wraps at 32768)
+  double time_constant_s = 0.05;      // first-order response to Goal Position
+  std::uint16_t initial_tick_ms = 0;  // Realtime Tick at t = 0 (wraps at 32768)
+  // Each servo's own crystal, one per id (same order; missing: exact): its Realtime Tick runs
+  // tick_rate_ppm fast and is tick_phase_ms into its millisecond at t = 0 (a servo booted
+  // apart from the others). docs/method.md, "Clocks and delays".
+  std::vector<double> tick_rate_ppm;
+  std::vector<double> tick_phase_ms;
   std::int32_t initial_position = 2048;  // counts, for every servo
   // When given, one per id (same order): each servo's own initial position, counts.
   std::vector<std::int32_t> initial_positions;
@@ -162,7 +167,8 @@ class DynamixelBusEmulator {
     double current_a = 0.0;
     double tick_zero_s = 0.0;  // REBOOT restarts the Realtime Tick
     std::uint16_t tick_base_ms = 0;
-    double last_instruction_s = 0.0;  // what feeds the Bus Watchdog
+    double tick_rate = 1.0, tick_phase_ms = 0.0;  // its crystal
+    double last_instruction_s = 0.0;              // what feeds the Bus Watchdog
     double watchdog_expired_s = -1.0;
   };
 

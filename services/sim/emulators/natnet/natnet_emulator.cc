@@ -117,7 +117,8 @@ double NatNetEmulator::Seconds() const { return SteadySeconds() - start_s_; }
 
 uint64_t NatNetEmulator::Ticks() const {
   // Motive had been up a second before the first frame: mid-exposure never goes below zero.
-  return static_cast<uint64_t>((Seconds() + 1.0) * static_cast<double>(options_.clock_hz));
+  return static_cast<uint64_t>((Seconds() * (1.0 + 1e-6 * options_.clock_rate_ppm) + 1.0) *
+                               static_cast<double>(options_.clock_hz));
 }
 
 natnet::Version NatNetEmulator::VersionFor(const sockaddr_in& from) const {
@@ -321,7 +322,12 @@ void NatNetEmulator::Tick() {
   const Eigen::Matrix3d R_MG_ = R_MG(options_.z_up);
   natnet::FrameOfData frame;
   frame.frame_number = static_cast<int32_t>(k - frame_base_ + 1 + skipped_);
-  frame.timestamp_s = static_cast<double>(frame.frame_number - 1) / options_.rate_hz;
+  // Motive's own clock, as QTM's (whole us, so both emulations give a frame one device time).
+  frame.timestamp_s =
+      1e-6 * static_cast<double>(std::llround(1e6 * options_.clock_offset_s +
+                                              (1.0 + 1e-6 * options_.clock_rate_ppm) *
+                                                  static_cast<double>(frame.frame_number - 1) *
+                                                  1e6 / options_.rate_hz));
   // Pivot P from chassis C: X_GP = X_GC X_PC^-1.
   const Eigen::Matrix3d R_GP = shown.R_GC * options_.R_PC.transpose();
   const Eigen::Vector3d p_GoPo = shown.p_GoCo_G_m - R_GP * options_.p_PoCo_P_m;

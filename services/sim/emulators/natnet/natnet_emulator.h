@@ -80,6 +80,10 @@ struct NatNetEmulatorOptions {
   std::string multicast_group = natnet::kMulticastGroup;
   natnet::Version version{4, 1};  // the server's own bitstream
   double rate_hz = 100.0;
+  // Motive's clock: its high-resolution ticks and frame timestamps run this fast, the
+  // timestamps start this far into its run.
+  double clock_rate_ppm = 0.0;
+  double clock_offset_s = 0.0;
   std::string body_name = "chassis";
   int32_t body_id = 3;
   bool decoy_body = true;  // "wand" (id 1) listed first: a client must map by name

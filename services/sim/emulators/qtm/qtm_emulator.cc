@@ -432,7 +432,9 @@ void QtmEmulator::Tick() {
   qtm::DataFrame frame;
   frame.frame_number = static_cast<int32_t>(k - frame_base_ + 1 + skipped_);
   frame.timestamp_us =
-      std::llround(static_cast<double>(frame.frame_number - 1) * 1e6 / options_.rate_hz);
+      std::llround(1e6 * options_.clock_offset_s + (1.0 + 1e-6 * options_.clock_rate_ppm) *
+                                                       static_cast<double>(frame.frame_number - 1) *
+                                                       1e6 / options_.rate_hz);
   frame.has_markers = true;
   frame.markers.resize(options_.labels.size());
   for (size_t i = 0; i < frame.markers.size(); ++i) {

@@ -72,6 +72,10 @@ struct QtmEmulatorOptions {
   std::string address = "127.0.0.1";
   uint16_t port = qtm::kLittleEndianPort;  // 0: any free port (see port())
   double rate_hz = 100.0;
+  // The camera system's clock: its frame timestamps run this fast and start this far into the
+  // measurement.
+  double clock_rate_ppm = 0.0;
+  double clock_offset_s = 0.0;
   std::string body_name = "chassis";
   // A second body listed before the chassis, so a client must map bodies by name.
   bool decoy_body_first = true;
