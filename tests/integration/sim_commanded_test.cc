@@ -249,7 +249,10 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
 
   // Each servo's fresh samples in time order.
   std::array<std::vector<ServoSample>, kNumLegs> servo;
-  double tick_offset = INFINITY;  // logger time - Realtime Tick: the smallest is the least latency
+  // Per servo, logger time - its Realtime Tick (the smallest is the least latency): each servo
+  // keeps its own clock, booted at its own moment (the twin's lab clocks, as real servos).
+  std::array<double, kNumLegs> tick_offset;
+  tick_offset.fill(INFINITY);
   for (const auto& s : rec.servo) {
     for (int j = 0; j < 6; ++j) {
       if (s.m.flags[j] & servo_state_t::FLAG_STALE) continue;
@@ -258,7 +261,7 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
       const double tick_s = static_cast<double>(s.m.device_tick_ms[j]) * 1e-3;
       servo[*k].push_back(
           {s.t_s, tick_s, s.m.angle_rad[j], (s.m.flags[j] & servo_state_t::FLAG_TORQUE_OFF) != 0});
-      tick_offset = std::min(tick_offset, s.t_s - tick_s);
+      tick_offset[*k] = std::min(tick_offset[*k], s.t_s - tick_s);
     }
   }
 
@@ -309,10 +312,10 @@ TEST(SimCommanded, LegsFollowTheServosAndTheLoadsFollowTheLegs) {
   const Step steps[] = {{"start -> A", t_a, start, kPoseA}, {"A -> B", t_b, kPoseA, kPoseB}};
   for (const Step& st : steps) {
     SCOPED_TRACE(st.name);
-    const double cmd_tick = st.t_cmd - tick_offset;  // the command's time on the servos' clock
     double tau_lo = INFINITY, tau_hi = 0, worst_fit = 0, frac_lo = INFINITY, frac_hi = 0;
     double start_lo = INFINITY, start_hi = -INFINITY;
     for (int k = 0; k < kNumLegs; ++k) {
+      const double cmd_tick = st.t_cmd - tick_offset[k];  // the command on this servo's clock
       const double from = held(st.from[k], k), to = held(st.to[k], k), step = to - from;
       ASSERT_GT(std::abs(step), 100 * kOneCountRad);
       // Log-linear least squares of the remaining fraction, between 90 % and 10 % of the step.
