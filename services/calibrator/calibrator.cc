@@ -12,6 +12,7 @@
 #include <spdlog/fmt/fmt.h>
 #include <spdlog/spdlog.h>
 
+#include "common/calibration_offsets.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"
@@ -313,29 +314,7 @@ CalibrationRun RunCalibration(const CalibrationCollector& collector, const confi
   return run;
 }
 
-namespace {
-
-// Component i (0..5 = [f; tau]) of a leg's offset in the calibration file.
-void SetOffsetComponent(int i, double value, double sigma, calibration::LegCalibration* leg) {
-  calibration::Vec3Estimate* v =
-      i < 3 ? leg->mutable_force_offset_n() : leg->mutable_torque_offset_nm();
-  switch (i % 3) {
-    case 0:
-      v->set_x(value);
-      v->set_sigma_x(sigma);
-      break;
-    case 1:
-      v->set_y(value);
-      v->set_sigma_y(sigma);
-      break;
-    default:
-      v->set_z(value);
-      v->set_sigma_z(sigma);
-      break;
-  }
-}
-
-}  // namespace
+namespace {}  // namespace
 
 OffsetReestimationRun RunOffsetReestimation(const CalibrationCollector& collector,
                                             const config::Config& config,

@@ -7,6 +7,7 @@
 #include <limits>
 #include <stdexcept>
 
+#include "common/calibration_offsets.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 
@@ -22,24 +23,6 @@ Vec6 Pair(double force, double torque) {
 double SigmaOf(const calibration::Vec3Estimate& v, int axis) {
   const double s = axis == 0 ? v.sigma_x() : axis == 1 ? v.sigma_y() : v.sigma_z();
   return std::isfinite(s) && s > 0.0 ? s : 0.0;
-}
-
-void SetOffset(int i, double value, double sigma, calibration::LegCalibration* leg) {
-  calibration::Vec3Estimate* v =
-      i < 3 ? leg->mutable_force_offset_n() : leg->mutable_torque_offset_nm();
-  switch (i % 3) {
-    case 0:
-      v->set_x(value);
-      v->set_sigma_x(sigma);
-      break;
-    case 1:
-      v->set_y(value);
-      v->set_sigma_y(sigma);
-      break;
-    default:
-      v->set_z(value);
-      v->set_sigma_z(sigma);
-  }
 }
 
 void SetInputFile(const std::string& path, calibration::InputFile* in) {
@@ -312,7 +295,7 @@ calibration::Calibration DriftStage::TrackedCalibrationProto(
         r->add_undetermined(std::string(kLegNames[k]) + " " + kAxes[i]);
         continue;
       }
-      SetOffset(i, base.leg[k].offset[i] + d.change[i], d.sigma[i], out.mutable_leg(k));
+      SetOffsetComponent(i, base.leg[k].offset[i] + d.change[i], d.sigma[i], out.mutable_leg(k));
       ++determined;
     }
   }

@@ -11,7 +11,7 @@
 #include "ftcal/config.h"
 #include "plan/plan_predict.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   CLI::App cli(
       "ftcal-plan: predicts, from the model's information matrix at the nominal parameters and "
       "the config's planner noise, each parameter class's sigma for an experiment plan of the "
@@ -43,4 +43,6 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "ftcal-plan: %s\n", ftcal::UserText(e, "predicting the plan").c_str());
     return ftcal::IsInternalError(e) ? ftcal::kExitInternal : ftcal::kExitConfig;
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-plan");
 }
