@@ -76,6 +76,7 @@ using hanging_detail::PairResult;
 using hanging_detail::PairSolve;
 using hanging_detail::ResolveLegCom;
 using hanging_detail::RotApply;
+using hanging_detail::StudentWidening;
 using hanging_detail::Where;
 using hanging_detail::WrapPi;
 
@@ -272,8 +273,11 @@ std::pair<Vec3, double> MeanDirection(size_t n, const DirectionOf& direction_of)
   return {mean, sigma};
 }
 
+// force_offset's sigma carries step 1's Student-t widening (`widening`, StdError): the prior
+// weighs by the spread itself, not by the interval the report states.
 HangingGravityObservation GravityObservation(const HangingRecording& rec, int leg,
-                                             const Pose3& X_B_ft, const Vec3Sigma& force_offset) {
+                                             const Pose3& X_B_ft, const Vec3Sigma& force_offset,
+                                             double widening) {
   const LegSamples& ls = rec.legs[leg];
   HangingGravityObservation obs;
   obs.leg = leg;
@@ -289,7 +293,7 @@ HangingGravityObservation GravityObservation(const HangingRecording& rec, int le
   });
   obs.u_B = X_B_ft.R * u_ft;
   obs.v_C = v;
-  const double sigma_offset = force_offset.sigma.norm() / std::sqrt(3.0) / f_mean.norm();
+  const double sigma_offset = force_offset.sigma.norm() / widening / std::sqrt(3.0) / f_mean.norm();
   obs.sigma_rad = std::sqrt(sigma_u * sigma_u + sigma_v * sigma_v + sigma_offset * sigma_offset);
   return obs;
 }
@@ -574,7 +578,8 @@ HangingResult RunHanging(const std::vector<HangingRecording>& recordings,
     if (has_attitude) {
       for (int s = 0; s < kNumHangSeries; ++s) {
         observations[leg].push_back(
-            GravityObservation(*by_series[s], leg, X_B_ft[leg], out.with_s.force_offset_n));
+            GravityObservation(*by_series[s], leg, X_B_ft[leg], out.with_s.force_offset_n,
+                               StudentWidening(static_cast<int>(m.cycles.size()))));
       }
     }
   });

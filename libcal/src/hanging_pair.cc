@@ -8,6 +8,9 @@
 #include <ceres/gradient_problem_solver.h>
 #include <ceres/rotation.h>
 
+#include <boost/math/distributions/normal.hpp>
+#include <boost/math/distributions/students_t.hpp>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -299,6 +302,14 @@ PairEstimate SolvePair(const PairData& pair, const std::vector<Vec3>& r_fit, int
 
 }  // namespace
 
+double StudentWidening(int n) {
+  // A normal sigma would claim 95 % at +-1.96 where n values' spread gives only the t
+  // distribution's coverage (90 % at +-2 for six cycles).
+  if (n < 2) return std::numeric_limits<double>::quiet_NaN();
+  const boost::math::students_t t(n - 1.0);
+  return boost::math::quantile(t, 0.975) / boost::math::quantile(boost::math::normal(), 0.975);
+}
+
 double StdError(const std::vector<double>& v) {
   const double n = static_cast<double>(v.size());
   if (v.size() < 2) return std::numeric_limits<double>::quiet_NaN();
@@ -307,7 +318,7 @@ double StdError(const std::vector<double>& v) {
   mean /= n;
   double ss = 0.0;
   for (double x : v) ss += (x - mean) * (x - mean);
-  return std::sqrt(ss / (n - 1.0) / n);
+  return StudentWidening(static_cast<int>(v.size())) * std::sqrt(ss / (n - 1.0) / n);
 }
 
 Vec3 StdError3(const std::vector<Vec3>& v) {

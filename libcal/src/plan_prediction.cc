@@ -15,6 +15,7 @@
 
 #include <Eigen/Cholesky>
 
+#include "hanging_internal.h"
 #include "standing_internal.h"
 
 namespace ftcal {
@@ -121,6 +122,12 @@ void AddHanging(const RobotCalibration& nominal, const PlanDesign& design, int b
   const char* axes[3] = {"x", "y", "z"};
   const char* com_names[7] = {"CoM x a", "CoM x c", "CoM x d", "CoM y",
                               "CoM z a", "CoM z c", "CoM z d"};
+  // Step 1 reports the spread of its per-cycle estimates, widened for their few cycles
+  // (StudentWidening): what it would report is the bound so widened.
+  int cycles = 0;
+  for (const PlannedHangSeries& s : design.hanging)
+    cycles = cycles == 0 ? s.cycles : std::min(cycles, s.cycles);
+  const double widen = cycles >= 2 ? hanging_detail::StudentWidening(cycles) : 1.0;
   for (int k = 0; k < kNumLegs; ++k) {
     const Eigen::MatrixXd C = HangingLegCovariance(nominal, k, design.hanging, bins, noise);
     (*leg_covariance)[k] = C;
@@ -128,11 +135,12 @@ void AddHanging(const RobotCalibration& nominal, const PlanDesign& design, int b
     double fo = 0.0;
     for (int i = 0; i < kLegBlock; ++i) {
       PredictedSigma p;
-      p.sigma = p.bound = p.reported = p.with_step1 = std::sqrt(std::max(0.0, C(i, i)));
+      p.sigma = p.bound = p.with_step1 = std::sqrt(std::max(0.0, C(i, i)));
+      p.reported = widen * p.sigma;
       if (i < 3) {
         p.name = leg + "f_o " + axes[i];
         p.klass = "force offset";
-        fo += C(i, i);
+        fo += C(i, i);  // the gravity prior weighs by the spread, unwidened (hanging.cc)
       } else if (i < 6) {
         p.name = leg + "tau_o " + axes[i - 3];
         p.klass = "torque offset";
