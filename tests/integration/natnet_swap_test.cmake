@@ -19,8 +19,10 @@ if(TARGET ftcal-sim AND TARGET ftcal-natnet-bridge AND TARGET ftcal-mocap-bridge
     ftcal-mocap-bridge ftcal-natnet-bridge ftcal-pose-segmenter)
   set_target_properties(natnet_swap_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
+  # The lock of the WHOLE_GROUP tests (tests/CMakeLists.txt): a twin and its bridges, never
+  # beside another group; beside the single-process tests, as it always ran.
   ftcal_gtest_discover(natnet_swap_test KIND integration
-    PROPERTIES TIMEOUT 240
+    PROPERTIES TIMEOUT 240 RESOURCE_LOCK ftcal_whole_group
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

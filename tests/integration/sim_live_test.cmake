@@ -18,8 +18,10 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
     ftcal-mocap-bridge)
   set_target_properties(sim_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
+  # The lock of the WHOLE_GROUP tests (tests/CMakeLists.txt): a twin and its bridges, never
+  # beside another group; beside the single-process tests, as it always ran.
   ftcal_gtest_discover(sim_live_test KIND integration
-    PROPERTIES TIMEOUT 120
+    PROPERTIES TIMEOUT 120 RESOURCE_LOCK ftcal_whole_group
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()

@@ -33,11 +33,11 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftc
     ftcal-calibrator ftcal-corrector ftcal-sequencer ftcal-sequencer-control ftcal-keygen ftcal-record)
   set_target_properties(two_host_experiment_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  # RUN_SERIAL: timing-sensitive (restart bounds, a recording that must lose nothing outside the
+  # WHOLE_GROUP (one group at a time): timing-sensitive (restart bounds, a recording that must lose nothing outside the
   # outage) and it runs a dozen processes on its own.
   ftcal_gtest_discover(two_host_experiment_test KIND integration
     LONG "TwoHostExperiment.ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMidRun"
-    PROPERTIES TIMEOUT 1200 RUN_SERIAL TRUE
+    WHOLE_GROUP PROPERTIES TIMEOUT 1200
     DISCOVERY_TIMEOUT 60
     DISCOVERY_MODE PRE_TEST)
 endif()
