@@ -18,7 +18,9 @@ void ValidateDrift(const Node& node, const config::Drift& d) {
                                 {"initial_sigma_force_n", d.initial_sigma_force_n()},
                                 {"initial_sigma_torque_nm", d.initial_sigma_torque_nm()},
                                 {"warn_factor", d.warn_factor()},
-                                {"publish_period_s", d.publish_period_s()}}) {
+                                {"publish_period_s", d.publish_period_s()},
+                                {"apply_factor", d.apply_factor()},
+                                {"apply_min_interval_s", d.apply_min_interval_s()}}) {
     node.Positive(name, v);
   }
   for (const auto& [name, v] :

@@ -70,6 +70,35 @@ int DriftBeyondCalibration(const LegDrift& d, const Vec6& calibration_sigma, dou
   return bits;
 }
 
+int DriftSignificant(const LegDrift& d, const Vec6& calibration_sigma, double factor,
+                     const Vec6& min_change) {
+  int bits = 0;
+  for (int i = 0; i < 6; ++i) {
+    const double a = std::abs(d.change[i]);
+    if (a > factor * d.sigma[i] && a > std::max(calibration_sigma[i], min_change[i])) {
+      bits |= 1 << i;
+    }
+  }
+  return bits;
+}
+
+int LegsToApply(const std::array<LegDrift, kNumLegs>& drift,
+                const std::array<Vec6, kNumLegs>& calibration_sigma, const DriftApplyPolicy& policy,
+                int64_t utime, int64_t last_apply_utime) {
+  if (last_apply_utime > 0 &&
+      static_cast<double>(utime - last_apply_utime) < policy.min_interval_s * 1e6) {
+    return 0;
+  }
+  int legs = 0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    if (drift[k].windows > 0 &&
+        DriftSignificant(drift[k], calibration_sigma[k], policy.factor, policy.min_change) != 0) {
+      legs |= 1 << k;
+    }
+  }
+  return legs;
+}
+
 OffsetTracker::OffsetTracker(const OffsetTrackerOptions& o, const RobotCalibration& cal)
     : options_(o), cal_(cal) {
   auto positive = [](double v, const char* name) {

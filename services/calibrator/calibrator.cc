@@ -13,6 +13,7 @@
 #include <spdlog/spdlog.h>
 
 #include "common/calibration_offsets.h"
+#include "common/calibration_publish.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/config.h"
@@ -122,12 +123,7 @@ void LiveCalibrator::CalibrateNow() {
   WriteCalibrationOutputs(run, out_path_);  // the file first: a published version exists on disk
   ++version_;
   ++made_;
-  const calibration_t msg = ToLcm(run.proto, version_, bus_.NowUtime());
-  if (signer_ != nullptr) {
-    bus_.PublishSigned(config_.channels().calibration(), msg, *signer_);
-  } else {
-    bus_.Publish(config_.channels().calibration(), msg);
-  }
+  PublishCalibration(bus_, config_.channels().calibration(), run.proto, version_, signer_);
   spdlog::info("wrote {}; published calibration version {} on {}", out_path_, version_,
                config_.channels().calibration());
   if (on_calibrated_) on_calibrated_(run);

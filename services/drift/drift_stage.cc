@@ -1,5 +1,6 @@
 #include "drift/drift_stage.h"
 
+#include <algorithm>
 #include <filesystem>
 #include <cmath>
 #include <cstdio>
@@ -8,6 +9,7 @@
 #include <stdexcept>
 
 #include "common/calibration_offsets.h"
+#include "common/calibration_publish.h"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 
@@ -79,13 +81,22 @@ DriftStage::DriftStage(const config::Config& config, Bus& bus, StateSink set_sta
       set_state_(std::move(set_state)),
       inputs_(config),
       options_(OffsetTrackerOptionsFromConfig(config)) {
+  const config::Drift& d = config.drift();
+  apply_policy_.factor = d.apply_factor();
+  apply_policy_.min_change = Pair(d.warn_min_force_n(), d.warn_min_torque_nm());
+  apply_policy_.min_interval_s = d.apply_min_interval_s();
   // Refuse at start, not at the first calibration, options the tracker refuses.
   (void)OffsetTracker(options_, RobotCalibration{});
   ServiceStats& st = bus.stats();
-  counters_ = {&st.Counter("windows"),       &st.Counter("bins_air"),
-               &st.Counter("bins_loaded"),   &st.Counter("bins_moving"),
-               &st.Counter("bins_no_servo"), &st.Counter("bins_no_attitude"),
-               &st.Counter("drift_warn"),    &st.Counter("calibration_version")};
+  counters_ = {&st.Counter("windows"),
+               &st.Counter("bins_air"),
+               &st.Counter("bins_loaded"),
+               &st.Counter("bins_moving"),
+               &st.Counter("bins_no_servo"),
+               &st.Counter("bins_no_attitude"),
+               &st.Counter("drift_warn"),
+               &st.Counter("calibration_version"),
+               &st.Counter("calibrations_applied")};
   const auto& ch = config.channels();
   inputs_.Subscribe(bus, {[this](const FtBatch& batch) { OnFt(batch); },
                           [this](const ServoInput& in) { OnServo(in); },
@@ -121,6 +132,7 @@ void DriftStage::UseCalibration(const calibration::Calibration& proto, int64_t v
   const RobotCalibration cal = CalibrationFromProto(proto, config_.robot());
   CheckCalibrationPlausible(cal, config_);
   auto tracker = std::make_unique<OffsetTracker>(options_, cal);
+  tracker->SetPhase(phase_);
   tracker_ = std::move(tracker);
   proto_ = proto;
   calibration_sigma_ = OffsetSigmas(proto);
@@ -157,8 +169,13 @@ void DriftStage::OnCalibration(const MessageInfo& info, const calibration_t& msg
 }
 
 void DriftStage::OnExperiment(const experiment_marker_t& msg) {
-  if (!tracker_) return;
-  tracker_->SetPhase(msg.start ? static_cast<ExperimentPhase>(msg.phase) : ExperimentPhase::kIdle);
+  phase_ = msg.start ? static_cast<ExperimentPhase>(msg.phase) : ExperimentPhase::kIdle;
+  if (tracker_) tracker_->SetPhase(phase_);
+}
+
+void DriftStage::EnableApply(auth::Signer* signer) {
+  apply_ = true;
+  signer_ = signer;
 }
 
 void DriftStage::OnFt(const FtBatch& batch) {
@@ -208,8 +225,9 @@ void DriftStage::PublishDrift() {
   const config::Drift& c = config_.drift();
   const Vec6 min_change = Pair(c.warn_min_force_n(), c.warn_min_torque_nm());
   std::string warn_text;
+  std::array<LegDrift, kNumLegs> drift{};
   for (int k = 0; k < kNumLegs; ++k) {
-    LegDrift d;
+    LegDrift& d = drift[k];
     if (tracker_) {
       d = tracker_->Drift(k, msg_.utime);
       const int mask =
@@ -272,44 +290,105 @@ void DriftStage::PublishDrift() {
     csv_.append(row, static_cast<size_t>(n));
   }
   UpdateCounters();
+  if (apply_ && tracker_) {
+    const int legs =
+        LegsToApply(drift, calibration_sigma_, apply_policy_, msg_.utime, last_apply_utime_);
+    if (legs != 0) Apply(legs, drift);
+  }
+}
+
+void DriftStage::Apply(int legs, const std::array<LegDrift, kNumLegs>& drift) {
+  calibration::Calibration out;
+  const int64_t utime = msg_.utime;
+  WithTrackedOffsets(legs, utime, &out);
+  calibration::OffsetReestimation* r = out.mutable_offset_reestimation();
+  r->set_created_utc(UtcNow());
+  r->set_command_line("ftcal-drift --apply");
+  // The provenance: per applied leg, the windows its offsets come from and the change.
+  std::string text = "offsets applied by ftcal-drift --apply at utime " + std::to_string(utime) +
+                     " over version " + std::to_string(version_) + ":";
+  for (int k = 0; k < kNumLegs; ++k) {
+    if ((legs >> k & 1) == 0) continue;
+    const LegDrift& d = drift[k];
+    char row[320];
+    std::snprintf(row, sizeof row,
+                  " %s from %lld windows (%.1f s of data, the last at utime %lld), change "
+                  "[%+.4g %+.4g %+.4g] N [%+.4g %+.4g %+.4g] N*m;",
+                  std::string(kLegNames[k]).c_str(), static_cast<long long>(d.windows),
+                  d.window_seconds, static_cast<long long>(d.last_window_utime), d.change[0],
+                  d.change[1], d.change[2], d.change[3], d.change[4], d.change[5]);
+    text += row;
+  }
+  text.pop_back();
+  out.add_warning(text);
+  // Above the version in use and above every one published here before: a receiver takes
+  // only a version above the last it used from this signer, and a calibrator's calibration in
+  // between may have a lower number than ours (versions are per signer).
+  const int64_t version = std::max(version_, last_applied_version_) + 1;
+  out.set_version(static_cast<uint64_t>(version));
+  last_apply_utime_ = utime;  // a refusal below waits the interval too
+  // In use here first (checked as any calibration is; the tracking restarts relative to it),
+  // then published; when this process hears its own message, its hash makes it a repeat.
+  std::string bytes;
+  out.SerializeToString(&bytes);
+  try {
+    UseCalibration(out, version, Sha256Hex(bytes));
+  } catch (const std::exception& e) {
+    bus_.stats().Error("apply refused", std::string("the tracked offsets: ") + e.what());
+    return;
+  }
+  PublishCalibration(bus_, config_.channels().calibration(), out, version, signer_);
+  last_applied_version_ = version;
+  ++applied_;
+  UpdateCounters();
+  bus_.stats().log().info("published calibration version {} on {}: {}", version,
+                          config_.channels().calibration(), text);
+}
+
+int64_t DriftStage::WithTrackedOffsets(int legs, int64_t utime,
+                                       calibration::Calibration* out) const {
+  *out = proto_;
+  calibration::OffsetReestimation* r = out->mutable_offset_reestimation();
+  r->Clear();
+  const RobotCalibration base = CalibrationFromProto(proto_, config_.robot());
+  int determined = 0;
+  int64_t windows = 0;
+  for (int k = 0; k < kNumLegs; ++k) {
+    const LegDrift d = tracker_->Drift(k, utime);
+    const bool use = (legs >> k & 1) != 0 && d.windows > 0;
+    if (use) windows += d.windows;
+    for (int i = 0; i < 6; ++i) {
+      r->add_previous_offset(base.leg[k].offset[i]);
+      if (!use) {
+        // Not applied, or no window of this leg (the data say nothing): the offsets stay.
+        r->add_undetermined(std::string(kLegNames[k]) + " " + kAxes[i]);
+        continue;
+      }
+      SetOffsetComponent(i, base.leg[k].offset[i] + d.change[i], d.sigma[i], out->mutable_leg(k));
+      ++determined;
+    }
+  }
+  r->set_base_version(proto_.version());
+  r->set_standing_poses(0);
+  r->set_unloaded_leg_samples(static_cast<uint32_t>(windows));
+  r->set_rank(static_cast<uint32_t>(determined));
+  return windows;
 }
 
 calibration::Calibration DriftStage::TrackedCalibrationProto(
     const std::string& base_path, const std::vector<std::string>& inputs,
     const std::string& command_line) const {
   if (!tracker_) throw std::logic_error("no calibration in use: nothing was tracked");
-  calibration::Calibration out = proto_;
+  calibration::Calibration out;
+  const int64_t windows = WithTrackedOffsets((1 << kNumLegs) - 1, tracker_->newest_utime(), &out);
   calibration::OffsetReestimation* r = out.mutable_offset_reestimation();
-  r->Clear();
-  const RobotCalibration base = CalibrationFromProto(proto_, config_.robot());
-  const int64_t now = tracker_->newest_utime();
-  int determined = 0;
-  int64_t windows = 0;
-  for (int k = 0; k < kNumLegs; ++k) {
-    const LegDrift d = tracker_->Drift(k, now);
-    windows += d.windows;
-    for (int i = 0; i < 6; ++i) {
-      r->add_previous_offset(base.leg[k].offset[i]);
-      if (d.windows == 0) {
-        // No window of this leg: the data say nothing about its offsets; they stay.
-        r->add_undetermined(std::string(kLegNames[k]) + " " + kAxes[i]);
-        continue;
-      }
-      SetOffsetComponent(i, base.leg[k].offset[i] + d.change[i], d.sigma[i], out.mutable_leg(k));
-      ++determined;
-    }
-  }
   if (!base_path.empty()) SetInputFile(base_path, r->mutable_base_calibration());
-  r->set_base_version(proto_.version());
   for (const std::string& path : inputs) SetInputFile(path, r->add_input());
   r->set_created_utc(UtcNow());
   r->set_command_line(command_line);
-  r->set_standing_poses(0);
-  r->set_unloaded_leg_samples(static_cast<uint32_t>(windows));
-  r->set_rank(static_cast<uint32_t>(determined));
   out.add_warning("offsets tracked by ftcal-drift at the end of its input: " +
                   std::to_string(windows) + " windows with a leg in the air and quasi-static" +
-                  (determined < 6 * kNumLegs ? "; legs without a window keep their offsets" : ""));
+                  (r->rank() < 6 * kNumLegs ? "; legs without a window keep their offsets" : ""));
   out.set_version(proto_.version() + 1);
   return out;
 }
@@ -326,6 +405,7 @@ void DriftStage::UpdateCounters() {
   }
   *counters_.warn = msg_.status == drift_t::WARN ? 1 : 0;
   *counters_.version = tracker_ ? version_ : 0;
+  *counters_.applied = applied_;
 }
 
 }  // namespace ftcal

@@ -10,6 +10,15 @@
 // tracking relative to it: the changes are always the offsets' since the calibration in use.
 // Until one is in use DRIFT says NO_CALIBRATION and the state is DEGRADED.
 //
+// --apply (EnableApply): at each DRIFT, the legs with a significant change (LegsToApply:
+// beyond drift.apply_factor x the tracker's sigma and beyond the calibration's own sigma, at
+// most once per drift.apply_min_interval_s of the inputs' time) get their tracked offsets in a
+// new calibration, version + 1 (and above any this stage published before), checked and put in
+// use here (the tracking restarts relative to it, as for any new calibration), then published
+// on CALIBRATION (signed with the stage's key, the calibrator's publishing path,
+// common/calibration_publish.h). Its offset_reestimation and a warning name the windows each
+// applied leg's offsets come from.
+//
 // WARN: a component whose tracked change is beyond drift.warn_factor x the calibration's own
 // sigma of that offset (DriftBeyondCalibration) sets DRIFT's status WARN and its warn_mask, the
 // service state DEGRADED with the components in last_error, and logs once per change of the set.
@@ -23,6 +32,7 @@
 #include <vector>
 
 #include "common/bus.h"
+#include "common/envelope.h"
 #include "common/messages.h"
 #include "ftcal/calibration_t.hpp"
 #include "ftcal/drift_t.hpp"
@@ -53,7 +63,13 @@ class DriftStage {
   // any, is in use.
   void ReportWaitingForCalibration();
 
-  // Publishes DRIFT now (the periodic work).
+  // --apply: publish a calibration with the significant tracked offsets (signed by `signer`
+  // when not null; it must outlive the stage). Off unless called.
+  void EnableApply(auth::Signer* signer);
+  // Calibrations published by --apply.
+  int64_t applied() const { return applied_; }
+
+  // Publishes DRIFT now (the periodic work), and with --apply a calibration when one is due.
   void PublishDrift();
   // The input ended: the open windows are judged, and a last DRIFT goes out.
   void Finish();
@@ -76,6 +92,10 @@ class DriftStage {
   void OnExperiment(const experiment_marker_t& msg);
   void OnCalibration(const MessageInfo& info, const calibration_t& msg);
   void UpdateCounters();
+  // The calibration in use with leg k's offsets (and sigmas) replaced by the tracked ones for
+  // every leg with bit k in `legs`; the rest as they are. Returns the windows used.
+  int64_t WithTrackedOffsets(int legs, int64_t utime, calibration::Calibration* out) const;
+  void Apply(int legs, const std::array<LegDrift, kNumLegs>& drift);
 
   const config::Config& config_;
   auth::Verifier verifier_ = auth::Verifier::FromConfig(config_);
@@ -93,9 +113,14 @@ class DriftStage {
   drift_t msg_{};
   std::string csv_;
   int64_t published_ = 0, calibrations_ = 0, refused_ = 0;
+  ExperimentPhase phase_ = ExperimentPhase::kIdle;  // carried into a new tracker
+  bool apply_ = false;
+  auth::Signer* signer_ = nullptr;
+  DriftApplyPolicy apply_policy_;
+  int64_t last_apply_utime_ = 0, applied_ = 0, last_applied_version_ = 0;
   struct Counters {
     int64_t *windows, *bins_air, *bins_loaded, *bins_moving, *bins_no_servo, *bins_no_attitude,
-        *warn, *version;
+        *warn, *version, *applied;
   } counters_{};
 };
 

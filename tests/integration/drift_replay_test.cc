@@ -8,6 +8,7 @@
 #include <sys/wait.h>
 
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <map>
@@ -19,7 +20,9 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include "child_process.h"
+#include "common/messages.h"
 #include "common/wire_guard.h"
+#include "ftcal/calibration_t.hpp"
 #include "ftcal/calibration_io.h"
 #include "ftcal/config.h"
 #include "ftcal/drift_t.hpp"
@@ -221,6 +224,92 @@ TEST_F(DriftReplayTest, TheDemosDriftSessionAgreesWithTheDriftedTruth) {
       EXPECT_NEAR(tracked.leg[k].offset[i], drifted.leg[k].offset[i], i < 3 ? 0.02 : 0.001)
           << kLegNames[k] << " component " << i;
     }
+  }
+}
+
+// --apply over a log (the same stage as live, its CALIBRATION into --out): a walk without
+// drift publishes nothing (the tracked changes stay within the floor); a step on MR at 30 s and
+// one on FL at 42 s, while every leg creeps by 0.15 N in the 90 s (not significant), publish
+// MR's and FL's offsets only, after the first step, the calibrations at least
+// drift.apply_min_interval_s (20 s) of the log apart (FL's waits for it), each numbered on, the
+// last at the drifted truth.
+std::vector<CalibrationMessage> ReadCalibrations(const std::string& path) {
+  std::vector<CalibrationMessage> out;
+  lcm::LogFile log(path, "r");
+  EXPECT_TRUE(log.good()) << path;
+  if (!log.good()) return out;
+  while (const lcm::LogEvent* e = log.readNextEvent()) {
+    if (e->channel != "CALIBRATION") continue;
+    calibration_t m;
+    EXPECT_FALSE(wire::Decode(e->data, e->datalen, &m).has_value());
+    out.push_back(FromLcm(m));
+  }
+  return out;
+}
+
+TEST_F(DriftReplayTest, ApplyPublishesOnlySignificantChangesAtMostOncePerInterval) {
+  std::string config_text = ReadFile(kConfig) + "\ndrift { apply_min_interval_s: 20 }\n";
+  const std::string config = dir_ + "/config.pbtxt";
+  std::ofstream(config) << config_text;
+  const std::string calm = dir_ + "/calm.lcmlog";
+  ASSERT_EQ(Run({FTCAL_SIM, "log", "--config", kConfig, "--out", calm, "--seed", "5", "--scenarios",
+                 "walk", "--walk-s", "60"},
+                "sim-calm")
+                .exit_code,
+            0);
+  Result r =
+      Run({FTCAL_DRIFT, "--config", config, "--replay", calm, "--out", dir_ + "/calm-out.lcmlog",
+           "--calibration", dir_ + "/calm.truth.pbtxt", "--apply"},
+          "drift-calm");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  EXPECT_TRUE(ReadCalibrations(dir_ + "/calm-out.lcmlog").empty()) << r.err;
+
+  const std::string log = dir_ + "/walk.lcmlog";
+  ASSERT_EQ(
+      Run({FTCAL_SIM, "log", "--config", kConfig, "--out", log, "--seed", "3", "--scenarios",
+           "walk", "--walk-s", "90", "--drift-step", "MR:30:2,-2,2,0.05,-0.05,0.05", "--drift-step",
+           "FL:42:-1.5,1,1.5,0.04,0.03,-0.04", "--drift-ramp", "all:0:600:1,-1,1,0.03,-0.03,0.03"},
+          "sim")
+          .exit_code,
+      0);
+  r = Run({FTCAL_DRIFT, "--config", config, "--replay", log, "--out", dir_ + "/out.lcmlog",
+           "--calibration", dir_ + "/walk.truth.pbtxt", "--apply"},
+          "drift");
+  ASSERT_EQ(r.exit_code, 0) << r.err;
+  const std::vector<CalibrationMessage> cals = ReadCalibrations(dir_ + "/out.lcmlog");
+  ASSERT_GE(cals.size(), 2u) << r.err;
+  const auto truth = ReadTruthCsv(dir_ + "/walk.drift.csv");
+  const int64_t t0 = truth.at("HL").front().first;
+  const config::Config cfg = LoadConfigFile(config);
+  const calibration::Calibration base = ReadCalibrationFile(dir_ + "/walk.truth.pbtxt");
+  const RobotCalibration b = CalibrationFromProto(base, cfg.robot());
+  const int mr = *LegIndex("MR"), fl = *LegIndex("FL");
+  for (size_t c = 0; c < cals.size(); ++c) {
+    EXPECT_EQ(cals[c].version, static_cast<int64_t>(base.version() + 1 + c));
+    EXPECT_GT(cals[c].utime, t0 + 30'000'000) << "calibration " << c << " before the step";
+    if (c > 0) {
+      EXPECT_GE(cals[c].utime - cals[c - 1].utime, 20'000'000) << "calibration " << c;
+    }
+    const RobotCalibration a = CalibrationFromProto(cals[c].proto, cfg.robot());
+    for (int k = 0; k < kNumLegs; ++k) {
+      if (k != mr && k != fl) {
+        EXPECT_EQ(a.leg[k].offset, b.leg[k].offset) << kLegNames[k];
+      }
+    }
+  }
+  const RobotCalibration last = CalibrationFromProto(cals.back().proto, cfg.robot());
+  for (const int k : {mr, fl}) {
+    const Vec6 d = TruthAt(truth.at(std::string(kLegNames[k])), cals.back().utime);
+    for (int i = 0; i < 6; ++i) {
+      EXPECT_NEAR(last.leg[k].offset[i] - b.leg[k].offset[i], d[i],
+                  i < 3 ? kForceBoundN : kTorqueBoundNm)
+          << kLegNames[k] << " component " << i;
+    }
+  }
+  for (const CalibrationMessage& c : cals) {
+    std::printf("version %lld at %.1f s of the log: %s\n", static_cast<long long>(c.version),
+                1e-6 * static_cast<double>(c.utime - t0),
+                c.proto.warning(c.proto.warning_size() - 1).c_str());
   }
 }
 

@@ -17,7 +17,7 @@ if(TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-sequencer-contro
     FTCAL_BUILD_DIR="${PROJECT_BINARY_DIR}")
   add_dependencies(experiment_live_test ftcal-sim ftcal-keygen ftcal-ati-bridge
     ftcal-dynamixel-bridge ftcal-mocap-bridge ftcal-natnet-bridge ftcal-pose-segmenter ftcal-calibrator
-    ftcal-corrector ftcal-sequencer ftcal-sequencer-control)
+    ftcal-corrector ftcal-drift ftcal-sequencer ftcal-sequencer-control)
   set_target_properties(experiment_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   ftcal_gtest_discover(experiment_live_test KIND integration

@@ -5,8 +5,8 @@
 //
 // The including target defines FTCAL_LAUNCH, FTCAL_EVENTS, FTCAL_SIM, FTCAL_ATI_BRIDGE,
 // FTCAL_DYNAMIXEL_BRIDGE, FTCAL_MOCAP_BRIDGE, FTCAL_SEGMENTER, FTCAL_CALIBRATOR,
-// FTCAL_CORRECTOR, FTCAL_LCM_LOGGER and FTCAL_RECORD (the programs' paths), as launch_test.cmake
-// does.
+// FTCAL_CORRECTOR, FTCAL_DRIFT, FTCAL_LCM_LOGGER and FTCAL_RECORD (the programs' paths), as
+// launch_test.cmake does.
 #pragma once
 
 #include <fcntl.h>
@@ -78,7 +78,7 @@ inline void PutOnPath(const std::vector<std::string>& programs) {
 // Every program the groups run, on the PATH supervisord hands its children.
 inline void PutProgramsOnPath() {
   PutOnPath({FTCAL_LAUNCH, FTCAL_EVENTS, FTCAL_SIM, FTCAL_ATI_BRIDGE, FTCAL_DYNAMIXEL_BRIDGE,
-             FTCAL_MOCAP_BRIDGE, FTCAL_SEGMENTER, FTCAL_CALIBRATOR, FTCAL_CORRECTOR,
+             FTCAL_MOCAP_BRIDGE, FTCAL_SEGMENTER, FTCAL_CALIBRATOR, FTCAL_CORRECTOR, FTCAL_DRIFT,
              FTCAL_LCM_LOGGER, FTCAL_RECORD});
 }
 

@@ -104,7 +104,7 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
 
   auto before = SupervisorStatus(run);
   for (const char* p : {"recorder", "twin", "ati-bridge", "dynamixel-bridge", "mocap-bridge",
-                        "segmenter", "calibrator", "corrector"}) {
+                        "segmenter", "calibrator", "corrector", "drift"}) {
     ASSERT_EQ(before["sim:" + std::string(p)].state, "RUNNING") << p;
   }
   // The gate's claim, measured here: six FT_* channels bring >= 95% of what the twin sent.
@@ -165,7 +165,7 @@ TEST_F(LaunchTest, KilledProcessIsRestartedBySupervisorAndTheGroupCarriesOn) {
   ear.Pump(0.5);  // the listener's event of that RUNNING
   EXPECT_EQ(after["sim:ati-bridge"].pid, new_pid);
   for (const char* p : {"recorder", "twin", "dynamixel-bridge", "mocap-bridge", "segmenter",
-                        "calibrator", "corrector"}) {
+                        "calibrator", "corrector", "drift"}) {
     EXPECT_EQ(after["sim:" + std::string(p)].pid, before["sim:" + std::string(p)].pid) << p;
   }
   // The listener put the restart on the bus, counted once.

@@ -18,11 +18,12 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND LCM_LOGGER
     FTCAL_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>"
     FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>"
     FTCAL_CORRECTOR="$<TARGET_FILE:ftcal-corrector>"
+    FTCAL_DRIFT="$<TARGET_FILE:ftcal-drift>"
     FTCAL_LCM_LOGGER="${LCM_LOGGER}"
     FTCAL_RECORD="$<TARGET_FILE:ftcal-record>")
   add_dependencies(launch_test ftcal-launch ftcal-supervisor-events ftcal-status ftcal-sim
     ftcal-ati-bridge ftcal-dynamixel-bridge ftcal-mocap-bridge ftcal-pose-segmenter
-    ftcal-calibrator ftcal-corrector ftcal-record)
+    ftcal-calibrator ftcal-corrector ftcal-drift ftcal-record)
   set_target_properties(launch_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   # WHOLE_GROUP (one group at a time): each test runs a whole process group and measures its rates (six FT channels at

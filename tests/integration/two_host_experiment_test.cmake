@@ -23,6 +23,7 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftc
     FTCAL_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>"
     FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>"
     FTCAL_CORRECTOR="$<TARGET_FILE:ftcal-corrector>"
+    FTCAL_DRIFT="$<TARGET_FILE:ftcal-drift>"
     FTCAL_SEQUENCER="$<TARGET_FILE:ftcal-sequencer>"
     FTCAL_SEQUENCER_CONTROL="$<TARGET_FILE:ftcal-sequencer-control>"
     FTCAL_KEYGEN="$<TARGET_FILE:ftcal-keygen>"
@@ -30,7 +31,8 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftc
     FTCAL_LCM_LOGGER="${LCM_LOGGER}")
   add_dependencies(two_host_experiment_test ftcal-launch ftcal-supervisor-events ftcal-status
     ftcal-sim ftcal-ati-bridge ftcal-dynamixel-bridge ftcal-mocap-bridge ftcal-pose-segmenter
-    ftcal-calibrator ftcal-corrector ftcal-sequencer ftcal-sequencer-control ftcal-keygen ftcal-record)
+    ftcal-calibrator ftcal-corrector ftcal-drift ftcal-sequencer ftcal-sequencer-control ftcal-keygen
+    ftcal-record)
   set_target_properties(two_host_experiment_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
   # WHOLE_GROUP (one group at a time): timing-sensitive (restart bounds, a recording that must lose nothing outside the

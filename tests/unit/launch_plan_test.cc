@@ -42,9 +42,10 @@ TEST(LaunchPlan, StartOrderPutsEveryProcessAfterWhatItWaitsFor) {
   }
   // Hand-checked: the config's order among the free ones.
   const auto sim = Shipped("sim.pbtxt");
-  EXPECT_EQ(Names(sim.launch().group(0), StartOrder(sim.launch().group(0))),
-            (std::vector<std::string>{"recorder", "twin", "ati-bridge", "dynamixel-bridge",
-                                      "mocap-bridge", "segmenter", "calibrator", "corrector"}));
+  EXPECT_EQ(
+      Names(sim.launch().group(0), StartOrder(sim.launch().group(0))),
+      (std::vector<std::string>{"recorder", "twin", "ati-bridge", "dynamixel-bridge",
+                                "mocap-bridge", "segmenter", "calibrator", "corrector", "drift"}));
 }
 
 TEST(LaunchPlan, GroupConfHasEveryProgramOfTheHostWithItsPolicyAndNoHttpServer) {
@@ -144,7 +145,7 @@ TEST(LaunchPlan, WavesStartTogetherWhatWaitsForNothingInEachOther) {
                        {"recorder", "twin"},
                        {"ati-bridge", "dynamixel-bridge", "mocap-bridge"},
                        {"segmenter"},
-                       {"calibrator", "corrector"}}));
+                       {"calibrator", "corrector", "drift"}}));
 }
 
 }  // namespace

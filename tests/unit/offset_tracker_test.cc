@@ -314,5 +314,51 @@ TEST(OffsetTracker, ShaftAccelerationIsNotTakenForAnOffset) {
   EXPECT_GT(std::abs(open.change[4]), 4 * kTorqueBoundNm);
 }
 
+// --apply's policy on hand-made drifts: a change is applied only when the tracker is sure of it
+// (factor x its sigma) and it is beyond the calibration's own sigma and the floor.
+TEST(DriftApply, OnlyASureChangeBeyondTheCalibrationIsSignificant) {
+  const Vec6 min_change = (Vec6() << 0.2, 0.2, 0.2, 0.01, 0.01, 0.01).finished();
+  const Vec6 cal_sigma = (Vec6() << 0.5, 0.0, 0.0, 0.0, 0.0, 0.0).finished();
+  LegDrift d;
+  d.windows = 3;
+  d.sigma = Vec6::Constant(0.05);
+  d.change << 0.4, 0.3, -0.24, 0.009, 0.0, 0.0;
+  // fx: 0.4 < the calibration's 0.5; fy: 0.3 > 5 x 0.05 and > 0.2; fz: |-0.24| < 5 x 0.05;
+  // tx: 0.009 < its floor 0.01 (and < 5 x 0.05).
+  EXPECT_EQ(DriftSignificant(d, cal_sigma, 5.0, min_change), 1 << 1);
+  d.change[0] = 0.6;  // beyond the calibration's 0.5 and 5 x 0.05
+  EXPECT_EQ(DriftSignificant(d, cal_sigma, 5.0, min_change), (1 << 0) | (1 << 1));
+  // A tracker that is not sure (its prior's sigma) finds nothing significant.
+  d.sigma = Vec6::Constant(5.0);
+  EXPECT_EQ(DriftSignificant(d, cal_sigma, 5.0, min_change), 0);
+}
+
+TEST(DriftApply, LegsWithASignificantChangeAtMostOncePerInterval) {
+  DriftApplyPolicy policy;
+  policy.factor = 5.0;
+  policy.min_change = (Vec6() << 0.2, 0.2, 0.2, 0.01, 0.01, 0.01).finished();
+  policy.min_interval_s = 30.0;
+  std::array<Vec6, kNumLegs> cal_sigma;
+  cal_sigma.fill(Vec6::Zero());  // the twin's truth: no sigma, the floor decides
+  std::array<LegDrift, kNumLegs> drift{};
+  const int mr = *LegIndex("MR"), hl = *LegIndex("HL");
+  for (LegDrift& d : drift) {
+    d.windows = 4;
+    d.sigma = Vec6::Constant(0.02);
+    d.change = Vec6::Constant(0.05);  // sure, but within the floor: not worth a calibration
+  }
+  const int64_t t0 = 1'000'000'000;
+  EXPECT_EQ(LegsToApply(drift, cal_sigma, policy, t0, 0), 0);
+  drift[mr].change[2] = 2.0;
+  EXPECT_EQ(LegsToApply(drift, cal_sigma, policy, t0, 0), 1 << mr);
+  // A leg without a window is never applied, whatever its numbers.
+  drift[hl].change[2] = 2.0;
+  drift[hl].windows = 0;
+  EXPECT_EQ(LegsToApply(drift, cal_sigma, policy, t0, 0), 1 << mr);
+  // Applied at t0: nothing until 30 s later, then again.
+  EXPECT_EQ(LegsToApply(drift, cal_sigma, policy, t0 + 29'999'999, t0), 0);
+  EXPECT_EQ(LegsToApply(drift, cal_sigma, policy, t0 + 30'000'000, t0), 1 << mr);
+}
+
 }  // namespace
 }  // namespace ftcal

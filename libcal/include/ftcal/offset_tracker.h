@@ -122,6 +122,27 @@ Vec6 UnloadedReading(const RobotCalibration& cal, int k, double angle_rad, const
 int DriftBeyondCalibration(const LegDrift& d, const Vec6& calibration_sigma, double factor,
                            const Vec6& min_change);
 
+// ftcal-drift --apply's test of one leg (docs/method.md, "Applying the tracked offsets"):
+// component i is significant when the tracker is sure of its change by `factor`,
+// |d_i| > factor * sigma_i, and the change is more than the calibration itself is unsure of,
+// |d_i| > max(calibration_sigma_i, min_change_i): a new calibration then holds a better offset
+// than the old. Bit i set for component i.
+int DriftSignificant(const LegDrift& d, const Vec6& calibration_sigma, double factor,
+                     const Vec6& min_change);
+
+struct DriftApplyPolicy {
+  double factor = 5.0;
+  Vec6 min_change = Vec6::Zero();
+  double min_interval_s = 60.0;
+};
+
+// The legs whose tracked offsets go into a new calibration at `utime` (bit k for leg k; 0:
+// none, publish nothing): those with a significant component (DriftSignificant), and none
+// before policy.min_interval_s has passed since `last_apply_utime` (0: nothing applied yet).
+int LegsToApply(const std::array<LegDrift, kNumLegs>& drift,
+                const std::array<Vec6, kNumLegs>& calibration_sigma, const DriftApplyPolicy& policy,
+                int64_t utime, int64_t last_apply_utime);
+
 class OffsetTracker {
  public:
   // Throws std::invalid_argument naming the option that is not finite or out of range.
