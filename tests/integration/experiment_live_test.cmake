@@ -5,7 +5,7 @@
 # calibration against the twin's truth and against the offline calibration of its recording, and
 # the two against each other (about six minutes). Multicast: this test in its own network
 # namespace (scripts/netns-exec as the CROSSCOMPILING_EMULATOR), each run in one of its own
-# inside it. WHOLE_GROUP (one group at a time): a whole process group on the twin in real time; two at once on two
+# inside it. WHOLE_GROUP: a whole process group on the twin in real time; two at once on two
 # cores stalled the twin's boxes past the bridges' limits.
 if(TARGET ftcal-sim AND TARGET ftcal-sequencer AND TARGET ftcal-sequencer-control AND
    TARGET ftcal-calibrator AND TARGET ftcal-natnet-bridge AND LCM_LOGGER)

@@ -26,7 +26,7 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND LCM_LOGGER
     ftcal-calibrator ftcal-corrector ftcal-drift ftcal-record)
   set_target_properties(launch_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  # WHOLE_GROUP (one group at a time): each test runs a whole process group and measures its rates (six FT channels at
+  # WHOLE_GROUP: each test runs a whole process group and measures its rates (six FT channels at
   # >= 95% of the twin's); two groups at once under AddressSanitizer on two cores paced the
   # twin at 90% (CI, 2026-12-04), a failure of the machine, not of the launcher.
   ftcal_gtest_discover(launch_test KIND integration

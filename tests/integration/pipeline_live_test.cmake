@@ -16,7 +16,7 @@ target_compile_definitions(pipeline_live_test PRIVATE
 add_dependencies(pipeline_live_test ftcal-pose-segmenter ftcal-calibrator ftcal-corrector)
 set_target_properties(pipeline_live_test PROPERTIES
   CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-# WHOLE_GROUP (one group at a time): the live chain keeps pace with lcm-logplayer only if the machine is its own; in
+# WHOLE_GROUP: the live chain keeps pace with lcm-logplayer only if the machine is its own; in
 # CI's sanitizer run, beside other tests on two cores, it failed (it passes alone).
 ftcal_gtest_discover(pipeline_live_test KIND integration
   WHOLE_GROUP PROPERTIES TIMEOUT 180

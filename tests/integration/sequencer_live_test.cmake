@@ -22,7 +22,7 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
     ftcal-mocap-bridge ftcal-pose-segmenter ftcal-sequencer)
   set_target_properties(sequencer_live_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  # WHOLE_GROUP (one group at a time): the twin follows real time and the segmenter needs each grid pose's dwell to be
+  # WHOLE_GROUP: the twin follows real time and the segmenter needs each grid pose's dwell to be
   # steady; beside the other live tests on two cores, a clean-clone run found no steady window
   # for three of the poses (it passes alone and passed in the runs before).
   ftcal_gtest_discover(sequencer_live_test KIND integration

@@ -16,7 +16,7 @@ if(TARGET ftcal-sim AND TARGET ftcal-ati-bridge AND TARGET ftcal-dynamixel-bridg
   add_dependencies(sim_commanded_test ftcal-sim ftcal-ati-bridge ftcal-dynamixel-bridge)
   set_target_properties(sim_commanded_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  # WHOLE_GROUP (one group at a time): the servo loop is real time (10 ms cycles, a servo lost after five replies
+  # WHOLE_GROUP: the servo loop is real time (10 ms cycles, a servo lost after five replies
   # missed): beside another test under the sanitizers, with the machine also busy, the
   # emulator answered too late, the bridge lost every servo and refused the commands.
   ftcal_gtest_discover(sim_commanded_test KIND integration

@@ -35,7 +35,7 @@ if(FTCAL_SUPERVISORD AND TARGET ftcal-launch AND TARGET ftcal-sim AND TARGET ftc
     ftcal-record)
   set_target_properties(two_host_experiment_test PROPERTIES
     CROSSCOMPILING_EMULATOR "${PROJECT_SOURCE_DIR}/scripts/netns-exec")
-  # WHOLE_GROUP (one group at a time): timing-sensitive (restart bounds, a recording that must lose nothing outside the
+  # WHOLE_GROUP: timing-sensitive (restart bounds, a recording that must lose nothing outside the
   # outage) and it runs a dozen processes on its own.
   ftcal_gtest_discover(two_host_experiment_test KIND integration
     LONG "TwoHostExperiment.ShortPlanLiveAcrossAVethPairLoggerAndSegmenterKilledMidRun"
