@@ -38,8 +38,8 @@ SigmaForecast ForecastSigma(const config::Config& config,
       }
       PlannedHangSeries p;
       p.series = series;
-      p.gravity_b = h->gravity_b.norm() > 0.5 ? Vec3(h->gravity_b.normalized())
-                                              : twin.StatedGravityB(series);
+      p.gravity_b =
+          h->gravity_b.norm() > 0.5 ? Vec3(h->gravity_b.normalized()) : twin.StatedGravityB(series);
       p.cycles = static_cast<int>(std::floor(h->shaft_turns + 0.1));
       if (p.cycles < 1) {
         short_of_cycles += (short_of_cycles.empty() ? "" : ", ") + name;
@@ -70,9 +70,9 @@ SigmaForecast ForecastSigma(const config::Config& config,
   }
   if (design.hanging.empty() && design.poses.empty()) return f;
   const auto predict = [&] {
-    const PlanPrediction p =
-        PredictPlan(nominal, design, noise, HangingOptionsFromConfig(config.calibrator(), config.mocap()),
-                    StandingOptionsFromConfig(config.calibrator()));
+    const PlanPrediction p = PredictPlan(
+        nominal, design, noise, HangingOptionsFromConfig(config.calibrator(), config.mocap()),
+        StandingOptionsFromConfig(config.calibrator()));
     f.classes = p.classes;
     f.step1 = !design.hanging.empty();
     f.step2 = !design.poses.empty();
