@@ -240,6 +240,7 @@ std::string Render(const HealthReport& r) {
                   c.worst_name.c_str());
     out += line;
   }
+  if (!f.error.empty()) out += "  none: see the note below\n";
   if (!f.step1_missing.empty()) out += "  step 1 not forecast: see the warning below\n";
   if (!f.step2_missing.empty()) out += "  " + f.step2_missing + "\n";
   const int code = ExitCodeOf(r);

@@ -415,6 +415,7 @@ void LogExaminer::Forecast(HealthReport& r) const {
   r.forecast = ForecastSigma(config_, hanging, r.steady);
   if (!r.forecast.step1_missing.empty())
     r.warnings.push_back("sigma forecast: " + r.forecast.step1_missing);
+  if (!r.forecast.error.empty()) r.notes.push_back({"", "no sigma forecast: " + r.forecast.error});
 }
 
 }  // namespace ftcal::doctor

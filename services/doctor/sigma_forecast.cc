@@ -57,7 +57,7 @@ SigmaForecast ForecastSigma(const config::Config& config,
     }
     if (!f.step1_missing.empty()) design.hanging.clear();
   } catch (const std::exception& e) {
-    f.step1_missing = f.step2_missing = std::string("no forecast: ") + e.what();
+    f.error = e.what();
     return f;
   }
   if (poses.empty()) {

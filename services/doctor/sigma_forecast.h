@@ -27,8 +27,12 @@ struct SigmaForecast {
   bool step1 = false, step2 = false;  // forecast made
   int hanging_series = 0, poses = 0;  // what it was made from
   std::vector<ClassSummary> classes;  // PredictPlan's, in its order
-  // Why a step is not forecast (empty when it is); the step-1 one is also a warning.
+  // Why a step is not forecast (empty when it is): the recording lacks what it needs. The
+  // step-1 one is also a warning (a hanging series missing or short).
   std::string step1_missing, step2_missing;
+  // The forecast could not be made at all (the config's planner section, a robot the twin's
+  // statics cannot model): worth a note, not the recording's fault.
+  std::string error;
   double elapsed_s = 0;  // the prediction's own time
 };
 
