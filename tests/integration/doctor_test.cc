@@ -289,6 +289,54 @@ TEST_F(DoctorTest, TheStepOneForecastIsTheSigmaTheCalibratorReports) {
   }
 }
 
+TEST_F(DoctorTest, WithTheSegmentersPosesStepTwoIsForecastToo) {
+  const std::string log = fx->dir + "/forecast2.lcmlog";
+  WriteLog(log, fx->events);
+  const std::string poses = fx->dir + "/forecast2-poses.lcmlog";
+  {
+    Child seg({FTCAL_SEGMENTER, "--config", kConfig, "--replay", log, "--out", poses},
+              fx->dir + "/seg.out", fx->dir + "/seg.err");
+    const auto status = seg.Wait(60);
+    ASSERT_TRUE(status.has_value() && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+        << ReadFile(fx->dir + "/seg.err");
+  }
+  Child doctor({FTCAL_DOCTOR, "--config", kConfig, log, poses}, fx->dir + "/forecast2.out",
+               fx->dir + "/forecast2.err");
+  ASSERT_TRUE(doctor.Wait(60).has_value());
+  const std::string out = ReadFile(fx->dir + "/forecast2.out");
+  const std::string cal_path = fx->dir + "/forecast2.pbtxt";
+  Child cal(
+      {FTCAL_CALIBRATOR, "--config", kConfig, "--log", log, "--log", poses, "--out", cal_path},
+      fx->dir + "/forecast2-cal.out", fx->dir + "/forecast2-cal.err");
+  const auto status = cal.Wait(120);
+  ASSERT_TRUE(status.has_value() && WIFEXITED(*status) && WEXITSTATUS(*status) == 0)
+      << ReadFile(fx->dir + "/forecast2-cal.err");
+  const calibration::Calibration c = ReadCalibrationFile(cal_path);
+  std::vector<double> rot_xy, rot_z, p;
+  for (const calibration::LegCalibration& leg : c.leg()) {
+    const calibration::Vec3Estimate& r = leg.mounting().rotation_vector_deg();
+    rot_xy.insert(rot_xy.end(), {r.sigma_x(), r.sigma_y()});
+    rot_z.push_back(r.sigma_z());
+    const calibration::Vec3Estimate& t = leg.mounting().p_tilde_prime_m();
+    for (const double s : {t.sigma_x(), t.sigma_y(), t.sigma_z()}) p.push_back(1e3 * s);
+  }
+  const struct {
+    const char* klass;
+    const char* unit;
+    double truth;
+  } classes[] = {{"rotation x,y", "deg", Median(rot_xy)},
+                 {"rotation z", "deg", Median(rot_z)},
+                 {"p~'", "mm", Median(p)}};
+  for (const auto& k : classes) {
+    const double forecast = ForecastMedian(out, k.klass, k.unit);
+    ASSERT_GT(forecast, 0) << k.klass << "\n" << out;
+    std::printf("doctor forecast: %-13s %.4g %s, the calibrator reports %.4g: ratio %.2f\n",
+                k.klass, forecast, k.unit, k.truth, forecast / k.truth);
+    EXPECT_GE(forecast / k.truth, 0.7) << k.klass << "\n" << out;
+    EXPECT_LE(forecast / k.truth, 1.5) << k.klass << "\n" << out;
+  }
+}
+
 TEST_F(DoctorTest, AMissingHangingSeriesIsNamedInTheForecastsWarning) {
   const Result r = Doctor("forecast-missing", WithoutPhase(experiment_marker_t::HANG_X_POS));
   EXPECT_NE(r.out.find("warning: sigma forecast: hanging series HANG_X_POS missing: step 1 "
