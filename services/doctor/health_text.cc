@@ -228,6 +228,21 @@ std::string Render(const HealthReport& r) {
     out += line;
   }
   if (r.phases.empty()) out += "  none\n";
+  // The forecast: ftcal-plan's prediction from what the recording holds (sigma_forecast.h).
+  const SigmaForecast& f = r.forecast;
+  std::snprintf(line, sizeof line,
+                "\nsigma forecast (from %d hanging series, %d STEADY_POSE poses; median, worst):\n",
+                f.hanging_series, f.poses);
+  out += line;
+  for (const ClassSummary& c : f.classes) {
+    std::snprintf(line, sizeof line, "  %-14s %9.3g %-5s worst %9.3g %-5s %s\n", c.klass.c_str(),
+                  c.median_sigma * c.scale, c.unit.c_str(), c.worst_sigma * c.scale, c.unit.c_str(),
+                  c.worst_name.c_str());
+    out += line;
+  }
+  if (!f.error.empty()) out += "  none: see the note below\n";
+  if (!f.step1_missing.empty()) out += "  step 1 not forecast: see the warning below\n";
+  if (!f.step2_missing.empty()) out += "  " + f.step2_missing + "\n";
   const int code = ExitCodeOf(r);
   out += std::string("\nverdict: ") +
          (code == kExitDone      ? "calibratable"

@@ -138,11 +138,24 @@ void LogExaminer::Attach(Bus& bus) {
       ch.experiment(), &verifier_, static_cast<int64_t>(config_.auth().experiment_window_s() * 1e6),
       config_.auth().allow_unsigned(),
       [this](const MessageInfo& info, const experiment_marker_t& m) { OnMarker(info, m); });
-  bus.SubscribeRaw(ch.steady_pose(), [this](const MessageInfo& info, const void*, int) {
-    Seen(info.recv_utime);
-    ++report_.steady_poses;
-    if (open_phase_) ++report_.phases[*open_phase_].poses;
+  bus.SubscribeRaw(ch.steady_pose(), [this](const MessageInfo& info, const void* data, int size) {
+    OnSteadyPose(info, data, size);
   });
+}
+
+void LogExaminer::OnSteadyPose(const MessageInfo& info, const void* data, int size) {
+  Seen(info.recv_utime);
+  ++report_.steady_poses;
+  if (open_phase_) ++report_.phases[*open_phase_].poses;
+  // The forecast's step 2: the pose as the calibrator reads it (collector_results.cc).
+  if (wire::Decode(data, size, &pose_scratch_)) return;
+  try {
+    const SteadyPoseOut p = FromLcm(pose_scratch_);
+    if (!p.markers_ok || p.num_samples < 1) return;
+    report_.steady.push_back({p.pose, static_cast<double>(p.num_samples)});
+  } catch (const std::exception&) {
+    // A pose the calibrator refuses too (an unknown leg): left out of the forecast.
+  }
 }
 
 void LogExaminer::FileDone(const std::string& path, int64_t bytes, int64_t events,
@@ -337,6 +350,8 @@ void LogExaminer::OnMarker(const MessageInfo& info, const experiment_marker_t& m
     p.code = c.opened.code;
     p.session = c.opened.session;
     p.start_s = t_s;
+    if (HangSeriesOfPhase(p.code))
+      p.gravity_b = Vec3(m.gravity_b[0], m.gravity_b[1], m.gravity_b[2]);
     report_.phases.push_back(p);
     open_phase_ = report_.phases.size() - 1;
     servo_->travel_rad.fill(0);
@@ -377,7 +392,30 @@ HealthReport LogExaminer::Finish() {
   mocap.clock_restarts = mocap_->clock.restarts();
   r.streams.push_back(mocap);
   Judge(r);
+  Forecast(r);
   return r;
+}
+
+void LogExaminer::Forecast(HealthReport& r) const {
+  std::vector<SeenHangSeries> hanging;
+  const double rate_hz = config_.segmenter().sample_rate_hz();
+  for (const PhaseHealth& p : r.phases) {
+    const auto series = HangSeriesOfPhase(p.code);
+    if (!series || !p.completed) continue;
+    SeenHangSeries h;
+    h.series = *series;
+    h.gravity_b = p.gravity_b;
+    h.shaft_turns = p.shaft_turns;
+    // The calibrator's hanging samples are the aligner's, at most segmenter.sample_rate_hz
+    // whatever rate the transducers sent; each leg's that arrived, the fewest of the six.
+    const int64_t received = *std::min_element(p.ft_received.begin(), p.ft_received.end());
+    h.samples = std::min(static_cast<double>(received), (p.end_s - p.start_s) * rate_hz);
+    hanging.push_back(h);
+  }
+  r.forecast = ForecastSigma(config_, hanging, r.steady);
+  if (!r.forecast.step1_missing.empty())
+    r.warnings.push_back("sigma forecast: " + r.forecast.step1_missing);
+  if (!r.forecast.error.empty()) r.notes.push_back({"", "no sigma forecast: " + r.forecast.error});
 }
 
 }  // namespace ftcal::doctor

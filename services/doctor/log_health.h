@@ -20,6 +20,7 @@
 #include "common/bus.h"
 #include "common/envelope.h"
 #include "common/messages.h"
+#include "doctor/sigma_forecast.h"
 #include "ftcal/device_clock.h"
 #include "ftcal/experiment_phase.h"
 #include "ftcal/legs.h"
@@ -75,6 +76,7 @@ struct PhaseHealth {
   bool completed = false;
   int64_t poses = 0;       // STEADY_POSE events inside (the segmenter's, when it was recorded)
   double shaft_turns = 0;  // of the slowest servo, for a hanging phase: about its cycles
+  Vec3 gravity_b = Vec3::Zero();  // a hanging phase's stated gravity (its start marker), in B
   std::array<int64_t, kNumLegs> ft_received{}, ft_lost{};
 };
 
@@ -87,6 +89,8 @@ struct HealthReport {
   int64_t markers = 0, markers_refused = 0;
   std::string marker_refusal;  // the first refusal's kind
   int64_t steady_poses = 0;
+  std::vector<PlannedPose> steady;  // those with every marker tracked, as the calibrator keeps
+  SigmaForecast forecast;
   std::vector<std::string> problems;  // each makes the recording not calibratable
   std::vector<std::string> warnings;  // calibratable, but look first
   struct Note {
@@ -116,6 +120,8 @@ class LogExaminer {
   void OnServo(const MessageInfo& info, const void* data, int size);
   void OnMocap(const MessageInfo& info, const void* data, int size);
   void OnMarker(const MessageInfo& info, const experiment_marker_t& m);
+  void OnSteadyPose(const MessageInfo& info, const void* data, int size);
+  void Forecast(HealthReport& r) const;
   void Seen(int64_t utime);
   // The open phase's name when a stretch starting at `start_s` lies in it, else "".
   std::string PhaseAt(double start_s) const;
@@ -136,6 +142,7 @@ class LogExaminer {
   ft_batch_t ft_scratch_;
   FtBatch ft_batch_;
   mocap_body_t mocap_scratch_;
+  steady_pose_t pose_scratch_;
 };
 
 // The one-screen text of a report, and the exit code of its verdict (kExitDone, kExitWarnings,

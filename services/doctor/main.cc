@@ -4,7 +4,9 @@
 //
 // One screen: per device stream its rate, what it lost and where (by the device's counters),
 // where the host heard nothing for a while (stalls), its clock against the host's and the
-// queuing its samples met; the experiment's phases with their lengths and pose counts; and a
+// queuing its samples met; the experiment's phases with their lengths and pose counts; the sigma
+// each parameter class would get from the data present (sigma_forecast.h: step 2 only when the
+// recording, or a further file such as the segmenter's --replay output, holds STEADY_POSE); and a
 // verdict, also the exit code: 0 calibratable, 6 calibratable with warnings, 2 not calibratable
 // (docs/exit-codes.md). The files of one recording are read in the order given.
 #include <sys/stat.h>
@@ -31,8 +33,9 @@
 
 int main(int argc, char** argv) try {
   CLI::App cli(
-      "A recording's health before calibrating it: rates, gaps, stalls, clocks, phases and a "
-      "verdict (exit 0 calibratable, 6 with warnings, 2 not calibratable).",
+      "A recording's health before calibrating it: rates, gaps, stalls, clocks, phases, a "
+      "forecast of each parameter class's sigma from the data present, and a verdict (exit 0 "
+      "calibratable, 6 with warnings, 2 not calibratable).",
       "ftcal-doctor");
   cli.footer(ftcal::ExitCodeTable());
   std::vector<std::string> logs;

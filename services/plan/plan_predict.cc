@@ -8,7 +8,6 @@
 
 #include "ftcal/calibrate.h"
 #include "sequencer/plan.h"
-#include "sim/twin.h"
 
 namespace ftcal::plan {
 namespace {
@@ -38,9 +37,23 @@ HangSeries SeriesOf(config::HangOrientation o) {
   throw std::invalid_argument("hanging phase without an orientation");
 }
 
-// The nominal robot as the twin models it: the config's geometry, Table II legs, no mounting
-// error, no offsets spread. Only its statics are used; its noise is never drawn.
+}  // namespace
+
+DeviceNoise PlannerNoise(const config::Planner& p) {
+  RequireField(p.force_noise_n(), true, "force_noise_n");
+  RequireField(p.torque_noise_nm(), true, "torque_noise_nm");
+  RequireField(p.attitude_noise_deg(), false, "attitude_noise_deg");
+  RequireField(p.shaft_angle_noise_rad(), false, "shaft_angle_noise_rad");
+  DeviceNoise noise;
+  noise.force_n = p.force_noise_n();
+  noise.torque_nm = p.torque_noise_nm();
+  noise.attitude_rad = p.attitude_noise_deg() * kDeg;
+  noise.shaft_angle_rad = p.shaft_angle_noise_rad();
+  return noise;
+}
+
 TwinOptions NominalTwin(const config::Planner& p) {
+  RequireField(p.internal_force_n(), false, "internal_force_n");
   TwinOptions o;
   o.mounting_errors = false;
   o.offset_force_spread_n = o.offset_torque_spread_nm = o.weight_spread_n = 0.0;
@@ -50,21 +63,19 @@ TwinOptions NominalTwin(const config::Planner& p) {
   return o;
 }
 
-}  // namespace
+void SetCalibratorChoices(const config::Config& config, PlanDesign* d) {
+  // COM_BY_DATA predicts the report's fixed C, whose residual step 1 enters only through the
+  // readings' offsets and the legs' gravity.
+  d->leg_aware_com = config.calibrator().com_model() == config::COM_LEG_AWARE;
+  d->gravity_prior = config.calibrator().hanging_gravity_prior() &&
+                     config.calibrator().profile() != config::REPORT;
+}
 
 PlanDesign DesignOfPlan(const config::Config& config, const std::string& plan_name,
                         DeviceNoise* noise, RobotCalibration* nominal) {
   const config::Planner& p = config.planner();
-  RequireField(p.force_noise_n(), true, "force_noise_n");
-  RequireField(p.torque_noise_nm(), true, "torque_noise_nm");
-  RequireField(p.attitude_noise_deg(), false, "attitude_noise_deg");
-  RequireField(p.shaft_angle_noise_rad(), false, "shaft_angle_noise_rad");
+  *noise = PlannerNoise(p);
   RequireField(p.settle_s(), false, "settle_s");
-  RequireField(p.internal_force_n(), false, "internal_force_n");
-  noise->force_n = p.force_noise_n();
-  noise->torque_nm = p.torque_noise_nm();
-  noise->attitude_rad = p.attitude_noise_deg() * kDeg;
-  noise->shaft_angle_rad = p.shaft_angle_noise_rad();
 
   const sequencer::Schedule schedule = sequencer::Expand(config, plan_name);
   const config::ExperimentPlan* plan = nullptr;
@@ -111,11 +122,7 @@ PlanDesign DesignOfPlan(const config::Config& config, const std::string& plan_na
       d.poses.push_back(pp);
     }
   }
-  // COM_BY_DATA predicts the report's fixed C, whose residual step 1 enters only through the
-  // readings' offsets and the legs' gravity.
-  d.leg_aware_com = config.calibrator().com_model() == config::COM_LEG_AWARE;
-  d.gravity_prior = config.calibrator().hanging_gravity_prior() &&
-                    config.calibrator().profile() != config::REPORT;
+  SetCalibratorChoices(config, &d);
   return d;
 }
 

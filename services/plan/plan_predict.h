@@ -12,6 +12,7 @@
 
 #include "ftcal/plan_prediction.h"
 #include "proto/config.pb.h"
+#include "sim/twin.h"
 
 namespace ftcal::plan {
 
@@ -24,6 +25,16 @@ struct PlanPredictionReport {
 // The plan named `plan_name` ("" = the config's first). Throws std::invalid_argument naming the
 // plan, phase or config field when the plan cannot be expanded or predicted.
 PlanPredictionReport PredictConfigPlan(const config::Config& config, const std::string& plan_name);
+
+// What every prediction from this config shares (ftcal-plan's from a plan, ftcal-doctor's from a
+// recording): the planner's per-sample noise (throws std::invalid_argument naming a planner field
+// that is not finite and >= 0, or > 0 where it must be); the nominal robot as the twin models it
+// (the config's geometry, Table II legs, no mounting error, no offsets spread; only its statics
+// are used, its noise is never drawn); and the calibrator's step-2 choices the design carries
+// (leg-aware CoM, the hanging gravity prior).
+DeviceNoise PlannerNoise(const config::Planner& planner);
+TwinOptions NominalTwin(const config::Planner& planner);
+void SetCalibratorChoices(const config::Config& config, PlanDesign* design);
 
 // The design alone (for tests): the noise-free poses and hanging series of the plan.
 PlanDesign DesignOfPlan(const config::Config& config, const std::string& plan_name,

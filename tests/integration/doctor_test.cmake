@@ -6,5 +6,7 @@ ftcal_add_gtest(doctor_test integration TIMEOUT 120
 target_compile_definitions(doctor_test PRIVATE
   FTCAL_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
   FTCAL_BUILD_DIR="${PROJECT_BINARY_DIR}"
-  FTCAL_DOCTOR="$<TARGET_FILE:ftcal-doctor>")
-add_dependencies(doctor_test ftcal-doctor ftcal-calibrator)
+  FTCAL_DOCTOR="$<TARGET_FILE:ftcal-doctor>"
+  FTCAL_CALIBRATOR="$<TARGET_FILE:ftcal-calibrator>"
+  FTCAL_SEGMENTER="$<TARGET_FILE:ftcal-pose-segmenter>")
+add_dependencies(doctor_test ftcal-doctor ftcal-calibrator ftcal-pose-segmenter)
