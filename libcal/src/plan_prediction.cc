@@ -402,6 +402,7 @@ std::vector<ClassSummary> SummariseClasses(const std::vector<PredictedSigma>& pa
       rep.push_back(p.reported);
       if (p.sigma >= c.worst_sigma) {
         c.worst_sigma = p.sigma;
+        c.worst_reported = p.reported;
         c.worst_name = p.name;
       }
     }

@@ -231,13 +231,14 @@ std::string Render(const HealthReport& r) {
   // The forecast: ftcal-plan's prediction from what the recording holds (sigma_forecast.h).
   const SigmaForecast& f = r.forecast;
   std::snprintf(line, sizeof line,
-                "\nsigma forecast (from %d hanging series, %d STEADY_POSE poses; median, worst):\n",
+                "\nsigma forecast, as the calibrator would report it (from %d hanging series, %d "
+                "STEADY_POSE poses; median, worst):\n",
                 f.hanging_series, f.poses);
   out += line;
   for (const ClassSummary& c : f.classes) {
     std::snprintf(line, sizeof line, "  %-14s %9.3g %-5s worst %9.3g %-5s %s\n", c.klass.c_str(),
-                  c.median_sigma * c.scale, c.unit.c_str(), c.worst_sigma * c.scale, c.unit.c_str(),
-                  c.worst_name.c_str());
+                  c.median_reported * c.scale, c.unit.c_str(), c.worst_reported * c.scale,
+                  c.unit.c_str(), c.worst_name.c_str());
     out += line;
   }
   if (!f.error.empty()) out += "  none: see the note below\n";

@@ -84,6 +84,7 @@ struct ClassSummary {
   double median_sigma = 0.0;  // SI
   double median_reported = 0.0;
   double worst_sigma = 0.0;
+  double worst_reported = 0.0;  // the worst parameter's, as the calibrator would report it
   std::string worst_name;
 };
 
