@@ -231,8 +231,8 @@ std::string Render(const HealthReport& r) {
   // The forecast: ftcal-plan's prediction from what the recording holds (sigma_forecast.h).
   const SigmaForecast& f = r.forecast;
   std::snprintf(line, sizeof line,
-                "\nsigma forecast, as the calibrator would report it (from %d hanging series, %d "
-                "STEADY_POSE poses; median, worst):\n",
+                "\nsigma forecast (from %d hanging series, %d STEADY_POSE poses; median, worst, "
+                "as the calibrator would report them):\n",
                 f.hanging_series, f.poses);
   out += line;
   for (const ClassSummary& c : f.classes) {
