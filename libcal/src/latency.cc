@@ -193,7 +193,8 @@ ServoDelayEstimate EstimateServoDelay(const std::vector<HangingRecording>& recor
       }
       Group g;
       g.harmonics = options.harmonics;
-      if (n < static_cast<size_t>(20 * g.Coefficients())) continue;  // too short to say anything
+      // Too short to say anything.
+      if (n < 20 * static_cast<size_t>(g.Coefficients())) continue;
       for (size_t i = 0; i < n; ++i) {
         if (!std::isfinite(s.t_s[i]) || !std::isfinite(s.angle_rad[i]) ||
             !s.wrench[i].allFinite()) {
@@ -280,6 +281,7 @@ ServoDelayEstimate EstimateServoDelay(const std::vector<HangingRecording>& recor
   // Each leg and series alone: their spread covers what the shared model misses (a leg's own
   // transducer latency, a misfit of the torque model).
   std::vector<double> each;
+  each.reserve(all.size());
   for (const Group* g : all) each.push_back(Solve({g}, options.max_delay_s, nullptr));
   out.group_delay_s = each;
   double mean = 0.0;

@@ -13,7 +13,7 @@
 #include "pose_segmenter/pose_segmenter_stage.h"
 #include "session/span_index.h"
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   ftcal::ServiceApp app(
       {"ftcal-pose-segmenter",
        "Reads FT_<LEG> (ft_batch_t, six legs), SERVO_STATE, MOCAP_BODY and EXPERIMENT. "
@@ -83,4 +83,6 @@ int main(int argc, char** argv) {
     app.log().critical("config: {}", ftcal::UserText(e, "running the segmenter"));
     return ftcal::ExitCodeFor(e, ftcal::kExitConfig);
   }
+} catch (...) {
+  return ftcal::ExitOnEscapedException("ftcal-pose-segmenter");
 }
