@@ -251,13 +251,19 @@ void AtiBridge::PublishBatch(Transducer& t, std::int64_t kernel_ns, std::int64_t
   // record's time: the stream's times only rise.
   const std::int64_t receipt_us = kernel_ns / 1000;
   t.clock.Observe(t.ticks[n - 1], receipt_us);
+  // The last record is capped MAX_N us before the receipt, not at it: the next datagram, if
+  // its receipt is within a few us of this one's (two queued by a stall and read back to back,
+  // while the map still runs late at the stream's start), must find room for its own records
+  // after this one's and before its receipt, or the rising rule pushed them past it (seen:
+  // +1..+5 us, CI 2026-12-07). No record is taken that close to its receipt anyway (the box's
+  // transport alone takes longer), so the cap binds only on a map that runs late.
+  constexpr auto kRoomUs = static_cast<std::int64_t>(ft_batch_t::MAX_N);
   for (std::size_t i = 0; i < n; ++i) {
-    // Each record capped so as to leave the later ones of the datagram 1 us each before the
-    // receipt: when several map at or after it (a datagram less delayed than the map's line,
-    // between two refits), capping them all at the receipt let the rising rule push the later
-    // ones past it (receipt + 1, + 2, ...).
+    // Each record capped so as to leave the later ones of the datagram 1 us each before that:
+    // when several map at or after it (a datagram less delayed than the map's line, between
+    // two refits), capping them all at one time let the rising rule push the later ones past.
     const auto later = static_cast<std::int64_t>(n - 1 - i);
-    const std::int64_t mapped = std::min(t.clock.Map(t.ticks[i]), receipt_us - later);
+    const std::int64_t mapped = std::min(t.clock.Map(t.ticks[i]), receipt_us - kRoomUs - later);
     m.sample_utime[i] = std::max(mapped, t.last_utime + 1);
     t.last_utime = m.sample_utime[i];
   }
