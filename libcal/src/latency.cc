@@ -13,35 +13,18 @@
 #include <ceres/ceres.h>
 
 #include "ftcal/legs.h"
+#include "hanging_internal.h"
 
 namespace ftcal {
 namespace {
 
-constexpr double kTwoPi = 2.0 * M_PI;
+using hanging_detail::kTwoPi;
+using hanging_detail::WrapPi;
 // Gaussian noise passes 6 robust scales once in 5e8 samples.
 constexpr double kOutlierScales = 6.0;
 
-double WrapPi(double a) {
-  const double w = a - kTwoPi * std::floor(a / kTwoPi + 0.5);
-  return w <= -M_PI ? w + kTwoPi : w;
-}
-
-const char* SeriesName(HangSeries s) {
-  switch (s) {
-    case HangSeries::kXPos:
-      return "HANG_X_POS";
-    case HangSeries::kXNeg:
-      return "HANG_X_NEG";
-    case HangSeries::kZPos:
-      return "HANG_Z_POS";
-    case HangSeries::kZNeg:
-      return "HANG_Z_NEG";
-  }
-  return "HANG_?";
-}
-
 std::string Where(const HangingRecording& r, int leg) {
-  return std::string("servo delay: hanging series ") + SeriesName(r.series) + ", leg " +
+  return std::string("servo delay: hanging series ") + HangSeriesName(r.series) + ", leg " +
          std::string(kLegNames[static_cast<size_t>(leg)]) + ": ";
 }
 
